@@ -1,0 +1,177 @@
+"""The one small interface every integrator implements, and what it returns.
+
+An integrator is a class with a ``name``, declared ``capabilities`` and a ``solve`` method::
+
+    traj = integrator.solve(scene, t_end, dt=..., rtol=..., atol=..., save_every=...)
+
+``solve`` never raises for a run that fails numerically (Newton failure, divergence, step
+size collapse, the deployed length leaving its range): it returns the trajectory up to the
+last good step with ``status`` naming what happened and ``reason`` saying it in words.
+Bad *arguments* (a negative dt, a missing tolerance) raise ``ValueError`` before any work.
+"""
+
+from __future__ import annotations
+
+import abc
+import enum
+import math
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import numpy as np
+
+
+class Capability(str, enum.Enum):
+    """What a method is, declared by each integrator (never guessed by the runner)."""
+
+    FIXED_STEP = "fixed_step"  # takes dt
+    ADAPTIVE = "adaptive"  # takes rtol/atol
+    IMPLICIT = "implicit"  # solves a nonlinear system per step
+    VARIATIONAL = "variational"  # discrete Euler–Lagrange equations (symplectic, momentum-preserving)
+    GROUP_PRESERVING = "group_preserving"  # attitude stays on SO(3) to round-off
+
+
+class Status(str, enum.Enum):
+    OK = "ok"
+    NEWTON_FAILED = "newton_failed"
+    DIVERGED = "diverged"  # non-finite state or energy blow-up
+    LENGTH_LIMIT = "length_limit"  # deployed length left (0, L - b)
+    MAX_STEPS = "max_steps"
+    STEP_SIZE_COLLAPSE = "step_size_collapse"
+    FAILED = "failed"  # any other solver failure, with the solver's message as reason
+
+
+@dataclass
+class Trajectory:
+    """Saved states of one run, in the integrator's own state, plus stats and status.
+
+    Attributes:
+        t: saved times, shape (n,).
+        x: generalized coordinates (s_p if reel, q_2..q_{N+1}), shape (n, nx); see
+            `models.layout`.
+        attitude: rotation matrices (n, 3, 3) or quaternions (n, 4) (w, x, y, z), or None
+            without a rigid body; ``attitude_kind`` says which.
+        velocity: generalized velocities (ṡ_p, q̇, Ω), shape (n, nw), or None if the
+            integrator carries momenta (then ``momentum`` is set; diagnostics invert the
+            Legendre transform).
+        momentum: generalized momenta, shape (n, nw), or None.
+        work: accumulated work of the non-conservative forces, shape (n,).
+        status / reason: ``"ok"`` or a `Status` value naming why the run stopped early.
+        stats: per-run counters: ``steps``, ``rhs_evals``, ``jac_evals``, ``lu_decompositions``,
+            ``newton_iterations``, ``rejected_steps``, ``wall_time`` (s, after compilation),
+            ``compile_time`` (s) — those that apply.
+        integrator / settings / scene_name: provenance.
+    """
+
+    t: np.ndarray
+    x: np.ndarray
+    attitude: np.ndarray | None
+    velocity: np.ndarray | None
+    work: np.ndarray
+    momentum: np.ndarray | None = None
+    attitude_kind: str = "matrix"  # "matrix" or "quaternion"
+    status: str = Status.OK.value
+    reason: str = ""
+    stats: dict[str, Any] = field(default_factory=dict)
+    integrator: str = ""
+    settings: dict[str, Any] = field(default_factory=dict)
+    scene_name: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return self.status == Status.OK.value
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def save(self, path) -> None:
+        """Write to .npz atomically (temporary file, then rename)."""
+        import json
+
+        from models.io import atomic_path
+
+        arrays = {k: v for k, v in (("t", self.t), ("x", self.x), ("attitude", self.attitude),
+                                     ("velocity", self.velocity), ("momentum", self.momentum),
+                                     ("work", self.work)) if v is not None}
+        meta = {k: getattr(self, k) for k in ("attitude_kind", "status", "reason", "stats", "integrator",
+                                              "settings", "scene_name")}
+        with atomic_path(path) as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez(fh, meta=np.array(json.dumps(meta, default=str)), **arrays)
+
+    @classmethod
+    def load(cls, path) -> "Trajectory":
+        import json
+
+        with np.load(path) as data:
+            meta = json.loads(str(data["meta"]))
+            arrays = {k: data[k] if k in data else None for k in ("t", "x", "attitude", "velocity", "momentum", "work")}
+        return cls(**arrays, **meta)
+
+
+def save_times(t_end: float, save_every: float | None, dt: float | None = None) -> np.ndarray:
+    """Saved times 0, Δ, 2Δ, ..., t_end. For a fixed step, Δ is a multiple of dt."""
+    if save_every is None:
+        save_every = t_end / 200.0
+    if dt is not None:
+        stride = max(1, int(round(save_every / dt)))
+        n = int(math.floor(t_end / dt + 1e-9))
+        return np.arange(0, n + 1, stride) * dt
+    n = int(math.floor(t_end / save_every + 1e-9))
+    t = np.arange(n + 1) * save_every
+    return t if abs(t[-1] - t_end) < 1e-12 * max(1.0, t_end) else np.append(t, t_end)
+
+
+def check_positive(name: str, value, *, allow_none: bool = False) -> None:
+    """Refuse a non-positive or non-finite argument before any work is done."""
+    if value is None:
+        if allow_none:
+            return
+        raise ValueError(f"{name} is required (allowed: a finite number > 0)")
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)) or not (
+        math.isfinite(value) and value > 0
+    ):
+        raise ValueError(f"{name} = {value!r} is invalid (allowed: a finite number > 0)")
+
+
+class Integrator(abc.ABC):
+    """Base class of every integrator. Subclasses set the class attributes and `solve`.
+
+    Class attributes:
+        name: registry name (lower case).
+        capabilities: frozenset of `Capability`, declared.
+        order: the method's classical order of accuracy (for convergence tests), or None.
+        description: one line for tables and ``python -m benchmark list``.
+    """
+
+    name: ClassVar[str] = ""
+    capabilities: ClassVar[frozenset[Capability]] = frozenset()
+    order: ClassVar[int | None] = None
+    description: ClassVar[str] = ""
+
+    def has(self, capability: Capability) -> bool:
+        return capability in self.capabilities
+
+    @abc.abstractmethod
+    def solve(
+        self,
+        scene,
+        t_end: float | None = None,
+        *,
+        dt: float | None = None,
+        rtol: float | None = None,
+        atol: float | None = None,
+        save_every: float | None = None,
+        max_steps: int | None = None,
+        **options,
+    ) -> Trajectory:
+        """Integrate ``scene`` from 0 to ``t_end`` (default ``scene.t_end``).
+
+        Fixed-step methods need ``dt``; adaptive methods need ``rtol`` and ``atol`` (and may
+        take ``dt`` as the initial or constant step when they declare FIXED_STEP too).
+        ``save_every`` is the interval between saved times in seconds (default t_end/200;
+        rounded to a multiple of dt for fixed steps). Returns a `Trajectory`.
+        """
+
+    def __repr__(self) -> str:
+        return f"<integrator {self.name!r}>"

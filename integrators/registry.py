@@ -1,0 +1,72 @@
+"""Registry of integrators by name: built-ins by decorator, plugins by entry point.
+
+A plugin package declares, in its own pyproject.toml::
+
+    [project.entry-points."reelbench.integrators"]
+    my_method = "my_package.module:MyIntegrator"
+
+where ``MyIntegrator`` subclasses `integrators.Integrator`. The baselines of this project are
+registered exactly that way (see this repository's pyproject.toml).
+"""
+
+from __future__ import annotations
+
+import difflib
+from importlib.metadata import entry_points
+
+from integrators.base import Integrator
+
+ENTRY_POINT_GROUP = "reelbench.integrators"
+
+_REGISTRY: dict[str, type[Integrator]] = {}
+_PLUGIN_ERRORS: dict[str, str] = {}
+
+
+def register(cls: type[Integrator]) -> type[Integrator]:
+    """Class decorator: register an `Integrator` subclass under ``cls.name``."""
+    if not (isinstance(cls, type) and issubclass(cls, Integrator)):
+        raise TypeError(f"{cls!r} is not an Integrator subclass")
+    if not cls.name:
+        raise ValueError(f"{cls.__name__} has no name")
+    existing = _REGISTRY.get(cls.name)
+    if existing is not None and existing is not cls:
+        raise ValueError(f"integrator name {cls.name!r} is taken by {existing.__module__}.{existing.__qualname__}")
+    _REGISTRY[cls.name] = cls
+    return cls
+
+
+def _load_plugins() -> None:
+    for ep in entry_points(group=ENTRY_POINT_GROUP):
+        if ep.name in _REGISTRY or ep.name in _PLUGIN_ERRORS:
+            continue
+        try:
+            cls = ep.load()
+            if getattr(cls, "name", None) != ep.name:
+                raise ValueError(f"entry point {ep.name!r} loads a class named {getattr(cls, 'name', None)!r}")
+            register(cls)
+        except Exception as exc:  # a broken plugin must not take the others down
+            _PLUGIN_ERRORS[ep.name] = f"{type(exc).__name__}: {exc}"
+
+
+def available() -> list[str]:
+    """Names of all registered integrators (built-ins and plugins)."""
+    _load_plugins()
+    return sorted(_REGISTRY)
+
+
+def plugin_errors() -> dict[str, str]:
+    """Entry points that failed to load, with the reason."""
+    _load_plugins()
+    return dict(_PLUGIN_ERRORS)
+
+
+def get_integrator(name: str, **options) -> Integrator:
+    """An instance of the integrator registered as ``name`` (options go to its constructor)."""
+    _load_plugins()
+    if name not in _REGISTRY:
+        if name in _PLUGIN_ERRORS:
+            raise ValueError(f"integrator {name!r} failed to load: {_PLUGIN_ERRORS[name]}")
+        close = difflib.get_close_matches(name, list(_REGISTRY), n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        raise ValueError(f"unknown integrator {name!r}{hint}; available: {', '.join(sorted(_REGISTRY))}")
+    return _REGISTRY[name](**options)

@@ -1,0 +1,338 @@
+"""The string pendulum model: the single source of truth for the physics (MODEL.md §2–§5).
+
+`StringPendulum(scene)` composes the energy terms and generalized forces of the scene's
+effects, once, at construction. Everything else is derived from those terms:
+
+* the continuous equations of motion (MODEL.md §5) by automatic differentiation of the
+  Lagrangian (`accelerations`, `ode_rhs` on a quaternion attitude state), checked in the tests
+  against the closed-form equations of `models.closed_form`;
+* the Legendre transform p = M(x, R) w and its inverse, used by every integrator;
+* the diagnostics (`models.diagnostics`).
+
+All functions take unbatched JAX arrays: x (nx,), R (3, 3), w (nw,) — see `models.layout`.
+Without a rigid body R is ignored (pass the identity).
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Callable
+
+import numpy as np
+
+from models._jax import jax, jnp
+from models.layout import StateLayout
+from models.scene import Scene
+
+E3 = np.array([0.0, 0.0, 1.0])
+
+
+def hat(v):
+    """Hat map: hat(v) @ y = v × y."""
+    return jnp.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def vee(m):
+    """Inverse of `hat` (skew part of m)."""
+    return jnp.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]]) * 0.5
+
+
+def quat_to_rot(quat):
+    """R(quat) for quat = (w, x, y, z) by the usual formula, *not* renormalised."""
+    w, x, y, z = quat
+    return jnp.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def rot_to_quat(R) -> np.ndarray:
+    """Unit quaternion (w, x, y, z) of a rotation matrix (numpy; Shepperd's method)."""
+    R = np.asarray(R, dtype=float)
+    tr = np.trace(R)
+    if tr > 0:
+        s = 2.0 * np.sqrt(tr + 1.0)
+        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
+    else:
+        i = int(np.argmax(np.diag(R)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * np.sqrt(1.0 + R[i, i] - R[j, j] - R[k, k])
+        q = np.zeros(4)
+        q[0] = (R[k, j] - R[j, k]) / s
+        q[1 + i] = 0.25 * s
+        q[1 + j] = (R[j, i] + R[i, j]) / s
+        q[1 + k] = (R[k, i] + R[i, k]) / s
+    q = np.asarray(q, dtype=float)
+    return q if q[0] >= 0 else -q
+
+
+def quat_rate(quat, omega):
+    """q̇uat = ½ quat ⊗ (0, Ω), Ω in the body frame."""
+    w, x, y, z = quat
+    p, q, r = omega
+    return 0.5 * jnp.array(
+        [-x * p - y * q - z * r, w * p + y * r - z * q, w * q + z * p - x * r, w * r + x * q - y * p]
+    )
+
+
+class StringPendulum:
+    """Energy, forces and continuous-time equations of one scene (MODEL.md §3, §5).
+
+    Only the effects the scene lists exist: without `reel`, s_p is not a coordinate; without
+    `rigid_body`, the end mass is a point mass and there is no attitude state.
+    """
+
+    def __init__(self, scene: Scene):
+        self.scene = scene
+        self.layout = StateLayout.from_scene(scene)
+        st, bd, rl, ini = scene.string, scene.body, scene.reel, scene.initial
+        self.N = st.elements
+        self.L = st.total_length
+        self.mu = st.mass_per_length
+        self.EA = st.axial_stiffness
+        self.m_b = bd.mass
+        self.J_c = np.array(bd.inertia)
+        self.rho_c = np.array(bd.attachment_to_com) if scene.has("rigid_body") else np.zeros(3)
+        rho = self.rho_c
+        #: inertia about the attachment point, and the LGVI's nonstandard inertia J_d
+        self.J_o = self.J_c + self.m_b * (rho @ rho * np.eye(3) - np.outer(rho, rho))
+        self.J_d = 0.5 * np.trace(self.J_o) * np.eye(3) - self.J_o
+        self.d = rl.radius
+        self.r_d = np.array(rl.center)
+        self.b = rl.guide_length
+        self.kappa = rl.equivalent_mass
+        self.r_p = np.array(rl.exit_point)
+        self.t_g = np.array(rl.exit_direction)
+        self.u = rl.control_moment if scene.has("reel_control") else 0.0
+        self.g = scene.g if scene.has("gravity") else 0.0
+        #: s_p of a fixed-length scene (locked)
+        self.s_fixed = self.L - ini.deployed_length
+        a = np.arange(1, self.N + 1, dtype=float)
+        # M31_a = c31_a (q_a - q_{a+1}), M23_a = c23_a (q_a - q_{a+1})   (MODEL.md §3)
+        self.c31 = self.mu / (6 * self.N) * (2 + 3 * self.N - 3 * a)
+        self.c23 = self.mu / (6 * self.N) * (1 + 3 * self.N - 3 * a)
+
+        # Effects -> terms, decided once here (not by branches in the integrators).
+        lay = self.layout
+        self.kinetic_terms: dict[str, Callable] = {"T_string": self._T_string, "T_body": self._T_body}
+        if lay.has_reel:
+            self.kinetic_terms["T_reel"] = self._T_reel
+        self.potential_terms: dict[str, Callable] = {"V_elastic": self._V_elastic}
+        if scene.has("gravity"):
+            self.potential_terms["V_string_gravity"] = self._V_string_gravity
+            self.potential_terms["V_body_gravity"] = self._V_body_gravity
+            if lay.has_reel:
+                self.potential_terms["V_reel"] = self._V_reel
+        self.reel_forces: dict[str, Callable] = {}
+        if scene.has("carnot"):
+            self.reel_forces["Q_carnot"] = self._Q_carnot
+        if scene.has("reel_control"):
+            self.reel_forces["Q_control"] = self._Q_control
+
+    # ------------------------------------------------------------------------------------
+    # Coordinates
+    # ------------------------------------------------------------------------------------
+    def reel_coordinate(self, x):
+        return x[0] if self.layout.has_reel else jnp.asarray(self.s_fixed)
+
+    def nodes(self, x):
+        """Node positions relative to r_p, (N+1, 3), with q_1 = 0."""
+        q = x[self.layout.nodes].reshape(self.N, 3)
+        return jnp.concatenate([jnp.zeros((1, 3)), q], axis=0)
+
+    def element_length(self, x):
+        """Unstretched element length l = (L - s_p) / N."""
+        return (self.L - self.reel_coordinate(x)) / self.N
+
+    def reel_rate(self, w):
+        return w[0] if self.layout.has_reel else jnp.asarray(0.0)
+
+    def node_velocities(self, w):
+        qd = w[self.layout.nodes].reshape(self.N, 3)
+        return jnp.concatenate([jnp.zeros((1, 3)), qd], axis=0)
+
+    def omega(self, w):
+        return w[self.layout.omega] if self.layout.has_attitude else jnp.zeros(3)
+
+    # ------------------------------------------------------------------------------------
+    # Energy terms (MODEL.md §3), one per effect
+    # ------------------------------------------------------------------------------------
+    def _T_reel(self, x, R, w):
+        s, sd = x[0], w[0]
+        M0 = self.mu * s + self.kappa + self.mu * (self.L - s) / 3.0
+        return 0.5 * M0 * sd * sd
+
+    def _T_string(self, x, R, w):
+        q, qd, l = self.nodes(x), self.node_velocities(w), self.element_length(x)
+        va, vb = qd[:-1], qd[1:]
+        T = jnp.sum(self.mu * l / 6.0 * (jnp.sum(va * va, 1) + jnp.sum(va * vb, 1) + jnp.sum(vb * vb, 1)))
+        if self.layout.has_reel:
+            dq = q[:-1] - q[1:]
+            coupling = jnp.sum(self.c31 * jnp.sum(dq * va, 1) + self.c23 * jnp.sum(dq * vb, 1))
+            T = T + w[0] * coupling
+        return T
+
+    def _T_body(self, x, R, w):
+        v_tip = self.node_velocities(w)[-1]
+        if not self.layout.has_attitude:
+            return 0.5 * self.m_b * v_tip @ v_tip
+        om = self.omega(w)
+        v_com = v_tip + R @ jnp.cross(om, self.rho_c)
+        return 0.5 * self.m_b * v_com @ v_com + 0.5 * om @ (self.J_c @ om)
+
+    def _V_reel(self, x, R):
+        s = x[0]
+        return -self.mu * self.g * s * (E3 @ self.r_d) - self.mu * self.g * self.d**2 * jnp.cos((s - self.b) / self.d)
+
+    def _V_string_gravity(self, x, R):
+        q, l = self.nodes(x), self.element_length(x)
+        mid = self.r_p + 0.5 * (q[:-1] + q[1:])
+        return -self.mu * self.g * l * jnp.sum(mid[:, 2])
+
+    def _V_body_gravity(self, x, R):
+        tip = self.r_p + self.nodes(x)[-1]
+        if self.layout.has_attitude:
+            tip = tip + R @ self.rho_c
+        return -self.m_b * self.g * tip[2]
+
+    def _V_elastic(self, x, R):
+        q, l = self.nodes(x), self.element_length(x)
+        stretch = jnp.linalg.norm(q[1:] - q[:-1], axis=1)
+        return jnp.sum(self.EA / (2 * l) * (stretch - l) ** 2)
+
+    def _Q_carnot(self, t, x, w):
+        """Carnot loss at the guide-way exit: Q_c ṡ = -½ μ |ṡ|³ |q_2/l - t_g|² <= 0."""
+        sd = w[0]
+        jump = self.nodes(x)[1] / self.element_length(x) - self.t_g
+        return -0.5 * self.mu * sd * jnp.abs(sd) * (jump @ jump)
+
+    def _Q_control(self, t, x, w):
+        return jnp.asarray(self.u / self.d)
+
+    # ------------------------------------------------------------------------------------
+    # Totals
+    # ------------------------------------------------------------------------------------
+    def kinetic(self, x, R, w):
+        return sum(f(x, R, w) for f in self.kinetic_terms.values())
+
+    def potential(self, x, R):
+        return sum((f(x, R) for f in self.potential_terms.values()), jnp.asarray(0.0))
+
+    def lagrangian(self, x, R, w):
+        return self.kinetic(x, R, w) - self.potential(x, R)
+
+    def energy(self, x, R, w):
+        return self.kinetic(x, R, w) + self.potential(x, R)
+
+    def reel_force(self, t, x, w):
+        """Non-conservative generalized force on s_p (Q_u + Q_c); zero without such effects."""
+        return sum((f(t, x, w) for f in self.reel_forces.values()), jnp.asarray(0.0))
+
+    def generalized_force(self, t, x, w):
+        """Q as a vector over w: only the s_p row is forced."""
+        Q = jnp.zeros(self.layout.nw)
+        if self.layout.has_reel:
+            Q = Q.at[0].set(self.reel_force(t, x, w))
+        return Q
+
+    def power(self, t, x, w):
+        """Power of the non-conservative forces, Q · w."""
+        return self.reel_force(t, x, w) * self.reel_rate(w)
+
+    # ------------------------------------------------------------------------------------
+    # Legendre transform
+    # ------------------------------------------------------------------------------------
+    def momentum(self, x, R, w):
+        """p = ∂L/∂w = M(x, R) w (T is exactly quadratic in w)."""
+        return jax.grad(self.kinetic, argnums=2)(x, R, w)
+
+    def mass_matrix(self, x, R):
+        return jax.jacfwd(self.momentum, argnums=2)(x, R, jnp.zeros(self.layout.nw))
+
+    def velocity_from_momentum(self, x, R, p):
+        return jnp.linalg.solve(self.mass_matrix(x, R), p)
+
+    # ------------------------------------------------------------------------------------
+    # Continuous-time equations (MODEL.md §5), by autodiff of the Lagrangian
+    # ------------------------------------------------------------------------------------
+    def accelerations(self, t, x, R, w):
+        """ẇ from M ẇ = [∂L/∂x + Q ; Π × Ω + M_R] - Ṁ w."""
+        lay = self.layout
+        M = self.mass_matrix(x, R)
+        xdot = w[: lay.nx]
+        om = self.omega(w)
+        Rdot = R @ hat(om)
+        # Ṁ w: derivative of M(x, R) w along (ẋ, R Ω^) with w held fixed
+        _, Mdot_w = jax.jvp(lambda x_, R_: self.momentum(x_, R_, w), (x, R), (xdot, Rdot))
+        rhs = jax.grad(self.lagrangian, argnums=0)(x, R, w)
+        if lay.has_reel:
+            rhs = rhs.at[0].add(self.reel_force(t, x, w))
+        if lay.has_attitude:
+            # M_R · η = d/dε L(R exp(ε η^)); first order needs only R (I + ε η^)
+            M_R = jax.grad(lambda eta: self.lagrangian(x, R @ (jnp.eye(3) + hat(eta)), w))(jnp.zeros(3))
+            Pi = self.momentum(x, R, w)[lay.omega]
+            rhs = jnp.concatenate([rhs, jnp.cross(Pi, om) + M_R])
+        return jnp.linalg.solve(M, rhs - Mdot_w)
+
+    # ------------------------------------------------------------------------------------
+    # Quaternion ODE state for the baselines
+    # ------------------------------------------------------------------------------------
+    def split_state(self, y):
+        """y -> (x, R(quat), w, W); R(quat) is not renormalised."""
+        lay = self.layout
+        x, w = y[lay.y_x], y[lay.y_w]
+        R = quat_to_rot(y[lay.y_quat]) if lay.has_attitude else jnp.eye(3)
+        W = y[lay.y_work][0] if lay.has_work else jnp.asarray(0.0)
+        return x, R, w, W
+
+    def ode_rhs(self, t, y):
+        lay = self.layout
+        x, R, w, _ = self.split_state(y)
+        parts = [w[: lay.nx]]
+        if lay.has_attitude:
+            parts.append(quat_rate(y[lay.y_quat], self.omega(w)))
+        parts.append(self.accelerations(t, x, R, w))
+        if lay.has_work:
+            parts.append(jnp.atleast_1d(self.power(t, x, w)))
+        return jnp.concatenate(parts)
+
+    # ------------------------------------------------------------------------------------
+    # Initial state (SCENARIOS.md: straight, unstretched string along `direction`)
+    # ------------------------------------------------------------------------------------
+    def initial_state(self):
+        """(x0, R0, w0) as numpy arrays."""
+        ini, lay = self.scene.initial, self.layout
+        ell0 = ini.deployed_length
+        a = np.arange(2, self.N + 2, dtype=float)  # nodes 2 .. N+1
+        q = ((a - 1) / self.N * ell0)[:, None] * np.array(ini.direction)[None, :]
+        qd = ((a - 1) / self.N)[:, None] * np.array(ini.tip_velocity)[None, :]
+        x = np.concatenate([[self.L - ell0] if lay.has_reel else [], q.ravel()])
+        w = np.concatenate([[ini.reel_rate] if lay.has_reel else [], qd.ravel(),
+                            ini.angular_velocity if lay.has_attitude else []])
+        R = np.array(ini.attitude) if lay.has_attitude else np.eye(3)
+        return x, R, w
+
+    def initial_ode_state(self) -> np.ndarray:
+        x, R, w = self.initial_state()
+        lay = self.layout
+        return np.concatenate([x, rot_to_quat(R) if lay.has_attitude else [], w, [0.0] if lay.has_work else []])
+
+    # ------------------------------------------------------------------------------------
+    # Compiled entry points (cached per model)
+    # ------------------------------------------------------------------------------------
+    @functools.cached_property
+    def ode_rhs_jit(self):
+        return jax.jit(self.ode_rhs)
+
+    @functools.cached_property
+    def ode_jacobian_jit(self):
+        return jax.jit(jax.jacfwd(self.ode_rhs, argnums=1))
+
+
+@functools.lru_cache(maxsize=64)
+def build_model(scene: Scene) -> StringPendulum:
+    """The model of a scene (cached, so compiled functions are shared between users)."""
+    return StringPendulum(scene)

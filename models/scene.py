@@ -1,0 +1,477 @@
+"""Scenes: one TOML file fully determines one simulation.
+
+A scene names its physical *effects*; the model builds only the terms those effects need
+(`models.model.StringPendulum`). The file format is described in SCENARIOS.md; every rule
+listed there is enforced here, before any computation, and every error names the file, the
+key and the allowed range (`SceneError`).
+
+    >>> from models import load_scene
+    >>> scene = load_scene("fixed_length", elements=40)
+    >>> scene.string.elements
+    40
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import difflib
+import hashlib
+import json
+import math
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+SCENE_DIR = Path(__file__).resolve().parent / "scenes"
+
+#: Every effect a scene may list, with the effects it needs.
+EFFECTS: dict[str, tuple[str, ...]] = {
+    "gravity": (),
+    "elasticity": (),
+    "rigid_body": (),
+    "reel": (),
+    "carnot": ("reel",),
+    "reel_control": ("reel",),
+}
+REQUIRED_EFFECTS = ("elasticity",)
+
+_VEC3 = "vec3"
+_MAT3 = "mat3"
+
+
+@dataclass(frozen=True)
+class _Key:
+    """Schema entry: type, constraint and default of one scene key."""
+
+    kind: str  # "float", "int", "str", "vec3", "mat3", "effects"
+    rule: str = "finite"  # "finite", "positive", "nonnegative", "nonzero", ...
+    default: Any = None
+    required_by: tuple[str, ...] | None = None  # required iff all these effects are listed
+    required: bool = False
+
+
+_SCHEMA: dict[str, dict[str, _Key] | _Key] = {
+    "name": _Key("str", required=True),
+    "description": _Key("str", default=""),
+    "t_end": _Key("float", "positive", required=True),
+    "effects": _Key("effects", required=True),
+    "string": {
+        "total_length": _Key("float", "positive", required=True),
+        "mass_per_length": _Key("float", "positive", required=True),
+        "axial_stiffness": _Key("float", "positive", required=True),
+        "elements": _Key("int", "at_least_1", required=True),
+    },
+    "body": {
+        "mass": _Key("float", "positive", required=True),
+        "box": _Key(_VEC3, "positive"),
+        "inertia": _Key(_MAT3, "spd"),
+        "attachment_to_com": _Key(_VEC3, default=(0.0, 0.0, 0.0)),
+    },
+    "reel": {
+        "radius": _Key("float", "positive", required_by=("reel",), default=1.0),
+        "center": _Key(_VEC3, required_by=("reel",), default=(0.0, 0.0, 0.0)),
+        "guide_length": _Key("float", "positive", required_by=("reel",), default=0.0),
+        "equivalent_mass": _Key("float", "positive", required_by=("reel",), default=1.0),
+        "exit_point": _Key(_VEC3, default=(0.0, 0.0, 0.0)),
+        "exit_direction": _Key(_VEC3, "nonzero", default=(0.0, 0.0, 1.0)),
+        "control_moment": _Key("float", default=0.0),
+    },
+    "initial": {
+        "deployed_length": _Key("float", "deployed_length", required=True),
+        "direction": _Key(_VEC3, "nonzero", required=True),
+        "reel_rate": _Key("float", default=0.0),
+        "tip_velocity": _Key(_VEC3, default=(0.0, 0.0, 0.0)),
+        "attitude": _Key(_MAT3, "rotation", default=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))),
+        "angular_velocity": _Key(_VEC3, default=(0.0, 0.0, 0.0)),
+    },
+    "environment": {
+        "g": _Key("float", "nonnegative", default=9.81),
+    },
+}
+
+_RULE_TEXT = {
+    "finite": "a finite number",
+    "positive": "a finite number > 0",
+    "nonnegative": "a finite number >= 0",
+    "at_least_1": "an integer >= 1",
+    "nonzero": "a finite nonzero 3-vector",
+    "spd": "a symmetric positive-definite 3x3 matrix (body frame, kg m^2)",
+    "rotation": "a 3x3 rotation matrix (orthonormal to 1e-9, det +1)",
+}
+
+
+class SceneError(ValueError):
+    """A scene file or override is invalid; the message names file, key and allowed range."""
+
+
+# --------------------------------------------------------------------------------------------
+# Validated scene
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class StringParams:
+    total_length: float  # L
+    mass_per_length: float  # mu
+    axial_stiffness: float  # EA
+    elements: int  # N
+
+
+@dataclass(frozen=True)
+class BodyParams:
+    mass: float  # m_b
+    inertia: tuple  # J_c about the CoM, body frame, 3x3 nested tuple
+    attachment_to_com: tuple  # rho_c, body frame
+
+
+@dataclass(frozen=True)
+class ReelParams:
+    radius: float  # d
+    center: tuple  # r_d
+    guide_length: float  # b
+    equivalent_mass: float  # kappa_d
+    exit_point: tuple  # r_p
+    exit_direction: tuple  # t_g (unit)
+    control_moment: float  # u
+
+
+@dataclass(frozen=True)
+class InitialState:
+    deployed_length: float
+    direction: tuple  # unit
+    reel_rate: float
+    tip_velocity: tuple
+    attitude: tuple  # 3x3 nested tuple
+    angular_velocity: tuple
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A validated, immutable scene. Build with `load_scene`; change with `scene.with_(...)`."""
+
+    name: str
+    description: str
+    t_end: float
+    effects: tuple[str, ...]
+    string: StringParams
+    body: BodyParams
+    reel: ReelParams
+    initial: InitialState
+    g: float
+    source: str = "<memory>"
+    raw: str = dataclasses.field(default="{}", repr=False, compare=False)
+
+    def has(self, effect: str) -> bool:
+        if effect not in EFFECTS:
+            raise ValueError(f"unknown effect {effect!r}{_suggest(effect, EFFECTS)}")
+        return effect in self.effects
+
+    def to_dict(self) -> dict:
+        """The scene as a TOML-shaped dict (validated values, defaults filled in)."""
+        return json.loads(self.raw)
+
+    def key(self) -> str:
+        """A hash of everything that determines the simulation (not name/description)."""
+        d = self.to_dict()
+        d.pop("name", None)
+        d.pop("description", None)
+        return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
+
+    def with_(self, **overrides) -> "Scene":
+        """A copy with overrides applied and re-validated (same keywords as `load_scene`)."""
+        return _build(self.to_dict(), self.source, overrides)
+
+    # Convenience numpy views -----------------------------------------------------------
+    @property
+    def inertia(self) -> np.ndarray:
+        return np.array(self.body.inertia, dtype=float)
+
+
+# --------------------------------------------------------------------------------------------
+# Loading
+# --------------------------------------------------------------------------------------------
+
+
+def available_scenes() -> list[str]:
+    """Names of the scenes shipped with the package."""
+    return sorted(p.stem for p in SCENE_DIR.glob("*.toml"))
+
+
+def load_scene(name_or_path: str | Path | Scene, **overrides) -> Scene:
+    """Load a scene by shipped name (e.g. ``"fixed_length"``) or path, apply overrides.
+
+    Overrides are keyword arguments named after a scene key, either its bare name when that
+    is unambiguous (``elements=40``, ``t_end=2.0``, ``control_moment=5``) or its dotted path
+    (``**{"string.elements": 40}``). Overrides are validated like the file itself.
+    """
+    if isinstance(name_or_path, Scene):
+        return name_or_path.with_(**overrides)
+    path = _resolve(name_or_path)
+    try:
+        with open(path, "rb") as fh:
+            data = tomllib.load(fh)
+    except tomllib.TOMLDecodeError as exc:
+        raise SceneError(f"{path}: not valid TOML: {exc}") from None
+    return _build(data, str(path), overrides)
+
+
+def scene_from_dict(data: Mapping, source: str = "<dict>", **overrides) -> Scene:
+    """Validate a TOML-shaped mapping as a scene (used by tests and generated scenes)."""
+    return _build(copy.deepcopy(dict(data)), source, overrides)
+
+
+def _resolve(name_or_path: str | Path) -> Path:
+    p = Path(name_or_path)
+    if p.suffix == ".toml" or p.exists():
+        if not p.exists():
+            raise SceneError(f"{p}: scene file not found")
+        return p
+    candidate = SCENE_DIR / f"{name_or_path}.toml"
+    if candidate.exists():
+        return candidate
+    raise SceneError(
+        f"unknown scene {str(name_or_path)!r}{_suggest(str(name_or_path), available_scenes())}; "
+        f"shipped scenes: {', '.join(available_scenes())}, or give a path to a .toml file"
+    )
+
+
+def _suggest(word: str, options) -> str:
+    close = difflib.get_close_matches(word, list(options), n=1, cutoff=0.5)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
+def _apply_overrides(data: dict, overrides: Mapping, source: str) -> None:
+    leaf_owner: dict[str, list[str]] = {}
+    for section, spec in _SCHEMA.items():
+        if isinstance(spec, dict):
+            for key in spec:
+                leaf_owner.setdefault(key, []).append(section)
+    for name, value in overrides.items():
+        if "." in name:
+            section, key = name.split(".", 1)
+        elif name in _SCHEMA and not isinstance(_SCHEMA[name], dict):
+            section, key = None, name
+        elif name in leaf_owner:
+            section, key = leaf_owner[name][0], name
+        else:
+            valid = list(leaf_owner) + [k for k, v in _SCHEMA.items() if not isinstance(v, dict)]
+            raise SceneError(f"{source}: unknown override {name!r}{_suggest(name, valid)}")
+        if section is None:
+            data[key] = value
+            continue
+        if section not in _SCHEMA or not isinstance(_SCHEMA[section], dict) or key not in _SCHEMA[section]:
+            raise SceneError(f"{source}: unknown override {name!r}")
+        sec = data.setdefault(section, {})
+        sec[key] = value
+        # box and inertia are alternatives: an override of one replaces the other.
+        if section == "body" and key in ("box", "inertia"):
+            sec.pop("inertia" if key == "box" else "box", None)
+
+
+def _build(data: dict, source: str, overrides: Mapping) -> Scene:
+    data = copy.deepcopy(dict(data))
+    _apply_overrides(data, overrides, source)
+    v = _Validator(source)
+    return v.scene(data)
+
+
+class _Validator:
+    def __init__(self, source: str):
+        self.source = source
+
+    def fail(self, key: str, value: Any, allowed: str) -> SceneError:
+        shown = value if not isinstance(value, float) else repr(value)
+        return SceneError(f"{self.source}: key '{key}' = {shown} is invalid: allowed {allowed}")
+
+    # -- scalar / vector parsing -----------------------------------------------------
+    def number(self, key: str, value: Any, rule: str, integer: bool = False) -> float | int:
+        allowed = _RULE_TEXT.get(rule, "a finite number")
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise self.fail(key, value, allowed)
+        if not math.isfinite(value):
+            raise self.fail(key, value, allowed)
+        if integer:
+            if isinstance(value, float) and not value.is_integer():
+                raise self.fail(key, value, allowed)
+            value = int(value)
+        else:
+            value = float(value)
+        if rule == "positive" and not value > 0:
+            raise self.fail(key, value, allowed)
+        if rule == "nonnegative" and not value >= 0:
+            raise self.fail(key, value, allowed)
+        if rule == "at_least_1" and not value >= 1:
+            raise self.fail(key, value, allowed)
+        return value
+
+    def vector(self, key: str, value: Any, rule: str) -> tuple:
+        allowed = {"positive": "3 finite numbers > 0", "nonzero": _RULE_TEXT["nonzero"]}.get(
+            rule, "3 finite numbers"
+        )
+        if not isinstance(value, (list, tuple)) or len(value) != 3:
+            raise self.fail(key, value, allowed)
+        out = []
+        for x in value:
+            if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x):
+                raise self.fail(key, value, allowed)
+            out.append(float(x))
+        if rule == "positive" and not all(x > 0 for x in out):
+            raise self.fail(key, value, allowed)
+        if rule == "nonzero":
+            n = math.sqrt(sum(x * x for x in out))
+            if n == 0.0:
+                raise self.fail(key, value, allowed)
+            out = [x / n for x in out]
+        return tuple(out)
+
+    def matrix(self, key: str, value: Any, rule: str) -> tuple:
+        allowed = _RULE_TEXT[rule]
+        if not isinstance(value, (list, tuple)) or len(value) != 3:
+            raise self.fail(key, value, allowed)
+        if not all(isinstance(row, (list, tuple)) and len(row) == 3 for row in value):
+            raise self.fail(key, value, allowed)
+        rows = [self.vector(key, row, "finite") for row in value]
+        m = np.array(rows)
+        if rule == "rotation":
+            if np.abs(m.T @ m - np.eye(3)).max() > 1e-9 or abs(np.linalg.det(m) - 1.0) > 1e-9:
+                raise self.fail(key, value, allowed)
+        if rule == "spd":
+            if np.abs(m - m.T).max() > 1e-12 * max(1.0, np.abs(m).max()) or np.linalg.eigvalsh(m).min() <= 0:
+                raise self.fail(key, value, allowed)
+        return tuple(tuple(float(x) for x in row) for row in rows)
+
+    # -- the whole scene ---------------------------------------------------------------
+    def scene(self, data: dict) -> Scene:
+        effects = self.effects(data.get("effects"))
+        for key in data:
+            if key not in _SCHEMA:
+                raise SceneError(
+                    f"{self.source}: unknown key '{key}'{_suggest(key, _SCHEMA)}; "
+                    f"allowed top-level keys: {', '.join(_SCHEMA)}"
+                )
+        out: dict[str, Any] = {}
+        for key, spec in _SCHEMA.items():
+            if isinstance(spec, dict):
+                section = data.get(key, {})
+                if not isinstance(section, dict):
+                    raise self.fail(key, section, "a table of keys")
+                out[key] = self.section(key, section, spec, effects)
+            else:
+                out[key] = self.value(key, data.get(key), spec, effects)
+        out["effects"] = list(effects)
+        return self.cross_checks(out, effects)
+
+    def effects(self, value: Any) -> tuple[str, ...]:
+        if value is None:
+            raise SceneError(f"{self.source}: missing key 'effects' (allowed: a list of {', '.join(EFFECTS)})")
+        if not isinstance(value, (list, tuple)) or not all(isinstance(e, str) for e in value):
+            raise self.fail("effects", value, f"a list of effect names from {', '.join(EFFECTS)}")
+        for e in value:
+            if e not in EFFECTS:
+                raise SceneError(
+                    f"{self.source}: key 'effects' has unknown effect {e!r}{_suggest(e, EFFECTS)}; "
+                    f"allowed: {', '.join(EFFECTS)}"
+                )
+        if len(set(value)) != len(value):
+            raise self.fail("effects", value, "each effect listed once")
+        for e in value:
+            for need in EFFECTS[e]:
+                if need not in value:
+                    raise SceneError(f"{self.source}: key 'effects': effect {e!r} needs effect {need!r} in the list")
+        for need in REQUIRED_EFFECTS:
+            if need not in value:
+                raise SceneError(f"{self.source}: key 'effects' must include {need!r} (a string needs it)")
+        # canonical order: the order of EFFECTS
+        return tuple(e for e in EFFECTS if e in value)
+
+    def section(self, name: str, section: dict, spec: dict[str, _Key], effects) -> dict:
+        for key in section:
+            if key not in spec:
+                raise SceneError(
+                    f"{self.source}: unknown key '{name}.{key}'{_suggest(key, spec)}; "
+                    f"allowed in [{name}]: {', '.join(spec)}"
+                )
+        return {key: self.value(f"{name}.{key}", section.get(key), s, effects) for key, s in spec.items()}
+
+    def value(self, key: str, value: Any, spec: _Key, effects) -> Any:
+        if value is None:
+            needed = spec.required or (spec.required_by is not None and all(e in effects for e in spec.required_by))
+            if needed:
+                why = f" (needed by effect {', '.join(spec.required_by)})" if spec.required_by else ""
+                raise SceneError(f"{self.source}: missing key '{key}'{why}: allowed {_RULE_TEXT.get(spec.rule, spec.kind)}")
+            return copy.deepcopy(spec.default)
+        if spec.kind == "str":
+            if not isinstance(value, str):
+                raise self.fail(key, value, "a string")
+            return value
+        if spec.kind == "effects":
+            return list(value)
+        if spec.kind == "float":
+            if spec.rule == "deployed_length":
+                return self.number(key, value, "positive")
+            return self.number(key, value, spec.rule)
+        if spec.kind == "int":
+            return self.number(key, value, spec.rule, integer=True)
+        if spec.kind == _VEC3:
+            return list(self.vector(key, value, spec.rule))
+        if spec.kind == _MAT3:
+            return [list(r) for r in self.matrix(key, value, spec.rule)]
+        raise AssertionError(spec.kind)
+
+    def cross_checks(self, d: dict, effects: tuple[str, ...]) -> Scene:
+        s, b, r, i = d["string"], d["body"], d["reel"], d["initial"]
+        L, guide = s["total_length"], r["guide_length"]
+        if not i["deployed_length"] < L - guide:
+            raise SceneError(
+                f"{self.source}: key 'initial.deployed_length' = {i['deployed_length']!r} is invalid: "
+                f"allowed 0 < deployed_length < total_length - guide_length = {L - guide!r}"
+            )
+        if "rigid_body" in effects:
+            if b["box"] is not None and b["inertia"] is not None:
+                raise SceneError(f"{self.source}: keys 'body.box' and 'body.inertia' are alternatives: give one")
+            if b["box"] is None and b["inertia"] is None:
+                raise SceneError(f"{self.source}: missing key 'body.box' or 'body.inertia' (needed by effect rigid_body)")
+        elif any(x != 0.0 for x in i["angular_velocity"]):
+            raise self.fail("initial.angular_velocity", i["angular_velocity"],
+                            "[0, 0, 0] without effect 'rigid_body' (a point mass has no attitude)")
+        if "reel" not in effects and i["reel_rate"] != 0.0:
+            raise self.fail("initial.reel_rate", i["reel_rate"], "0 without effect 'reel' (the length is fixed)")
+        if "reel_control" not in effects and r["control_moment"] != 0.0 and "reel" in effects:
+            raise self.fail("reel.control_moment", r["control_moment"], "0 without effect 'reel_control'")
+        if b["box"] is not None:
+            a, bb, c = b["box"]
+            m = b["mass"]
+            inertia = np.diag([m / 12 * (bb * bb + c * c), m / 12 * (a * a + c * c), m / 12 * (a * a + bb * bb)])
+        elif b["inertia"] is not None:
+            inertia = np.array(b["inertia"])
+        else:
+            inertia = np.zeros((3, 3))
+        raw = json.dumps({k: v for k, v in d.items() if v is not None}, sort_keys=True)
+        return Scene(
+            name=d["name"],
+            description=d["description"],
+            t_end=d["t_end"],
+            effects=effects,
+            string=StringParams(**s),
+            body=BodyParams(
+                mass=b["mass"],
+                inertia=tuple(tuple(float(x) for x in row) for row in inertia),
+                attachment_to_com=tuple(b["attachment_to_com"]),
+            ),
+            reel=ReelParams(**{k: tuple(v) if isinstance(v, list) else v for k, v in r.items()}),
+            initial=InitialState(
+                deployed_length=i["deployed_length"],
+                direction=tuple(i["direction"]),
+                reel_rate=i["reel_rate"],
+                tip_velocity=tuple(i["tip_velocity"]),
+                attitude=tuple(tuple(row) for row in i["attitude"]),
+                angular_velocity=tuple(i["angular_velocity"]),
+            ),
+            g=d["environment"]["g"],
+            source=self.source,
+            raw=raw,
+        )
