@@ -242,6 +242,48 @@ class StringPendulum:
         """Power of the non-conservative forces, Q · w."""
         return self.reel_force(t, x, w) * self.reel_rate(w)
 
+    def potential_gradient(self, x, R):
+        """Closed-form gradient of V over w's layout: (∂V/∂s_p, ∂V/∂q_2..q_{N+1}, ∂V/∂η).
+
+        ∂V/∂η is the derivative along R (I + η^) (the negative gravity moment about the
+        attachment point). These are MODEL.md §6's D_s V and D_q V; the tests check them
+        against autodiff of `potential`.
+        """
+        q, l = self.nodes(x), self.element_length(x)
+        delta = q[1:] - q[:-1]
+        stretch = jnp.linalg.norm(delta, axis=1)
+        grad_e = (self.EA / l * (stretch - l) / stretch)[:, None] * delta  # ∇V^e_a, a = 1..N
+        dq = jnp.concatenate([grad_e[:-1] - grad_e[1:], grad_e[-1:]], axis=0)  # nodes 2..N+1
+        e3 = jnp.asarray(E3)
+        weights = jnp.ones(self.N).at[-1].set(0.5)
+        dq = dq - (self.mu * self.g * l) * weights[:, None] * e3[None, :]
+        dq = dq.at[-1].add(-self.m_b * self.g * e3)
+        parts = []
+        if self.layout.has_reel:
+            s = x[0]
+            ds = jnp.sum(self.mu * self.g * (2 * self.r_p[2] + q[:-1, 2] + q[1:, 2]) + self.EA / l**2 * (stretch**2 - l**2)) / (2 * self.N)
+            if self.g != 0.0:
+                ds = ds - self.mu * self.g * self.r_d[2] + self.mu * self.g * self.d * jnp.sin((s - self.b) / self.d)
+            parts.append(jnp.atleast_1d(ds))
+        parts.append(dq.ravel())
+        if self.layout.has_attitude:
+            parts.append(-self.m_b * self.g * jnp.cross(self.rho_c, R.T @ e3))
+        return jnp.concatenate(parts)
+
+    def tensions(self, x):
+        """Element tensions EA (|q_{a+1} - q_a| / l - 1), a = 1..N (negative = compression)."""
+        q, l = self.nodes(x), self.element_length(x)
+        return self.EA * (jnp.linalg.norm(q[1:] - q[:-1], axis=1) / l - 1.0)
+
+    def deployed_length_margin(self, x):
+        """Distance of the deployed length L - s_p from the ends of its range (0, L - b).
+
+        Positive inside the range; every integrator stops with status ``length_limit``
+        when it would become <= 0 (always positive for a fixed-length scene).
+        """
+        ell = self.L - self.reel_coordinate(x)
+        return jnp.minimum(ell, self.L - self.b - ell)
+
     # ------------------------------------------------------------------------------------
     # Legendre transform
     # ------------------------------------------------------------------------------------
