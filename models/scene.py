@@ -162,7 +162,7 @@ class Scene:
     reel: ReelParams
     initial: InitialState
     g: float
-    source: str = "<memory>"
+    source: str = dataclasses.field(default="<memory>", compare=False)
     raw: str = dataclasses.field(default="{}", repr=False, compare=False)
 
     def has(self, effect: str) -> bool:

@@ -1,0 +1,135 @@
+"""Diagnostics of a trajectory, from any integrator's state (MODEL.md §4).
+
+    df = evaluate(scene, trajectory)   # pandas.DataFrame, one row per saved time
+
+Attitude may be rotation matrices or (not renormalised) quaternions; the state may carry
+velocities or momenta (then the continuous Legendre transform recovers velocities).
+
+Columns: t, energy, kinetic, T_rot, V_gravity, V_elastic, V_reel, work, energy_minus_work,
+pi3, orthogonality_error, deployed_length, stretched_length, reel_rate, omega_1..3,
+body_x..z (the attachment point r_p + q_{N+1}), tension_min, tension_max.
+``energy`` holds only the terms of the scene's effects; ``V_reel`` is part of ``V_gravity``
+(both of its terms come from gravity) and is reported separately for reel scenes.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import pandas as pd
+
+from models._jax import jax, jnp
+from models.model import StringPendulum, build_model, quat_to_rot
+
+E3 = jnp.array([0.0, 0.0, 1.0])
+
+
+def point_diagnostics(model: StringPendulum, x, R, w, W) -> dict:
+    """All scalar diagnostics at one state (x, R, w) with accumulated work W."""
+    lay = model.layout
+    kin = {k: f(x, R, w) for k, f in model.kinetic_terms.items()}
+    pot = {k: f(x, R) for k, f in model.potential_terms.items()}
+    T = sum(kin.values())
+    V = sum(pot.values(), jnp.asarray(0.0))
+    om = model.omega(w)
+    p = model.momentum(x, R, w)
+    q = model.nodes(x)
+    pq = jnp.concatenate([jnp.zeros((1, 3)), p[lay.nodes].reshape(model.N, 3)], axis=0)
+    ang = jnp.sum(jnp.cross(q, pq), axis=0)
+    if lay.has_attitude:
+        ang = ang + R @ p[lay.omega]
+    stretch = jnp.linalg.norm(q[1:] - q[:-1], axis=1)
+    tension = model.tensions(x)
+    v_gravity = pot.get("V_string_gravity", 0.0) + pot.get("V_body_gravity", 0.0) + pot.get("V_reel", 0.0)
+    body = model.r_p + q[-1]
+    return {
+        "energy": T + V,
+        "kinetic": T,
+        "T_rot": 0.5 * om @ (model.J_c @ om) if lay.has_attitude else jnp.asarray(0.0),
+        "V_gravity": jnp.asarray(v_gravity),
+        "V_elastic": pot["V_elastic"],
+        "V_reel": jnp.asarray(pot.get("V_reel", 0.0)),
+        "work": W,
+        "energy_minus_work": T + V - W,
+        "pi3": ang[2],
+        "orthogonality_error": jnp.linalg.norm(jnp.eye(3) - R.T @ R) if lay.has_attitude else jnp.asarray(0.0),
+        "deployed_length": model.L - model.reel_coordinate(x),
+        "stretched_length": jnp.sum(stretch),
+        "reel_rate": model.reel_rate(w),
+        "omega_1": om[0],
+        "omega_2": om[1],
+        "omega_3": om[2],
+        "body_x": body[0],
+        "body_y": body[1],
+        "body_z": body[2],
+        "tension_min": jnp.min(tension),
+        "tension_max": jnp.max(tension),
+    }
+
+
+@functools.lru_cache(maxsize=64)
+def _batched(model: StringPendulum, attitude_kind: str, from_momentum: bool):
+    def one(x, att, v, W):
+        if not model.layout.has_attitude:
+            R = jnp.eye(3)
+        elif attitude_kind == "quaternion":
+            R = quat_to_rot(att)
+        else:
+            R = att
+        w = model.velocity_from_momentum(x, R, v) if from_momentum else v
+        return point_diagnostics(model, x, R, w, W)
+
+    return jax.jit(jax.vmap(one))
+
+
+def evaluate(scene, trajectory) -> pd.DataFrame:
+    """Diagnostics of ``trajectory`` (any integrator's `Trajectory`) for ``scene``."""
+    model = build_model(scene)
+    tr = trajectory
+    n = len(tr.t)
+    columns = ["t"] + list(_COLUMNS)
+    if n == 0:
+        return pd.DataFrame(columns=columns)
+    from_momentum = tr.velocity is None
+    v = tr.momentum if from_momentum else tr.velocity
+    if v is None:
+        raise ValueError("trajectory carries neither velocity nor momentum")
+    att = tr.attitude if (model.layout.has_attitude and tr.attitude is not None) else np.zeros((n, 3, 3))
+    kind = tr.attitude_kind if model.layout.has_attitude else "matrix"
+    work = tr.work if tr.work is not None else np.zeros(n)
+    out = _batched(model, kind, from_momentum)(
+        jnp.asarray(tr.x), jnp.asarray(att), jnp.asarray(v), jnp.asarray(work, dtype=float)
+    )
+    data = {"t": np.asarray(tr.t, dtype=float)}
+    data.update({k: np.asarray(out[k], dtype=float) for k in _COLUMNS})
+    if model.layout.has_attitude and kind == "quaternion":
+        data["quaternion_norm_error"] = np.abs(np.linalg.norm(np.asarray(tr.attitude), axis=1) - 1.0)
+    return pd.DataFrame(data)
+
+
+_COLUMNS = (
+    "energy", "kinetic", "T_rot", "V_gravity", "V_elastic", "V_reel", "work", "energy_minus_work", "pi3",
+    "orthogonality_error", "deployed_length", "stretched_length", "reel_rate", "omega_1", "omega_2",
+    "omega_3", "body_x", "body_y", "body_z", "tension_min", "tension_max",
+)
+
+
+def summary(df: pd.DataFrame, *, has_work: bool) -> dict:
+    """The paper's conservation metrics of one run (MODEL.md §4).
+
+    energy_error: max |E - E0| / max T   (or max |(E - W) - (E0 - W0)| / max T with forcing)
+    pi3_error: max |π3 - π3(0)| / |π3(0)|  (absolute if π3(0) = 0)
+    orthogonality_error: max ‖I - RᵀR‖
+    """
+    if len(df) == 0:
+        return {"energy_error": np.nan, "pi3_error": np.nan, "orthogonality_error": np.nan}
+    e = df["energy_minus_work"] if has_work else df["energy"]
+    tmax = float(df["kinetic"].max())
+    pi0 = float(df["pi3"].iloc[0])
+    dpi = float(np.max(np.abs(df["pi3"] - pi0)))
+    return {
+        "energy_error": float(np.max(np.abs(e - e.iloc[0]))) / tmax if tmax > 0 else float("nan"),
+        "pi3_error": dpi / abs(pi0) if abs(pi0) > 1e-12 else dpi,
+        "orthogonality_error": float(df["orthogonality_error"].max()),
+    }

@@ -1,0 +1,68 @@
+"""Test helpers shared by several test files (not a test module)."""
+
+import itertools
+
+import numpy as np
+from scipy.integrate import solve_ivp
+
+from integrators.base import Trajectory
+from models import build_model, load_scene
+
+
+def effect_combinations():
+    """Every valid effect list (elasticity always present)."""
+    out = []
+    for gravity, body, reel in itertools.product([False, True], repeat=3):
+        base = ["elasticity"] + (["gravity"] if gravity else []) + (["rigid_body"] if body else [])
+        if not reel:
+            out.append(base)
+            continue
+        for carnot, control in itertools.product([False, True], repeat=2):
+            out.append(base + ["reel"] + (["carnot"] if carnot else []) + (["reel_control"] if control else []))
+    return out
+
+
+def scene_with_effects(effects, elements=3, **overrides):
+    """The retrieval scene reduced to ``effects`` (values adjusted to stay valid)."""
+    kw = dict(effects=effects, elements=elements, tip_velocity=[0.3, 1.0, -0.2], reel_rate=0.0)
+    if "rigid_body" not in effects:
+        kw["angular_velocity"] = [0.0, 0.0, 0.0]
+    else:
+        kw["angular_velocity"] = [0.4, -0.3, 0.8]
+    if "reel_control" not in effects:
+        kw["control_moment"] = 0.0
+    if "reel" in effects:
+        kw["reel_rate"] = -0.7
+    kw.update(overrides)
+    return load_scene("retrieval", **kw)
+
+
+def random_state(model, rng, scale=0.2):
+    """A random (x, R, w) near the initial state, with a random attitude."""
+    x, R, w = model.initial_state()
+    x = x + scale * rng.standard_normal(x.shape)
+    w = w + rng.standard_normal(w.shape)
+    quat = rng.standard_normal(4)
+    quat /= np.linalg.norm(quat)
+    from models.model import quat_to_rot
+
+    R = np.asarray(quat_to_rot(quat)) if model.layout.has_attitude else np.eye(3)
+    return x, R, w
+
+
+def reference_solution(scene, t_end, rtol=1e-11, atol=1e-12, n_save=21, method="DOP853"):
+    """scipy solve_ivp straight on the model's ODE (independent of the integrator plugins)."""
+    model = build_model(scene)
+    f = model.ode_rhs_jit
+    lay = model.layout
+    t_eval = np.linspace(0.0, t_end, n_save)
+    sol = solve_ivp(lambda t, y: np.asarray(f(t, y)), (0.0, t_end), model.initial_ode_state(),
+                    method=method, rtol=rtol, atol=atol, t_eval=t_eval)
+    assert sol.status == 0, sol.message
+    y = sol.y.T
+    return Trajectory(
+        t=sol.t, x=y[:, lay.y_x], attitude=y[:, lay.y_quat] if lay.has_attitude else None,
+        attitude_kind="quaternion", velocity=y[:, lay.y_w],
+        work=y[:, lay.y_work][:, 0] if lay.has_work else np.zeros(len(sol.t)),
+        stats={"rhs_evals": sol.nfev}, integrator="solve_ivp-" + method,
+    )
