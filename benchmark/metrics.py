@@ -1,0 +1,113 @@
+"""One tidy row of metrics per run: conservation, accuracy against a reference, cost."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from models import build_model
+from models.diagnostics import evaluate, summary
+from models.model import quat_to_rot
+
+#: Columns of the runs table, in order.
+COLUMNS = [
+    "scene", "integrator", "setting", "dt", "rtol", "atol", "t_end", "status", "reason",
+    "steps", "rhs_evals", "jac_evals", "newton_iterations", "run_time", "compile_time",
+    "energy_error", "pi3_error", "orthogonality_error",
+    "position_error_final", "position_error_max", "attitude_error_final", "attitude_error_max",
+    "t_reached",
+]
+
+#: Accuracy metrics: reported only for runs that finished ("ok"); NaN otherwise.
+ACCURACY = [
+    "energy_error", "pi3_error", "orthogonality_error",
+    "position_error_final", "position_error_max", "attitude_error_final", "attitude_error_max",
+]
+
+
+def attitude_matrices(traj) -> np.ndarray | None:
+    """(n, 3, 3) attitude as the integrator has it (quaternions mapped without renormalising)."""
+    if traj.attitude is None:
+        return None
+    if traj.attitude_kind == "quaternion":
+        return np.stack([np.asarray(quat_to_rot(q)) for q in traj.attitude]) if len(traj.attitude) else np.zeros((0, 3, 3))
+    return np.asarray(traj.attitude)
+
+
+def body_positions(model, traj) -> np.ndarray:
+    """Attachment point r_p + q_{N+1} at every saved time, (n, 3)."""
+    return model.r_p + np.asarray(traj.x)[:, -3:]
+
+
+def compare_to_reference(scene, traj, ref, save_every: float) -> dict:
+    """Final and L∞ errors of the body position (m) and attitude (Frobenius) vs ``ref``."""
+    model = build_model(scene)
+    k_traj = np.round(np.asarray(traj.t) / save_every).astype(int)
+    k_ref = np.round(np.asarray(ref.t) / save_every).astype(int)
+    common, i, j = np.intersect1d(k_traj, k_ref, return_indices=True)
+    if len(common) == 0:
+        return {k: np.nan for k in ("position_error_final", "position_error_max", "attitude_error_final", "attitude_error_max")}
+    dpos = np.linalg.norm(body_positions(model, traj)[i] - body_positions(model, ref)[j], axis=1)
+    out = {"position_error_final": float(dpos[-1]), "position_error_max": float(dpos.max())}
+    Ra, Rb = attitude_matrices(traj), attitude_matrices(ref)
+    if Ra is not None and Rb is not None:
+        datt = np.linalg.norm(Ra[i] - Rb[j], axis=(1, 2))
+        out.update(attitude_error_final=float(datt[-1]), attitude_error_max=float(datt.max()))
+    else:
+        out.update(attitude_error_final=np.nan, attitude_error_max=np.nan)
+    return out
+
+
+def run_metrics(scene, traj, ref, save_every: float) -> dict:
+    """All accuracy metrics of one run (NaN if the run did not finish)."""
+    if not traj.ok or len(traj.t) == 0:
+        return {k: np.nan for k in ACCURACY}
+    df = evaluate(scene, traj)
+    has_work = build_model(scene).layout.has_work
+    out = summary(df, has_work=has_work)
+    out.update(compare_to_reference(scene, traj, ref, save_every))
+    return out
+
+
+def energy_history(scene, traj) -> pd.DataFrame:
+    """t and the energy error relative to max T (E - W with non-conservative forces)."""
+    df = evaluate(scene, traj)
+    has_work = build_model(scene).layout.has_work
+    e = df["energy_minus_work"] if has_work else df["energy"]
+    tmax = df["kinetic"].max()
+    return pd.DataFrame({"t": df["t"], "energy_error": np.abs(e - e.iloc[0]) / tmax})
+
+
+def observed_orders(runs: pd.DataFrame, error: str = "position_error_final") -> pd.DataFrame:
+    """Observed order per scene and integrator: slope p of error ∝ steps^(-p).
+
+    For fixed-step runs this is the classical order in dt (mean of log2 of error ratios
+    over halved steps, as DiffEqDevTools does); adaptive runs use the same definition
+    along their tolerance sweep. Only finished runs above round-off (error > 1e-12) count.
+    """
+    rows = []
+    for (scene, integ, axis), g in runs.assign(axis=np.where(runs["dt"].notna(), "dt", "rtol")).groupby(
+        ["scene", "integrator", "axis"]
+    ):
+        g = g[(g["status"] == "ok") & (g[error] > 1e-12) & (g["steps"] > 0)].sort_values("steps")
+        if len(g) < 2:
+            order = np.nan
+        else:
+            le, ls = np.log(g[error].to_numpy(float)), np.log(g["steps"].to_numpy(float))
+            order = float(np.mean(-np.diff(le) / np.diff(ls)))
+        rows.append({"scene": scene, "integrator": integ, "sweep": axis, "points": len(g), "observed_order": order})
+    return pd.DataFrame(rows)
+
+
+def fastest_at(runs: pd.DataFrame, error: str, target: float) -> pd.DataFrame:
+    """Per scene: the cheapest finished run of each integrator whose ``error`` <= target,
+    ranked by run time, with the factor to the fastest."""
+    ok = runs[(runs["status"] == "ok") & (runs[error] <= target)]
+    out = []
+    for scene, g in ok.groupby("scene"):
+        best = g.loc[g.groupby("integrator")["run_time"].idxmin()].sort_values("run_time")
+        t0 = best["run_time"].iloc[0]
+        for _, r in best.iterrows():
+            out.append({"scene": scene, "integrator": r["integrator"], "setting": r["setting"],
+                        "run_time": r["run_time"], error: r[error], "factor": r["run_time"] / t0})
+    return pd.DataFrame(out)

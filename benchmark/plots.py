@@ -1,0 +1,109 @@
+"""Figures: work–precision, energy error over a long horizon, and the paper's panels (a)–(d)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+
+from models import build_model  # noqa: E402
+from models.io import atomic_path  # noqa: E402
+
+ERROR_LABELS = {
+    "energy_error": "energy error  max|ΔE (−W)| / max T",
+    "position_error_final": "body position error at t_end (m)",
+    "position_error_max": "body position error, max over saved times (m)",
+}
+
+
+def _save(fig, path: Path) -> Path:
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
+    plt.close(fig)
+    return path
+
+
+def work_precision(runs: pd.DataFrame, scene: str, out_dir: Path) -> Path:
+    """Error vs run time, one curve per integrator and sweep axis, log-log, one panel per error kind."""
+    g = runs[(runs["scene"] == scene) & (runs["status"] == "ok")]
+    fig, axes = plt.subplots(1, len(ERROR_LABELS), figsize=(5.2 * len(ERROR_LABELS), 4.2))
+    for ax, (err, label) in zip(axes, ERROR_LABELS.items()):
+        for (integ, axis), c in g.assign(axis=np.where(g["dt"].notna(), "fixed dt", "adaptive")).groupby(["integrator", "axis"]):
+            c = c[c[err] > 0].sort_values("run_time")
+            if len(c):
+                ax.loglog(c["run_time"], c[err], "o-" if axis == "adaptive" else "s--", label=f"{integ} ({axis})")
+        ax.set_xlabel("run time (s, min over repeats, compile excluded)")
+        ax.set_ylabel(label)
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].legend(fontsize=8)
+    failed = runs[(runs["scene"] == scene) & (runs["status"] != "ok")]
+    fig.suptitle(f"{scene}: work–precision" + (f"  ({len(failed)} runs failed, see runs.csv)" if len(failed) else ""))
+    return _save(fig, Path(out_dir) / f"work_precision_{scene}.png")
+
+
+def energy_horizon(histories: dict[str, pd.DataFrame], scene: str, out_dir: Path) -> Path:
+    """Energy error vs time over a long horizon, one curve per method."""
+    fig, ax = plt.subplots(figsize=(8, 4.2))
+    for label, h in histories.items():
+        ax.semilogy(h["t"], np.maximum(h["energy_error"], 1e-17), label=label, lw=1)
+    ax.set_xlabel("t (s)")
+    ax.set_ylabel("|E − E0| / max T")
+    ax.set_title(f"{scene}: energy error over a long horizon")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    return _save(fig, Path(out_dir) / f"energy_horizon_{scene}.png")
+
+
+def paper_panels(scene, traj, df: pd.DataFrame, out_path: Path, n_snapshots: int = 20) -> Path:
+    """The paper's figure for one run: (a) snapshots, (b) energy exchange, (c) lengths and Ω2,
+    (d) deviation of conserved quantities and orthogonality error."""
+    model = build_model(scene)
+    fig = plt.figure(figsize=(13, 9))
+    ax = fig.add_subplot(2, 2, 1, projection="3d")
+    idx = np.linspace(0, len(traj.t) - 1, min(n_snapshots, len(traj.t))).astype(int)
+    for k in idx:
+        q = model.r_p + np.asarray(model.nodes(np.asarray(traj.x[k])))
+        ax.plot(q[:, 0], q[:, 1], q[:, 2], "b-", lw=0.8, alpha=0.6)
+        ax.plot(q[-1:, 0], q[-1:, 1], q[-1:, 2], "ro", ms=3)
+    ax.invert_zaxis()  # e3 points down
+    ax.set_xlabel("x (m)"), ax.set_ylabel("y (m)"), ax.set_zlabel("z (m, down)")
+    ax.set_title(f"(a) snapshots every {traj.t[idx[1]] - traj.t[idx[0]]:.2g} s" if len(idx) > 1 else "(a) snapshot")
+
+    ax = fig.add_subplot(2, 2, 2)
+    ax.plot(df["t"], df["energy"], "k-", label="E")
+    ax.plot(df["t"], df["kinetic"], "b-", label="T")
+    ax.plot(df["t"], df["T_rot"], "g--", label="T_rot")
+    ax.plot(df["t"], df["V_gravity"], "m-.", label="V_gravity")
+    ax.plot(df["t"], df["V_elastic"], "r:", label="V_elastic")
+    ax.set_xlabel("t (s)"), ax.set_ylabel("J"), ax.legend(fontsize=8), ax.set_title("(b) energy exchange")
+
+    ax = fig.add_subplot(2, 2, 3)
+    ax.plot(df["t"], df["stretched_length"], "b-", label="stretched length")
+    ax.plot(df["t"], df["deployed_length"], "b--", label="deployed (unstretched) length")
+    ax.set_xlabel("t (s)"), ax.set_ylabel("m")
+    ax2 = ax.twinx()
+    ax2.plot(df["t"], df["omega_2"], "r-", lw=0.8, label="Ω2")
+    ax2.set_ylabel("Ω2 (rad/s)", color="r")
+    ax.legend(fontsize=8, loc="upper left"), ax.set_title("(c) length and Ω2")
+
+    ax = fig.add_subplot(2, 2, 4)
+    has_work = model.layout.has_work
+    e = df["energy_minus_work"] if has_work else df["energy"]
+    tmax = df["kinetic"].max()
+    ax.semilogy(df["t"], np.maximum(np.abs(e - e.iloc[0]) / tmax, 1e-17), label=("|Δ(E−W)|" if has_work else "|ΔE|") + " / max T")
+    pi0 = df["pi3"].iloc[0]
+    dpi = np.abs(df["pi3"] - pi0) / (abs(pi0) if abs(pi0) > 1e-12 else 1.0)
+    ax.semilogy(df["t"], np.maximum(dpi, 1e-17), label="|Δπ3| / |π3(0)|")
+    if model.layout.has_attitude:
+        ax.semilogy(df["t"], np.maximum(df["orthogonality_error"], 1e-17), label="‖I − RᵀR‖")
+    ax.set_xlabel("t (s)"), ax.legend(fontsize=8), ax.grid(True, which="both", alpha=0.3)
+    ax.set_title("(d) conserved quantities and orthogonality")
+    status = "" if traj.ok else f"  [stopped: {traj.status}]"
+    fig.suptitle(f"{scene.name} — {traj.integrator} {traj.settings}{status}")
+    fig.tight_layout()
+    return _save(fig, Path(out_path))

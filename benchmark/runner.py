@@ -1,0 +1,180 @@
+"""The runner only composes: scenes × integrators × settings -> metrics rows.
+
+Each task runs in a worker process (or a Dask worker): one solve for the errors, then a
+separate timing pass (minimum wall time over repeats, compilation excluded). A failed or
+diverged run becomes a row with its status; an exception inside a task becomes a row with
+status "error"; a crashed worker becomes a row with status "crashed". The sweep goes on.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import multiprocessing
+import os
+import sys
+import time
+import traceback
+from pathlib import Path
+from typing import Callable, Iterable
+
+import numpy as np
+import pandas as pd
+
+from benchmark.metrics import ACCURACY, COLUMNS, run_metrics
+from benchmark.reference import CACHE_DIR, get_reference
+from benchmark.sweep import Task
+
+TIMING_BUDGET = 10.0  # s of repeated solves per task, at most (at least one repeat)
+
+
+def _scene(task: Task):
+    from models import load_scene
+
+    return load_scene(task.scene, **dict(task.overrides))
+
+
+def _empty_row(task: Task, scene=None) -> dict:
+    row = {c: np.nan for c in COLUMNS}
+    row.update(scene=scene.name if scene is not None else task.scene, integrator=task.integrator,
+               setting=task.setting, dt=task.dt, rtol=task.rtol, atol=task.atol,
+               t_end=task.t_end if task.t_end is not None else (scene.t_end if scene is not None else np.nan),
+               reason="")
+    return row
+
+
+def run_task(task: Task, cache_dir: str = str(CACHE_DIR), repeats: int = 3) -> dict:
+    """Run one task; always returns a row (never raises for a failed run)."""
+    scene = None
+    try:
+        from integrators import get_integrator
+
+        scene = _scene(task)
+        row = _empty_row(task, scene)
+        t_end = task.t_end if task.t_end is not None else scene.t_end
+        ref = get_reference(scene, t_end, task.save_every, Path(cache_dir))
+        integ = get_integrator(task.integrator)
+        kw = task.solve_kwargs()
+        kw["t_end"] = t_end
+        traj = integ.solve(scene, **kw)
+        st = traj.stats
+        row.update(
+            status=traj.status, reason=traj.reason,
+            steps=st.get("steps", np.nan), rhs_evals=st.get("rhs_evals", np.nan),
+            jac_evals=st.get("jac_evals", np.nan), newton_iterations=st.get("newton_iterations", np.nan),
+            compile_time=st.get("compile_time", np.nan), run_time=st.get("wall_time", np.nan),
+            t_reached=float(traj.t[-1]) if len(traj.t) else 0.0,
+        )
+        row.update(run_metrics(scene, traj, ref, task.save_every))
+        if traj.ok and repeats > 0:  # timing pass, separate from the error computation
+            times, spent = [], 0.0
+            while len(times) < repeats and (not times or spent < TIMING_BUDGET):
+                t0 = time.perf_counter()
+                times.append(integ.solve(scene, **kw).stats.get("wall_time", np.nan))
+                spent += time.perf_counter() - t0
+            row["run_time"] = float(np.nanmin(times))
+        return row
+    except Exception as exc:  # a bug in one task must not lose the other rows
+        row = _empty_row(task, scene)
+        row.update(status="error", reason=f"{type(exc).__name__}: {exc}".splitlines()[0][:300])
+        row["traceback"] = traceback.format_exc()[-2000:]
+        return row
+
+
+def _reference_task(scene_name: str, overrides: tuple, t_end, save_every: float, cache_dir: str) -> str:
+    from models import load_scene
+
+    scene = load_scene(scene_name, **dict(overrides))
+    get_reference(scene, t_end if t_end is not None else scene.t_end, save_every, Path(cache_dir))
+    return scene_name
+
+
+def _worker_env() -> None:
+    # One XLA thread per worker: the workers are the parallelism, and timings stay per-core.
+    os.environ.setdefault("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1")
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+
+def execute(
+    tasks: list[Task],
+    *,
+    jobs: int | None = None,
+    executor: str = "process",
+    scheduler: str | None = None,
+    repeats: int = 3,
+    cache_dir: str = str(CACHE_DIR),
+    on_row: Callable[[list[dict]], None] | None = None,
+    log: Callable[[str], None] = lambda s: print(s, file=sys.stderr, flush=True),
+) -> pd.DataFrame:
+    """Run ``tasks`` and return the runs table (task order). ``on_row`` gets the rows so far
+    after each completion (used to write partial results atomically)."""
+    if executor not in ("process", "serial", "dask"):
+        raise ValueError(f"executor = {executor!r} is invalid (allowed: process, serial, dask)")
+    jobs = jobs or min(len(tasks), os.cpu_count() or 1) or 1
+    refs = sorted({(t.scene, t.overrides, t.t_end, t.save_every) for t in tasks}, key=str)
+    rows: dict[int, dict] = {}
+    start = time.perf_counter()
+
+    def done(i: int, row: dict) -> None:
+        rows[i] = row
+        status = row["status"]
+        extra = f"{row['run_time']:.3g} s" if status == "ok" else f"{status}: {row['reason']}"[:120]
+        log(f"[{len(rows)}/{len(tasks)}] {row['scene']} {row['integrator']} {row['setting']}: {extra}"
+            f"  ({time.perf_counter() - start:.0f} s elapsed)")
+        if on_row:
+            on_row([rows[k] for k in sorted(rows)])
+
+    if executor == "serial":
+        for ref in refs:
+            log(f"reference: {ref[0]} ...")
+            _reference_task(*ref, cache_dir)
+        for i, t in enumerate(tasks):
+            done(i, run_task(t, cache_dir, repeats))
+    elif executor == "process":
+        _worker_env()
+        ctx = multiprocessing.get_context("spawn")  # JAX does not survive fork
+        with cf.ProcessPoolExecutor(max_workers=jobs, mp_context=ctx) as pool:
+            log(f"references for {len(refs)} scene(s) ...")
+            for fut in [pool.submit(_reference_task, *ref, cache_dir) for ref in refs]:
+                fut.result()
+            futures = {pool.submit(run_task, t, cache_dir, repeats): i for i, t in enumerate(tasks)}
+            for fut in cf.as_completed(futures):
+                i = futures[fut]
+                try:
+                    row = fut.result()
+                except Exception as exc:  # the worker process died
+                    row = _empty_row(tasks[i])
+                    row.update(status="crashed", reason=f"{type(exc).__name__}: {exc}"[:300])
+                done(i, row)
+    else:
+        try:
+            from distributed import Client, as_completed
+        except ImportError:
+            raise ValueError("executor 'dask' needs the optional dependency: pip install 'reelbench[dask]'") from None
+        if not scheduler:
+            raise ValueError("executor 'dask' needs --scheduler ADDRESS (e.g. tcp://host:8786)")
+        client = Client(scheduler)
+        for fut in [client.submit(_reference_task, *ref, cache_dir, pure=False) for ref in refs]:
+            fut.result()
+        futures = {client.submit(run_task, t, cache_dir, repeats, pure=False): i for i, t in enumerate(tasks)}
+        index = {f.key: i for f, i in futures.items()}
+        for fut in as_completed(list(futures)):
+            i = index[fut.key]
+            try:
+                row = fut.result()
+            except Exception as exc:
+                row = _empty_row(tasks[i])
+                row.update(status="crashed", reason=f"{type(exc).__name__}: {exc}"[:300])
+            done(i, row)
+    return to_frame([rows[k] for k in sorted(rows)])
+
+
+def to_frame(rows: Iterable[dict]) -> pd.DataFrame:
+    df = pd.DataFrame(list(rows))
+    for c in COLUMNS:
+        if c not in df:
+            df[c] = np.nan
+    df = df[COLUMNS + [c for c in df.columns if c not in COLUMNS]]
+    # a number that is not backed by a finished run is not reported
+    df.loc[df["status"] != "ok", ACCURACY] = np.nan
+    return df

@@ -1,0 +1,92 @@
+"""What a sweep runs: scenes × integrators × settings, as a flat list of `Task`s.
+
+Fixed-step methods are swept over step sizes, adaptive ones over tolerances; a method that
+is both (diffrax Tsit5) is swept on both axes. Step sizes divide the save interval, so every
+method saves at the same times as the reference.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+from integrators import Capability, available, get_integrator
+
+PAPER_SCENES = ("fixed_length", "deployment", "retrieval")
+DEFAULT_INTEGRATORS = ("lgvi", "rk45", "dop853", "radau", "tsit5", "kvaerno5")
+SAVE_EVERY = 0.02  # s; every dt below divides it
+
+# step sizes (s) and relative tolerances (atol = rtol * ATOL_FACTOR)
+FULL_DTS = (0.02, 0.01, 0.005, 0.0025, 0.00125)
+FULL_RTOLS = (1e-4, 1e-6, 1e-8, 1e-10)
+QUICK_DTS = (0.01, 0.005, 0.0025)
+QUICK_RTOLS = (1e-5, 1e-8)
+ATOL_FACTOR = 1e-2
+QUICK_T_END = 2.0
+
+
+@dataclass(frozen=True)
+class Task:
+    """One run: a scene (name or path, with overrides), an integrator and one setting."""
+
+    scene: str
+    integrator: str
+    dt: float | None = None
+    rtol: float | None = None
+    atol: float | None = None
+    t_end: float | None = None
+    save_every: float = SAVE_EVERY
+    overrides: tuple = field(default_factory=tuple)  # ((key, value), ...)
+
+    @property
+    def setting(self) -> str:
+        if self.dt is not None:
+            return f"dt={self.dt:g}"
+        return f"rtol={self.rtol:g}"
+
+    def solve_kwargs(self) -> dict:
+        kw = {"t_end": self.t_end, "save_every": self.save_every}
+        if self.dt is not None:
+            kw["dt"] = self.dt
+        else:
+            kw.update(rtol=self.rtol, atol=self.atol)
+        return kw
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def build_tasks(
+    scenes=PAPER_SCENES,
+    integrators=None,
+    *,
+    quick: bool = False,
+    dts=None,
+    rtols=None,
+    t_end: float | None = None,
+    overrides: dict | None = None,
+) -> list[Task]:
+    """The sweep as tasks. ``integrators=None`` means every registered one among the defaults
+    plus any plugin; unknown names raise ValueError before anything runs."""
+    names = list(integrators) if integrators else [n for n in DEFAULT_INTEGRATORS if n in available()] + [
+        n for n in available() if n not in DEFAULT_INTEGRATORS and not n.startswith("test_")
+    ]
+    dts = tuple(dts) if dts else (QUICK_DTS if quick else FULL_DTS)
+    rtols = tuple(rtols) if rtols else (QUICK_RTOLS if quick else FULL_RTOLS)
+    if quick and t_end is None:
+        t_end = QUICK_T_END
+    for v in dts:
+        if not (v > 0 and abs(SAVE_EVERY / v - round(SAVE_EVERY / v)) < 1e-9):
+            raise ValueError(f"dt = {v!r} is invalid (allowed: > 0 and dividing the save interval {SAVE_EVERY} s)")
+    for v in rtols:
+        if not 0 < v < 1:
+            raise ValueError(f"rtol = {v!r} is invalid (allowed: 0 < rtol < 1)")
+    ov = tuple(sorted((overrides or {}).items()))
+    tasks = []
+    for scene in scenes:
+        for name in names:
+            integ = get_integrator(name)  # raises for unknown names, before any work
+            if integ.has(Capability.FIXED_STEP):
+                tasks += [Task(scene, name, dt=dt, t_end=t_end, overrides=ov) for dt in dts]
+            if integ.has(Capability.ADAPTIVE):
+                tasks += [Task(scene, name, rtol=r, atol=r * ATOL_FACTOR, t_end=t_end, overrides=ov) for r in rtols]
+    return tasks
