@@ -118,7 +118,7 @@ def save_times(t_end: float, save_every: float | None, dt: float | None = None) 
         n = int(math.floor(t_end / dt + 1e-9))
         return np.arange(0, n + 1, stride) * dt
     n = int(math.floor(t_end / save_every + 1e-9))
-    t = np.arange(n + 1) * save_every
+    t = np.minimum(np.arange(n + 1) * save_every, t_end)  # no rounding overshoot past t_end
     return t if abs(t[-1] - t_end) < 1e-12 * max(1.0, t_end) else np.append(t, t_end)
 
 

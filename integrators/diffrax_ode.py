@@ -1,0 +1,255 @@
+"""Baselines from diffrax: Tsit5 (adaptive, or constant step when only ``dt`` is given) and
+Kvaerno5 (implicit ESDIRK, adaptive).
+
+The whole solve is one jitted function of (y0, t1, saved times, rtol, atol, dt0, min_step),
+compiled ahead of time with ``jax.jit(...).lower(...).compile()`` and cached per
+(model, solver, step-size mode, number of saved times, max_steps, dt0 given), so repeated calls
+with other tolerances, horizons or step sizes do not recompile; ``stats["compile_time"]`` is
+that compilation (0 when cached) and ``stats["wall_time"]`` the run alone.
+
+Failures never raise (``throw=False``); ``sol.result`` is mapped to a status:
+``max_steps_reached`` -> "max_steps", ``dt_min_reached`` -> "step_size_collapse" (the PID
+controller gets ``dtmin = min_step``, default 1e-12 t_end, with ``force_dtmin=False``), other
+errors -> "failed" with diffrax's message. A terminating `diffrax.Event` stops the run when the
+deployed length leaves (0, L - b) ("length_limit") or the state becomes non-finite or blows up
+("diverged"); the trajectory is kept up to the last saved point before that.
+
+The quaternion is not renormalised. No ``@register``: found through the entry-point group.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import ClassVar
+
+import diffrax as dfx
+import numpy as np
+import optimistix as optx
+
+from integrators.base import Capability, Integrator, Status, Trajectory, check_positive, save_times
+from integrators.scipy_ivp import (
+    BLOWUP,
+    check_max_steps,
+    check_options,
+    check_tolerances,
+    finite_prefix,
+    make_trajectory,
+    resolve_scene,
+)
+from models import build_model
+from models._jax import jax, jnp
+
+#: Default step budget (diffrax's own default, 4096, is too small for tight tolerances here).
+DEFAULT_MAX_STEPS = 100_000
+#: Default minimum step for the PID controller, relative to t_end: below it -> step_size_collapse.
+DEFAULT_MIN_STEP_REL = 1e-12
+
+#: Kvaerno5's Newton tolerances, relative to the step-size controller's rtol/atol.
+NEWTON_TOL_FACTOR = 1e-2
+
+_COMPILED: dict[tuple, object] = {}
+
+
+def _result_index(item) -> int:
+    return int(np.asarray(item._value))
+
+
+_RESULT_STATUS = {
+    _result_index(dfx.RESULTS.successful): Status.OK,
+    _result_index(dfx.RESULTS.max_steps_reached): Status.MAX_STEPS,
+    _result_index(dfx.RESULTS.dt_min_reached): Status.STEP_SIZE_COLLAPSE,
+}
+_EVENT = _result_index(dfx.RESULTS.event_occurred)
+
+
+def _result_message(index: int) -> str:
+    try:
+        return dfx.RESULTS._index_to_message[index]  # equinox Enumeration internals
+    except Exception:  # pragma: no cover - depends on the equinox version
+        return f"diffrax result code {index}"
+
+
+def _stop_condition(model):
+    """Event condition: deployed length out of range, or non-finite / blown-up state."""
+    lay = model.layout
+
+    def cond_fn(t, y, args, **kwargs):
+        bad = ~jnp.all(jnp.isfinite(y)) | (jnp.max(jnp.abs(y)) >= BLOWUP)
+        if lay.has_reel:
+            bad = bad | ~(model.deployed_length_margin(y[lay.y_x]) > 0.0)
+        return bad
+
+    return cond_fn
+
+
+def _build(model, solver_name: str, adaptive: bool, n_save: int, max_steps: int, dt0_given: bool):
+    term = dfx.ODETerm(lambda t, y, args: model.ode_rhs(t, y))
+    event = dfx.Event(_stop_condition(model))
+
+    def run(y0, t1, ts, rtol, atol, dt0, min_step):
+        if solver_name == "kvaerno5":
+            # Full Newton (Jacobian every iteration): diffrax's default VeryChord (Jacobian frozen
+            # over the step) failed to converge on about half the steps on the string and the
+            # controller rejected them (207 accepted / 198 rejected vs 16 / 1 with Newton).
+            solver = dfx.Kvaerno5(root_finder=optx.Newton(rtol=NEWTON_TOL_FACTOR * rtol, atol=NEWTON_TOL_FACTOR * atol))
+        else:
+            solver = dfx.Tsit5()
+        if adaptive:
+            controller = dfx.PIDController(rtol=rtol, atol=atol, dtmin=min_step, force_dtmin=False)
+        else:
+            controller = dfx.ConstantStepSize()
+        sol = dfx.diffeqsolve(
+            term, solver, t0=0.0, t1=t1, dt0=dt0 if dt0_given else None, y0=y0,
+            saveat=dfx.SaveAt(ts=ts, t1=True), stepsize_controller=controller, event=event,
+            max_steps=max_steps, throw=False,
+        )
+        return {
+            "ts": sol.ts, "ys": sol.ys, "result": sol.result._value,
+            "num_steps": sol.stats["num_steps"], "num_accepted_steps": sol.stats["num_accepted_steps"],
+            "num_rejected_steps": sol.stats["num_rejected_steps"],
+        }
+
+    return jax.jit(run)
+
+
+def _compiled(model, solver_name, adaptive, n_save, max_steps, dt0_given, example_args):
+    """(compiled solve, compile time in s; 0 when it was cached)."""
+    key = (model, solver_name, adaptive, n_save, max_steps, dt0_given)
+    fn = _COMPILED.get(key)
+    if fn is not None:
+        return fn, 0.0
+    tc = time.perf_counter()
+    fn = _build(model, solver_name, adaptive, n_save, max_steps, dt0_given).lower(*example_args).compile()
+    compile_time = time.perf_counter() - tc
+    _COMPILED[key] = fn
+    return fn, compile_time
+
+
+def clear_cache() -> None:
+    """Forget the compiled solves (tests, memory)."""
+    _COMPILED.clear()
+
+
+class DiffraxODE(Integrator):
+    """Adapter for diffrax solvers on the model's quaternion ODE state."""
+
+    solver_name: ClassVar[str] = ""
+    allows_constant_step: ClassVar[bool] = False
+    option_names: ClassVar[tuple[str, ...]] = ("min_step",)
+
+    def solve(self, scene, t_end=None, *, dt=None, rtol=None, atol=None, save_every=None, max_steps=None,
+              **options) -> Trajectory:
+        # ---- arguments, all checked before any work ----
+        check_options(self.name, options, self.option_names)
+        scene = resolve_scene(scene)
+        t_end = scene.t_end if t_end is None else t_end
+        check_positive("t_end", t_end)
+        check_positive("dt", dt, allow_none=True)
+        check_positive("save_every", save_every, allow_none=True)
+        check_max_steps(max_steps)
+        t_end = float(t_end)
+        constant = self.allows_constant_step and dt is not None and rtol is None and atol is None
+        if constant:
+            if "min_step" in options:
+                raise ValueError(f"{self.name}: min_step applies to adaptive steps only (allowed: omit it with a constant dt)")
+        else:
+            if self.allows_constant_step and rtol is None and atol is None:
+                raise ValueError(f"{self.name} needs rtol and atol (adaptive; allowed: finite numbers, 0 < rtol < 1, "
+                                 f"atol > 0) or dt alone (constant step; allowed: a finite number > 0)")
+            check_tolerances(rtol, atol)
+        min_step = options.get("min_step", DEFAULT_MIN_STEP_REL * t_end)
+        check_positive("min_step", min_step)
+
+        model = build_model(scene)
+        y0 = jnp.asarray(model.initial_ode_state())
+        if constant:
+            t_save = save_times(t_end, save_every, dt)
+            t1 = float(math.floor(t_end / dt + 1e-9) * dt)  # whole steps only, like the LGVI
+            n_steps = int(round(t1 / dt))
+            if t1 <= 0:
+                raise ValueError(f"dt = {dt!r} is invalid for t_end = {t_end!r} (allowed: 0 < dt <= t_end)")
+            budget = max_steps if max_steps is not None else max(DEFAULT_MAX_STEPS, n_steps + 16)
+        else:
+            t_save = save_times(t_end, save_every)
+            t1 = t_end
+            budget = max_steps if max_steps is not None else DEFAULT_MAX_STEPS
+        settings = {"rtol": rtol, "atol": atol, "dt": dt, "save_every": save_every, "max_steps": budget,
+                    "t_end": t_end, "step_size": "constant" if constant else "pid", "min_step": None if constant else min_step}
+        t_save = np.minimum(t_save, t1)  # diffrax refuses saved times past t1, even by an ulp
+        dt0_given = dt is not None
+        args = (y0, jnp.asarray(t1), jnp.asarray(t_save), jnp.asarray(rtol if rtol is not None else 0.0),
+                jnp.asarray(atol if atol is not None else 0.0), jnp.asarray(min(dt, t1) if dt0_given else 0.0),
+                jnp.asarray(min_step))
+        fn, compile_time = _compiled(model, self.solver_name, not constant, len(t_save), int(budget), dt0_given, args)
+
+        # ---- run ----
+        tw = time.perf_counter()
+        out = jax.block_until_ready(fn(*args))
+        wall = time.perf_counter() - tw
+
+        ts = np.asarray(out["ts"], dtype=float)
+        ys = np.asarray(out["ys"], dtype=float)
+        code = int(out["result"])
+        # diffrax writes the saved points in order and pads the rest with inf; the SaveAt(t1=True)
+        # entry (the state where the solve stopped, for any result) follows the last saved time.
+        n_valid = int(np.sum(np.isfinite(ts)))
+        t_final, y_final = ts[n_valid - 1], ys[n_valid - 1]
+        ts, ys = ts[: n_valid - 1], ys[: n_valid - 1]
+        if len(ts) == 0:  # stopped before the first accepted step: keep the initial state
+            ts, ys = np.zeros(1), np.asarray(y0, dtype=float)[None, :]
+        reason = ""
+        if code == _EVENT:
+            if np.all(np.isfinite(y_final)) and np.max(np.abs(y_final)) < BLOWUP:
+                status = Status.LENGTH_LIMIT
+                reason = f"deployed length left (0, L - b) in the step ending at t = {t_final:.6g}"
+            else:
+                status = Status.DIVERGED
+                reason = f"non-finite or blown-up state (|y| >= {BLOWUP:g}) in the step ending at t = {t_final:.6g}"
+        elif code in _RESULT_STATUS:
+            status = _RESULT_STATUS[code]
+            if status is not Status.OK:
+                reason = f"{_result_message(code)} (stopped at t = {t_final:.6g})"
+        else:
+            status, reason = Status.FAILED, f"{_result_message(code)} (stopped at t = {t_final:.6g})"
+
+        # keep the saved points the solve actually reached, finite, inside the length range
+        n = finite_prefix(ys)
+        if n < len(ys) and status is Status.OK:
+            status, reason = Status.DIVERGED, "non-finite saved state"
+        ts, ys = ts[:n], ys[:n]
+        if status is Status.LENGTH_LIMIT and model.layout.has_reel:
+            s = ys[:, 0]
+            ell = model.L - s
+            inside = (ell > 0) & (model.L - model.b - ell > 0)
+            m = int(np.argmin(inside)) if not inside.all() else len(ts)
+            ts, ys = ts[:m], ys[:m]
+
+        stats = {
+            "steps": int(out["num_accepted_steps"]),
+            "rejected_steps": int(out["num_rejected_steps"]),
+            "attempted_steps": int(out["num_steps"]),
+            "wall_time": wall,
+            "compile_time": compile_time,
+        }
+        if status is Status.LENGTH_LIMIT:
+            stats["event_time"] = float(t_final)
+        return make_trajectory(model, scene, ts, ys, status=status, reason=reason, stats=stats,
+                               integrator=self.name, settings=settings)
+
+
+class Tsit5(DiffraxODE):
+    name = "tsit5"
+    solver_name = "tsit5"
+    allows_constant_step = True
+    capabilities = frozenset({Capability.ADAPTIVE, Capability.FIXED_STEP})
+    order = 5
+    description = "diffrax Tsit5: PID-adaptive (rtol/atol) or constant step (dt alone), quaternion attitude"
+
+
+class Kvaerno5(DiffraxODE):
+    name = "kvaerno5"
+    solver_name = "kvaerno5"
+    capabilities = frozenset({Capability.ADAPTIVE, Capability.IMPLICIT})
+    order = 5
+    description = "diffrax Kvaerno5 (implicit ESDIRK 5(4), full Newton), PID-adaptive, quaternion attitude"

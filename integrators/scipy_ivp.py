@@ -1,0 +1,278 @@
+"""Baselines from `scipy.integrate`: RK45, Radau (autodiff Jacobian) and DOP853 (references).
+
+They integrate the model's continuous equations (MODEL.md §5) on the quaternion ODE state
+``y = (x, quat, w, W)`` of `models.layout`, with the model's jitted right-hand side returning
+numpy. The quaternion is *not* renormalised (the drift is part of what is measured), except by
+the clearly named ``rk45_projected`` variant, which rescales it to unit norm after every
+accepted step.
+
+The adapter drives scipy's ``OdeSolver`` step by step (what ``solve_ivp`` does internally) so
+that it can count accepted steps, enforce ``max_steps``, stop on the deployed-length limit
+(a root of `StringPendulum.deployed_length_margin` located on the dense output) and stop on a
+non-finite or blown-up state, always returning the trajectory up to the last good point.
+
+These classes are registered through the ``reelbench.integrators`` entry-point group (see
+pyproject.toml), exactly as an outside plugin is: no ``@register`` here.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import time
+from typing import Any, ClassVar
+
+import numpy as np
+from scipy import integrate as _si
+from scipy.optimize import brentq
+
+from integrators.base import Capability, Integrator, Status, Trajectory, check_positive, save_times
+from models import build_model, load_scene
+from models._jax import jax
+from models.scene import Scene
+
+#: A state component beyond this magnitude counts as divergence (positions are tens of metres,
+#: velocities at most hundreds of m/s in every shipped scene).
+BLOWUP = 1e8
+
+
+# ------------------------------------------------------------------------------------------
+# Helpers shared with `integrators.diffrax_ode`
+# ------------------------------------------------------------------------------------------
+def resolve_scene(scene) -> Scene:
+    if isinstance(scene, Scene):
+        return scene
+    if isinstance(scene, str):
+        return load_scene(scene)
+    raise ValueError(f"scene = {scene!r} is invalid (allowed: a models.Scene or a scene name)")
+
+
+def check_tolerances(rtol, atol) -> None:
+    """rtol in (0, 1), atol > 0; both required."""
+    if rtol is None:
+        raise ValueError("rtol is required for an adaptive method (allowed: a finite number in (0, 1))")
+    if atol is None:
+        raise ValueError("atol is required for an adaptive method (allowed: a finite number > 0)")
+    check_positive("rtol", rtol)
+    if rtol >= 1:
+        raise ValueError(f"rtol = {rtol!r} is invalid (allowed: a finite number in (0, 1))")
+    check_positive("atol", atol)
+
+
+def check_max_steps(max_steps) -> None:
+    if max_steps is None:
+        return
+    if isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
+        raise ValueError(f"max_steps = {max_steps!r} is invalid (allowed: an integer >= 1, or None)")
+
+
+def check_options(name: str, options: dict, allowed: tuple[str, ...] = ()) -> None:
+    unknown = sorted(set(options) - set(allowed))
+    if unknown:
+        allowed_txt = ", ".join(allowed) if allowed else "none"
+        raise ValueError(f"{name}: unknown option(s) {', '.join(map(repr, unknown))} (allowed options: {allowed_txt})")
+
+
+def finite_prefix(y: np.ndarray) -> int:
+    """Number of leading rows of y that are finite and below `BLOWUP` in magnitude."""
+    good = np.all(np.isfinite(y), axis=1) & np.all(np.abs(np.nan_to_num(y, nan=np.inf)) < BLOWUP, axis=1)
+    bad = np.flatnonzero(~good)
+    return int(bad[0]) if bad.size else len(y)
+
+
+def state_ok(y: np.ndarray) -> bool:
+    return bool(np.all(np.isfinite(y)) and np.max(np.abs(y)) < BLOWUP)
+
+
+@functools.lru_cache(maxsize=64)
+def margin_function(model):
+    """Jitted deployed-length margin of an ODE state (None for a fixed-length scene)."""
+    if not model.layout.has_reel:
+        return None
+    sl = model.layout.y_x
+    f = jax.jit(lambda y: model.deployed_length_margin(y[sl]))
+    return lambda y: float(f(y))
+
+
+def make_trajectory(model, scene, t, y, *, status, reason, stats, integrator, settings) -> Trajectory:
+    lay = model.layout
+    t = np.asarray(t, dtype=float)
+    y = np.asarray(y, dtype=float).reshape(len(t), lay.ny)
+    return Trajectory(
+        t=t,
+        x=y[:, lay.y_x].copy(),
+        attitude=y[:, lay.y_quat].copy() if lay.has_attitude else None,
+        attitude_kind="quaternion",
+        velocity=y[:, lay.y_w].copy(),
+        work=y[:, lay.y_work][:, 0].copy() if lay.has_work else np.zeros(len(t)),
+        status=str(status.value if isinstance(status, Status) else status),
+        reason=reason,
+        stats=stats,
+        integrator=integrator,
+        settings=settings,
+        scene_name=scene.name,
+    )
+
+
+def normalise_quaternion(model, y: np.ndarray) -> None:
+    """In place: rescale the quaternion block of y to unit norm (projected variants only)."""
+    sl = model.layout.y_quat
+    if model.layout.has_attitude:
+        y[sl] /= np.linalg.norm(y[sl])
+
+
+# ------------------------------------------------------------------------------------------
+# The adapter
+# ------------------------------------------------------------------------------------------
+class ScipyIVP(Integrator):
+    """One adapter for scipy's ``OdeSolver`` classes; subclasses pick the method."""
+
+    solver_class: ClassVar[type] = _si.RK45
+    uses_jacobian: ClassVar[bool] = False
+    projected: ClassVar[bool] = False
+
+    def solve(self, scene, t_end=None, *, dt=None, rtol=None, atol=None, save_every=None, max_steps=None,
+              **options) -> Trajectory:
+        # ---- arguments, all checked before any work ----
+        check_options(self.name, options)
+        scene = resolve_scene(scene)
+        t_end = scene.t_end if t_end is None else t_end
+        check_positive("t_end", t_end)
+        check_tolerances(rtol, atol)
+        check_positive("dt", dt, allow_none=True)  # initial step, optional
+        check_positive("save_every", save_every, allow_none=True)
+        check_max_steps(max_steps)
+        t_end = float(t_end)
+        settings = {"rtol": rtol, "atol": atol, "dt": dt, "save_every": save_every, "max_steps": max_steps,
+                    "t_end": t_end, "method": self.solver_class.__name__, "projected": self.projected}
+
+        model = build_model(scene)
+        lay = model.layout
+        y0 = np.asarray(model.initial_ode_state(), dtype=float)
+        t_save = np.minimum(save_times(t_end, save_every), t_end)  # the last one may be t_end + 1 ulp
+
+        # ---- compile (the jitted functions are cached on the model) ----
+        f_jit = model.ode_rhs_jit
+        tc = time.perf_counter()
+        np.asarray(f_jit(0.0, y0))
+        jac = None
+        if self.uses_jacobian:
+            jac_jit = model.ode_jacobian_jit
+            np.asarray(jac_jit(0.0, y0))
+            jac = lambda t, y: np.asarray(jac_jit(float(t), y))  # noqa: E731
+        margin = margin_function(model)
+        if margin is not None:
+            margin(y0)
+        compile_time = time.perf_counter() - tc
+
+        # float(t): scipy passes numpy scalars, which would trace a second (strongly typed) version
+        fun = lambda t, y: np.asarray(f_jit(float(t), y))  # noqa: E731
+        kwargs: dict[str, Any] = {"rtol": rtol, "atol": atol}
+        if dt is not None:
+            kwargs["first_step"] = min(float(dt), t_end)
+        if jac is not None:
+            kwargs["jac"] = jac
+
+        # ---- integrate ----
+        tw = time.perf_counter()
+        solver = self.solver_class(fun, 0.0, y0.copy(), t_end, **kwargs)
+        out_t, out_y = [0.0], [y0.copy()]
+        k = 1  # next saved time
+        steps = 0
+        status, reason = Status.OK, ""
+        event_time = None
+        while solver.status == "running":
+            if max_steps is not None and steps >= max_steps:
+                status, reason = Status.MAX_STEPS, f"max_steps = {max_steps} reached at t = {solver.t:.6g} (t_end = {t_end:g})"
+                break
+            message = solver.step()
+            if solver.status == "failed":
+                msg = message or "solver failed"
+                status = Status.STEP_SIZE_COLLAPSE if "step size" in msg.lower() else Status.FAILED
+                reason = f"{msg} (t = {solver.t:.6g})"
+                if not state_ok(solver.y):
+                    status = Status.DIVERGED
+                break
+            steps += 1
+            t_old, t_new = solver.t_old, solver.t
+            if not state_ok(solver.y):
+                status = Status.DIVERGED
+                reason = f"non-finite or blown-up state (|y| >= {BLOWUP:g}) in the step ({t_old:.6g}, {t_new:.6g}]"
+                break
+            t_stop = t_new
+            dense = None
+            if margin is not None and margin(solver.y) <= 0.0:
+                dense = solver.dense_output()
+                g = lambda t: margin(dense(t))  # noqa: E731
+                try:
+                    event_time = brentq(g, t_old, t_new, xtol=1e-13 * max(1.0, t_new)) if g(t_old) > 0 else t_old
+                except ValueError:
+                    event_time = t_new
+                t_stop = event_time
+                status = Status.LENGTH_LIMIT
+                reason = f"deployed length left (0, L - b) at t = {event_time:.6g}"
+            while k < len(t_save) and (t_save[k] < t_stop if event_time is not None else t_save[k] <= t_new):
+                if t_save[k] == t_new:
+                    yk = solver.y.copy()
+                else:
+                    dense = dense or solver.dense_output()
+                    yk = np.asarray(dense(t_save[k]), dtype=float)
+                out_t.append(float(t_save[k]))
+                out_y.append(yk)
+                k += 1
+            if event_time is not None:
+                break
+            if self.projected and lay.has_attitude:
+                normalise_quaternion(model, solver.y)
+                if hasattr(solver, "f"):
+                    solver.f = fun(solver.t, solver.y)  # keep FSAL consistent with the projected state
+        wall = time.perf_counter() - tw
+
+        y_arr = np.array(out_y)
+        n = finite_prefix(y_arr)
+        if n < len(y_arr):
+            status = Status.DIVERGED
+            reason = reason or "non-finite saved state"
+        stats = {
+            "steps": steps,
+            "rhs_evals": int(solver.nfev),
+            "jac_evals": int(solver.njev),
+            "lu_decompositions": int(solver.nlu),
+            "wall_time": wall,
+            "compile_time": compile_time,
+        }
+        if event_time is not None:
+            stats["event_time"] = float(event_time)
+        return make_trajectory(model, scene, np.array(out_t)[:n], y_arr[:n], status=status, reason=reason,
+                               stats=stats, integrator=self.name, settings=settings)
+
+
+class RK45(ScipyIVP):
+    name = "rk45"
+    solver_class = _si.RK45
+    capabilities = frozenset({Capability.ADAPTIVE})
+    order = 5
+    description = "scipy RK45 (Dormand–Prince 5(4)), quaternion attitude, not renormalised"
+
+
+class Radau(ScipyIVP):
+    name = "radau"
+    solver_class = _si.Radau
+    uses_jacobian = True
+    capabilities = frozenset({Capability.ADAPTIVE, Capability.IMPLICIT})
+    order = 5
+    description = "scipy Radau IIA (order 5, implicit) with the autodiff Jacobian, quaternion attitude"
+
+
+class DOP853(ScipyIVP):
+    name = "dop853"
+    solver_class = _si.DOP853
+    capabilities = frozenset({Capability.ADAPTIVE})
+    order = 8
+    description = "scipy DOP853 (Dormand–Prince 8(5,3)), used for reference solutions"
+
+
+class RK45Projected(RK45):
+    name = "rk45_projected"
+    projected = True
+    description = "scipy RK45 with the quaternion rescaled to unit norm after every accepted step"
