@@ -230,7 +230,7 @@ def parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
     if getattr(args, "horizon", 0) is None:
-        args.horizon = 20.0 if args.quick else 100.0
+        args.horizon = 10.0 if args.quick else 100.0
     try:
         return args.func(args)
     except ValueError as exc:  # bad input: a clear message, no traceback

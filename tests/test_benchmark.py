@@ -1,0 +1,109 @@
+"""The benchmark runner on a tiny sweep: rows, statuses, atomic writes, cached references."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from benchmark import runner, sweep
+from benchmark.metrics import ACCURACY, COLUMNS, fastest_at, observed_orders
+from benchmark.reference import get_reference, reference_path
+from integrators import Capability, Integrator, Status, Trajectory, get_integrator, register
+from integrators import registry
+from models import load_scene
+from models.io import atomic_path, atomic_write_text
+
+pytest.importorskip("integrators.scipy_ivp")
+
+
+@pytest.fixture
+def flaky_integrators():
+    """Two test integrators: one that raises, one that reports divergence."""
+
+    @register
+    class Raises(Integrator):
+        name = "test_raises"
+        capabilities = frozenset({Capability.FIXED_STEP})
+
+        def solve(self, scene, t_end=None, **kw):
+            raise RuntimeError("boom")
+
+    @register
+    class Diverges(Integrator):
+        name = "test_diverges"
+        capabilities = frozenset({Capability.FIXED_STEP})
+
+        def solve(self, scene, t_end=None, *, dt=None, **kw):
+            inner = get_integrator("lgvi").solve(scene, t_end=2 * dt, dt=dt, save_every=dt)
+            inner.status, inner.reason = Status.DIVERGED.value, "energy grew beyond bound at t=0.01"
+            return inner
+
+    yield
+    registry._REGISTRY.pop("test_raises", None)
+    registry._REGISTRY.pop("test_diverges", None)
+
+
+def test_tiny_sweep_rows_statuses_and_orders(tmp_path, flaky_integrators):
+    tasks = sweep.build_tasks(["fixed_length"], ["lgvi", "rk45", "test_raises", "test_diverges"],
+                              dts=[0.01, 0.005], rtols=[1e-5, 1e-7], t_end=0.2, overrides={"elements": 2})
+    assert len(tasks) == 2 + 2 + 2 + 2
+    written = []
+    runs = runner.execute(tasks, executor="serial", repeats=1, cache_dir=str(tmp_path / "cache"),
+                          on_row=lambda rows: written.append(len(rows)), log=lambda s: None)
+    assert written == list(range(1, len(tasks) + 1))  # partial results after every run
+    assert list(runs.columns[: len(COLUMNS)]) == COLUMNS
+    ok = runs[runs["status"] == "ok"]
+    assert set(ok["integrator"]) == {"lgvi", "rk45"} and len(ok) == 4
+    for col in ACCURACY + ["run_time", "steps"]:
+        assert np.all(np.isfinite(ok[col].astype(float))), col
+    assert (ok["position_error_final"] < 1e-2).all()
+    raised = runs[runs["integrator"] == "test_raises"]
+    assert (raised["status"] == "error").all() and raised["reason"].str.contains("boom").all()
+    div = runs[runs["integrator"] == "test_diverges"]
+    assert (div["status"] == "diverged").all() and div[ACCURACY].isna().all().all()
+    orders = observed_orders(runs)
+    lg = orders[(orders["integrator"] == "lgvi")]["observed_order"].iloc[0]
+    assert 1.5 < lg < 2.6, orders
+    table = fastest_at(runs, "position_error_final", 1.0)
+    assert set(table["integrator"]) == {"lgvi", "rk45"} and table["factor"].min() == 1.0
+
+
+def test_bad_sweep_input_is_refused_before_work():
+    with pytest.raises(ValueError, match="dt = 0.003"):
+        sweep.build_tasks(["fixed_length"], ["lgvi"], dts=[0.003])
+    with pytest.raises(ValueError, match="rtol"):
+        sweep.build_tasks(["fixed_length"], ["rk45"], rtols=[2.0])
+    with pytest.raises(ValueError, match="unknown integrator"):
+        sweep.build_tasks(["fixed_length"], ["lgvy"])
+
+
+def test_reference_is_cached_and_reused(tmp_path, monkeypatch):
+    scene = load_scene("fixed_length", elements=2)
+    ref = get_reference(scene, 0.1, 0.02, tmp_path)
+    path = reference_path(scene, 0.1, 0.02, tmp_path)
+    assert path.exists() and ref.ok
+    # a second call must not integrate again
+    monkeypatch.setattr("benchmark.reference.get_integrator", lambda name: pytest.fail("recomputed"))
+    again = get_reference(scene, 0.1, 0.02, tmp_path)
+    np.testing.assert_array_equal(again.x, ref.x)
+    # a different scene gets a different key
+    assert reference_path(scene.with_(axial_stiffness=300.0), 0.1, 0.02, tmp_path) != path
+
+
+def test_atomic_writes_leave_old_file_on_failure(tmp_path):
+    target = tmp_path / "runs.csv"
+    atomic_write_text(target, "old\n")
+    with pytest.raises(RuntimeError):
+        with atomic_path(target) as tmp:
+            tmp.write_text("half")
+            raise RuntimeError("interrupted")
+    assert target.read_text() == "old\n"
+    assert [p.name for p in tmp_path.iterdir()] == ["runs.csv"]
+
+
+def test_trajectory_save_load_round_trip(tmp_path):
+    scene = load_scene("fixed_length", elements=2)
+    traj = get_integrator("lgvi").solve(scene, t_end=0.05, dt=0.01)
+    traj.save(tmp_path / "t.npz")
+    back = Trajectory.load(tmp_path / "t.npz")
+    np.testing.assert_array_equal(back.x, traj.x)
+    assert back.status == traj.status and back.integrator == "lgvi"
