@@ -24,3 +24,4 @@ __all__ = [
     "register",
     "save_times",
 ]
+from integrators import lgvi  # noqa: F401,E402  (registers "lgvi")

@@ -1,0 +1,355 @@
+"""Closed-form discrete equations of the LGVI (MODEL.md §6) and their structured solver.
+
+This module is the *discrete Lagrangian* piece of the LGVI, kept apart from the time loop
+(`integrators.lgvi`) so that a different discrete Lagrangian (lumped mass, symmetric reel
+terms) can replace it. Everything is written in "h·p" units (momenta times the step h).
+
+Per step, with X = (Δs, Δq_2..Δq_{N+1}, c) and F = cay(c) = (I + ĉ)(I − ĉ)⁻¹:
+
+* the q rows of the p_k equations form, for given (Δs, c), a *scalar* tridiagonal system
+  over all N nodes (node N+1 included: its row has the extra mass m_b on the diagonal and the
+  known body term m_b R_k (F − I) ρ_c on the right-hand side), solved by the Thomas algorithm
+  in O(N);
+* what is left is a reduced nonlinear system in z = (Δs if reel, c if rigid body), at most
+  4 unknowns (the s_p row and the Π row), solved by Newton with a Jacobian from
+  ``jax.jacfwd`` through the tridiagonal solve. Fixed length with a point mass needs no
+  Newton at all (one linear solve per step).
+
+`hp_k_full` / `hp_k1` give the full closed-form residual sides for testing against the
+autodiff discrete Lagrangian (tests/test_lgvi.py).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from models._jax import jax, jnp
+from models.model import hat, vee
+
+#: Tridiagonal systems up to this size are unrolled at trace time (fast for small N);
+#: larger ones use lax.scan (bounded compile time).
+UNROLL_MAX = 24
+
+
+def cayley(c):
+    """F = (I + ĉ)(I − ĉ)⁻¹ = ((1 − |c|²) I + 2 ĉ + 2 c cᵀ) / (1 + |c|²)."""
+    cc = c @ c
+    return ((1.0 - cc) * jnp.eye(3) + 2.0 * hat(c) + 2.0 * jnp.outer(c, c)) / (1.0 + cc)
+
+
+def small_solve(J, r):
+    """J⁻¹ r for a small (n ≤ 4) system by unrolled Gaussian elimination without pivoting.
+
+    The LGVI's reduced Jacobian is close to blockdiag(M0, 2 J_c) (positive definite), so no
+    pivoting is needed; unrolling avoids a LAPACK call per Newton iteration.
+    """
+    n = r.shape[0]
+    A = [[J[i, j] for j in range(n)] for i in range(n)]
+    b = [r[i] for i in range(n)]
+    for k in range(n):
+        inv = 1.0 / A[k][k]
+        for i in range(k + 1, n):
+            f = A[i][k] * inv
+            for j in range(k + 1, n):
+                A[i][j] = A[i][j] - f * A[k][j]
+            b[i] = b[i] - f * b[k]
+    x = [None] * n
+    for i in range(n - 1, -1, -1):
+        acc = b[i]
+        for j in range(i + 1, n):
+            acc = acc - A[i][j] * x[j]
+        x[i] = acc / A[i][i]
+    return jnp.stack(x)
+
+
+def tridiag_solve(sub, diag, sup, rhs):
+    """Thomas algorithm for rows i: sub_i y_{i-1} + diag_i y_i + sup_i y_{i+1} = rhs_i.
+
+    sub, diag, sup: (n,); rhs: (n, k). sub_0 and sup_{n-1} are ignored. No pivoting: the
+    LGVI's matrix is strictly diagonally dominant (consistent mass matrix).
+    """
+    n = diag.shape[0]
+    if n <= UNROLL_MAX:
+        cp, dp = [], []
+        c_prev = None
+        d_prev = None
+        for i in range(n):
+            if i == 0:
+                den = diag[0]
+                d_i = rhs[0] / den
+            else:
+                den = diag[i] - sub[i] * c_prev
+                d_i = (rhs[i] - sub[i] * d_prev) / den
+            c_i = sup[i] / den
+            cp.append(c_i)
+            dp.append(d_i)
+            c_prev, d_prev = c_i, d_i
+        ys = [None] * n
+        ys[n - 1] = dp[n - 1]
+        for i in range(n - 2, -1, -1):
+            ys[i] = dp[i] - cp[i] * ys[i + 1]
+        return jnp.stack(ys)
+
+    def fwd(carry, row):
+        c_prev, d_prev = carry
+        a, b, c, d = row
+        den = b - a * c_prev
+        c_i = c / den
+        d_i = (d - a * d_prev) / den
+        return (c_i, d_i), (c_i, d_i)
+
+    sub0 = sub.at[0].set(0.0)
+    init = (jnp.zeros((), rhs.dtype), jnp.zeros(rhs.shape[1:], rhs.dtype))
+    _, (cp, dp) = jax.lax.scan(fwd, init, (sub0, diag, sup, rhs), unroll=8)
+
+    def bwd(y_next, row):
+        c_i, d_i = row
+        y = d_i - c_i * y_next
+        return y, y
+
+    _, ys = jax.lax.scan(bwd, jnp.zeros(rhs.shape[1:], rhs.dtype), (cp, dp), reverse=True, unroll=8)
+    return ys
+
+
+@dataclass
+class StepContext:
+    """Quantities of g_k used by one step (mass terms at g_k, MODEL.md §6)."""
+
+    t: jnp.ndarray
+    x: jnp.ndarray
+    R: jnp.ndarray
+    s: jnp.ndarray
+    l: jnp.ndarray
+    M0: jnp.ndarray
+    C: jnp.ndarray  # (N, 3): C_a = M31_a + M23_{a-1}, coefficient of Δs in row a = 2..N+1
+    dVs: jnp.ndarray
+    dVq: jnp.ndarray  # (N, 3)
+    dVeta: jnp.ndarray  # (3,)
+
+
+jax.tree_util.register_dataclass(
+    StepContext, data_fields=["t", "x", "R", "s", "l", "M0", "C", "dVs", "dVq", "dVeta"], meta_fields=[]
+)
+
+
+class DiscreteLagrangian:
+    """Closed-form derivatives of MODEL.md §6's L_d for one model (consistent string mass)."""
+
+    def __init__(self, model):
+        self.model = model
+        lay = model.layout
+        self.N = N = model.N
+        self.reel = lay.has_reel
+        self.rigid = lay.has_attitude
+        self.nw = lay.nw
+        self.nz = (1 if self.reel else 0) + (3 if self.rigid else 0)
+        mu = model.mu
+        a = np.arange(2, N + 2, dtype=float)  # nodes 2..N+1
+        last = np.zeros(N)
+        last[-1] = 1.0
+        self.e_last = jnp.asarray(last)
+        # nonlinear Δs terms of the q rows, coefficient μΔs/(6N) times these
+        cprev = 5 + 3 * N - 3 * a
+        cself = np.full(N, 2.0)
+        cnext = -(1 + 3 * N - 3 * a)
+        cprev[-1], cself[-1], cnext[-1] = 2.0, 1.0, 0.0
+        self.cprev, self.cself, self.cnext = (jnp.asarray(v * mu / (6 * N)) for v in (cprev, cself, cnext))
+        # consistent mass coefficients, times μ l
+        self.msub = jnp.full(N, 1.0 / 6.0)
+        self.mdiag = jnp.asarray(np.where(last > 0, 1.0 / 3.0, 2.0 / 3.0))
+        self.msup = jnp.asarray(np.where(last > 0, 0.0, 1.0 / 6.0))
+        self.c31 = jnp.asarray(model.c31)
+        self.c23 = jnp.asarray(model.c23)
+        self.rho = jnp.asarray(model.rho_c)
+        self.J_o = jnp.asarray(model.J_o)
+        self.J_d = jnp.asarray(model.J_d)
+
+    # -------------------------------------------------------------------------------------
+    def context(self, t, x, R, gradV) -> StepContext:
+        m = self.model
+        N = self.N
+        q = m.nodes(x)
+        s = m.reel_coordinate(x)
+        l = (m.L - s) / N
+        M0 = m.mu * s + m.kappa + m.mu * (m.L - s) / 3.0
+        if self.reel:
+            D = q[:-1] - q[1:]  # (N, 3), q_a - q_{a+1}
+            M31 = self.c31[:, None] * D
+            M23 = self.c23[:, None] * D
+            C = M23 + jnp.concatenate([M31[1:], jnp.zeros((1, 3))], axis=0)
+            dVs = gradV[0]
+        else:
+            C = jnp.zeros((N, 3))
+            dVs = jnp.asarray(0.0)
+        lay = m.layout
+        dVq = gradV[lay.nodes].reshape(N, 3)
+        dVeta = gradV[lay.omega] if self.rigid else jnp.zeros(3)
+        return StepContext(t=t, x=x, R=R, s=s, l=l, M0=M0, C=C, dVs=dVs, dVq=dVq, dVeta=dVeta)
+
+    def split_momentum(self, p):
+        lay = self.model.layout
+        ps = p[0] if self.reel else jnp.asarray(0.0)
+        pq = p[lay.nodes].reshape(self.N, 3)
+        Pi = p[lay.omega] if self.rigid else jnp.zeros(3)
+        return ps, pq, Pi
+
+    def join(self, ps, pq, Pi):
+        parts = ([jnp.atleast_1d(ps)] if self.reel else []) + [pq.ravel()] + ([Pi] if self.rigid else [])
+        return jnp.concatenate(parts)
+
+    def unpack_z(self, z):
+        ds = z[0] if self.reel else jnp.asarray(0.0)
+        c = z[self.nz - 3:] if self.rigid else jnp.zeros(3)
+        return ds, c
+
+    def pack_z(self, ds, c):
+        parts = ([jnp.atleast_1d(ds)] if self.reel else []) + ([c] if self.rigid else [])
+        return jnp.concatenate(parts) if parts else jnp.zeros(0)
+
+    # -------------------------------------------------------------------------------------
+    def forcing(self, ctx: StepContext, ds, h):
+        """Q_k = Q_u(t_k) + Q_c(s_k, Δs/h, q_{k,2})."""
+        if not self.reel or not self.model.reel_forces:
+            return jnp.asarray(0.0)
+        w = jnp.zeros(self.nw).at[0].set(ds / h)
+        return self.model.reel_force(ctx.t, ctx.x, w)
+
+    def body_term(self, ctx: StepContext, F):
+        """m_b R_k (F − I) ρ_c (zero without a rigid body)."""
+        if not self.rigid:
+            return jnp.zeros(3)
+        return self.model.m_b * (ctx.R @ (F @ self.rho - self.rho))
+
+    def q_coeffs(self, ctx: StepContext, ds):
+        """Tridiagonal (sub, diag, sup) of the q rows of the p_k equations, in h·p units."""
+        mul = self.model.mu * ctx.l
+        sub = mul * self.msub + ds * self.cprev
+        diag = mul * self.mdiag + self.model.m_b * self.e_last + ds * self.cself
+        sup = mul * self.msup + ds * self.cnext
+        return sub, diag, sup
+
+    def solve_dq(self, ctx: StepContext, pq, h, ds, F):
+        """Δq_2..Δq_{N+1} from the q rows of the p_k equations, for given (Δs, F)."""
+        sub, diag, sup = self.q_coeffs(ctx, ds)
+        rhs = h * pq - ctx.C * ds - (0.5 * h * h) * ctx.dVq
+        rhs = rhs - self.e_last[:, None] * self.body_term(ctx, F)[None, :]
+        return tridiag_solve(sub, diag, sup, rhs)
+
+    def hp_s(self, ctx: StepContext, h, ds, dq):
+        """h p_{s,k} side of the s_p row as a function of (Δs, Δq) (MODEL.md §6)."""
+        mu, N = self.model.mu, self.N
+        dqf = jnp.concatenate([jnp.zeros((1, 3)), dq], axis=0)
+        da, db = dqf[:-1], dqf[1:]
+        quad = jnp.sum(da * da) + jnp.sum(db * db) + jnp.sum(da * db)
+        Q = self.forcing(ctx, ds, h)
+        return (ctx.M0 * ds + jnp.sum(ctx.C * dq) - mu / 3.0 * ds * ds + mu / (6 * N) * quad
+                + 0.5 * h * h * (ctx.dVs - Q))
+
+    def hp_Pi(self, ctx: StepContext, h, c, dq_tip):
+        """h Π_k side: (F J_d − J_d Fᵀ)^∨ + m_b ρ × R_kᵀ Δq_{N+1} + (h²/2) ∂_η V_k.
+
+        (F J_d − J_d Fᵀ)^∨ = 2 (J_o c + c × J_o c) / (1 + |c|²) for F = cay(c).
+        """
+        Jc = self.J_o @ c
+        rot = 2.0 * (Jc + jnp.cross(c, Jc)) / (1.0 + c @ c)
+        return rot + self.model.m_b * jnp.cross(self.rho, ctx.R.T @ dq_tip) + 0.5 * h * h * ctx.dVeta
+
+    def string_solve(self, ctx: StepContext, pq, h, ds):
+        """(u, v) with Δq = u − v ⊗ b for the body term b = m_b R_k (F − I) ρ_c.
+
+        One Thomas pass with four right-hand sides: A(Δs) [u | v] = [h p_q − C Δs − (h²/2) ∇_q V_k | e_N].
+        """
+        sub, diag, sup = self.q_coeffs(ctx, ds)
+        rhs = h * pq - ctx.C * ds - (0.5 * h * h) * ctx.dVq
+        sol = tridiag_solve(sub, diag, sup, jnp.concatenate([rhs, self.e_last[:, None]], axis=1))
+        return sol[:, :3], sol[:, 3]
+
+    def body_of_c(self, ctx: StepContext, c):
+        return self.body_term(ctx, cayley(c))
+
+    def reduced_system(self, ctx: StepContext, p, h, z, uv=None):
+        """Residual r(z) and Jacobian J(z) of the reduced system in z = (Δs, c).
+
+        The string rows are eliminated exactly: Δq(Δs, c) = u(Δs) − v(Δs) ⊗ b(c). With a reel,
+        (u, v) and their Δs-derivatives come from one Thomas pass (forward-mode through it);
+        without a reel, A is independent of z and ``uv`` = (u, v) is passed in, computed once
+        per step. The Jacobian is assembled by the chain rule from small closed-form pieces.
+        """
+        ps, pq, Pi = self.split_momentum(p)
+        ds, c = self.unpack_z(z)
+        if self.reel:
+            (u, v), (du, dv) = jax.jvp(lambda s_: self.string_solve(ctx, pq, h, s_), (ds,), (jnp.ones_like(ds),))
+        else:
+            u, v = uv
+            du, dv = jnp.zeros_like(u), jnp.zeros_like(v)
+        if self.rigid:
+            Bc, b = jax.jacfwd(lambda cc: (self.body_of_c(ctx, cc),) * 2, has_aux=True)(c)
+        else:
+            b, Bc = jnp.zeros(3), jnp.zeros((3, 3))
+        dq = u - v[:, None] * b[None, :]
+        dq_ds = du - dv[:, None] * b[None, :]
+        r, rows = [], []
+        if self.reel:
+            val, (g_s, g_q) = jax.value_and_grad(lambda s_, q_: self.hp_s(ctx, h, s_, q_), argnums=(0, 1))(ds, dq)
+            r.append(jnp.atleast_1d(val - h * ps))
+            row = [jnp.atleast_1d(g_s + jnp.sum(g_q * dq_ds))]
+            if self.rigid:
+                row.append(-(v @ g_q) @ Bc)
+            rows.append(jnp.concatenate(row))
+        if self.rigid:
+            (P_c, P_t), val = jax.jacfwd(lambda cc, tt: (self.hp_Pi(ctx, h, cc, tt),) * 2, argnums=(0, 1),
+                                         has_aux=True)(c, dq[-1])
+            r.append(val - h * Pi)
+            blk = P_c - v[-1] * (P_t @ Bc)
+            if self.reel:
+                blk = jnp.concatenate([(P_t @ dq_ds[-1])[:, None], blk], axis=1)
+            rows.append(blk)
+        return jnp.concatenate(r), jnp.concatenate([jnp.atleast_2d(x) for x in rows], axis=0), dq
+
+    def reduced_residual(self, ctx: StepContext, p, h, z):
+        """Residual of the reduced system in z = (Δs, c) by direct elimination (reference path)."""
+        ps, pq, Pi = self.split_momentum(p)
+        ds, c = self.unpack_z(z)
+        F = cayley(c) if self.rigid else jnp.eye(3)
+        dq = self.solve_dq(ctx, pq, h, ds, F)
+        r = []
+        if self.reel:
+            r.append(jnp.atleast_1d(self.hp_s(ctx, h, ds, dq) - h * ps))
+        if self.rigid:
+            r.append(self.hp_Pi(ctx, h, c, dq[-1]) - h * Pi)
+        return jnp.concatenate(r), dq
+
+    # -------------------------------------------------------------------------------------
+    def hp_k_full(self, ctx: StepContext, h, ds, dq, c):
+        """Full closed-form h·p_k as a function of X (w's layout) — MODEL.md §6, for tests."""
+        F = cayley(c) if self.rigid else jnp.eye(3)
+        sub, diag, sup = self.q_coeffs(ctx, ds)
+        dqf = jnp.concatenate([jnp.zeros((1, 3)), dq, jnp.zeros((1, 3))], axis=0)
+        rows = sub[:, None] * dqf[:-2] + diag[:, None] * dqf[1:-1] + sup[:, None] * dqf[2:]
+        rows = rows + ctx.C * ds + 0.5 * h * h * ctx.dVq + self.e_last[:, None] * self.body_term(ctx, F)[None, :]
+        hps = self.hp_s(ctx, h, ds, dq) if self.reel else 0.0
+        hPi = self.hp_Pi(ctx, h, c, dq[-1]) if self.rigid else jnp.zeros(3)
+        return self.join(hps, rows, hPi)
+
+    def hp_k1(self, ctx: StepContext, h, ds, dq, c, gradV1):
+        """h·p_{k+1} (w's layout) from the step X and ∇V(g_{k+1}) — MODEL.md §6."""
+        F = cayley(c) if self.rigid else jnp.eye(3)
+        N, lay = self.N, self.model.layout
+        mul = self.model.mu * ctx.l
+        diag = mul * self.mdiag + self.model.m_b * self.e_last
+        dqf = jnp.concatenate([jnp.zeros((1, 3)), dq, jnp.zeros((1, 3))], axis=0)
+        lin = (mul * self.msub)[:, None] * dqf[:-2] + diag[:, None] * dqf[1:-1] + (mul * self.msup)[:, None] * dqf[2:]
+        lin = lin + ctx.C * ds + self.e_last[:, None] * self.body_term(ctx, F)[None, :]
+        hpq = lin - 0.5 * h * h * gradV1[lay.nodes].reshape(N, 3)
+        hps = 0.0
+        if self.reel:
+            Q = self.forcing(ctx, ds, h)
+            hps = ctx.M0 * ds + jnp.sum(ctx.C * dq) - 0.5 * h * h * gradV1[0] + 0.5 * h * h * Q
+        hPi = jnp.zeros(3)
+        if self.rigid:
+            hPi = (vee(self.J_d @ F - F.T @ self.J_d)  # the matrix is skew: vee gives its axial vector
+                   + self.model.m_b * jnp.cross(self.rho, F.T @ (ctx.R.T @ dq[-1]))
+                   - 0.5 * h * h * gradV1[lay.omega])
+        return self.join(hps, hpq, hPi)

@@ -1,0 +1,260 @@
+"""Lie group variational integrator (Lee, Leok & McClamroch 2011; MODEL.md §6).
+
+Discrete state (s_p, q, R ∈ SO(3) as a matrix, discrete momenta p = (p_s, p_q, Π)). Each
+step solves the implicit p_k equations for X = (Δs, Δq, c), F = cay(c), R_{k+1} = R_k F,
+then evaluates p_{k+1} explicitly. The closed-form equations and the structured solver
+(tridiagonal string rows + ≤4-unknown Newton in (Δs, c)) live in `integrators._lgvi_core`;
+this module is the time loop: one jitted ``lax.while_loop`` over save slots with an inner
+``while_loop`` over steps, compiled ahead of time (compile time measured apart from run
+time), stopping cleanly with a `Status` when Newton fails, the state stops being finite or
+the deployed length leaves (0, L − b).
+
+Forcing (MODEL.md §6): (h/2) Q_k at both ends of the step, Q_k = Q_u(t_k) + Q_c(s_k, Δs/h,
+q_{k,2}); the work of step k is Q_k Δs and is accumulated in ``Trajectory.work``.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from integrators._lgvi_core import DiscreteLagrangian, cayley, small_solve
+from integrators.base import Capability, Integrator, Status, Trajectory, check_positive, save_times
+from integrators.registry import register
+from models import build_model, load_scene
+from models._jax import jax, jnp
+
+_CODES = {1: Status.NEWTON_FAILED, 2: Status.DIVERGED, 3: Status.LENGTH_LIMIT}
+_COMPILED: dict = {}
+_VELOCITY: dict = {}
+_MASS: dict = {}
+
+
+def _make_run(model):
+    """The whole run as one function of (x0, R0, p0, h, save_idx, n_save, tol, maxit).
+
+    ``save_idx`` is padded to a bucketed length so that runs of other lengths reuse the
+    compiled code; only its first ``n_save`` entries are used.
+    """
+    dl = DiscreteLagrangian(model)
+    lay = model.layout
+    nz = dl.nz
+
+    def step(x, R, p, gV, z, k, h, tol, maxit):
+        t = k * h
+        ctx = dl.context(t, x, R, gV)
+        ps, pq, Pi = dl.split_momentum(p)
+        uv = None if dl.reel else dl.string_solve(ctx, pq, h, jnp.asarray(0.0))
+        if nz == 0:
+            ds, c, F = jnp.asarray(0.0), jnp.zeros(3), jnp.eye(3)
+            dq = uv[0]
+            it = jnp.asarray(1, jnp.int32)
+            newton_ok = jnp.all(jnp.isfinite(dq))
+            z_new = z
+        else:
+            def cond(c_):
+                _, it_, conv, bad = c_
+                return (~conv) & (~bad) & (it_ < maxit)
+
+            def body(c_):
+                zz, it_, _, _ = c_
+                r, J, _ = dl.reduced_system(ctx, p, h, zz, uv)
+                dz = -small_solve(J, r)
+                zn = zz + dz
+                bad = ~jnp.all(jnp.isfinite(zn))
+                conv = jnp.max(jnp.abs(dz)) <= tol
+                return jnp.where(bad, zz, zn), it_ + 1, conv, bad
+
+            z_new, it, conv, bad = jax.lax.while_loop(
+                cond, body, (z, jnp.asarray(0, jnp.int32), jnp.asarray(False), jnp.asarray(False)))
+            newton_ok = conv & ~bad
+            ds, c = dl.unpack_z(z_new)
+            F = cayley(c) if dl.rigid else jnp.eye(3)
+            u, v = dl.string_solve(ctx, pq, h, ds) if dl.reel else uv
+            dq = u - v[:, None] * dl.body_term(ctx, F)[None, :]
+            newton_ok = newton_ok & jnp.all(jnp.isfinite(dq))
+        dx = jnp.concatenate([jnp.atleast_1d(ds), dq.ravel()]) if dl.reel else dq.ravel()
+        x1 = x + dx
+        R1 = R @ F if dl.rigid else R
+        gV1 = model.potential_gradient(x1, R1)
+        p1 = dl.hp_k1(ctx, h, ds, dq, c, gV1) / h
+        dW = dl.forcing(ctx, ds, h) * ds
+        finite = jnp.all(jnp.isfinite(x1)) & jnp.all(jnp.isfinite(p1)) & jnp.all(jnp.isfinite(R1)) & jnp.isfinite(dW)
+        inside = model.deployed_length_margin(x1) > 0
+        code = jnp.where(~newton_ok, 1, jnp.where(~finite, 2, jnp.where(~inside, 3, 0))).astype(jnp.int32)
+        return (x1, R1, p1, gV1, dW, z_new), it, code
+
+    def run(x0, R0, p0, h, save_idx, n_save, tol, maxit):
+        n_buf = save_idx.shape[0]
+        gV0 = model.potential_gradient(x0, R0)
+        z0 = jnp.zeros(nz)
+        bufs = (jnp.zeros((n_buf, lay.nx)).at[0].set(x0), jnp.zeros((n_buf, 3, 3)).at[0].set(R0),
+                jnp.zeros((n_buf, lay.nw)).at[0].set(p0), jnp.zeros(n_buf), jnp.zeros(n_buf, jnp.int32))
+        i0 = jnp.asarray(0, jnp.int32)
+        # state: x, R, p, gV, W, z, k
+        state0 = (x0, R0, p0, gV0, jnp.asarray(0.0), z0, i0)
+        # stats: total iterations, max iterations, code, failing step
+        stats0 = (i0, i0, i0, i0)
+
+        def inner_cond(c_):
+            state, stats, target = c_
+            return (state[6] < target) & (stats[2] == 0)
+
+        def inner_body(c_):
+            state, stats, target = c_
+            x, R, p, gV, W, z, k = state
+            (x1, R1, p1, gV1, dW, z1), it, code = step(x, R, p, gV, z, k, h, tol, maxit)
+            good = code == 0
+            sel = lambda a, b: jnp.where(good, a, b)  # noqa: E731
+            new_state = (sel(x1, x), sel(R1, R), sel(p1, p), sel(gV1, gV), sel(W + dW, W), sel(z1, z),
+                         jnp.where(good, k + 1, k))
+            tot, mx, _, fk = stats
+            new_stats = (tot + it, jnp.maximum(mx, it), code, jnp.where(good, fk, k))
+            return new_state, new_stats, target
+
+        def outer_cond(c_):
+            _, stats, j, _ = c_
+            return (j < n_save) & (stats[2] == 0)
+
+        def outer_body(c_):
+            state, stats, j, bufs = c_
+            state, stats, _ = jax.lax.while_loop(inner_cond, inner_body, (state, stats, save_idx[j]))
+            x, R, p, _, W, _, k = state
+            X, Rs, P, Ws, K = bufs
+            bufs = (X.at[j].set(x), Rs.at[j].set(R), P.at[j].set(p), Ws.at[j].set(W), K.at[j].set(k))
+            return state, stats, j + 1, bufs
+
+        state, stats, j, bufs = jax.lax.while_loop(outer_cond, outer_body, (state0, stats0, jnp.asarray(1, jnp.int32), bufs))
+        return bufs, j, stats
+
+    return run
+
+
+def _bucket(n):
+    """Save-buffer length: the next power of two (at least 256), to share compiled code."""
+    return max(256, 1 << (int(n) - 1).bit_length())
+
+
+def _compiled_run(model, n_buf, example_args):
+    """AOT-compiled run for (model, buffer length); returns (compiled, compile_seconds)."""
+    key = (id(model), n_buf)
+    hit = _COMPILED.get(key)
+    if hit is not None and hit[0] is model:
+        return hit[1], 0.0
+    t0 = time.perf_counter()
+    compiled = jax.jit(_make_run(model)).lower(*example_args).compile()
+    dt = time.perf_counter() - t0
+    _COMPILED[key] = (model, compiled)
+    return compiled, dt
+
+
+def _mass_matrix_fn(model):
+    hit = _MASS.get(id(model))
+    if hit is not None and hit[0] is model:
+        return hit[1]
+    fn = jax.jit(model.mass_matrix)
+    _MASS[id(model)] = (model, fn)
+    return fn
+
+
+def _velocity_fn(model):
+    hit = _VELOCITY.get(id(model))
+    if hit is not None and hit[0] is model:
+        return hit[1]
+    fn = jax.jit(jax.vmap(model.velocity_from_momentum))
+    _VELOCITY[id(model)] = (model, fn)
+    return fn
+
+
+def step_indices(t_end, dt, save_every, max_steps):
+    """Step indices to save (0 first, the last step run last) and the number of steps run."""
+    n = int(np.floor(t_end / dt + 1e-9))
+    idx = np.rint(save_times(t_end, save_every, dt) / dt).astype(np.int64)
+    truncated = max_steps is not None and n > max_steps
+    n_run = min(n, max_steps) if max_steps is not None else n
+    idx = idx[idx <= n_run]
+    if idx[-1] != n_run:
+        idx = np.append(idx, n_run)
+    return idx, n_run, truncated
+
+
+@register
+class LGVI(Integrator):
+    name = "lgvi"
+    capabilities = frozenset({Capability.FIXED_STEP, Capability.IMPLICIT, Capability.VARIATIONAL,
+                              Capability.GROUP_PRESERVING})
+    order = 2
+    description = "Lie group variational integrator (Lee-Leok-McClamroch 2011): Cayley SO(3), structured Newton"
+
+    def solve(self, scene, t_end=None, *, dt=None, rtol=None, atol=None, save_every=None, max_steps=None,
+              newton_tol=1e-12, newton_max_iter=20, **options) -> Trajectory:
+        """Integrate with fixed step ``dt``. ``rtol``/``atol`` do not apply (fixed step) and are ignored.
+
+        Options: ``newton_tol`` (max |Newton update| of the reduced unknowns (Δs [m], c) to
+        stop, default 1e-12), ``newton_max_iter`` (default 20).
+        """
+        if options:
+            raise ValueError(f"lgvi: unknown option(s) {', '.join(sorted(options))} "
+                             "(allowed: dt, t_end, save_every, max_steps, newton_tol, newton_max_iter)")
+        if isinstance(scene, str):
+            scene = load_scene(scene)
+        t_end = scene.t_end if t_end is None else t_end
+        check_positive("t_end", t_end)
+        check_positive("dt", dt)
+        check_positive("save_every", save_every, allow_none=True)
+        check_positive("newton_tol", newton_tol)
+        if isinstance(newton_max_iter, bool) or not isinstance(newton_max_iter, (int, np.integer)) or newton_max_iter < 1:
+            raise ValueError(f"newton_max_iter = {newton_max_iter!r} is invalid (allowed: an integer >= 1)")
+        if max_steps is not None and (isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer))
+                                      or max_steps < 1):
+            raise ValueError(f"max_steps = {max_steps!r} is invalid (allowed: an integer >= 1)")
+        if dt > t_end:
+            raise ValueError(f"dt = {dt!r} is larger than t_end = {t_end!r}")
+
+        model = build_model(scene)
+        lay = model.layout
+        idx, n_run, truncated = step_indices(t_end, dt, save_every, max_steps)
+        x0, R0, w0 = (jnp.asarray(a) for a in model.initial_state())
+        p0 = _mass_matrix_fn(model)(x0, R0) @ w0
+        n_buf = _bucket(len(idx))
+        idx_buf = np.full(n_buf, idx[-1], dtype=np.int64)
+        idx_buf[: len(idx)] = idx
+        args = (x0, R0, p0, jnp.asarray(float(dt)), jnp.asarray(idx_buf, jnp.int32), jnp.asarray(len(idx), jnp.int32),
+                jnp.asarray(float(newton_tol)), jnp.asarray(int(newton_max_iter), jnp.int32))
+        compiled, compile_time = _compiled_run(model, n_buf, args)
+        t0 = time.perf_counter()
+        bufs, j, stats = compiled(*args)
+        jax.block_until_ready(bufs)
+        wall = time.perf_counter() - t0
+
+        X, Rs, P, Ws, K = (np.asarray(b) for b in bufs)
+        tot, mx, code, fail_k = (int(v) for v in stats)
+        n = int(j)
+        X, Rs, P, Ws, K = X[:n], Rs[:n], P[:n], Ws[:n], K[:n]
+        if n >= 2 and K[-1] == K[-2]:  # failure right after a save: last slot repeats it
+            X, Rs, P, Ws, K = X[:-1], Rs[:-1], P[:-1], Ws[:-1], K[:-1]
+        steps = int(K[-1])
+        status, reason = Status.OK.value, ""
+        if code:
+            status = _CODES[code].value
+            t_fail = fail_k * dt
+            what = {1: f"Newton did not converge within {newton_max_iter} iterations (tol {newton_tol:g}) "
+                       "or produced a non-finite iterate",
+                    2: "the new state is not finite",
+                    3: "the deployed length left (0, L - b)"}[code]
+            reason = f"step {fail_k + 1} (t = {t_fail:.6g} s -> {t_fail + dt:.6g} s): {what}"
+        elif truncated:
+            status = Status.MAX_STEPS.value
+            reason = f"stopped after max_steps = {max_steps} steps at t = {n_run * dt:.6g} s (t_end = {t_end:g} s)"
+        V = np.asarray(_velocity_fn(model)(jnp.asarray(X), jnp.asarray(Rs), jnp.asarray(P)))
+        return Trajectory(
+            t=K * dt, x=X, attitude=Rs if lay.has_attitude else None, velocity=V, work=Ws, momentum=P,
+            attitude_kind="matrix", status=status, reason=reason,
+            stats={"steps": steps, "newton_iterations": tot, "max_newton_iterations": mx, "wall_time": wall,
+                   "compile_time": compile_time, "time_per_step": wall / max(steps, 1)},
+            integrator=self.name,
+            settings={"dt": float(dt), "t_end": float(t_end), "save_every": save_every, "max_steps": max_steps,
+                      "newton_tol": float(newton_tol), "newton_max_iter": int(newton_max_iter)},
+            scene_name=scene.name,
+        )

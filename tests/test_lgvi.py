@@ -1,0 +1,387 @@
+"""The Lie group variational integrator (MODEL.md §6): discrete equations, conservation,
+convergence, headline figures and failure handling.
+
+Compiled runs are shared: one compiled loop per scene (the save buffer is bucketed, dt, the
+Newton tolerance and iteration cap are run-time arguments), so every fast test of a scene
+reuses the same executable.
+"""
+
+import numpy as np
+import pytest
+
+from integrators import Status, get_integrator
+from integrators._lgvi_core import DiscreteLagrangian, cayley
+from integrators.lgvi import LGVI
+from models import build_model, load_scene
+from models._jax import jax, jnp
+from models.diagnostics import evaluate, summary
+from models.model import hat
+
+from _helpers import random_state, reference_solution, scene_with_effects
+
+LGVI_ = LGVI()
+
+
+# ------------------------------------------------------------------------------------------
+# Autodiff discrete Lagrangian (MODEL.md §6 formula; V from model.potential)
+# ------------------------------------------------------------------------------------------
+def discrete_lagrangian(model, h):
+    lay, N, mu = model.layout, model.N, model.mu
+    J_d, rho = jnp.asarray(model.J_d), jnp.asarray(model.rho_c)
+    c31, c23 = jnp.asarray(model.c31), jnp.asarray(model.c23)
+
+    def Ld(x, R, dx, F):
+        q, dqf = model.nodes(x), model.nodes(dx)  # nodes() prepends q_1 = 0 (so Δq_1 = 0)
+        s = model.reel_coordinate(x)
+        l = (model.L - s) / N
+        da, db = dqf[:-1], dqf[1:]
+        K = jnp.sum(mu * l / 6 * (jnp.sum(da * da, 1) + jnp.sum(da * db, 1) + jnp.sum(db * db, 1))) / h
+        K += model.m_b / (2 * h) * dqf[-1] @ dqf[-1]
+        if lay.has_reel:
+            ds = dx[0]
+            M0 = mu * s + model.kappa + mu * (model.L - s) / 3
+            D = q[:-1] - q[1:]
+            K += M0 * ds**2 / (2 * h) + ds / h * jnp.sum(c31[:, None] * D * da + c23[:, None] * D * db)
+        if lay.has_attitude:
+            K += model.m_b / h * dqf[-1] @ (R @ (F - jnp.eye(3)) @ rho) + jnp.trace((jnp.eye(3) - F) @ J_d) / h
+        return K - h / 2 * (model.potential(x, R) + model.potential(x + dx, R @ F))
+
+    return Ld
+
+
+def autodiff_momenta(model, h, t, x, R, dx, F):
+    """Discrete Lagrange–d'Alembert: p_k = −D_1 L_d − (h/2)Q, p_{k+1} = D_2 L_d + (h/2)Q.
+
+    With g_{k+1} = g_k f_k: for vector coordinates D_1 = ∂_x L_d − ∂_Δ L_d, D_2 = ∂_Δ L_d; on
+    SO(3), left-trivialised: Π_k·η = −d/dε L_d(R e^{εη̂}, e^{−εη̂} F), Π_{k+1}·η = d/dε L_d(R, F e^{εη̂}).
+    """
+    lay = model.layout
+    Ld = discrete_lagrangian(model, h)
+    Lx, Ldx = jax.grad(Ld, argnums=(0, 2))(x, R, dx, F)
+    pk, pk1 = Ldx - Lx, Ldx
+    if lay.has_reel:
+        Q = model.reel_force(t, x, jnp.zeros(lay.nw).at[0].set(dx[0] / h))
+        pk, pk1 = pk.at[0].add(-h / 2 * Q), pk1.at[0].add(h / 2 * Q)
+    if lay.has_attitude:
+        eye = jnp.eye(3)
+        Pik = -jax.grad(lambda e: Ld(x, R @ (eye + hat(e)), dx, (eye - hat(e)) @ F))(jnp.zeros(3))
+        Pik1 = jax.grad(lambda e: Ld(x, R, dx, F @ (eye + hat(e))))(jnp.zeros(3))
+        pk, pk1 = jnp.concatenate([pk, Pik]), jnp.concatenate([pk1, Pik1])
+    return np.asarray(pk), np.asarray(pk1)
+
+
+VARIANTS = {
+    "fixed_length": ["elasticity", "gravity", "rigid_body"],
+    "fixed_point_mass": ["elasticity", "gravity"],
+    "reel": ["elasticity", "gravity", "rigid_body", "reel", "carnot", "reel_control"],
+    "reel_point_mass": ["elasticity", "gravity", "reel", "carnot", "reel_control"],
+}
+
+
+@pytest.mark.parametrize("variant", list(VARIANTS))
+def test_closed_form_residuals_match_autodiff_discrete_lagrangian(variant, rng):
+    """MODEL.md §6's closed-form p_k(X) and p_{k+1}(X) (the production formulas) = autodiff of L_d."""
+    model = build_model(scene_with_effects(VARIANTS[variant], elements=4))
+    lay, dl, h = model.layout, DiscreteLagrangian(model), 0.01
+    for _ in range(2):
+        x, R, w = random_state(model, rng)
+        x, R = jnp.asarray(x), jnp.asarray(R)
+        dx = jnp.asarray(h * w[: lay.nx] + 1e-3 * rng.standard_normal(lay.nx))
+        c = jnp.asarray(0.02 * rng.standard_normal(3)) if lay.has_attitude else jnp.zeros(3)
+        F = cayley(c) if lay.has_attitude else jnp.eye(3)
+        auto_k, auto_k1 = autodiff_momenta(model, h, 0.3, x, R, dx, F)
+        ctx = dl.context(0.3, x, R, model.potential_gradient(x, R))
+        ds = dx[0] if lay.has_reel else 0.0
+        dq = dx[lay.nodes].reshape(model.N, 3)
+        cf_k = np.asarray(dl.hp_k_full(ctx, h, ds, dq, c)) / h
+        cf_k1 = np.asarray(dl.hp_k1(ctx, h, ds, dq, c, model.potential_gradient(x + dx, R @ F))) / h
+        scale = np.max(np.abs(auto_k)) + np.max(np.abs(auto_k1))
+        assert np.max(np.abs(cf_k - auto_k)) < 1e-10 * scale
+        assert np.max(np.abs(cf_k1 - auto_k1)) < 1e-10 * scale
+        # the eliminated (reduced) residual used by Newton vanishes where the full one does
+        if dl.nz:
+            z = dl.pack_z(ds, c)
+            p_k = jnp.asarray(cf_k)
+            r, J, dq_red = dl.reduced_system(ctx, p_k, h, z, None if lay.has_reel else dl.string_solve(ctx, p_k[lay.nodes].reshape(-1, 3), h, 0.0))
+            assert np.max(np.abs(np.asarray(r))) < 1e-12 * scale
+            np.testing.assert_allclose(dq_red, dq, atol=1e-12)
+            # hand-assembled Jacobian = autodiff of the directly eliminated residual
+            J_ad = jax.jacfwd(lambda zz: dl.reduced_residual(ctx, p_k, h, zz)[0])(z)
+            np.testing.assert_allclose(J, J_ad, rtol=1e-9, atol=1e-12 * np.max(np.abs(J_ad)))
+
+
+def test_cayley_identity():
+    """(F J_d − J_d Fᵀ)^∨ = 2 (J_o c + c × J_o c)/(1+|c|²) for F = cay(c) (used by hp_Pi)."""
+    model = build_model(load_scene("fixed_length", elements=2))
+    rng = np.random.default_rng(1)
+    for _ in range(5):
+        c = jnp.asarray(0.3 * rng.standard_normal(3))
+        F = cayley(c)
+        assert np.abs(np.asarray(F.T @ F - jnp.eye(3))).max() < 1e-15
+        lhs = np.asarray(F @ model.J_d - model.J_d @ F.T)
+        lhs = np.array([lhs[2, 1], lhs[0, 2], lhs[1, 0]])
+        Jc = model.J_o @ np.asarray(c)
+        np.testing.assert_allclose(lhs, 2 * (Jc + np.cross(c, Jc)) / (1 + c @ c), atol=1e-15)
+
+
+# ------------------------------------------------------------------------------------------
+# Shared runs (one compiled loop per scene)
+# ------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def fixed():
+    return load_scene("fixed_length")
+
+
+@pytest.fixture(scope="module")
+def deploy():
+    return load_scene("deployment")
+
+
+@pytest.fixture(scope="module")
+def retrieve():
+    return load_scene("retrieval")
+
+
+@pytest.fixture(scope="module")
+def fixed_long(fixed):
+    """fixed_length (N = 10) over 20 s at h = 5 ms (the headline step)."""
+    return LGVI_.solve(fixed, t_end=20.0, dt=0.005, save_every=0.1)
+
+
+def _metrics(scene, tr):
+    df = evaluate(scene, tr)
+    return df, summary(df, has_work=build_model(scene).layout.has_work)
+
+
+def test_registered_and_declared():
+    integ = get_integrator("lgvi")
+    assert isinstance(integ, LGVI) and integ.order == 2
+    assert {c.value for c in integ.capabilities} == {"fixed_step", "implicit", "variational", "group_preserving"}
+
+
+def test_trajectory_contents(fixed_long, fixed):
+    tr = fixed_long
+    model = build_model(fixed)
+    assert tr.ok and tr.integrator == "lgvi" and tr.scene_name == "fixed_length"
+    assert tr.attitude.shape == (len(tr.t), 3, 3) and tr.attitude_kind == "matrix"
+    assert tr.momentum.shape == tr.velocity.shape == (len(tr.t), model.layout.nw)
+    assert tr.stats["steps"] == 4000 and tr.t[-1] == pytest.approx(20.0)
+    assert tr.stats["max_newton_iterations"] <= 5 and tr.stats["newton_iterations"] <= 4 * 4000
+    assert {"wall_time", "compile_time"} <= set(tr.stats)
+    assert tr.settings["dt"] == 0.005
+    # velocity is the Legendre transform of the stored momentum
+    i = len(tr.t) // 2
+    p = model.momentum(jnp.asarray(tr.x[i]), jnp.asarray(tr.attitude[i]), jnp.asarray(tr.velocity[i]))
+    np.testing.assert_allclose(p, tr.momentum[i], atol=1e-10)
+    # initial momentum p0 = M(g0) w0
+    x0, R0, w0 = model.initial_state()
+    np.testing.assert_allclose(tr.velocity[0], w0, atol=1e-12)
+
+
+def test_fixed_length_energy_bounded_and_headline(fixed_long, fixed):
+    df, s = _metrics(fixed, fixed_long)
+    paper = df[df.t <= 10.0 + 1e-9]
+    s10 = summary(paper, has_work=False)
+    # headline (SCENARIOS.md, paper horizon 10 s) at h = 5 ms: max|ΔE| < 0.01 % of max T
+    # (measured 2.8e-5 = 0.0028 %), π3 deviation < 3e-8 % (measured ~1e-13 relative),
+    # ‖I − RᵀR‖ < 1e-13 (measured ~3e-14)
+    assert s10["energy_error"] < 1e-4
+    assert s10["pi3_error"] < 3e-10
+    assert s10["orthogonality_error"] < 1e-13
+    # bounded over 20 s, but NOT flat: measured max|ΔE| 1.8e-3 J on [0, 20] s vs 1.3e-2 J on
+    # [20, 40] s at h = 5 ms (see the slow test below and the report)
+    assert s["energy_error"] < 1e-3 and s["orthogonality_error"] < 1e-13
+
+
+def test_fixed_length_momentum_and_group_to_newton_tolerance(fixed_long, fixed):
+    model = build_model(fixed)
+    tr = fixed_long
+    q = np.concatenate([np.zeros((len(tr.t), 1, 3)), tr.x.reshape(len(tr.t), model.N, 3)], axis=1)
+    pq = np.concatenate([np.zeros((len(tr.t), 1, 3)), tr.momentum[:, model.layout.nodes].reshape(len(tr.t), model.N, 3)], axis=1)
+    pi3 = np.cross(q, pq).sum(1)[:, 2] + np.einsum("nij,nj->ni", tr.attitude, tr.momentum[:, model.layout.omega])[:, 2]
+    assert np.max(np.abs(pi3 - pi3[0])) < 1e-11 * abs(pi3[0]) * 100  # discrete momenta: ~1e-12 relative
+    RtR = np.einsum("nji,njk->nik", tr.attitude, tr.attitude)
+    assert np.linalg.norm(RtR - np.eye(3), axis=(1, 2)).max() < 1e-13
+
+
+@pytest.fixture(scope="module")
+def fixed_reference(fixed):
+    return reference_solution(fixed, 1.0, rtol=1e-12, atol=1e-12, n_save=2)
+
+
+def _tip_error(scene, tr, ref):
+    nod = build_model(scene).layout.nodes
+    return np.linalg.norm(tr.x[-1][nod][-3:] - ref.x[-1][nod][-3:])
+
+
+def _orders(scene, ref, t_end, hs):
+    errs = np.array([_tip_error(scene, LGVI_.solve(scene, t_end=t_end, dt=h, save_every=t_end), ref) for h in hs])
+    return errs, np.log2(errs[:-1] / errs[1:])
+
+
+def test_fixed_length_second_order(fixed, fixed_reference):
+    # body position r_p + q_{N+1} at t = 1 s against DOP853 (rtol 1e-12)
+    errs, orders = _orders(fixed, fixed_reference, 1.0, [0.002, 0.001, 0.0005])
+    print("fixed_length errors", errs, "orders", orders)  # measured: 1.4e-5, 3.5e-6, 8.8e-7; orders 2.00, 2.00
+    assert np.all(np.abs(orders - 2.0) < 0.15)
+
+
+@pytest.fixture(scope="module")
+def deploy_reference(deploy):
+    return reference_solution(deploy, 0.5, rtol=1e-11, atol=1e-12, n_save=2)
+
+
+def test_deployment_converges_first_order_while_length_changes(deploy, deploy_reference):
+    errs, orders = _orders(deploy, deploy_reference, 0.5, [0.002, 0.001, 0.0005])
+    print("deployment errors", errs, "orders", orders)
+    # measured at t = 0.5 s (the reel has barely started): orders 2.04, 2.04. At t = 1 s
+    # (slow test) the order drops to 1.23, 1.12, 1.07 (h = 2 -> 0.25 ms): first order once the
+    # length changes, as MODEL.md §6 warns (mass terms at g_k)
+    assert errs[-1] < errs[0] / 3
+    assert np.all((orders > 1.7) & (orders < 2.3))
+
+
+@pytest.fixture(scope="module")
+def deploy_full(deploy):
+    return {h: LGVI_.solve(deploy, dt=h, save_every=0.04) for h in (0.002, 0.001)}
+
+
+def test_deployment_energy_minus_work_and_headline(deploy, deploy_full):
+    errs = {}
+    for h, tr in deploy_full.items():
+        assert tr.ok, tr.reason
+        df, s = _metrics(deploy, tr)
+        errs[h] = s["energy_error"]
+        assert abs(df.pi3).max() < 1e-10  # π3(0) = 0 (at rest); conserved to Newton tolerance
+        assert s["orthogonality_error"] < 1e-13
+        assert 25.0 < df.deployed_length.iloc[-1] < 33.0  # SCENARIOS.md sanity range
+        assert df.work.iloc[-1] < 0  # Carnot loss dissipates
+    print("deployment |Δ(E−W)|/max T", errs)  # measured: 4.2e-6 (h = 2 ms), 2.1e-6 (h = 1 ms): first order
+    assert errs[0.001] < 0.7 * errs[0.002]
+    # headline: |ΔE − W| < 0.0003 % of max T is reached at h = 1 ms (2.1e-6 = 0.00021 %), not at 2 ms
+    assert errs[0.001] < 3e-6
+
+
+def test_retrieval_energy_minus_work_pi3_and_convergence(retrieve):
+    ref = reference_solution(retrieve, 0.5, rtol=1e-11, atol=1e-12, n_save=2)
+    errs, orders = _orders(retrieve, ref, 0.5, [0.002, 0.001, 0.0005])
+    # measured at t = 0.5 s: orders 1.71, 1.46 (falling); at t = 1 s (slow test): 0.91, 0.95, 0.98 -> 1
+    print("retrieval errors", errs, "orders", orders)
+    assert np.all((orders > 1.2) & (orders < 1.9)) and orders[1] < orders[0] - 0.1
+    ew = {}
+    for h in (0.005, 0.0025):
+        tr = LGVI_.solve(retrieve, t_end=4.0, dt=h, save_every=0.04)
+        assert tr.ok
+        df, s = _metrics(retrieve, tr)
+        ew[h] = s["energy_error"]
+        assert s["pi3_error"] < 1e-11
+        assert df.deployed_length.iloc[-1] < 15.0
+    print("retrieval |Δ(E−W)|/max T", ew)
+    assert ew[0.0025] < 0.5 * ew[0.005]
+
+
+# ------------------------------------------------------------------------------------------
+# Failure handling and arguments
+# ------------------------------------------------------------------------------------------
+def _all_finite(tr):
+    arrays = [tr.t, tr.x, tr.momentum, tr.velocity, tr.work] + ([tr.attitude] if tr.attitude is not None else [])
+    return all(np.all(np.isfinite(a)) for a in arrays)
+
+
+def test_newton_iteration_cap_fails_cleanly(fixed):
+    tr = LGVI_.solve(fixed, t_end=1.0, dt=0.005, newton_max_iter=1)
+    assert tr.status == Status.NEWTON_FAILED.value
+    assert "step 1 " in tr.reason and "t = 0" in tr.reason
+    assert len(tr.t) == 1 and _all_finite(tr)
+
+
+def test_absurd_step_fails_cleanly(fixed):
+    # h = 10 ms exceeds the string's stability limit (h ω_max ≈ 2.2): Newton fails, no NaNs
+    tr = LGVI_.solve(fixed, t_end=2.0, dt=0.01, save_every=0.05)
+    assert tr.status == Status.NEWTON_FAILED.value, tr.status
+    assert "step" in tr.reason and _all_finite(tr) and 0 < tr.t[-1] < 2.0
+    assert tr.t[-1] == pytest.approx(tr.stats["steps"] * 0.01)
+
+
+def test_deployment_past_the_end_stops_with_length_limit(deploy):
+    tr = LGVI_.solve(deploy, t_end=14.0, dt=0.002, save_every=0.1)
+    assert tr.status == Status.LENGTH_LIMIT.value, tr.reason
+    model = build_model(deploy)
+    assert _all_finite(tr) and float(model.deployed_length_margin(jnp.asarray(tr.x[-1]))) > 0
+    assert 8.0 < tr.t[-1] < 14.0
+
+
+def test_max_steps(fixed):
+    tr = LGVI_.solve(fixed, t_end=1.0, dt=0.005, max_steps=50)
+    assert tr.status == Status.MAX_STEPS.value and tr.stats["steps"] == 50 and tr.t[-1] == pytest.approx(0.25)
+
+
+@pytest.mark.parametrize("kwargs", [dict(), dict(dt=0.0), dict(dt=-1e-3), dict(dt=float("nan")),
+                                    dict(dt=1e-3, bogus=1), dict(dt=1e-3, newton_max_iter=0),
+                                    dict(dt=1e-3, newton_tol=-1.0), dict(dt=1e-3, t_end=-1.0)])
+def test_bad_arguments_raise_before_work(kwargs):
+    with pytest.raises(ValueError):
+        LGVI_.solve(load_scene("fixed_length", elements=2), **kwargs)
+
+
+def test_point_mass_reel_variant_runs_and_conserves(rng):
+    """Point mass + reel + Carnot + control (no attitude: no c, no Π row)."""
+    scene = scene_with_effects(VARIANTS["reel_point_mass"], elements=3)
+    tr = LGVI_.solve(scene, t_end=1.0, dt=0.002, save_every=0.02)
+    assert tr.ok and tr.attitude is None
+    df, s = _metrics(scene, tr)
+    assert s["energy_error"] < 1e-4 and s["pi3_error"] < 1e-11
+    # the saved states satisfy the autodiff discrete Lagrange–d'Alembert equations (production solver)
+    tr1 = LGVI_.solve(scene, t_end=0.01, dt=0.002, save_every=0.002)
+    model, h = build_model(scene), 0.002
+    for k in range(3):
+        x, x1 = jnp.asarray(tr1.x[k]), jnp.asarray(tr1.x[k + 1])
+        pk, pk1 = autodiff_momenta(model, h, tr1.t[k], x, jnp.eye(3), x1 - x, jnp.eye(3))
+        np.testing.assert_allclose(pk, tr1.momentum[k], atol=1e-9 * np.abs(pk).max())
+        np.testing.assert_allclose(pk1, tr1.momentum[k + 1], atol=1e-9 * np.abs(pk1).max())
+
+
+def test_production_steps_satisfy_autodiff_equations_rigid_reel(retrieve):
+    tr = LGVI_.solve(retrieve, t_end=0.01, dt=0.002, save_every=0.002)
+    model, h = build_model(retrieve), 0.002
+    for k in range(3):
+        x, x1 = jnp.asarray(tr.x[k]), jnp.asarray(tr.x[k + 1])
+        R, R1 = jnp.asarray(tr.attitude[k]), jnp.asarray(tr.attitude[k + 1])
+        pk, pk1 = autodiff_momenta(model, h, tr.t[k], x, R, x1 - x, R.T @ R1)
+        np.testing.assert_allclose(pk, tr.momentum[k], atol=1e-9 * np.abs(pk).max())
+        np.testing.assert_allclose(pk1, tr.momentum[k + 1], atol=1e-9 * np.abs(pk1).max())
+
+
+# ------------------------------------------------------------------------------------------
+# Slow: full horizons
+# ------------------------------------------------------------------------------------------
+@pytest.mark.slow
+@pytest.mark.xfail(reason="measured: max|ΔE| per 20 s window grows 1.8e-3 -> 0.33 J over 200 s at h = 5 ms "
+                          "(3e-4 -> 5e-2 at 2.5 ms, 1e-4 -> 1.5e-2 at 1.25 ms) while fast axial modes get "
+                          "excited (tension min 0 -> -16 N); not understood yet", strict=False)
+def test_fixed_length_200s_no_secular_drift(fixed):
+    tr = LGVI_.solve(fixed, t_end=200.0, dt=0.005, save_every=1.0)
+    df, s = _metrics(fixed, tr)
+    dE = np.abs(df.energy - df.energy.iloc[0]).to_numpy()
+    q = len(dE) // 4
+    assert dE[-q:].max() < 1.5 * dE[:q].max()
+    assert s["energy_error"] < 1e-4 and s["pi3_error"] < 3e-10 and s["orthogonality_error"] < 1e-13
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["deployment", "retrieval"])
+def test_reel_scenes_first_order_at_1s(name):
+    scene = load_scene(name)
+    ref = reference_solution(scene, 1.0, rtol=1e-12, atol=1e-12, n_save=2)
+    errs, orders = _orders(scene, ref, 1.0, [0.002, 0.001, 0.0005, 0.00025])
+    print(name, "errors", errs, "orders", orders)  # measured: deployment 1.23, 1.12, 1.07; retrieval 0.91, 0.95, 0.98
+    assert np.all((orders > 0.8) & (orders < 1.35))
+
+
+@pytest.mark.slow
+def test_retrieval_full_horizon_headline(retrieve):
+    tr = LGVI_.solve(retrieve, dt=0.00125, save_every=0.05)
+    df, s = _metrics(retrieve, tr)
+    # measured: |Δ(E−W)|/max T = 9.5e-4 (5 ms), 1.6e-4 (2.5 ms), 3.5e-5 (1.25 ms); final length 7.41 m
+    assert s["energy_error"] < 1e-4 and s["orthogonality_error"] < 1e-13
+    assert 6.0 < df.deployed_length.iloc[-1] < 9.0
