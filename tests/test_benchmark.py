@@ -107,3 +107,15 @@ def test_trajectory_save_load_round_trip(tmp_path):
     back = Trajectory.load(tmp_path / "t.npz")
     np.testing.assert_array_equal(back.x, traj.x)
     assert back.status == traj.status and back.integrator == "lgvi"
+
+
+def test_cli_refuses_bad_input_before_work(tmp_path, capsys):
+    from benchmark.cli import main
+
+    assert main(["run", "--dts", "0.003", "--out", str(tmp_path)]) == 2
+    assert "dt = 0.003" in capsys.readouterr().err
+    assert main(["run", "--set", "elements=0", "--out", str(tmp_path)]) == 2
+    assert "string.elements" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())  # nothing was written
+    assert main(["list"]) == 0
+    assert "lgvi" in capsys.readouterr().out
