@@ -41,7 +41,7 @@ def _overrides(items: list[str] | None) -> dict:
 # ------------------------------------------------------------------------------------------
 def cmd_run(args) -> int:
     from benchmark import plots, report, runner, sweep
-    from benchmark.metrics import energy_history
+    from benchmark.metrics import observed_orders
     from benchmark.reference import CACHE_DIR
     from integrators import get_integrator
     from models import load_scene
@@ -68,8 +68,6 @@ def cmd_run(args) -> int:
                           repeats=args.repeats, cache_dir=str(out / CACHE_DIR.name), on_row=write)
     write(runs.to_dict("records"))
     atomic_write_text(out / "runs.md", report.markdown_table(runs.drop(columns=[c for c in ("traceback", "reason") if c in runs])))
-    from benchmark.metrics import observed_orders
-
     orders = observed_orders(runs)
     atomic_write_text(out / "orders.csv", orders.to_csv(index=False))
     figures = []
@@ -86,7 +84,7 @@ def cmd_run(args) -> int:
         if args.horizon > 0:
             figures.append(_horizon_study(args.horizon, out, ov).name)
     wall = time.perf_counter() - t0
-    report.write_readme(out, runs, command=command, wall_time=wall, figures=figures)
+    report.write_readme(out, runs, orders, command=command, wall_time=wall, figures=figures)
     n_bad = int((runs["status"] != "ok").sum())
     _log(f"done in {wall:.0f} s: {len(runs)} runs, {n_bad} not ok; see {out}/README.md")
     return 0
@@ -189,7 +187,7 @@ def parser() -> argparse.ArgumentParser:
     r = sub.add_parser("run", help="sweep scenes × integrators × settings; tables and plots into --out")
     r.add_argument("--scenes", help="comma-separated scene names or paths (default: the paper's three)")
     r.add_argument("--integrators", help="comma-separated names (default: all registered)")
-    r.add_argument("--quick", action="store_true", help=f"reduced sweep, short horizon, a few minutes on 2 cores")
+    r.add_argument("--quick", action="store_true", help="reduced sweep, short horizon, a few minutes on 2 cores")
     r.add_argument("--dts", help="comma-separated step sizes for fixed-step methods")
     r.add_argument("--rtols", help="comma-separated relative tolerances for adaptive methods (atol = rtol/100)")
     r.add_argument("--t-end", type=float, help="horizon (default: each scene's t_end)")

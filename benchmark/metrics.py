@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 
 from models import build_model
-from models.diagnostics import evaluate, summary
+from models.diagnostics import energy_deviation, evaluate, summary
 from models.model import quat_to_rot
 
 #: Columns of the runs table, in order.
@@ -72,10 +72,8 @@ def run_metrics(scene, traj, ref, save_every: float) -> dict:
 def energy_history(scene, traj) -> pd.DataFrame:
     """t and the energy error relative to max T (E - W with non-conservative forces)."""
     df = evaluate(scene, traj)
-    has_work = build_model(scene).layout.has_work
-    e = df["energy_minus_work"] if has_work else df["energy"]
-    tmax = df["kinetic"].max()
-    return pd.DataFrame({"t": df["t"], "energy_error": np.abs(e - e.iloc[0]) / tmax})
+    dev = energy_deviation(df, has_work=build_model(scene).layout.has_work)
+    return pd.DataFrame({"t": df["t"], "energy_error": dev})
 
 
 def observed_orders(runs: pd.DataFrame, error: str = "position_error_final") -> pd.DataFrame:

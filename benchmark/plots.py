@@ -12,6 +12,7 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from models import build_model  # noqa: E402
+from models.diagnostics import energy_deviation  # noqa: E402
 from models.io import atomic_path  # noqa: E402
 
 ERROR_LABELS = {
@@ -93,9 +94,8 @@ def paper_panels(scene, traj, df: pd.DataFrame, out_path: Path, n_snapshots: int
 
     ax = fig.add_subplot(2, 2, 4)
     has_work = model.layout.has_work
-    e = df["energy_minus_work"] if has_work else df["energy"]
-    tmax = df["kinetic"].max()
-    ax.semilogy(df["t"], np.maximum(np.abs(e - e.iloc[0]) / tmax, 1e-17), label=("|Δ(E−W)|" if has_work else "|ΔE|") + " / max T")
+    dev = energy_deviation(df, has_work=has_work)
+    ax.semilogy(df["t"], np.maximum(dev, 1e-17), label=("|Δ(E−W)|" if has_work else "|ΔE|") + " / max T")
     pi0 = df["pi3"].iloc[0]
     dpi = np.abs(df["pi3"] - pi0) / (abs(pi0) if abs(pi0) > 1e-12 else 1.0)
     ax.semilogy(df["t"], np.maximum(dpi, 1e-17), label="|Δπ3| / |π3(0)|")

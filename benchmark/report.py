@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from benchmark.metrics import fastest_at, observed_orders
+from benchmark.metrics import fastest_at
 from models.io import atomic_write_text
 
 TARGETS = (("energy_error", 1e-4, "energy error 1e-4 (relative to max T)"),
@@ -71,9 +71,8 @@ def answers(runs: pd.DataFrame) -> str:
     return "".join(out)
 
 
-def write_readme(out_dir: Path, runs: pd.DataFrame, *, command: str, wall_time: float, figures: list[str],
+def write_readme(out_dir: Path, runs: pd.DataFrame, orders: pd.DataFrame, *, command: str, wall_time: float, figures: list[str],
                  notes: str = "") -> Path:
-    orders = observed_orders(runs)
     status = runs.groupby(["integrator", "status"]).size().unstack(fill_value=0).reset_index()
     now = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     text = f"""# Benchmark results

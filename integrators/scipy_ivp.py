@@ -18,7 +18,6 @@ pyproject.toml), exactly as an outside plugin is: no ``@register`` here.
 from __future__ import annotations
 
 import functools
-import math
 import time
 from typing import Any, ClassVar
 

@@ -82,7 +82,7 @@ class ClosedFormEOM:
     # Pieces
     # ------------------------------------------------------------------------------------
     def _split(self, x, w):
-        m, lay = self.model, self.layout
+        m = self.model
         q = m.nodes(x)  # (N+1, 3), q_1 = 0
         v = m.node_velocities(w)  # (N+1, 3), v_1 = 0
         l = m.element_length(x)
