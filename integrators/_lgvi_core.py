@@ -308,12 +308,19 @@ class DiscreteLagrangian:
             rows.append(blk)
         return jnp.concatenate(r), jnp.concatenate([jnp.atleast_2d(x) for x in rows], axis=0), dq
 
-    def reduced_residual(self, ctx: StepContext, p, h, z):
-        """Residual of the reduced system in z = (Δs, c) by direct elimination (reference path)."""
+    def reduced_residual(self, ctx: StepContext, p, h, z, uv=None):
+        """Residual of the reduced system in z = (Δs, c) by direct elimination.
+
+        The chord iterations of the LGVI step use it; ``uv`` (fixed length only) reuses the
+        per-step string solve, as in `reduced_system`.
+        """
         ps, pq, Pi = self.split_momentum(p)
         ds, c = self.unpack_z(z)
         F = cayley(c) if self.rigid else jnp.eye(3)
-        dq = self.solve_dq(ctx, pq, h, ds, F)
+        if uv is None:
+            dq = self.solve_dq(ctx, pq, h, ds, F)
+        else:
+            dq = uv[0] - uv[1][:, None] * self.body_term(ctx, F)[None, :]
         r = []
         if self.reel:
             r.append(jnp.atleast_1d(self.hp_s(ctx, h, ds, dq) - h * ps))
