@@ -199,17 +199,20 @@ def read_baseline(path: str | os.PathLike = BASELINE) -> tuple[pd.DataFrame, lis
     while n < len(lines) and lines[n].startswith("#"):
         n += 1
     try:
-        # round_trip: the floats come back bit-identical to what was written
-        df = pd.read_csv(io.StringIO("".join(lines[n:])), float_precision="round_trip",
-                         keep_default_na=False, na_values=[""])
+        df = pd.read_csv(io.StringIO("".join(lines[n:])), dtype=str, keep_default_na=False)
     except (pd.errors.ParserError, pd.errors.EmptyDataError) as exc:
         raise ValueError(f"baseline {path}: not a CSV table ({exc}); regenerate it with `{UPDATE_COMMAND}`") from None
     missing = [c for c in KEY + ["status", *ACCURACY, ORDER] if c not in df]
     if missing:
         raise ValueError(f"baseline {path}: missing column(s) {', '.join(missing)}; regenerate it with `{UPDATE_COMMAND}`")
-    df = df.reindex(columns=COLUMNS)
-    for c in ("status", "reason"):
-        df[c] = df[c].fillna("").astype(str)
+    df = df.reindex(columns=COLUMNS).fillna("")
+    for c in COLUMNS:
+        if c not in KEY + ["status", "reason"]:
+            # Python's float() parses the shortest repr to the same double on every pandas version
+            try:
+                df[c] = [float(v) if v != "" else np.nan for v in df[c]]
+            except ValueError as exc:
+                raise ValueError(f"baseline {path}: column {c}: {exc}") from None
     return df, [line[1:].strip() for line in lines[:n]]
 
 
