@@ -43,14 +43,14 @@ from benchmark import runner, sweep
 from benchmark.metrics import ACCURACY, observed_orders
 from benchmark.reference import CACHE_DIR, REFERENCE_METHOD
 from benchmark.report import environment, markdown_table
-from integrators import Capability, available, get_integrator
+from integrators import Capability, available, get_integrator, plugin_errors
 from models.io import atomic_write_text
 
 BASELINE = Path("results") / "baseline" / "drift.csv"
 UPDATE_COMMAND = "python -m benchmark check --update"
 
-# The check sweep: short, so the whole check (JAX compilation and references included) takes
-# about a minute on 2 cores. Two settings per method give an observed order.
+# The check sweep: short, so the whole check costs about 140 CPU-seconds (measured; mostly JAX
+# compilation, one per scene and JAX method, and the references). Two settings per method give an observed order.
 SCENES = sweep.PAPER_SCENES
 T_END = 0.5
 FIXED_DTS = (0.0025, 0.00125)  # inside the LGVI's and Tsit5's stability limit on all three scenes
@@ -255,9 +255,11 @@ def _is_order_row(setting: str) -> bool:
 
 
 def compare(baseline: pd.DataFrame, current: pd.DataFrame, tol: Tolerance = Tolerance(), *,
-            registered: list[str] | None = None) -> Comparison:
-    """Compare ``current`` with ``baseline`` (both in the `to_table` layout) under ``tol``."""
+            registered: list[str] | None = None, load_errors: dict[str, str] | None = None) -> Comparison:
+    """Compare ``current`` with ``baseline`` (both in the `to_table` layout) under ``tol``.
+    ``registered`` / ``load_errors`` default to the registry's `available()` / `plugin_errors()`."""
     registered = set(available() if registered is None else registered)
+    load_errors = plugin_errors() if load_errors is None else load_errors
     out = Comparison()
     base = baseline.set_index(KEY)
     cur = current.set_index(KEY)
@@ -267,7 +269,11 @@ def compare(baseline: pd.DataFrame, current: pd.DataFrame, tol: Tolerance = Tole
     for name in sorted(ran - based):
         out.notes.append(f"{name}: no baseline, run `{UPDATE_COMMAND}`")
     for name in sorted(based - registered):
-        out.notes.append(f"{name}: in the baseline but no longer registered (its rows were not checked)")
+        if name in load_errors:  # a module that stopped importing must not drop out of the check silently
+            out.regressions.append(dict(scene="*", integrator=name, setting="*", metric="load", baseline="registered",
+                                        current=f"failed to load: {load_errors[name]}"[:80], change="gone", allowed="loads"))
+        else:
+            out.notes.append(f"{name}: in the baseline but no longer registered (its rows were not checked)")
     for key in cur.index.difference(base.index):
         if key[1] in based:
             out.notes.append(f"{' / '.join(key)}: new in the sweep, no baseline row (run `{UPDATE_COMMAND}`)")
@@ -378,7 +384,14 @@ def main(*, update: bool = False, baseline: str | os.PathLike = BASELINE, integr
     if jobs is not None and jobs < 1:
         raise ValueError(f"--jobs = {jobs!r} is invalid (allowed: >= 1)")
     tasks = build_check_tasks(integrators) if tasks is None else tasks
-    old, header = read_baseline(baseline) if (not update or Path(baseline).exists()) else (None, [])
+    old, header = None, []
+    if not update:
+        old, header = read_baseline(baseline)
+    elif Path(baseline).exists():
+        try:  # an unreadable old baseline must not block its own replacement
+            old, header = read_baseline(baseline)
+        except ValueError as exc:
+            (log or echo)(f"warning: {exc}; writing a new one")
     current = measure(tasks, executor=executor, jobs=jobs, cache_dir=cache_dir, costs=costs_of(old), log=log)
     cmp = compare(old, current, tol) if old is not None else None
     if cmp is not None:

@@ -196,6 +196,20 @@ def test_missing_and_unregistered_integrators_are_reported_not_failed():
     assert "no baseline" in report and "check passed" in report
 
 
+def test_baseline_integrator_that_fails_to_load_is_a_regression():
+    base = pd.concat([table(["ok"]), table(["ok"], integrator="rk45")], ignore_index=True)
+    cmp = check.compare(base, table(["ok"]), registered=["lgvi"], load_errors={"rk45": "ImportError: no scipy"})
+    assert cmp.failed and cmp.regressions[0]["integrator"] == "rk45" and cmp.regressions[0]["metric"] == "load"
+    assert "ImportError: no scipy" in cmp.regressions[0]["current"]
+
+
+def test_update_replaces_an_unreadable_baseline(tmp_path, cache):
+    path = tmp_path / "drift.csv"
+    path.write_text("scene\nx\n")
+    assert run_check(cache, path, tiny(["rk45"]), update=True)[0] == 0
+    assert set(check.read_baseline(path)[0]["integrator"]) == {"rk45"}
+
+
 def test_timing_never_fails():
     base = table(["ok"])
     slow = table(["ok"]).assign(run_time=100.0, compile_time=1000.0)
