@@ -19,7 +19,8 @@ Tolerance rules (a regression fails the check, exit status 1):
   (π3 and orthogonality of the LGVI, errors of tight runs) never fail on noise.
 - observed orders: lower than baseline − ``order_margin`` (default 0.5, absolute). Orders use
   only errors above the position floor, so round-off never enters a slope.
-- status: a run that was "ok" and no longer is (diverged, newton_failed, error, ...).
+- status: a run that was "ok" and no longer is (diverged, newton_failed, error, ...); an
+  integrator of the baseline whose module no longer loads (`plugin_errors()`).
 
 Improvements beyond the same margins are reported, as are integrators without a baseline
 (a new plugin: "no baseline, run --update") and baseline rows of integrators that are no
@@ -350,10 +351,12 @@ def _timing(base: pd.DataFrame, cur: pd.DataFrame) -> pd.DataFrame:
 def format_report(cmp: Comparison, tol: Tolerance, baseline_path, baseline_header: list[str] | None = None) -> str:
     """The readable outcome: regressions, improvements, notes, timing, verdict."""
     made = next((h for h in baseline_header or [] if h.startswith("Produced by")), "")
+    lo, hi = min(tol.floors.values()), max(tol.floors.values())
+    floors = f"{lo:.0e}" if lo == hi else ", ".join(f"{k} {v:.0e}" for k, v in tol.floors.items())
     out = [f"check: {cmp.compared} rows compared with {baseline_path}, {cmp.identical} bit-identical"
            + (f" ({made})" if made else ""),
-           f"rules: drifts/errors fail above x{tol.factor:g} the baseline (and above their floor, "
-           f"{min(tol.floors.values()):.0e}..{max(tol.floors.values()):.0e}); observed orders fail below "
+           f"rules: drifts/errors fail above x{tol.factor:g} the baseline and above their floor ({floors}); "
+           "observed orders fail below "
            f"baseline - {tol.order_margin:g}; ok -> not ok fails; timing never fails.", ""]
     cols = KEY + ["metric", "baseline", "current", "change", "allowed"]
     if cmp.regressions:
