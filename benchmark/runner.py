@@ -161,10 +161,8 @@ def execute(
                 try:
                     batch_rows = fut.result()
                 except Exception as exc:  # the worker process died
-                    batch_rows = []
-                    for i in idx:
-                        batch_rows.append(_empty_row(tasks[i]))
-                        batch_rows[-1].update(status="crashed", reason=f"{type(exc).__name__}: {exc}"[:300])
+                    reason = f"{type(exc).__name__}: {exc}"[:300]
+                    batch_rows = [{**_empty_row(tasks[i]), "status": "crashed", "reason": reason} for i in idx]
                 for i, row in zip(idx, batch_rows):
                     done(i, row)
     else:
