@@ -1,4 +1,4 @@
-"""Command line: ``python -m benchmark {run,simulate,figures,speed,list}`` (also ``reelbench``)."""
+"""Command line: ``python -m benchmark {run,check,simulate,figures,speed,list}`` (also ``reelbench``)."""
 
 from __future__ import annotations
 
@@ -160,6 +160,19 @@ def cmd_figures(args) -> int:
     return 0
 
 
+def cmd_check(args) -> int:
+    from benchmark import check
+
+    # how the baseline was produced, for its header (the options that change its content)
+    command = check.UPDATE_COMMAND + "".join(f" --{k} {shlex.quote(v)}" for k, v in
+                                             (("integrators", args.integrators), ("baseline", args.baseline)) if v)
+    return check.main(update=args.update, baseline=args.baseline or check.BASELINE,
+                      integrators=_names(args.integrators),
+                      factor=check.DEFAULT_FACTOR if args.factor is None else args.factor,
+                      order_margin=check.DEFAULT_ORDER_MARGIN if args.order_margin is None else args.order_margin,
+                      jobs=args.jobs, command=command, log=_log)
+
+
 def cmd_speed(args) -> int:
     from benchmark import lgvi_speed
 
@@ -200,6 +213,18 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument("--no-figures", action="store_true")
     r.add_argument("--out", default="results")
     r.set_defaults(func=cmd_run)
+
+    c = sub.add_parser("check", help="recompute a short sweep and compare its accuracy metrics with the committed "
+                                     "baseline; exit 1 on a regression (see benchmark/check.py for the rules)")
+    c.add_argument("--update", action="store_true", help="rewrite the baseline from this run instead of failing")
+    c.add_argument("--baseline", help="baseline CSV (default: results/baseline/drift.csv)")
+    c.add_argument("--integrators", help="comma-separated names (default: all registered except test_*)")
+    c.add_argument("--factor", type=float,
+                   help="a drift or error fails when worse than FACTOR x baseline, above its floor (default 2)")
+    c.add_argument("--order-margin", type=float,
+                   help="an observed order fails when lower than baseline - MARGIN (default 0.5)")
+    c.add_argument("--jobs", type=int, help="worker processes (default: CPU count)")
+    c.set_defaults(func=cmd_check)
 
     s = sub.add_parser("simulate", help="one scene, one integrator, one setting -> trajectory .npz + diagnostics .csv")
     s.add_argument("scene")

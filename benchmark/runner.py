@@ -15,7 +15,7 @@ import sys
 import time
 import traceback
 from pathlib import Path
-from typing import Callable, Iterable
+from typing import Callable, Hashable, Iterable
 
 import numpy as np
 import pandas as pd
@@ -84,6 +84,11 @@ def run_task(task: Task, cache_dir: str = str(CACHE_DIR), repeats: int = 3) -> d
         return row
 
 
+def run_tasks(tasks: list[Task], cache_dir: str = str(CACHE_DIR), repeats: int = 3) -> list[dict]:
+    """Run ``tasks`` one after another in this process (one row each)."""
+    return [run_task(t, cache_dir, repeats) for t in tasks]
+
+
 def _reference_task(scene_name: str, overrides: tuple, t_end, save_every: float, cache_dir: str) -> str:
     from models import load_scene
 
@@ -109,9 +114,14 @@ def execute(
     cache_dir: str = str(CACHE_DIR),
     on_row: Callable[[list[dict]], None] | None = None,
     log: Callable[[str], None] = lambda s: print(s, file=sys.stderr, flush=True),
+    group: Callable[[Task], Hashable] | None = None,
 ) -> pd.DataFrame:
     """Run ``tasks`` and return the runs table (task order). ``on_row`` gets the rows so far
-    after each completion (used to write partial results atomically)."""
+    after each completion (used to write partial results atomically).
+
+    ``group`` (process executor): tasks with the same ``group(task)`` run in one worker, one
+    after another, so what that worker compiled for the first (JAX solves are cached per
+    model and solver) serves the others; e.g. ``lambda t: (t.scene, t.integrator)``."""
     if executor not in ("process", "serial", "dask"):
         raise ValueError(f"executor = {executor!r} is invalid (allowed: process, serial, dask)")
     jobs = jobs or min(len(tasks), os.cpu_count() or 1) or 1
@@ -141,15 +151,20 @@ def execute(
             log(f"references for {len(refs)} scene(s) ...")
             for fut in [pool.submit(_reference_task, *ref, cache_dir) for ref in refs]:
                 fut.result()
-            futures = {pool.submit(run_task, t, cache_dir, repeats): i for i, t in enumerate(tasks)}
+            batches: dict = {}
+            for i, t in enumerate(tasks):
+                batches.setdefault(group(t) if group else i, []).append(i)
+            futures = {pool.submit(run_tasks, [tasks[i] for i in idx], cache_dir, repeats): idx
+                       for idx in batches.values()}
             for fut in cf.as_completed(futures):
-                i = futures[fut]
+                idx = futures[fut]
                 try:
-                    row = fut.result()
+                    batch_rows = fut.result()
                 except Exception as exc:  # the worker process died
-                    row = _empty_row(tasks[i])
-                    row.update(status="crashed", reason=f"{type(exc).__name__}: {exc}"[:300])
-                done(i, row)
+                    reason = f"{type(exc).__name__}: {exc}"[:300]
+                    batch_rows = [{**_empty_row(tasks[i]), "status": "crashed", "reason": reason} for i in idx]
+                for i, row in zip(idx, batch_rows):
+                    done(i, row)
     else:
         try:
             from distributed import Client, as_completed

@@ -1,0 +1,406 @@
+"""Regression check of the deterministic accuracy metrics against a committed baseline.
+
+    python -m benchmark check            # recompute the check sweep, compare, exit 1 on a regression
+    python -m benchmark check --update   # recompute and rewrite results/baseline/drift.csv
+
+It only composes existing pieces: `sweep.build_tasks` defines the runs (a short sweep of the
+three paper scenes × every registered integrator), `runner.execute` runs them (process
+executor: each worker pinned to one XLA thread, so on one machine two checks give
+bit-identical numbers), `metrics` gives the accuracy columns and the observed orders.
+
+Tolerance rules (a regression fails the check, exit status 1):
+
+- drifts and errors (`metrics.ACCURACY`): worse than ``factor`` × baseline (default ×2), and
+  above that metric's absolute floor (`FLOORS`). The metrics are deterministic, so any change
+  comes from the code; ×2 lets through the small changes of a refactoring that reorders
+  floating-point work (adaptive step sequences shift by a step or two), while a real
+  regression (a lost order, a broken momentum map) moves them by orders of magnitude. The
+  floors sit above round-off and the reference's own error, so values at that level
+  (π3 and orthogonality of the LGVI, errors of tight runs) never fail on noise.
+- observed orders: lower than baseline − ``order_margin`` (default 0.5, absolute). Orders use
+  only errors above the position floor, so round-off never enters a slope.
+- status: a run that was "ok" and no longer is (diverged, newton_failed, error, ...); an
+  integrator of the baseline whose module no longer loads (`plugin_errors()`).
+
+Improvements beyond the same margins are reported, as are integrators without a baseline
+(a new plugin: "no baseline, run --update") and baseline rows of integrators that are no
+longer registered; none of those fails. Run and compile times are reported, never judged.
+"""
+
+from __future__ import annotations
+
+import datetime
+import io
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import pandas as pd
+
+from benchmark import runner, sweep
+from benchmark.metrics import ACCURACY, observed_orders
+from benchmark.reference import CACHE_DIR, REFERENCE_METHOD
+from benchmark.report import environment, markdown_table
+from integrators import Capability, available, get_integrator, plugin_errors
+from models.io import atomic_write_text
+
+BASELINE = Path("results") / "baseline" / "drift.csv"
+UPDATE_COMMAND = "python -m benchmark check --update"
+
+# The check sweep: short, so the whole check costs about 140 CPU-seconds (measured; mostly JAX
+# compilation, one per scene and JAX method, and the references). Two settings per method give an observed order.
+SCENES = sweep.PAPER_SCENES
+T_END = 0.5
+FIXED_DTS = (0.0025, 0.00125)  # inside the LGVI's and Tsit5's stability limit on all three scenes
+ADAPTIVE_RTOLS = (1e-4, 1e-6)
+IMPLICIT_RTOLS = (1e-3, 1e-4)  # implicit solves cost 10-100x more per step: loose tolerances only
+
+DEFAULT_FACTOR = 2.0
+DEFAULT_ORDER_MARGIN = 0.5
+#: Absolute floors: below these a value is round-off or the reference's own error.
+FLOORS = {
+    "energy_error": 1e-10,
+    "pi3_error": 1e-10,
+    "orthogonality_error": 1e-10,
+    "position_error_final": 1e-10,
+    "position_error_max": 1e-10,
+    "attitude_error_final": 1e-10,
+    "attitude_error_max": 1e-10,
+}
+ORDER = "observed_order"
+KEY = ["scene", "integrator", "setting"]
+COLUMNS = KEY + ["status", *ACCURACY, ORDER, "steps", "run_time", "compile_time", "reason"]
+
+
+@dataclass(frozen=True)
+class Tolerance:
+    factor: float = DEFAULT_FACTOR
+    order_margin: float = DEFAULT_ORDER_MARGIN
+    floors: dict = field(default_factory=lambda: dict(FLOORS))
+
+    def __post_init__(self):
+        if not (math.isfinite(self.factor) and self.factor > 1):
+            raise ValueError(f"--factor = {self.factor!r} is invalid (allowed: finite, > 1; e.g. 2 = twice the baseline)")
+        if not (math.isfinite(self.order_margin) and self.order_margin >= 0):
+            raise ValueError(f"--order-margin = {self.order_margin!r} is invalid (allowed: finite, >= 0)")
+
+
+def default_integrators() -> list[str]:
+    """Every registered integrator except test fixtures (``test_`` prefix)."""
+    return [n for n in available() if not n.startswith("test_")]
+
+
+def build_check_tasks(integrators=None, *, scenes=SCENES, t_end: float = T_END, dts=FIXED_DTS,
+                      rtols=ADAPTIVE_RTOLS, implicit_rtols=IMPLICIT_RTOLS, overrides: dict | None = None) -> list:
+    """The check sweep as runner tasks; unknown integrator names raise ValueError (before any work).
+
+    A method that is both adaptive and fixed-step (Tsit5) is checked on its adaptive axis only:
+    each axis is a separate JAX compilation per scene, and the check must stay about a minute."""
+    names = list(integrators) if integrators else default_integrators()
+    tasks = []
+    for name in names:
+        integ = get_integrator(name)  # raises for unknown names
+        adaptive = integ.has(Capability.ADAPTIVE)
+        tols = implicit_rtols if integ.has(Capability.IMPLICIT) else rtols
+        tasks += [t for t in sweep.build_tasks(scenes, [name], dts=dts, rtols=tols, t_end=t_end, overrides=overrides)
+                  if not (adaptive and t.dt is not None)]
+    return tasks
+
+
+def measure(tasks, *, executor: str = "process", jobs: int | None = None, cache_dir: str = str(CACHE_DIR),
+            costs: dict | None = None, log: Callable[[str], None] | None = None) -> pd.DataFrame:
+    """Run ``tasks`` (no timing repeats) and return the table in the baseline's layout.
+
+    ``costs`` {(scene, integrator): seconds} (from the baseline) orders the work longest first,
+    so no worker is left with a long compilation at the end; unknown groups go first."""
+    kw = {"log": log} if log else {}
+    costs = costs or {}
+    order = sorted(range(len(tasks)), key=lambda i: -costs.get((tasks[i].scene, tasks[i].integrator), np.inf))
+    # One worker runs all settings of a (scene, integrator): it compiles the JAX solve once.
+    runs = runner.execute([tasks[i] for i in order], executor=executor, jobs=jobs, repeats=0, cache_dir=cache_dir,
+                          group=lambda t: (t.scene, t.integrator), **kw)
+    runs.index = order
+    return to_table(runs.sort_index())
+
+
+def costs_of(baseline: pd.DataFrame | None) -> dict:
+    """Seconds (compile + first run) per (scene, integrator) recorded in ``baseline``."""
+    if baseline is None or baseline.empty:
+        return {}
+    t = baseline[["compile_time", "run_time"]].fillna(0.0).sum(axis=1)
+    return t.groupby([baseline["scene"], baseline["integrator"]]).sum().to_dict()
+
+
+def to_table(runs: pd.DataFrame) -> pd.DataFrame:
+    """Runs -> one row per run, plus one row per sweep with its observed order
+    (setting ``order(dt)`` / ``order(rtol)``; sweeps with fewer than two usable points have none)."""
+    err = "position_error_final"
+    # orders from errors above the floor only (metrics.observed_orders skips NaN errors)
+    masked = runs.assign(**{err: runs[err].where(runs[err] > FLOORS[err])})
+    orders = observed_orders(masked, error=err)
+    parts = [runs.assign(**{ORDER: np.nan})]
+    if not orders.empty:
+        orders = orders[orders["points"] >= 2]
+        parts.append(pd.DataFrame({"scene": orders["scene"], "integrator": orders["integrator"],
+                                   "setting": "order(" + orders["sweep"] + ")", "status": "",
+                                   ORDER: orders["observed_order"]}))
+    table = pd.concat(parts, ignore_index=True).reindex(columns=COLUMNS)
+    for c in ("status", "reason"):
+        table[c] = table[c].fillna("").astype(str)
+    return table
+
+
+# ------------------------------------------------------------------------------------------
+# the baseline file: comment lines saying how it was made, then the table as CSV
+
+def describe(tasks) -> str:
+    """The sweep in one line, for the baseline's header."""
+    settings: dict[str, list[str]] = {}
+    for t in tasks:
+        if t.setting not in settings.setdefault(t.integrator, []):
+            settings[t.integrator].append(t.setting)
+    scenes = list(dict.fromkeys(t.scene for t in tasks))
+    horizons = sorted({t.t_end for t in tasks if t.t_end is not None})
+    overrides = sorted({o for t in tasks for o in t.overrides})
+    return (f"{len(tasks)} runs; scenes {', '.join(scenes)}; t_end {', '.join(f'{v:g}' for v in horizons)} s"
+            + (f"; overrides {dict(overrides)}" if overrides else "") + f"; atol = rtol * {sweep.ATOL_FACTOR:g}; "
+            + "; ".join(f"{n} {' '.join(v)}" for n, v in settings.items()))
+
+
+def write_baseline(table: pd.DataFrame, path: str | os.PathLike = BASELINE, *, command: str = UPDATE_COMMAND,
+                   sweep_note: str = "") -> Path:
+    """Write ``table`` atomically (an interrupted update leaves the old baseline intact)."""
+    now = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    ref = ", ".join(f"{k} {v}" for k, v in REFERENCE_METHOD.items())
+    header = [
+        "reelbench drift baseline: deterministic accuracy metrics of the check sweep (see benchmark/check.py).",
+        f"Produced by `{command}` on {now}. Do not edit: rerun that command to refresh it.",
+        f"Environment: {environment()}",
+        f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r} (the runner's worker env: one XLA thread per worker).",
+        f"Sweep: {sweep_note or 'see benchmark/check.py'}.",
+        f"Errors vs the reference: {ref}, saved every {sweep.SAVE_EVERY:g} s.",
+        f"Rows: one per run; rows with setting order(dt)/order(rtol) hold the sweep's {ORDER} "
+        "(slope of position_error_final vs steps). run_time/compile_time: informational only.",
+    ]
+    text = "".join(f"# {line}\n" for line in header) + table.reindex(columns=COLUMNS).to_csv(index=False)
+    atomic_write_text(path, text)
+    return Path(path)
+
+
+def read_baseline(path: str | os.PathLike = BASELINE) -> tuple[pd.DataFrame, list[str]]:
+    """The baseline table and its comment header; ValueError naming the file if unusable."""
+    path = Path(path)
+    if not path.exists():
+        raise ValueError(f"baseline {path} does not exist; create it with `{UPDATE_COMMAND}`")
+    lines = path.read_text().splitlines(keepends=True)
+    n = 0
+    while n < len(lines) and lines[n].startswith("#"):
+        n += 1
+    try:
+        df = pd.read_csv(io.StringIO("".join(lines[n:])), dtype=str, keep_default_na=False)
+    except (pd.errors.ParserError, pd.errors.EmptyDataError) as exc:
+        raise ValueError(f"baseline {path}: not a CSV table ({exc}); regenerate it with `{UPDATE_COMMAND}`") from None
+    missing = [c for c in KEY + ["status", *ACCURACY, ORDER] if c not in df]
+    if missing:
+        raise ValueError(f"baseline {path}: missing column(s) {', '.join(missing)}; regenerate it with `{UPDATE_COMMAND}`")
+    df = df.reindex(columns=COLUMNS).fillna("")
+    for c in COLUMNS:
+        if c not in KEY + ["status", "reason"]:
+            # Python's float() parses the shortest repr to the same double on every pandas version
+            try:
+                df[c] = [float(v) if v != "" else np.nan for v in df[c]]
+            except ValueError as exc:
+                raise ValueError(f"baseline {path}: column {c}: {exc}") from None
+    return df, [line[1:].strip() for line in lines[:n]]
+
+
+def merge(baseline: pd.DataFrame | None, current: pd.DataFrame) -> pd.DataFrame:
+    """The new baseline after an update: ``current`` replaces the rows of the integrators it
+    covers; rows of other integrators (an update restricted with --integrators) are kept."""
+    if baseline is None or baseline.empty:
+        return current.reset_index(drop=True)
+    kept = baseline[~baseline["integrator"].isin(set(current["integrator"]))]
+    return pd.concat([current, kept], ignore_index=True).reindex(columns=COLUMNS)
+
+
+# ------------------------------------------------------------------------------------------
+# the comparison
+
+@dataclass
+class Comparison:
+    regressions: list[dict] = field(default_factory=list)  # scene, integrator, setting, metric, baseline, current, change, allowed
+    improvements: list[dict] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    timing: pd.DataFrame = field(default_factory=pd.DataFrame)
+    compared: int = 0
+    identical: int = 0  # rows whose status and metrics equal the baseline's bit for bit
+
+    @property
+    def failed(self) -> bool:
+        return bool(self.regressions)
+
+
+def _g(v: float) -> str:
+    return "nan" if not np.isfinite(v) else f"{v:.3g}"
+
+
+def _same(a, b) -> bool:
+    return a == b or (isinstance(a, float) and isinstance(b, float) and np.isnan(a) and np.isnan(b))
+
+
+def _is_order_row(setting: str) -> bool:
+    return str(setting).startswith("order(")
+
+
+def compare(baseline: pd.DataFrame, current: pd.DataFrame, tol: Tolerance = Tolerance(), *,
+            registered: list[str] | None = None, load_errors: dict[str, str] | None = None) -> Comparison:
+    """Compare ``current`` with ``baseline`` (both in the `to_table` layout) under ``tol``.
+    ``registered`` / ``load_errors`` default to the registry's `available()` / `plugin_errors()`."""
+    registered = set(available() if registered is None else registered)
+    load_errors = plugin_errors() if load_errors is None else load_errors
+    out = Comparison()
+    base = baseline.set_index(KEY)
+    cur = current.set_index(KEY)
+    ran = set(current["integrator"])
+    based = set(baseline["integrator"])
+
+    for name in sorted(ran - based):
+        out.notes.append(f"{name}: no baseline, run `{UPDATE_COMMAND}`")
+    for name in sorted(based - registered):
+        if name in load_errors:  # a module that stopped importing must not drop out of the check silently
+            out.regressions.append(dict(scene="*", integrator=name, setting="*", metric="load", baseline="registered",
+                                        current=f"failed to load: {load_errors[name]}"[:80], change="gone", allowed="loads"))
+        else:
+            out.notes.append(f"{name}: in the baseline but no longer registered (its rows were not checked)")
+    for key in cur.index.difference(base.index):
+        if key[1] in based:
+            out.notes.append(f"{' / '.join(key)}: new in the sweep, no baseline row (run `{UPDATE_COMMAND}`)")
+    for key in base.index.difference(cur.index):
+        if key[1] in ran:
+            out.notes.append(f"{' / '.join(key)}: in the baseline but not in this sweep")
+
+    def add(kind: list, key, metric, b, c, change, allowed):
+        kind.append(dict(zip(KEY, key), metric=metric, baseline=b, current=c, change=change, allowed=allowed))
+
+    for key in cur.index.intersection(base.index, sort=False):
+        b, c = base.loc[key], cur.loc[key]
+        out.compared += 1
+        out.identical += all(_same(b[m], c[m]) for m in ["status", *ACCURACY, ORDER])
+        if _is_order_row(key[2]):
+            bo, co = float(b[ORDER]), float(c[ORDER])
+            if np.isfinite(bo) and np.isfinite(co):
+                if co < bo - tol.order_margin:
+                    add(out.regressions, key, ORDER, _g(bo), _g(co), f"{co - bo:+.2f}", f">= {bo - tol.order_margin:.3g}")
+                elif co > bo + tol.order_margin:
+                    add(out.improvements, key, ORDER, _g(bo), _g(co), f"{co - bo:+.2f}", "")
+            elif np.isfinite(bo) != np.isfinite(co):
+                # fewer than two usable points: a failed run (reported by its status) or errors
+                # now below the floor (an improvement); nothing to compare
+                out.notes.append(f"{' / '.join(key)}: {ORDER} {_g(bo)} -> {_g(co)} (not comparable)")
+            continue
+        bs, cs = b["status"], c["status"]
+        if bs != cs:
+            text = f"{cs}: {c['reason']}"[:80] if cs != "ok" else cs
+            if bs == "ok":
+                add(out.regressions, key, "status", bs, text, "no longer ok", "ok")
+            elif cs == "ok":
+                add(out.improvements, key, "status", bs, cs, "now ok", "")
+            else:
+                out.notes.append(f"{' / '.join(key)}: status {bs} -> {text}")
+        if bs != "ok" or cs != "ok":
+            continue
+        for m in ACCURACY:
+            bv, cv = float(b[m]), float(c[m])
+            if not np.isfinite(bv):
+                if np.isfinite(cv):
+                    out.notes.append(f"{' / '.join(key)}: {m} now {_g(cv)} (none in the baseline)")
+                continue
+            floor = tol.floors.get(m, 0.0)
+            limit = max(tol.factor * bv, floor)
+            if not np.isfinite(cv) or cv > limit:
+                change = f"x{cv / bv:.3g}" if np.isfinite(cv) and bv > 0 else "missing" if not np.isfinite(cv) else "from 0"
+                add(out.regressions, key, m, _g(bv), _g(cv), change, f"<= {_g(limit)}")
+            elif bv > floor and cv < bv / tol.factor:
+                add(out.improvements, key, m, _g(bv), _g(cv), f"x{cv / bv:.3g}", "")
+
+    out.timing = _timing(base, cur)
+    return out
+
+
+def _timing(base: pd.DataFrame, cur: pd.DataFrame) -> pd.DataFrame:
+    """Run and compile time per integrator, summed over the runs present in both (informational)."""
+    both = cur.index.intersection(base.index, sort=False)
+    both = [k for k in both if not _is_order_row(k[2])]
+    if not both:
+        return pd.DataFrame()
+    rows = []
+    b, c = base.loc[both], cur.loc[both]
+    for name in sorted({k[1] for k in both}):
+        sb, sc = b.xs(name, level="integrator"), c.xs(name, level="integrator")
+        rb, rc = float(np.nansum(sb["run_time"])), float(np.nansum(sc["run_time"]))
+        rows.append({"integrator": name, "runs": len(sc), "run_time_baseline": rb, "run_time": rc,
+                     "ratio": rc / rb if rb > 0 else np.nan,
+                     "compile_time_baseline": float(np.nansum(sb["compile_time"])),
+                     "compile_time": float(np.nansum(sc["compile_time"]))})
+    return pd.DataFrame(rows)
+
+
+def format_report(cmp: Comparison, tol: Tolerance, baseline_path, baseline_header: list[str] | None = None) -> str:
+    """The readable outcome: regressions, improvements, notes, timing, verdict."""
+    made = next((h for h in baseline_header or [] if h.startswith("Produced by")), "")
+    lo, hi = min(tol.floors.values()), max(tol.floors.values())
+    floors = f"{lo:.0e}" if lo == hi else ", ".join(f"{k} {v:.0e}" for k, v in tol.floors.items())
+    out = [f"check: {cmp.compared} rows compared with {baseline_path}, {cmp.identical} bit-identical"
+           + (f" ({made})" if made else ""),
+           f"rules: drifts/errors fail above x{tol.factor:g} the baseline and above their floor ({floors}); "
+           "observed orders fail below "
+           f"baseline - {tol.order_margin:g}; ok -> not ok fails; timing never fails.", ""]
+    cols = KEY + ["metric", "baseline", "current", "change", "allowed"]
+    if cmp.regressions:
+        out += [f"## REGRESSIONS ({len(cmp.regressions)})", "", markdown_table(pd.DataFrame(cmp.regressions, columns=cols))]
+    if cmp.improvements:
+        out += [f"## improvements ({len(cmp.improvements)}): refresh the baseline with `{UPDATE_COMMAND}` to keep them",
+                "", markdown_table(pd.DataFrame(cmp.improvements, columns=cols[:-1]))]
+    if cmp.notes:
+        out += [f"## notes ({len(cmp.notes)}, not failures)", ""] + [f"- {n}" for n in cmp.notes] + [""]
+    if not cmp.timing.empty:
+        out += ["## timing (s, first solve after compilation; informational, never fails)", "",
+                markdown_table(cmp.timing)]
+    out.append(f"check FAILED: {len(cmp.regressions)} regression(s)" if cmp.failed else
+               f"check passed: no regressions ({len(cmp.improvements)} improvement(s), {len(cmp.notes)} note(s))")
+    return "\n".join(out)
+
+
+# ------------------------------------------------------------------------------------------
+
+def main(*, update: bool = False, baseline: str | os.PathLike = BASELINE, integrators=None,
+         factor: float = DEFAULT_FACTOR, order_margin: float = DEFAULT_ORDER_MARGIN, jobs: int | None = None,
+         executor: str = "process", cache_dir: str = str(CACHE_DIR), tasks=None, command: str = UPDATE_COMMAND,
+         log: Callable[[str], None] | None = None, echo: Callable[[str], None] = print) -> int:
+    """Recompute the check sweep and compare (or with ``update``, rewrite the baseline).
+    Returns the exit status: 0 passed or updated, 1 regressions. Bad input raises ValueError
+    before any work."""
+    tol = Tolerance(factor=factor, order_margin=order_margin)
+    if jobs is not None and jobs < 1:
+        raise ValueError(f"--jobs = {jobs!r} is invalid (allowed: >= 1)")
+    tasks = build_check_tasks(integrators) if tasks is None else tasks
+    old, header = None, []
+    if not update:
+        old, header = read_baseline(baseline)
+    elif Path(baseline).exists():
+        try:  # an unreadable old baseline must not block its own replacement
+            old, header = read_baseline(baseline)
+        except ValueError as exc:
+            (log or echo)(f"warning: {exc}; writing a new one")
+    current = measure(tasks, executor=executor, jobs=jobs, cache_dir=cache_dir, costs=costs_of(old), log=log)
+    cmp = compare(old, current, tol) if old is not None else None
+    if cmp is not None:
+        echo(format_report(cmp, tol, baseline, header))
+    if update:
+        path = write_baseline(merge(old, current), baseline, command=command, sweep_note=describe(tasks))
+        echo(f"baseline written: {path} ({len(current)} rows recomputed)")
+        return 0
+    return 1 if cmp.failed else 0
