@@ -3,7 +3,7 @@
 `ClosedFormEOM(model)` wraps a `StringPendulum` and evaluates the same equations as its
 autodiff path (`mass_matrix`, `momentum`, `accelerations`, `ode_rhs`) without any
 `jax.grad` / `jacfwd` / `jvp`. It reuses the model's parameters, its closed-form
-`potential_gradient` and its `generalized_force`; no energy term is re-derived here except the
+`potential_gradient` and its forces (`reel_force`, `string_force`); no energy term is re-derived here except the
 kinetic energy's derivatives, which are written out below.
 
 Notation (nodes a = 1 … N+1, q_1 ≡ 0, v_a = q̇_a, v_1 = 0, ṡ = ṡ_p, l = (L − s_p)/N):
@@ -170,7 +170,7 @@ class ClosedFormEOM:
             quad = jnp.sum(va * va + va * vb + vb * vb)
             Cdot = self._coupling(va - vb)
             Fs = (mu / 3.0 - 2.0 * mu / 3.0) * sd * sd - mu / (6.0 * N) * quad - jnp.sum(Cdot * v[1:])
-            Fs = Fs - dV[0]
+            Fs = Fs - dV[0] + m.reel_force(t, x, w)
             parts.append(jnp.atleast_1d(Fs))
             G = self.c31[:, None] * va + self.c23[:, None] * vb  # a = 1..N
             dTdq = jnp.concatenate([G[1:], jnp.zeros((1, 3))], axis=0) - G
@@ -193,8 +193,8 @@ class ClosedFormEOM:
         if lay.has_attitude:
             parts.append(F_om)
         F = jnp.concatenate(parts)
-        if m.reel_forces or m.string_forces:
-            F = F + m.generalized_force(t, x, w)
+        if m.string_forces:
+            F = F + m.string_force(t, x, w)
         return F
 
     # ------------------------------------------------------------------------------------

@@ -306,7 +306,12 @@ class StringPendulum:
         return sum((f(t, x, w) for f in self.string_forces.values()), jnp.zeros(self.layout.nw))
 
     def generalized_force(self, t, x, w):
-        """Q over w's layout: the reel forces in the s_p row plus the string forces."""
+        """Q over w's layout: the reel forces in the s_p row plus the string forces.
+
+        (`accelerations` and `models.closed_form` add the same two parts to their force side
+        one by one: adding the reel force in place keeps scenes without string forces
+        bit-identical to what they were before string forces existed.)
+        """
         Q = jnp.zeros(self.layout.nw)
         if self.layout.has_reel and self.reel_forces:
             Q = Q.at[0].set(self.reel_force(t, x, w))
@@ -388,13 +393,15 @@ class StringPendulum:
         # Ṁ w: derivative of M(x, R) w along (ẋ, R Ω^) with w held fixed
         _, Mdot_w = jax.jvp(lambda x_, R_: self.momentum(x_, R_, w), (x, R), (xdot, Rdot))
         rhs = jax.grad(self.lagrangian, argnums=0)(x, R, w)
+        if lay.has_reel:
+            rhs = rhs.at[0].add(self.reel_force(t, x, w))
         if lay.has_attitude:
             # M_R · η = d/dε L(R exp(ε η^)); first order needs only R (I + ε η^)
             M_R = jax.grad(lambda eta: self.lagrangian(x, R @ (jnp.eye(3) + hat(eta)), w))(jnp.zeros(3))
             Pi = self.momentum(x, R, w)[lay.omega]
             rhs = jnp.concatenate([rhs, jnp.cross(Pi, om) + M_R])
-        if self.reel_forces or self.string_forces:
-            rhs = rhs + self.generalized_force(t, x, w)
+        if self.string_forces:
+            rhs = rhs + self.string_force(t, x, w)
         return jnp.linalg.solve(M, rhs - Mdot_w)
 
     # ------------------------------------------------------------------------------------
