@@ -17,6 +17,24 @@ Per step, with X = (Δs, Δq_2..Δq_{N+1}, c) and F = cay(c) = (I + ĉ)(I − ĉ
 
 `hp_k_full` / `hp_k1` give the full closed-form residual sides for testing against the
 autodiff discrete Lagrangian (tests/test_lgvi.py).
+
+Forcing (discrete Lagrange–d'Alembert, forces f⁻ in the p_k equations and f⁺ in the p_{k+1}
+equations; the work of step k is (f⁻ + f⁺)·Δx / h):
+
+* reel forces (Carnot, control; s_p row only): f⁻ = f⁺ = (h/2) Q(t_k, x_k, Δs/h), implicit
+  in Δs, which is already a Newton unknown (MODEL.md §6);
+* string forces (axial damping; q rows and s_p row): evaluated *explicitly*, so that the
+  string rows stay a scalar tridiagonal system with a known right-hand side:
+  f⁻ = (h/2) Q(t_k, x_k, w_k) with w_k = M(g_k)⁻¹ p_k (the continuous Legendre transform of
+  the discrete momentum, structured O(N) solve of `models.closed_form`), and
+  f⁺ = (h/2) Q(t_{k+1}, x_{k+1}, ẋ̃_{k+1}) with the predicted velocity ẋ̃_{k+1} = 2Δx/h − ẋ_k
+  (= ẋ_k + h ẍ_k of the step). This is the trapezoidal rule for the force with an Euler
+  predictor (Heun): second order for a fixed length (the reel terms keep first order while
+  the length changes). Being explicit, it is stable only while h γ_max < 2, γ_max the largest
+  eigenvalue of M⁻¹ K_d (K_d = −∂Q/∂w; γ_max ≤ 12 c/(μ l²) for the consistent-mass string):
+  a mode with rate γ is multiplied by 1 − hγ + (hγ)²/2 per step. Measured (fixed_length point
+  mass, N = 4, h = 5 ms, γ_max = 25.5 c): bounded at hγ_max = 1.95, blows up at 2.05.
+  `node_forcing` / `end_forcing` / `work` are the pieces.
 """
 
 from __future__ import annotations
@@ -26,6 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from models._jax import jax, jnp
+from models.closed_form import ClosedFormEOM
 from models.model import hat, vee
 
 #: Tridiagonal systems up to this size are unrolled at trace time (fast for small N);
@@ -127,10 +146,16 @@ class StepContext:
     dVs: jnp.ndarray
     dVq: jnp.ndarray  # (N, 3)
     dVeta: jnp.ndarray  # (3,)
+    # explicit string forcing at g_k (axial damping; zeros without it), see `node_forcing`
+    w: jnp.ndarray  # (nw,) velocity w_k = M(g_k)⁻¹ p_k
+    fs: jnp.ndarray  # Q_s(t_k, x_k, w_k)
+    fq: jnp.ndarray  # (N, 3) Q_q(t_k, x_k, w_k)
+    feta: jnp.ndarray  # (3,) Q_Ω (zero for the string forces so far)
 
 
 jax.tree_util.register_dataclass(
-    StepContext, data_fields=["t", "x", "R", "s", "l", "M0", "C", "dVs", "dVq", "dVeta"], meta_fields=[]
+    StepContext, data_fields=["t", "x", "R", "s", "l", "M0", "C", "dVs", "dVq", "dVeta", "w", "fs", "fq", "feta"],
+    meta_fields=[]
 )
 
 
@@ -165,9 +190,13 @@ class DiscreteLagrangian:
         self.rho = jnp.asarray(model.rho_c)
         self.J_o = jnp.asarray(model.J_o)
         self.J_d = jnp.asarray(model.J_d)
+        #: string forces (axial damping) present: explicit forcing from w_k = M⁻¹ p_k
+        self.node_forced = bool(model.string_forces)
+        self._legendre = ClosedFormEOM(model).velocity_from_momentum if self.node_forced else None
 
     # -------------------------------------------------------------------------------------
-    def context(self, t, x, R, gradV) -> StepContext:
+    def context(self, t, x, R, gradV, p=None) -> StepContext:
+        """Quantities of g_k; ``p`` (p_k) is needed only for the string forces (`node_forcing`)."""
         m = self.model
         N = self.N
         q = m.nodes(x)
@@ -186,7 +215,44 @@ class DiscreteLagrangian:
         lay = m.layout
         dVq = gradV[lay.nodes].reshape(N, 3)
         dVeta = gradV[lay.omega] if self.rigid else jnp.zeros(3)
-        return StepContext(t=t, x=x, R=R, s=s, l=l, M0=M0, C=C, dVs=dVs, dVq=dVq, dVeta=dVeta)
+        w, (fs, fq, feta) = self.node_forcing(t, x, R, p)
+        return StepContext(t=t, x=x, R=R, s=s, l=l, M0=M0, C=C, dVs=dVs, dVq=dVq, dVeta=dVeta,
+                           w=w, fs=fs, fq=fq, feta=feta)
+
+    # -------------------------------------------------------------------------------------
+    # Explicit string forcing (axial damping); zeros without string forces
+    # -------------------------------------------------------------------------------------
+    def split_force(self, Q):
+        """Q over w's layout -> (Q_s, Q_q (N, 3), Q_Ω) (zeros for absent coordinates)."""
+        return self.split_momentum(Q)
+
+    def node_forcing(self, t, x, R, p):
+        """(w_k, (Q_s, Q_q, Q_Ω)) at g_k with w_k = M(g_k)⁻¹ p_k: the explicit f⁻ = (h/2) Q."""
+        if not self.node_forced:
+            return jnp.zeros(self.nw), (jnp.asarray(0.0), jnp.zeros((self.N, 3)), jnp.zeros(3))
+        if p is None:
+            raise ValueError("DiscreteLagrangian.context needs p_k when the model has string forces")
+        w = self._legendre(x, R, p)
+        return w, self.split_force(self.model.string_force(t, x, w))
+
+    def end_forcing(self, ctx: StepContext, h, ds, dq):
+        """(Q_s, Q_q, Q_Ω) of f⁺ = (h/2) Q(t_k + h, x_{k+1}, 2Δx/h − ẋ_k) (Heun predictor)."""
+        if not self.node_forced:
+            return jnp.asarray(0.0), jnp.zeros((self.N, 3)), jnp.zeros(3)
+        nx = self.model.layout.nx
+        dx = jnp.concatenate([jnp.atleast_1d(ds), dq.ravel()]) if self.reel else dq.ravel()
+        w1 = jnp.concatenate([2.0 * dx / h - ctx.w[:nx], ctx.w[nx:]])
+        return self.split_force(self.model.string_force(ctx.t + h, ctx.x + dx, w1))
+
+    def work(self, ctx: StepContext, h, ds, dq):
+        """Work of the forcing on step k: Q_k Δs (reel) + ½ (Q⁻ + Q⁺)·Δx (string forces)."""
+        dW = self.forcing(ctx, ds, h) * ds
+        if self.node_forced:
+            fs1, fq1, _ = self.end_forcing(ctx, h, ds, dq)
+            dW = dW + 0.5 * jnp.sum((ctx.fq + fq1) * dq)
+            if self.reel:
+                dW = dW + 0.5 * (ctx.fs + fs1) * ds
+        return dW
 
     def split_momentum(self, p):
         lay = self.model.layout
@@ -233,7 +299,7 @@ class DiscreteLagrangian:
     def solve_dq(self, ctx: StepContext, pq, h, ds, F):
         """Δq_2..Δq_{N+1} from the q rows of the p_k equations, for given (Δs, F)."""
         sub, diag, sup = self.q_coeffs(ctx, ds)
-        rhs = h * pq - ctx.C * ds - (0.5 * h * h) * ctx.dVq
+        rhs = h * pq - ctx.C * ds - (0.5 * h * h) * (ctx.dVq - ctx.fq)
         rhs = rhs - self.e_last[:, None] * self.body_term(ctx, F)[None, :]
         return tridiag_solve(sub, diag, sup, rhs)
 
@@ -245,7 +311,7 @@ class DiscreteLagrangian:
         quad = jnp.sum(da * da) + jnp.sum(db * db) + jnp.sum(da * db)
         Q = self.forcing(ctx, ds, h)
         return (ctx.M0 * ds + jnp.sum(ctx.C * dq) - mu / 3.0 * ds * ds + mu / (6 * N) * quad
-                + 0.5 * h * h * (ctx.dVs - Q))
+                + 0.5 * h * h * (ctx.dVs - Q - ctx.fs))
 
     def hp_Pi(self, ctx: StepContext, h, c, dq_tip):
         """h Π_k side: (F J_d − J_d Fᵀ)^∨ + m_b ρ × R_kᵀ Δq_{N+1} + (h²/2) ∂_η V_k.
@@ -254,15 +320,16 @@ class DiscreteLagrangian:
         """
         Jc = self.J_o @ c
         rot = 2.0 * (Jc + jnp.cross(c, Jc)) / (1.0 + c @ c)
-        return rot + self.model.m_b * jnp.cross(self.rho, ctx.R.T @ dq_tip) + 0.5 * h * h * ctx.dVeta
+        return rot + self.model.m_b * jnp.cross(self.rho, ctx.R.T @ dq_tip) + 0.5 * h * h * (ctx.dVeta - ctx.feta)
 
     def string_solve(self, ctx: StepContext, pq, h, ds):
         """(u, v) with Δq = u − v ⊗ b for the body term b = m_b R_k (F − I) ρ_c.
 
-        One Thomas pass with four right-hand sides: A(Δs) [u | v] = [h p_q − C Δs − (h²/2) ∇_q V_k | e_N].
+        One Thomas pass with four right-hand sides:
+        A(Δs) [u | v] = [h p_q − C Δs − (h²/2)(∇_q V_k − Q_q,k) | e_N]  (Q_q,k: explicit string forcing).
         """
         sub, diag, sup = self.q_coeffs(ctx, ds)
-        rhs = h * pq - ctx.C * ds - (0.5 * h * h) * ctx.dVq
+        rhs = h * pq - ctx.C * ds - (0.5 * h * h) * (ctx.dVq - ctx.fq)
         sol = tridiag_solve(sub, diag, sup, jnp.concatenate([rhs, self.e_last[:, None]], axis=1))
         return sol[:, :3], sol[:, 3]
 
@@ -335,7 +402,7 @@ class DiscreteLagrangian:
         sub, diag, sup = self.q_coeffs(ctx, ds)
         dqf = jnp.concatenate([jnp.zeros((1, 3)), dq, jnp.zeros((1, 3))], axis=0)
         rows = sub[:, None] * dqf[:-2] + diag[:, None] * dqf[1:-1] + sup[:, None] * dqf[2:]
-        rows = rows + ctx.C * ds + 0.5 * h * h * ctx.dVq + self.e_last[:, None] * self.body_term(ctx, F)[None, :]
+        rows = rows + ctx.C * ds + 0.5 * h * h * (ctx.dVq - ctx.fq) + self.e_last[:, None] * self.body_term(ctx, F)[None, :]
         hps = self.hp_s(ctx, h, ds, dq) if self.reel else 0.0
         hPi = self.hp_Pi(ctx, h, c, dq[-1]) if self.rigid else jnp.zeros(3)
         return self.join(hps, rows, hPi)
@@ -349,14 +416,15 @@ class DiscreteLagrangian:
         dqf = jnp.concatenate([jnp.zeros((1, 3)), dq, jnp.zeros((1, 3))], axis=0)
         lin = (mul * self.msub)[:, None] * dqf[:-2] + diag[:, None] * dqf[1:-1] + (mul * self.msup)[:, None] * dqf[2:]
         lin = lin + ctx.C * ds + self.e_last[:, None] * self.body_term(ctx, F)[None, :]
-        hpq = lin - 0.5 * h * h * gradV1[lay.nodes].reshape(N, 3)
+        fs1, fq1, feta1 = self.end_forcing(ctx, h, ds, dq)  # f⁺ of the string forces (zeros without)
+        hpq = lin - 0.5 * h * h * (gradV1[lay.nodes].reshape(N, 3) - fq1)
         hps = 0.0
         if self.reel:
             Q = self.forcing(ctx, ds, h)
-            hps = ctx.M0 * ds + jnp.sum(ctx.C * dq) - 0.5 * h * h * gradV1[0] + 0.5 * h * h * Q
+            hps = ctx.M0 * ds + jnp.sum(ctx.C * dq) - 0.5 * h * h * gradV1[0] + 0.5 * h * h * (Q + fs1)
         hPi = jnp.zeros(3)
         if self.rigid:
             hPi = (vee(self.J_d @ F - F.T @ self.J_d)  # the matrix is skew: vee gives its axial vector
                    + self.model.m_b * jnp.cross(self.rho, F.T @ (ctx.R.T @ dq[-1]))
-                   - 0.5 * h * h * gradV1[lay.omega])
+                   - 0.5 * h * h * (gradV1[lay.omega] - feta1))
         return self.join(hps, hpq, hPi)

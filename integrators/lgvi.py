@@ -10,7 +10,10 @@ time), stopping cleanly with a `Status` when Newton fails, the state stops being
 the deployed length leaves (0, L − b).
 
 Forcing (MODEL.md §6): (h/2) Q_k at both ends of the step, Q_k = Q_u(t_k) + Q_c(s_k, Δs/h,
-q_{k,2}); the work of step k is Q_k Δs and is accumulated in ``Trajectory.work``.
+q_{k,2}); the work of step k is Q_k Δs and is accumulated in ``Trajectory.work``. The string
+forces (axial damping) are explicit (Heun: (h/2) Q at g_k from w_k = M⁻¹ p_k, (h/2) Q at
+g_{k+1} from the predicted velocity 2Δx/h − ẋ_k), see `integrators._lgvi_core`; their work
+½ (Q⁻ + Q⁺)·Δx is added to W.
 """
 
 from __future__ import annotations
@@ -45,7 +48,7 @@ def _make_run(model):
 
     def step(x, R, p, gV, z, k, h, tol, maxit):
         t = k * h
-        ctx = dl.context(t, x, R, gV)
+        ctx = dl.context(t, x, R, gV, p)
         ps, pq, Pi = dl.split_momentum(p)
         uv = None if dl.reel else dl.string_solve(ctx, pq, h, jnp.asarray(0.0))
         if nz == 0:
@@ -100,7 +103,7 @@ def _make_run(model):
         R1 = R @ F if dl.rigid else R
         gV1 = model.potential_gradient(x1, R1)
         p1 = dl.hp_k1(ctx, h, ds, dq, c, gV1) / h
-        dW = dl.forcing(ctx, ds, h) * ds
+        dW = dl.work(ctx, h, ds, dq)
         finite = jnp.all(jnp.isfinite(x1)) & jnp.all(jnp.isfinite(p1)) & jnp.all(jnp.isfinite(R1)) & jnp.isfinite(dW)
         inside = model.deployed_length_margin(x1) > 0
         code = jnp.where(~newton_ok, 1, jnp.where(~finite, 2, jnp.where(~inside, 3, 0))).astype(jnp.int32)

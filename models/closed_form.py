@@ -3,7 +3,7 @@
 `ClosedFormEOM(model)` wraps a `StringPendulum` and evaluates the same equations as its
 autodiff path (`mass_matrix`, `momentum`, `accelerations`, `ode_rhs`) without any
 `jax.grad` / `jacfwd` / `jvp`. It reuses the model's parameters, its closed-form
-`potential_gradient` and its `reel_force`; no energy term is re-derived here except the
+`potential_gradient` and its forces (`reel_force`, `string_force`); no energy term is re-derived here except the
 kinetic energy's derivatives, which are written out below.
 
 Notation (nodes a = 1 … N+1, q_1 ≡ 0, v_a = q̇_a, v_1 = 0, ṡ = ṡ_p, l = (L − s_p)/N):
@@ -20,9 +20,9 @@ Mass matrix, w = (ṡ, v_2 … v_{N+1}, Ω):
 
 Force side F = ∂T/∂x − ∂V/∂x + Q − Ṁ w (and Π × Ω + M_R − (Ṁw)_Ω for Ω):
 
-    s:   ⅓μ ṡ² − (μ/6N) Σ_a (|v_a|² + v_a·v_{a+1} + |v_{a+1}|²) − ∂V/∂s + Q
+    s:   ⅓μ ṡ² − (μ/6N) Σ_a (|v_a|² + v_a·v_{a+1} + |v_{a+1}|²) − ∂V/∂s + Q_s
          − [⅔μ ṡ² + Σ_b Ċ_b·v_b]
-    q_b: ṡ (G_b − G_{b−1}) − ∂V/∂q_b − [−(ṡ/(N l)) S(v)_b + ṡ Ċ_b]
+    q_b: ṡ (G_b − G_{b−1}) − ∂V/∂q_b + Q_b − [−(ṡ/(N l)) S(v)_b + ṡ Ċ_b]
          − δ_{b,N+1} m_b R (Ω × (Ω × ρ_c)),   G_a = c31_a v_a + c23_a v_{a+1}, G_{N+1} ≡ 0
     Ω:   Π × Ω + m_b (Ω × ρ_c) × u + m_b ρ_c × (Ω × u) − ∂V/∂η,  Π = M_ΩΩ Ω + m_b ρ_c × u
          + m_b [c × P c − ρ_c × (Ṗ c)],  c = Ω × ρ_c,  Ṗ = P Ω^ − Ω^ P
@@ -192,7 +192,10 @@ class ClosedFormEOM:
         parts.append(Fq.ravel())
         if lay.has_attitude:
             parts.append(F_om)
-        return jnp.concatenate(parts)
+        F = jnp.concatenate(parts)
+        if m.string_forces:
+            F = F + m.string_force(t, x, w)
+        return F
 
     # ------------------------------------------------------------------------------------
     # Structured solve of M a = F

@@ -4,13 +4,17 @@ Generalized coordinates  x = (s_p if `reel`, q_2 ... q_{N+1})            size nx
 Generalized velocities   w = (ṡ_p if `reel`, q̇_2 ... q̇_{N+1}, Ω if `rigid_body`)   size nw
 ODE state (baselines)    y = (x, quat if `rigid_body`, w, W if non-conservative forces)
 
-W is the accumulated work of the non-conservative forces (Carnot loss, reel control); it is
-carried in the ODE state so that E - W can be checked to the integrator's own accuracy.
+W is the accumulated work of the non-conservative forces (Carnot loss, reel control, axial
+damping); it is carried in the ODE state so that E - W can be checked to the integrator's own
+accuracy.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+
+#: The effects that add non-conservative generalized forces (their work is carried as W).
+FORCING_EFFECTS = ("carnot", "reel_control", "axial_damping")
 
 
 @dataclass(frozen=True)
@@ -26,7 +30,7 @@ class StateLayout:
             elements=scene.string.elements,
             has_reel=scene.has("reel"),
             has_attitude=scene.has("rigid_body"),
-            has_work=scene.has("carnot") or scene.has("reel_control"),
+            has_work=any(scene.has(e) for e in FORCING_EFFECTS),
         )
 
     # generalized coordinates / velocities -------------------------------------------

@@ -32,6 +32,24 @@ def hat(v):
     return jnp.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
+def _two_sided(stretch, l):
+    """Elastic length of the paper's law: the stretch itself (resists compression too)."""
+    return stretch
+
+
+def _tension_only(stretch, l):
+    """Elastic length of a tension-only (`slack`) element: max(stretch, l), no energy when shorter."""
+    return jnp.maximum(stretch, l)
+
+
+def _two_sided_tension(tension):
+    return tension
+
+
+def _clip_compression(tension):
+    return jnp.maximum(tension, 0.0)
+
+
 def vee(m):
     """Inverse of `hat` (skew part of m)."""
     return jnp.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]]) * 0.5
@@ -126,11 +144,24 @@ class StringPendulum:
             self.potential_terms["V_body_gravity"] = self._V_body_gravity
             if lay.has_reel:
                 self.potential_terms["V_reel"] = self._V_reel
+        # Elastic law: the length that stores strain energy. Two-sided (the paper's: resists
+        # compression too) or, with `slack`, tension-only: max(|q_{a+1} − q_a|, l), so that
+        # V_e, its gradient and the tensions all get the factor max(|Δq| − l, 0).
+        self._taut_length = _tension_only if scene.has("slack") else _two_sided
+        self._clip_tension = _clip_compression if scene.has("slack") else _two_sided_tension
+        #: c of `axial_damping` (N s); 0 without the effect
+        self.c_damp = st.axial_damping if scene.has("axial_damping") else 0.0
+        # Non-conservative generalized forces, two kinds, composed by `generalized_force`:
+        # reel forces act on s_p only and depend on w only through ṡ_p (scalar terms);
+        # string forces are vectors over w's layout acting on (s_p, q) (not on Ω).
         self.reel_forces: dict[str, Callable] = {}
         if scene.has("carnot"):
             self.reel_forces["Q_carnot"] = self._Q_carnot
         if scene.has("reel_control"):
             self.reel_forces["Q_control"] = self._Q_control
+        self.string_forces: dict[str, Callable] = {}
+        if scene.has("axial_damping"):
+            self.string_forces["Q_axial_damping"] = self._Q_axial_damping
 
     # ------------------------------------------------------------------------------------
     # Coordinates
@@ -199,9 +230,10 @@ class StringPendulum:
         return -self.m_b * self.g * tip[2]
 
     def _V_elastic(self, x, R):
+        """Σ_a (EA/2l)(|q_{a+1} − q_a| − l)², or with `slack` Σ_a (EA/2l) max(|q_{a+1} − q_a| − l, 0)²."""
         q, l = self.nodes(x), self.element_length(x)
-        stretch = jnp.linalg.norm(q[1:] - q[:-1], axis=1)
-        return jnp.sum(self.EA / (2 * l) * (stretch - l) ** 2)
+        taut = self._taut_length(jnp.linalg.norm(q[1:] - q[:-1], axis=1), l)
+        return jnp.sum(self.EA / (2 * l) * (taut - l) ** 2)
 
     def _Q_carnot(self, t, x, w):
         """Carnot loss at the guide-way exit: Q_c ṡ = -½ μ |ṡ|³ |q_2/l - t_g|² <= 0."""
@@ -211,6 +243,41 @@ class StringPendulum:
 
     def _Q_control(self, t, x, w):
         return jnp.asarray(self.u / self.d)
+
+    def strain_rates(self, x, w):
+        """ε̇_a = d/dt (|q_{a+1} − q_a| / l − 1) = ê_a·(q̇_{a+1} − q̇_a)/l + |q_{a+1} − q_a| ṡ_p/(N l²).
+
+        (l = (L − s_p)/N, so l̇ = −ṡ_p/N; the ṡ_p term is absent for a fixed length.)
+        """
+        q, v, l = self.nodes(x), self.node_velocities(w), self.element_length(x)
+        delta = q[1:] - q[:-1]
+        stretch = jnp.linalg.norm(delta, axis=1)
+        rate = jnp.sum(delta * (v[1:] - v[:-1]), axis=1) / (stretch * l)
+        if self.layout.has_reel:
+            rate = rate + stretch * self.reel_rate(w) / (self.N * l * l)
+        return rate
+
+    def _Q_axial_damping(self, t, x, w):
+        """Kelvin–Voigt strain-rate damping: Q = −∂D/∂w, D = Σ_a (c l/2) ε̇_a² (Rayleigh).
+
+        Element a carries the damping tension τ_a = c ε̇_a along ê_a = (q_{a+1} − q_a)/|q_{a+1} − q_a|:
+        it pulls node a by +τ_a ê_a and node a+1 by −τ_a ê_a; on s_p (through l) it gives
+        −Σ_a τ_a |q_{a+1} − q_a| / (N l). Power Q·w = −Σ_a c l ε̇_a² ≤ 0. The dashpot acts in
+        compression too (also with `slack`), which keeps Q smooth in the state.
+        """
+        q, l = self.nodes(x), self.element_length(x)
+        delta = q[1:] - q[:-1]
+        stretch = jnp.linalg.norm(delta, axis=1)
+        tau = self.c_damp * self.strain_rates(x, w)
+        f = (tau / stretch)[:, None] * delta  # τ_a ê_a, a = 1..N
+        fq = jnp.concatenate([f[1:], jnp.zeros((1, 3))], axis=0) - f  # nodes 2..N+1
+        parts = []
+        if self.layout.has_reel:
+            parts.append(jnp.atleast_1d(-jnp.sum(tau * stretch) / (self.N * l)))
+        parts.append(fq.ravel())
+        if self.layout.has_attitude:
+            parts.append(jnp.zeros(3))
+        return jnp.concatenate(parts)
 
     # ------------------------------------------------------------------------------------
     # Totals
@@ -228,19 +295,33 @@ class StringPendulum:
         return self.kinetic(x, R, w) + self.potential(x, R)
 
     def reel_force(self, t, x, w):
-        """Non-conservative generalized force on s_p (Q_u + Q_c); zero without such effects."""
+        """The reel forces (Q_u + Q_c, on s_p only); zero without such effects.
+
+        Not the whole s_p row of Q when string forces are present: see `generalized_force`.
+        """
         return sum((f(t, x, w) for f in self.reel_forces.values()), jnp.asarray(0.0))
 
+    def string_force(self, t, x, w):
+        """Sum of the string forces (axial damping) as a vector over w; zeros without them."""
+        return sum((f(t, x, w) for f in self.string_forces.values()), jnp.zeros(self.layout.nw))
+
     def generalized_force(self, t, x, w):
-        """Q as a vector over w: only the s_p row is forced."""
+        """Q over w's layout: the reel forces in the s_p row plus the string forces.
+
+        (`accelerations` and `models.closed_form` add the same two parts to their force side
+        one by one: adding the reel force in place keeps scenes without string forces
+        bit-identical to what they were before string forces existed.)
+        """
         Q = jnp.zeros(self.layout.nw)
-        if self.layout.has_reel:
+        if self.layout.has_reel and self.reel_forces:
             Q = Q.at[0].set(self.reel_force(t, x, w))
+        if self.string_forces:
+            Q = Q + self.string_force(t, x, w)
         return Q
 
     def power(self, t, x, w):
-        """Power of the non-conservative forces, Q · w."""
-        return self.reel_force(t, x, w) * self.reel_rate(w)
+        """Power of the non-conservative forces, Q · w (accumulated as W)."""
+        return self.generalized_force(t, x, w) @ w
 
     def potential_gradient(self, x, R):
         """Closed-form gradient of V over w's layout: (∂V/∂s_p, ∂V/∂q_2..q_{N+1}, ∂V/∂η).
@@ -252,7 +333,8 @@ class StringPendulum:
         q, l = self.nodes(x), self.element_length(x)
         delta = q[1:] - q[:-1]
         stretch = jnp.linalg.norm(delta, axis=1)
-        grad_e = (self.EA / l * (stretch - l) / stretch)[:, None] * delta  # ∇V^e_a, a = 1..N
+        taut = self._taut_length(stretch, l)  # = stretch, or max(stretch, l) with `slack`
+        grad_e = (self.EA / l * (taut - l) / stretch)[:, None] * delta  # ∇V^e_a, a = 1..N
         dq = jnp.concatenate([grad_e[:-1] - grad_e[1:], grad_e[-1:]], axis=0)  # nodes 2..N+1
         e3 = jnp.asarray(E3)
         weights = jnp.ones(self.N).at[-1].set(0.5)
@@ -261,7 +343,7 @@ class StringPendulum:
         parts = []
         if self.layout.has_reel:
             s = x[0]
-            ds = jnp.sum(self.mu * self.g * (2 * self.r_p[2] + q[:-1, 2] + q[1:, 2]) + self.EA / l**2 * (stretch**2 - l**2)) / (2 * self.N)
+            ds = jnp.sum(self.mu * self.g * (2 * self.r_p[2] + q[:-1, 2] + q[1:, 2]) + self.EA / l**2 * (taut**2 - l**2)) / (2 * self.N)
             if self.g != 0.0:
                 ds = ds - self.mu * self.g * self.r_d[2] + self.mu * self.g * self.d * jnp.sin((s - self.b) / self.d)
             parts.append(jnp.atleast_1d(ds))
@@ -271,9 +353,10 @@ class StringPendulum:
         return jnp.concatenate(parts)
 
     def tensions(self, x):
-        """Element tensions EA (|q_{a+1} - q_a| / l - 1), a = 1..N (negative = compression)."""
+        """Elastic element tensions EA (|q_{a+1} - q_a| / l - 1), a = 1..N (negative = compression;
+        clipped at 0 with `slack`). The damping tension c ε̇_a is not included (it needs w)."""
         q, l = self.nodes(x), self.element_length(x)
-        return self.EA * (jnp.linalg.norm(q[1:] - q[:-1], axis=1) / l - 1.0)
+        return self._clip_tension(self.EA * (jnp.linalg.norm(q[1:] - q[:-1], axis=1) / l - 1.0))
 
     def deployed_length_margin(self, x):
         """Distance of the deployed length L - s_p from the ends of its range (0, L - b).
@@ -317,6 +400,8 @@ class StringPendulum:
             M_R = jax.grad(lambda eta: self.lagrangian(x, R @ (jnp.eye(3) + hat(eta)), w))(jnp.zeros(3))
             Pi = self.momentum(x, R, w)[lay.omega]
             rhs = jnp.concatenate([rhs, jnp.cross(Pi, om) + M_R])
+        if self.string_forces:
+            rhs = rhs + self.string_force(t, x, w)
         return jnp.linalg.solve(M, rhs - Mdot_w)
 
     # ------------------------------------------------------------------------------------

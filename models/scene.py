@@ -36,6 +36,8 @@ EFFECTS: dict[str, tuple[str, ...]] = {
     "reel": (),
     "carnot": ("reel",),
     "reel_control": ("reel",),
+    "slack": ("elasticity",),
+    "axial_damping": ("elasticity",),
 }
 REQUIRED_EFFECTS = ("elasticity",)
 
@@ -52,6 +54,10 @@ class _Key:
     default: Any = None
     required_by: tuple[str, ...] | None = None  # required iff all these effects are listed
     required: bool = False
+    # A key that exists only for its effect (`required_by`): refused without it, and left out
+    # of the validated dict (hence of `Scene.key()`) when absent, so scenes without the
+    # effect keep their hash.
+    only_with_effect: bool = False
 
 
 _SCHEMA: dict[str, dict[str, _Key] | _Key] = {
@@ -64,6 +70,7 @@ _SCHEMA: dict[str, dict[str, _Key] | _Key] = {
         "mass_per_length": _Key("float", "positive", required=True),
         "axial_stiffness": _Key("float", "positive", required=True),
         "elements": _Key("int", "at_least_1", required=True),
+        "axial_damping": _Key("float", "nonnegative", required_by=("axial_damping",), only_with_effect=True),
     },
     "body": {
         "mass": _Key("float", "positive", required=True),
@@ -119,6 +126,7 @@ class StringParams:
     mass_per_length: float  # mu
     axial_stiffness: float  # EA
     elements: int  # N
+    axial_damping: float | None = None  # c, N s (only with effect `axial_damping`)
 
 
 @dataclass(frozen=True)
@@ -395,7 +403,19 @@ class _Validator:
                     f"{self.source}: unknown key '{name}.{key}'{_suggest(key, spec)}; "
                     f"allowed in [{name}]: {', '.join(spec)}"
                 )
-        return {key: self.value(f"{name}.{key}", section.get(key), s, effects) for key, s in spec.items()}
+        out = {}
+        for key, s in spec.items():
+            if s.only_with_effect:
+                listed = all(e in effects for e in s.required_by)
+                if not listed and section.get(key) is not None:
+                    raise SceneError(
+                        f"{self.source}: key '{name}.{key}' = {section[key]!r} is only allowed with effect "
+                        f"{', '.join(repr(e) for e in s.required_by)} in the list 'effects'"
+                    )
+                if not listed:
+                    continue
+            out[key] = self.value(f"{name}.{key}", section.get(key), s, effects)
+        return out
 
     def value(self, key: str, value: Any, spec: _Key, effects) -> Any:
         if value is None:
