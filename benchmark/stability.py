@@ -1,0 +1,406 @@
+"""Stability map (issue #7): how large a step each integrator can take on each hard scene.
+
+    python -m benchmark stability [--scenes ...] [--integrators ...] [--jobs N] [--out DIR]
+
+* Fixed-step methods (the LGVI, diffrax Tsit5 at a constant step) walk a **ladder** of step
+  sizes dt = DT_MAX / 2^k, largest first, and stop at the first rung whose run stays bounded
+  over the horizon: its status is "ok" (or "length_limit" on the scenes that are meant to end
+  at a length limit). That rung is the *largest stable dt* of the map (resolution: a factor 2;
+  the rung above it is reported with the status that ended it). This assumes stability is
+  monotone in dt, which holds for every ladder here (each rung above the stable one failed).
+* Adaptive methods run once at ``ADAPTIVE_RTOL`` / ``ADAPTIVE_ATOL`` and report their step
+  statistics: accepted and rejected steps, min / median / mean step, status, cost.
+
+Every run is a `benchmark.sweep.Task` executed by `benchmark.runner.run_task` (no reference
+solution: the map is about staying bounded, the conservation metrics come from the run itself),
+so a failing run is a row with its status and reason, and an exception is a row with status
+"error". One (scene, integrator) ladder is one job in a process pool; rows are written
+atomically after each job (``stability.csv``), then ``stability.md``, ``stability.png`` and a
+generated ``README.md`` with a written reading of the table.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import datetime
+import multiprocessing
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import pandas as pd
+
+from benchmark import report, runner
+from benchmark.sweep import Task
+from models.io import atomic_write_text
+
+#: Largest step of the fixed-step ladder (s) and the number of halvings tried below it.
+DT_MAX = 0.04
+LADDER_RUNGS = 12  # down to 0.04 / 2^11 ≈ 2e-5 s
+ADAPTIVE_RTOL = 1e-6
+ADAPTIVE_ATOL = 1e-8
+SAVED_POINTS = 100  # per run: the energy guard is checked at these (LGVI, scipy)
+
+FIXED_STEP = ("lgvi", "tsit5")
+ADAPTIVE = ("rk45", "dop853", "tsit5", "radau", "kvaerno5")
+IMPLICIT = ("radau", "kvaerno5")
+DEFAULT_INTEGRATORS = ("lgvi", "rk45", "dop853", "tsit5", "radau", "kvaerno5")
+
+
+@dataclass(frozen=True)
+class Case:
+    """One hard scene in the map: horizon, overrides that keep it short, what counts as bounded."""
+
+    scene: str
+    horizon: float
+    bounded: tuple[str, ...] = ("ok",)
+    overrides: tuple = ()
+    #: shorter horizons for some integrators (name -> s), with the reason
+    short: dict = field(default_factory=dict)
+    #: integrators left out of this scene (name -> reason written into the table)
+    skip: dict = field(default_factory=dict)
+    note: str = ""
+
+
+_SLOW_N320 = ("the baselines' right-hand side solves the dense 963x963 mass matrix (autodiff model, O(N^3)) "
+              "at every stage")
+CASES = (
+    Case("stiff_string", 0.5, note="EA = 20 kN, N = 40"),
+    Case("many_elements", 1.0, note="N = 320",
+         short={n: (0.02, "explicit baseline: " + _SLOW_N320) for n in ("rk45", "dop853", "tsit5")},
+         skip={n: "implicit baseline: its Jacobian is a jacfwd through that dense solve (1,927-dim state); "
+                  "one run exceeds the map's time budget" for n in IMPLICIT}),
+    Case("fast_spin", 2.0, note="|Omega0| = 30 rad/s"),
+    Case("retrieval_to_limit", 10.0, bounded=("length_limit",), overrides=(("deployed_length", 6.0),),
+         note="started at 6 m (scene: 15 m) to reach the 2 m limit sooner; bounded = ends with length_limit"),
+    Case("deployment_to_end", 10.0, bounded=("length_limit",), overrides=(("deployed_length", 30.0),),
+         note="started at 30 m (scene: 3 m) to reach the 39 m limit sooner; bounded = ends with length_limit"),
+    Case("long_horizon", 500.0, note="the scene's full 500 s",
+         short={n: (50.0, "implicit baseline: 500 s costs minutes per run") for n in IMPLICIT}),
+    Case("near_slack", 2.0, note="string compressed by 5 % at t = 0"),
+)
+
+
+def _log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def _horizon(case: Case, integrator: str) -> tuple[float, str]:
+    if integrator in case.short:
+        return case.short[integrator]
+    return case.horizon, ""
+
+
+def ladder(case: Case, integrator: str) -> list[Task]:
+    """The fixed-step ladder of one (scene, integrator), largest dt first."""
+    horizon, _ = _horizon(case, integrator)
+    save_every = horizon / SAVED_POINTS
+    return [Task(case.scene, integrator, dt=DT_MAX / 2 ** k, t_end=horizon, save_every=save_every,
+                 overrides=case.overrides) for k in range(LADDER_RUNGS)]
+
+
+def adaptive_task(case: Case, integrator: str) -> Task:
+    horizon, _ = _horizon(case, integrator)
+    return Task(case.scene, integrator, rtol=ADAPTIVE_RTOL, atol=ADAPTIVE_ATOL, t_end=horizon,
+                save_every=horizon / SAVED_POINTS, overrides=case.overrides)
+
+
+def _base_row(case: Case, integrator: str, kind: str) -> dict:
+    horizon, why = _horizon(case, integrator)
+    return {"scene": case.scene, "integrator": integrator, "kind": kind, "horizon": horizon,
+            "horizon_note": why, "overrides": ", ".join(f"{k}={v}" for k, v in case.overrides)}
+
+
+def run_job(case: Case, integrator: str, kind: str) -> dict:
+    """One row of the map: a whole ladder (kind "fixed") or one adaptive run. Never raises."""
+    t0 = time.perf_counter()
+    row = _base_row(case, integrator, kind)
+    if integrator in case.skip:
+        row.update(status="skipped", reason=case.skip[integrator], bounded=False)
+        return row
+    try:
+        if kind == "fixed":
+            tried, stable, above = 0, None, None
+            for task in ladder(case, integrator):
+                r = runner.run_task(task, repeats=0, reference=False, finished=case.bounded)
+                tried += 1
+                if r["status"] in case.bounded:
+                    stable = r
+                    break
+                above = r
+            row.update(rungs_tried=tried)
+            if above is not None:
+                row.update(first_unstable_dt=above["dt"], unstable_status=above["status"],
+                           unstable_reason=above["reason"])
+            r = stable if stable is not None else above
+            row.update(largest_stable_dt=stable["dt"] if stable is not None else np.nan)
+        else:
+            r = runner.run_task(adaptive_task(case, integrator), repeats=0, reference=False, finished=case.bounded)
+        row.update({k: r.get(k, np.nan) for k in (
+            "setting", "status", "reason", "steps", "rejected_steps", "min_step", "median_step", "newton_iterations",
+            "run_time", "compile_time", "energy_error", "pi3_error", "orthogonality_error", "t_reached")})
+        row["bounded"] = r["status"] in case.bounded
+        steps = row.get("steps")
+        if steps is not None and np.isfinite(steps) and steps > 0:
+            row["mean_step"] = row["t_reached"] / steps
+    except Exception as exc:  # one bad job must not lose the other rows
+        row.update(status="error", reason=f"{type(exc).__name__}: {exc}".splitlines()[0][:300], bounded=False)
+    row["job_time"] = time.perf_counter() - t0
+    return row
+
+
+COLUMNS = ["scene", "integrator", "kind", "horizon", "bounded", "largest_stable_dt", "first_unstable_dt",
+           "unstable_status", "setting", "status", "steps", "rejected_steps", "min_step", "median_step", "mean_step",
+           "newton_iterations", "energy_error", "orthogonality_error", "run_time", "compile_time", "job_time",
+           "rungs_tried", "t_reached", "overrides", "horizon_note", "reason", "unstable_reason"]
+
+
+def to_frame(rows: list[dict]) -> pd.DataFrame:
+    df = pd.DataFrame(rows)
+    for c in COLUMNS:
+        if c not in df:
+            df[c] = np.nan
+    return df[COLUMNS]
+
+
+def jobs_for(scenes=None, integrators=None) -> list[tuple[Case, str, str]]:
+    from integrators import get_integrator
+
+    names = list(integrators) if integrators else list(DEFAULT_INTEGRATORS)
+    for n in names:
+        get_integrator(n)  # unknown names raise before any work
+    cases = [c for c in CASES if scenes is None or c.scene in scenes]
+    if scenes is not None:
+        unknown = set(scenes) - {c.scene for c in CASES}
+        if unknown:
+            raise ValueError(f"no stability case for scene(s) {', '.join(sorted(unknown))} "
+                             f"(allowed: {', '.join(c.scene for c in CASES)})")
+    out = []
+    for case in cases:
+        for n in names:
+            if n in FIXED_STEP:
+                out.append((case, n, "fixed"))
+            if n in ADAPTIVE:
+                out.append((case, n, "adaptive"))
+    return out
+
+
+def execute(jobs: list[tuple[Case, str, str]], *, workers: int = 2, on_rows: Callable | None = None,
+            log: Callable[[str], None] = _log) -> pd.DataFrame:
+    """Run the jobs in a process pool (``workers`` = 0: in this process); rows in job order."""
+    rows: dict[int, dict] = {}
+    start = time.perf_counter()
+
+    def done(i: int, row: dict) -> None:
+        rows[i] = row
+        what = (f"largest stable dt {row.get('largest_stable_dt'):.3g} s" if row.get("kind") == "fixed"
+                and np.isfinite(row.get("largest_stable_dt", np.nan)) else f"{row.get('status')}")
+        log(f"[{len(rows)}/{len(jobs)}] {row['scene']} {row['integrator']} ({row['kind']}): {what}, "
+            f"{row.get('steps', float('nan')):.0f} steps, job {row.get('job_time', float('nan')):.0f} s "
+            f"({time.perf_counter() - start:.0f} s elapsed)")
+        if on_rows:
+            on_rows([rows[k] for k in sorted(rows)])
+
+    # the slowest jobs first, so that the pool is not left waiting on one long tail
+    order = sorted(range(len(jobs)), key=lambda i: -_cost_hint(*jobs[i]))
+    if workers == 0:
+        for i in order:
+            done(i, run_job(*jobs[i]))
+    else:
+        runner._worker_env()
+        ctx = multiprocessing.get_context("spawn")  # JAX does not survive fork
+        with cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+            futures = {pool.submit(run_job, *jobs[i]): i for i in order}
+            for fut in cf.as_completed(futures):
+                i = futures[fut]
+                try:
+                    row = fut.result()
+                except Exception as exc:  # the worker process died
+                    case, integ, kind = jobs[i]
+                    row = _base_row(case, integ, kind)
+                    row.update(status="crashed", reason=f"{type(exc).__name__}: {exc}"[:300], bounded=False)
+                done(i, row)
+    return to_frame([rows[k] for k in sorted(rows)])
+
+
+def _cost_hint(case: Case, integrator: str, kind: str) -> float:
+    horizon, _ = _horizon(case, integrator)
+    return horizon * (10 if integrator in IMPLICIT else 1) * (3 if case.scene in ("stiff_string", "many_elements") else 1)
+
+
+# ------------------------------------------------------------------------------------------
+# Outputs
+# ------------------------------------------------------------------------------------------
+def plot(df: pd.DataFrame, out_dir: Path) -> Path:
+    from benchmark.plots import _save, plt
+
+    scenes = list(dict.fromkeys(df["scene"]))
+    x = np.arange(len(scenes))
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(13, 4.8))
+    fixed = df[df["kind"] == "fixed"]
+    for k, (integ, g) in enumerate(fixed.groupby("integrator", sort=False)):
+        g = g.set_index("scene").reindex(scenes)
+        xs = x + (k - 0.5) * 0.3
+        a1.bar(xs, g["largest_stable_dt"].fillna(0.0), width=0.3, label=f"{integ} (fixed dt)")
+        for xi, v in zip(xs, g["largest_stable_dt"]):
+            if not np.isfinite(v):
+                a1.text(xi, DT_MAX / 2 ** LADDER_RUNGS, "none", rotation=90, ha="center", va="bottom", fontsize=7)
+    a1.set_yscale("log")
+    a1.set_ylim(DT_MAX / 2 ** LADDER_RUNGS, DT_MAX * 1.5)
+    a1.set_ylabel("largest stable step dt (s)")
+    a1.set_title("fixed-step methods: largest dt that stays bounded")
+    a2.set_title(f"adaptive methods at rtol {ADAPTIVE_RTOL:g}: steps per second of horizon")
+    adaptive = df[df["kind"] == "adaptive"]
+    markers = {True: "o", False: "x"}
+    for k, (integ, g) in enumerate(adaptive.groupby("integrator", sort=False)):
+        g = g.set_index("scene").reindex(scenes)
+        rate = g["steps"] / g["t_reached"].where(g["t_reached"] > 0)
+        xs = x + (k - 2) * 0.12
+        a2.scatter(xs[g["bounded"] == True], rate[g["bounded"] == True], marker="o", label=f"{integ}")  # noqa: E712
+        bad = (g["bounded"] != True) & g["status"].notna()  # noqa: E712
+        a2.scatter(xs[bad.to_numpy()], np.where(np.isfinite(rate[bad]), rate[bad], 1.0), marker="x", color="k")
+    a2.scatter([], [], marker="x", color="k", label="not bounded / skipped (see table)")
+    a2.set_yscale("log")
+    a2.set_ylabel("accepted steps per simulated second")
+    for ax in (a1, a2):
+        ax.set_xticks(x)
+        ax.set_xticklabels(scenes, rotation=25, ha="right", fontsize=8)
+        ax.grid(True, which="both", axis="y", alpha=0.3)
+        ax.legend(fontsize=7)
+    return _save(fig, Path(out_dir) / "stability.png")
+
+
+def _fmt(v, f=".3g") -> str:
+    return "–" if v is None or (isinstance(v, float) and not np.isfinite(v)) else format(v, f)
+
+
+def reading(df: pd.DataFrame) -> str:
+    """A short written reading of the map, generated from the rows."""
+    lines = []
+    for scene, g in df.groupby("scene", sort=False):
+        parts = []
+        fx = g[g["kind"] == "fixed"].set_index("integrator")
+        if "lgvi" in fx.index:
+            l = fx.loc["lgvi"]
+            if np.isfinite(l["largest_stable_dt"]):
+                parts.append(f"the LGVI stays bounded up to dt = {_fmt(l['largest_stable_dt'])} s "
+                             f"({_fmt(l['run_time'])} s run, energy error {_fmt(l['energy_error'])})")
+            else:
+                parts.append(f"the LGVI found no stable rung down to {DT_MAX / 2 ** (LADDER_RUNGS - 1):.2g} s "
+                             f"({l['status']})")
+            if isinstance(l.get("unstable_status"), str):
+                parts[-1] += f"; at 2x that it ends `{l['unstable_status']}`"
+        if "tsit5" in fx.index and np.isfinite(fx.loc["tsit5", "largest_stable_dt"]):
+            t5 = fx.loc["tsit5"]
+            ratio = (fx.loc["lgvi", "largest_stable_dt"] / t5["largest_stable_dt"]) if "lgvi" in fx.index else np.nan
+            parts.append(f"constant-step Tsit5 up to dt = {_fmt(t5['largest_stable_dt'])} s "
+                         f"({_fmt(t5['run_time'])} s run" + (f"; LGVI/Tsit5 step ratio {_fmt(ratio, '.2g')})" if np.isfinite(ratio) else ")"))
+        ad = g[g["kind"] == "adaptive"]
+        ok = ad[ad["bounded"] == True]  # noqa: E712
+        if len(ok):
+            best = ok.sort_values("run_time").iloc[0]
+            parts.append(f"of the adaptive methods at rtol {ADAPTIVE_RTOL:g}, {len(ok)}/{len(ad)} stay bounded; the cheapest is "
+                         f"`{best['integrator']}` ({_fmt(best['run_time'])} s, {_fmt(best['steps'], '.0f')} steps, "
+                         f"median step {_fmt(best['median_step'])} s)")
+            slow = ok.sort_values("run_time").iloc[-1]
+            if slow["integrator"] != best["integrator"]:
+                parts[-1] += (f", the most expensive `{slow['integrator']}` ({_fmt(slow['run_time'])} s, "
+                              f"{_fmt(slow['steps'], '.0f')} steps)")
+        bad = ad[(ad["bounded"] != True)]  # noqa: E712
+        if len(bad):
+            parts.append("not bounded: " + ", ".join(f"`{r['integrator']}` ({r['status']})" for _, r in bad.iterrows()))
+        horizon = g["horizon"].max()
+        lines.append(f"- **{scene}** (horizon {horizon:g} s): " + "; ".join(parts) + ".")
+    # overall
+    fx = df[(df["kind"] == "fixed") & (df["integrator"] == "lgvi")]
+    t5 = df[(df["kind"] == "fixed") & (df["integrator"] == "tsit5")].set_index("scene")
+    ratios = []
+    for _, r in fx.iterrows():
+        if r["scene"] in t5.index and np.isfinite(r["largest_stable_dt"]) and np.isfinite(t5.loc[r["scene"], "largest_stable_dt"]):
+            ratios.append(r["largest_stable_dt"] / t5.loc[r["scene"], "largest_stable_dt"])
+    summary = []
+    if ratios:
+        summary.append(f"Across the scenes the LGVI's largest stable step is {_fmt(min(ratios), '.2g')}–{_fmt(max(ratios), '.2g')}× "
+                       "that of constant-step Tsit5 (ladder resolution: a factor 2); both are limited by the fastest "
+                       "axial mode of the string (h·ω_max < 2 for the LGVI), so the stiff and many-element scenes force "
+                       "steps of a few 1e-4 s on every explicit or fixed-step method.")
+    n_ad = df[df["kind"] == "adaptive"]
+    unbounded = n_ad[(n_ad["bounded"] != True) & (n_ad["status"] != "skipped")]  # noqa: E712
+    summary.append(f"{len(n_ad) - len(unbounded) - int((n_ad['status'] == 'skipped').sum())} of {len(n_ad)} adaptive runs stayed bounded, "
+                   f"{int((n_ad['status'] == 'skipped').sum())} were left out (reason in the table)"
+                   + (", not bounded: " + ", ".join(f"{r['integrator']} on {r['scene']} ({r['status']})" for _, r in unbounded.iterrows())
+                      if len(unbounded) else "") + ".")
+    return "\n".join(lines) + "\n\n" + " ".join(summary) + "\n"
+
+
+def write_readme(out_dir: Path, df: pd.DataFrame, *, command: str, wall_time: float) -> Path:
+    now = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    cases = "\n".join(f"| `{c.scene}` | {c.horizon:g} s | {', '.join(c.bounded)} | "
+                      f"{', '.join(f'{k}={v}' for k, v in c.overrides) or '–'} | {c.note} |" for c in CASES
+                      if c.scene in set(df["scene"]))
+    show = df[["scene", "integrator", "kind", "horizon", "bounded", "largest_stable_dt", "first_unstable_dt",
+               "unstable_status", "status", "steps", "rejected_steps", "min_step", "median_step", "mean_step",
+               "energy_error", "run_time"]]
+    reasons = df[df["status"].ne("ok") | df["unstable_reason"].notna()][["scene", "integrator", "kind", "status", "reason",
+                                                                         "unstable_status", "unstable_reason", "horizon_note"]]
+    text = f"""# Stability map of the hard scenes
+
+Generated by `{command}` on {now} in {wall_time:.0f} s wall time.
+{report.environment()}
+
+Do not edit: rerun the command to regenerate. `stability.csv` has one row per scene ×
+integrator × kind with every column; `stability.md` is the table below; `stability.png` the plot.
+
+**How to read it.** Fixed-step methods (kind `fixed`: the LGVI and Tsit5 at a constant step)
+walk the ladder dt = {DT_MAX:g} s / 2^k, largest first, and stop at the first rung whose run
+stays *bounded* over the horizon; `largest_stable_dt` is that rung (resolution: a factor 2),
+`first_unstable_dt` the rung above it with the status that ended it. Adaptive methods (kind
+`adaptive`) run once at rtol {ADAPTIVE_RTOL:g}, atol {ADAPTIVE_ATOL:g}; `steps` are accepted steps,
+`rejected_steps` rejected ones (not reported by scipy's Radau), `min_step`/`median_step` from
+scipy's step history (diffrax reports counts only: `mean_step` = horizon reached / steps).
+*Bounded* means status `ok` — no divergence guard tripped: state finite, energy balance error
+within `integrators.base.energy_bound`, Newton converged, Cayley parameter |c| ≤ 1 — or, on
+the two limit scenes, status `length_limit`. `energy_error` is max|Δ(E − W)| / max T of the
+run shown. `run_time` excludes compilation; it is one solve on a shared 2-core machine (no
+repeats), so treat ratios below ~2 as noise.
+
+| scene | horizon | bounded = | overrides | note |
+|---|---|---|---|---|
+{cases}
+
+## Reading
+
+{reading(df)}
+## Table
+
+{report.markdown_table(show)}
+## Statuses and reasons of the runs that stopped
+
+{report.markdown_table(reasons)}
+![stability map](stability.png)
+"""
+    path = Path(out_dir) / "README.md"
+    atomic_write_text(path, text)
+    return path
+
+
+def main(scenes=None, integrators=None, *, workers: int = 2, out: str = "results/stability", command: str = "") -> int:
+    out_dir = Path(out)
+    jobs = jobs_for(scenes, integrators)  # validates names before any work
+    _log(f"stability map: {len(jobs)} jobs ({len({j[0].scene for j in jobs})} scenes) on {workers or 1} worker(s) -> {out_dir}/")
+    t0 = time.perf_counter()
+
+    def write(rows) -> None:
+        atomic_write_text(out_dir / "stability.csv", to_frame(rows).to_csv(index=False))
+
+    df = execute(jobs, workers=workers, on_rows=write)
+    write(df.to_dict("records"))
+    atomic_write_text(out_dir / "stability.md", report.markdown_table(df))
+    plot(df, out_dir)
+    wall = time.perf_counter() - t0
+    write_readme(out_dir, df, command=command or "python -m benchmark stability", wall_time=wall)
+    _log(f"done in {wall:.0f} s; see {out_dir}/README.md")
+    return 0
