@@ -6,8 +6,9 @@ then evaluates p_{k+1} explicitly. The closed-form equations and the structured 
 (tridiagonal string rows + ≤4-unknown Newton in (Δs, c)) live in `integrators._lgvi_core`;
 this module is the time loop: one jitted ``lax.while_loop`` over save slots with an inner
 ``while_loop`` over steps, compiled ahead of time (compile time measured apart from run
-time), stopping cleanly with a `Status` when Newton fails, the state stops being finite or
-the deployed length leaves (0, L − b).
+time), stopping cleanly with a `Status` when Newton fails, the state stops being finite, the
+deployed length leaves (ℓ_min, L − b), a step's Cayley parameter exceeds `CAYLEY_BOUND` or (at
+save points) the energy balance error exceeds `integrators.base.energy_bound`.
 
 Forcing (MODEL.md §6): (h/2) Q_k at both ends of the step, Q_k = Q_u(t_k) + Q_c(s_k, Δs/h,
 q_{k,2}); the work of step k is Q_k Δs and is accumulated in ``Trajectory.work``.
