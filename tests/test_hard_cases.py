@@ -110,6 +110,14 @@ def test_scipy_energy_guard_on_a_useless_tolerance():
     within_energy_bound(scene, finite_diagnostics(scene, tr))
 
 
+def test_diffrax_constant_step_blow_up_keeps_only_points_within_the_bound():
+    scene = load_scene("fixed_length")
+    tr = get_integrator("tsit5").solve(scene, t_end=2.0, dt=0.02, save_every=0.02)
+    assert tr.status == Status.DIVERGED.value and "energy balance error" in tr.reason
+    assert tr.t[-1] < 0.5
+    within_energy_bound(scene, finite_diagnostics(scene, tr))
+
+
 # ------------------------------------------------------------------------------------------
 # Each hard scene, at settings that keep the fast suite fast
 # ------------------------------------------------------------------------------------------
