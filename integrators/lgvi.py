@@ -289,7 +289,8 @@ class LGVI(Integrator):
             turn = float(dt * np.linalg.norm(V[-1][lay.omega]))
             if turn > 0.5:
                 reason += (f"; h|Omega| = {turn:.3g} rad at the last kept state: the Cayley step "
-                           "(2 J c/(1+|c|^2) ~ h Pi) has no solution once h|Omega| exceeds about 1 rad - reduce dt")
+                           "(2 J c/(1+|c|^2) ~ h Pi) has no solution beyond about 1 rad per step (a fast spin, or a "
+                           "body spun up by a diverging string) - reduce dt")
         return Trajectory(
             t=K * dt, x=X, attitude=Rs if lay.has_attitude else None, velocity=V, work=Ws, momentum=P,
             attitude_kind="matrix", status=status, reason=reason,
