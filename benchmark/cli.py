@@ -1,4 +1,4 @@
-"""Command line: ``python -m benchmark {run,check,simulate,figures,speed,list}`` (also ``reelbench``)."""
+"""Command line: ``python -m benchmark {run,check,simulate,figures,speed,stability,list}`` (also ``reelbench``)."""
 
 from __future__ import annotations
 
@@ -179,6 +179,14 @@ def cmd_speed(args) -> int:
     return lgvi_speed.main(args.rest) or 0
 
 
+def cmd_stability(args) -> int:
+    from benchmark import stability
+
+    command = "python -m benchmark " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    return stability.main(_names(args.scenes), _names(args.integrators), workers=args.jobs, out=args.out,
+                          command=command)
+
+
 def cmd_list(args) -> int:
     from integrators import available, get_integrator, plugin_errors
     from models import available_scenes
@@ -248,6 +256,14 @@ def parser() -> argparse.ArgumentParser:
     sp = sub.add_parser("speed", help="LGVI time per step vs N, compile time separately (see `speed --help`)")
     sp.add_argument("rest", nargs=argparse.REMAINDER)
     sp.set_defaults(func=cmd_speed)
+
+    st = sub.add_parser("stability", help="stability map of the hard scenes: largest stable dt (fixed step), "
+                                          "step statistics (adaptive) -> results/stability/")
+    st.add_argument("--scenes", help="comma-separated hard scenes (default: all seven)")
+    st.add_argument("--integrators", help="comma-separated names (default: lgvi, rk45, dop853, tsit5, radau, kvaerno5)")
+    st.add_argument("--jobs", type=int, default=2, help="worker processes (0: run in this process)")
+    st.add_argument("--out", default="results/stability")
+    st.set_defaults(func=cmd_stability)
 
     ls = sub.add_parser("list", help="registered integrators and shipped scenes")
     ls.set_defaults(func=cmd_list)

@@ -58,14 +58,18 @@ def compare_to_reference(scene, traj, ref, save_every: float) -> dict:
     return out
 
 
-def run_metrics(scene, traj, ref, save_every: float) -> dict:
-    """All accuracy metrics of one run (NaN if the run did not finish)."""
-    if not traj.ok or len(traj.t) == 0:
+def run_metrics(scene, traj, ref, save_every: float, finished=("ok",)) -> dict:
+    """All accuracy metrics of one run (NaN if the run did not finish, i.e. its status is not
+    in ``finished``; the position/attitude errors are NaN without a reference ``ref``)."""
+    if traj.status not in finished or len(traj.t) == 0:
         return {k: np.nan for k in ACCURACY}
     df = evaluate(scene, traj)
     has_work = build_model(scene).layout.has_work
     out = summary(df, has_work=has_work)
-    out.update(compare_to_reference(scene, traj, ref, save_every))
+    if ref is not None:
+        out.update(compare_to_reference(scene, traj, ref, save_every))
+    else:
+        out.update({k: np.nan for k in ACCURACY if k not in out})
     return out
 
 

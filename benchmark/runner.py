@@ -42,8 +42,17 @@ def _empty_row(task: Task, scene=None) -> dict:
     return row
 
 
-def run_task(task: Task, cache_dir: str = str(CACHE_DIR), repeats: int = 3) -> dict:
-    """Run one task; always returns a row (never raises for a failed run)."""
+#: Step statistics some integrators report (`Trajectory.stats`), copied into the row when present.
+STEP_STATS = ("rejected_steps", "min_step", "median_step", "max_step", "max_newton_iterations")
+
+
+def run_task(task: Task, cache_dir: str = str(CACHE_DIR), repeats: int = 3, *, reference: bool = True,
+             finished=("ok",)) -> dict:
+    """Run one task; always returns a row (never raises for a failed run).
+
+    ``reference=False`` skips the reference solution (no position/attitude errors);
+    ``finished`` are the statuses whose runs get conservation metrics (default: "ok" only).
+    """
     scene = None
     try:
         from integrators import get_integrator
@@ -51,7 +60,7 @@ def run_task(task: Task, cache_dir: str = str(CACHE_DIR), repeats: int = 3) -> d
         scene = _scene(task)
         row = _empty_row(task, scene)
         t_end = task.t_end if task.t_end is not None else scene.t_end
-        ref = get_reference(scene, t_end, task.save_every, Path(cache_dir))
+        ref = get_reference(scene, t_end, task.save_every, Path(cache_dir)) if reference else None
         integ = get_integrator(task.integrator)
         kw = task.solve_kwargs()
         kw["t_end"] = t_end
@@ -64,7 +73,8 @@ def run_task(task: Task, cache_dir: str = str(CACHE_DIR), repeats: int = 3) -> d
             compile_time=st.get("compile_time", np.nan), run_time=st.get("wall_time", np.nan),
             t_reached=float(traj.t[-1]) if len(traj.t) else 0.0,
         )
-        row.update(run_metrics(scene, traj, ref, task.save_every))
+        row.update({k: st[k] for k in STEP_STATS if k in st})
+        row.update(run_metrics(scene, traj, ref, task.save_every, finished))
         if traj.ok and repeats > 0:  # timing pass, separate from the error computation
             # The first solve (compiled beforehand, compile time excluded) is one sample;
             # repeats are added while they fit in the budget, and the minimum is reported.

@@ -34,8 +34,8 @@ class Capability(str, enum.Enum):
 class Status(str, enum.Enum):
     OK = "ok"
     NEWTON_FAILED = "newton_failed"
-    DIVERGED = "diverged"  # non-finite state or energy blow-up
-    LENGTH_LIMIT = "length_limit"  # deployed length left (0, L - b)
+    DIVERGED = "diverged"  # non-finite state, energy beyond `energy_bound`, or (LGVI) Cayley blow-up
+    LENGTH_LIMIT = "length_limit"  # deployed length reached an end of (min_deployed_length, L - b)
     MAX_STEPS = "max_steps"
     STEP_SIZE_COLLAPSE = "step_size_collapse"
     FAILED = "failed"  # any other solver failure, with the solver's message as reason
@@ -120,6 +120,63 @@ def save_times(t_end: float, save_every: float | None, dt: float | None = None) 
     n = int(math.floor(t_end / save_every + 1e-9))
     t = np.minimum(np.arange(n + 1) * save_every, t_end)  # no rounding overshoot past t_end
     return t if abs(t[-1] - t_end) < 1e-12 * max(1.0, t_end) else np.append(t, t_end)
+
+
+# --------------------------------------------------------------------------------------------
+# Divergence guard on the energy balance, shared by every integrator (issue #7)
+# --------------------------------------------------------------------------------------------
+#: A run has *diverged* when its energy balance error |E − W − E0| exceeds this factor times
+#: the scene's energy scale (`energy_scale`). The scale bounds every energy the motion can
+#: legitimately exchange, so an error beyond it means the numbers are no longer a solution of
+#: the scene (a blow-up grows exponentially, so the exact factor only shifts the stop by a few
+#: steps). Every adapter checks it at its saved points (diffrax: at every step, in its event).
+ENERGY_GROWTH_FACTOR = 1.0
+
+
+def energy_scale(model) -> float:
+    """The scene's energy scale in J (a fixed number, computed from the scene and its start):
+
+        T(0) + Σ_terms |V_term(0)|  +  g (m_b + μ L)(L + |ρ_c| + |r_d| + d)  +  |u| L / d
+
+    i.e. the initial kinetic energy, every initial potential term in absolute value (so that
+    terms of opposite sign do not cancel), the most potential energy gravity could release
+    over the whole string length, and the most work the constant reel moment can do over it.
+    The Carnot loss only dissipates what these supply. It is floored at 1e-9 J (a scene at
+    rest with nothing to move it).
+    """
+    from models._jax import jnp
+
+    x0, R0, w0 = (jnp.asarray(a) for a in model.initial_state())
+    T0 = float(model.kinetic(x0, R0, w0))
+    V0 = sum(abs(float(f(x0, R0))) for f in model.potential_terms.values())
+    reach = model.L + float(np.linalg.norm(model.rho_c)) + float(np.linalg.norm(model.r_d)) + model.d
+    gravity = model.g * (model.m_b + model.mu * model.L) * reach
+    control = abs(model.u) * model.L / model.d
+    return max(T0 + V0 + gravity + control, 1e-9)
+
+
+def energy_bound(model) -> float:
+    """The largest energy balance error |E − W − E0| (J) a run may show before it is `diverged`."""
+    return ENERGY_GROWTH_FACTOR * energy_scale(model)
+
+
+def energy_error(model, x, R, w, W, E0):
+    """|E(x, R, w) − W − E0| (traceable by JAX; w are velocities)."""
+    from models._jax import jnp
+
+    return jnp.abs(model.energy(x, R, w) - W - E0)
+
+
+def energy_error_ode(model, y, E0):
+    """`energy_error` of a quaternion ODE state y = (x, quat, w, W) (`models.layout`)."""
+    x, R, w, W = model.split_state(y)
+    return energy_error(model, x, R, w, W, E0)
+
+
+def energy_reason(err: float, bound: float, t: float, kept: str = "") -> str:
+    """The `reason` of a run stopped by the energy guard."""
+    return (f"energy balance error |E - W - E0| = {err:.4g} J at t = {t:.6g} s exceeds the bound "
+            f"{bound:.4g} J (ENERGY_GROWTH_FACTOR x the scene's energy scale){kept}")
 
 
 def check_positive(name: str, value, *, allow_none: bool = False) -> None:

@@ -27,12 +27,14 @@ import diffrax as dfx
 import numpy as np
 import optimistix as optx
 
-from integrators.base import Capability, Integrator, Status, Trajectory, check_positive, save_times
+from integrators.base import (Capability, Integrator, Status, Trajectory, check_positive, energy_bound,
+                              energy_error_ode, energy_reason, save_times)
 from integrators.scipy_ivp import (
     BLOWUP,
     check_max_steps,
     check_options,
     check_tolerances,
+    energy_guard,
     finite_prefix,
     make_trajectory,
     resolve_scene,
@@ -71,11 +73,16 @@ def _result_message(index: int) -> str:
 
 
 def _stop_condition(model):
-    """Event condition: deployed length out of range, or non-finite / blown-up state."""
+    """Event condition: deployed length out of range, non-finite / blown-up state, or the
+    energy balance error beyond `integrators.base.energy_bound` (checked at every step)."""
     lay = model.layout
+    x0, R0, w0 = model.initial_state()
+    E0 = float(model.energy(x0, R0, w0))
+    e_bound = energy_bound(model)
 
     def cond_fn(t, y, args, **kwargs):
         bad = ~jnp.all(jnp.isfinite(y)) | (jnp.max(jnp.abs(y)) >= BLOWUP)
+        bad = bad | ~(energy_error_ode(model, y, E0) <= e_bound)
         if lay.has_reel:
             bad = bad | ~(model.deployed_length_margin(y[lay.y_x]) > 0.0)
         return bad
@@ -200,12 +207,18 @@ class DiffraxODE(Integrator):
             ts, ys = np.zeros(1), np.asarray(y0, dtype=float)[None, :]
         reason = ""
         if code == _EVENT:
-            if np.all(np.isfinite(y_final)) and np.max(np.abs(y_final)) < BLOWUP:
-                status = Status.LENGTH_LIMIT
-                reason = f"deployed length left (0, L - b) in the step ending at t = {t_final:.6g}"
-            else:
+            e_err, e_bound = energy_guard(model)
+            if not (np.all(np.isfinite(y_final)) and np.max(np.abs(y_final)) < BLOWUP):
                 status = Status.DIVERGED
                 reason = f"non-finite or blown-up state (|y| >= {BLOWUP:g}) in the step ending at t = {t_final:.6g}"
+            elif not e_err(y_final) <= e_bound:
+                status = Status.DIVERGED
+                reason = energy_reason(e_err(y_final), e_bound, float(t_final),
+                                       "; trajectory kept up to the last saved point before it")
+            else:
+                status = Status.LENGTH_LIMIT
+                ell = float(model.L - y_final[0])
+                reason = f"the deployed length reached {model.length_limit_name(ell)} in the step ending at t = {t_final:.6g} s"
         elif code in _RESULT_STATUS:
             status = _RESULT_STATUS[code]
             if status is not Status.OK:
@@ -218,10 +231,21 @@ class DiffraxODE(Integrator):
         if n < len(ys) and status is Status.OK:
             status, reason = Status.DIVERGED, "non-finite saved state"
         ts, ys = ts[:n], ys[:n]
+        # the event stops the solve at the end of the step that crossed the energy bound, and that
+        # point may be a saved one: keep only saved points within the bound
+        e_err, e_bound = energy_guard(model)
+        errs = np.array([e_err(y) for y in ys]) if status is not Status.OK else np.zeros(len(ys))
+        over = np.flatnonzero(~(errs <= e_bound))
+        if over.size:
+            m = int(over[0])  # >= 1: the error is 0 at the initial state
+            if status is not Status.DIVERGED:
+                status = Status.DIVERGED
+                reason = energy_reason(float(errs[over[0]]), e_bound, float(ts[over[0]]))
+            ts, ys = ts[:m], ys[:m]
         if status is Status.LENGTH_LIMIT and model.layout.has_reel:
             s = ys[:, 0]
             ell = model.L - s
-            inside = (ell > 0) & (model.L - model.b - ell > 0)
+            inside = (ell > model.ell_min) & (model.L - model.b - ell > 0)
             m = int(np.argmin(inside)) if not inside.all() else len(ts)
             ts, ys = ts[:m], ys[:m]
 

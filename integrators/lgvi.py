@@ -6,8 +6,9 @@ then evaluates p_{k+1} explicitly. The closed-form equations and the structured 
 (tridiagonal string rows + ≤4-unknown Newton in (Δs, c)) live in `integrators._lgvi_core`;
 this module is the time loop: one jitted ``lax.while_loop`` over save slots with an inner
 ``while_loop`` over steps, compiled ahead of time (compile time measured apart from run
-time), stopping cleanly with a `Status` when Newton fails, the state stops being finite or
-the deployed length leaves (0, L − b).
+time), stopping cleanly with a `Status` when Newton fails, the state stops being finite, the
+deployed length leaves (ℓ_min, L − b), a step's Cayley parameter exceeds `CAYLEY_BOUND` or (at
+save points) the energy balance error exceeds `integrators.base.energy_bound`.
 
 Forcing (MODEL.md §6): (h/2) Q_k at both ends of the step, Q_k = Q_u(t_k) + Q_c(s_k, Δs/h,
 q_{k,2}); the work of step k is Q_k Δs and is accumulated in ``Trajectory.work``. The string
@@ -23,14 +24,23 @@ import time
 import numpy as np
 
 from integrators._lgvi_core import DiscreteLagrangian, cayley, small_solve
-from integrators.base import Capability, Integrator, Status, Trajectory, check_positive, save_times
+from integrators.base import (Capability, Integrator, Status, Trajectory, check_positive, energy_bound, energy_error,
+                              energy_reason, save_times)
 from integrators.registry import register
 from models import build_model, load_scene
 from models._jax import jax, jnp
+from models.closed_form import ClosedFormEOM
 
 #: re-assemble the chord-Newton Jacobian when |dz| shrinks by less than this factor
 CHORD_REFRESH = 0.1
-_CODES = {1: Status.NEWTON_FAILED, 2: Status.DIVERGED, 3: Status.LENGTH_LIMIT}
+#: Status codes of the jitted loop: 4 = energy guard (at a save point), 5 = Cayley guard.
+_CODES = {1: Status.NEWTON_FAILED, 2: Status.DIVERGED, 3: Status.LENGTH_LIMIT, 4: Status.DIVERGED, 5: Status.DIVERGED}
+
+#: Cayley guard (issue #7): a step whose Cayley parameter has |c| = tan(θ/2) > CAYLEY_BOUND, i.e.
+#: rotates the body by θ > 90° in one step, does not resolve the rotation: the run stops there
+#: (status "diverged", reason naming the Cayley parameter) instead of going on with a step that
+#: Newton may have solved on the wrong branch (|c| → ∞ is a half-turn).
+CAYLEY_BOUND = 1.0
 _COMPILED: dict = {}
 _VELOCITY: dict = {}
 _MASS: dict = {}
@@ -45,6 +55,12 @@ def _make_run(model):
     dl = DiscreteLagrangian(model)
     lay = model.layout
     nz = dl.nz
+    # energy guard (issue #7): velocities from momenta by the O(N) closed-form solve
+    cf = ClosedFormEOM(model)
+    e_bound = energy_bound(model)
+
+    def energy_err(x, R, p, W, E0):
+        return energy_error(model, x, R, cf.velocity_from_momentum(x, R, p), W, E0)
 
     def step(x, R, p, gV, z, k, h, tol, maxit):
         t = k * h
@@ -112,6 +128,7 @@ def _make_run(model):
     def run(x0, R0, p0, h, save_idx, n_save, tol, maxit):
         n_buf = save_idx.shape[0]
         gV0 = model.potential_gradient(x0, R0)
+        E0 = model.energy(x0, R0, cf.velocity_from_momentum(x0, R0, p0))
         z0 = jnp.zeros((2, nz))  # reduced unknowns of the last two steps (Newton's first guess)
         bufs = (jnp.zeros((n_buf, lay.nx)).at[0].set(x0), jnp.zeros((n_buf, 3, 3)).at[0].set(R0),
                 jnp.zeros((n_buf, lay.nw)).at[0].set(p0), jnp.zeros(n_buf), jnp.zeros(n_buf, jnp.int32))
@@ -129,6 +146,9 @@ def _make_run(model):
             state, stats, target = c_
             x, R, p, gV, W, z, k = state
             (x1, R1, p1, gV1, dW, z1), it, code = step(x, R, p, gV, z, k, h, tol, maxit)
+            if dl.rigid:  # -- Cayley guard (issue #7): |c| > CAYLEY_BOUND ends the run (code 5) --
+                c1 = dl.unpack_z(z1[1])[1]  # z1 holds the last two steps' unknowns; [1] is this one
+                code = jnp.where(((code == 0) | (code == 2)) & (c1 @ c1 > CAYLEY_BOUND ** 2), 5, code).astype(jnp.int32)
             good = code == 0
             sel = lambda a, b: jnp.where(good, a, b)  # noqa: E731
             new_state = (sel(x1, x), sel(R1, R), sel(p1, p), sel(gV1, gV), sel(W + dW, W), sel(z1, z),
@@ -147,7 +167,12 @@ def _make_run(model):
             x, R, p, _, W, _, k = state
             X, Rs, P, Ws, K = bufs
             bufs = (X.at[j].set(x), Rs.at[j].set(R), P.at[j].set(p), Ws.at[j].set(W), K.at[j].set(k))
-            return state, stats, j + 1, bufs
+            # energy guard (issue #7), at save points: beyond the bound (or NaN) -> code 4, and the
+            # slot just written is not counted (the run keeps the previous save point)
+            blown = (stats[2] == 0) & ~(energy_err(x, R, p, W, E0) <= e_bound)
+            tot, mx, code, fk = stats
+            stats = (tot, mx, jnp.where(blown, 4, code).astype(jnp.int32), jnp.where(blown, k, fk))
+            return state, stats, jnp.where(blown, j, j + 1), bufs
 
         state, stats, j, bufs = jax.lax.while_loop(outer_cond, outer_body, (state0, stats0, jnp.asarray(1, jnp.int32), bufs))
         return bufs, j, stats
@@ -255,6 +280,13 @@ class LGVI(Integrator):
         X, Rs, P, Ws, K = (np.asarray(b) for b in bufs)
         tot, mx, code, fail_k = (int(v) for v in stats)
         n = int(j)
+        energy_note = ""
+        if code == 4:  # the slot after the kept ones holds the state that failed the energy guard
+            e0 = float(model.energy(x0, R0, w0))
+            vb = _velocity_fn(model)(jnp.asarray(X[n:n + 1]), jnp.asarray(Rs[n:n + 1]), jnp.asarray(P[n:n + 1]))[0]
+            err = abs(float(model.energy(jnp.asarray(X[n]), jnp.asarray(Rs[n]), vb)) - float(Ws[n]) - e0)
+            kept = f"; trajectory kept up to the previous save point t = {K[n - 1] * dt:.6g} s"
+            energy_note = energy_reason(err, energy_bound(model), K[n] * dt, kept)
         X, Rs, P, Ws, K = X[:n], Rs[:n], P[:n], Ws[:n], K[:n]
         if n >= 2 and K[-1] == K[-2]:  # failure right after a save: last slot repeats it
             X, Rs, P, Ws, K = X[:-1], Rs[:-1], P[:-1], Ws[:-1], K[:-1]
@@ -266,12 +298,23 @@ class LGVI(Integrator):
             what = {1: f"Newton did not converge within {newton_max_iter} iterations (tol {newton_tol:g}) "
                        "or produced a non-finite iterate",
                     2: "the new state is not finite",
-                    3: "the deployed length left (0, L - b)"}[code]
+                    3: f"the deployed length reached {model.length_limit_name(model.L - float(X[-1][0]) if lay.has_reel else 0.0)}",
+                    4: "",
+                    5: f"Cayley parameter blow-up: |c| > {CAYLEY_BOUND:g}, i.e. the body would rotate by more than "
+                       f"{np.degrees(2 * np.arctan(CAYLEY_BOUND)):.0f} degrees in one step (step too large for the spin)"}[code]
             reason = f"step {fail_k + 1} (t = {t_fail:.6g} s -> {t_fail + dt:.6g} s): {what}"
+            if code == 4:
+                reason = energy_note
         elif truncated:
             status = Status.MAX_STEPS.value
             reason = f"stopped after max_steps = {max_steps} steps at t = {n_run * dt:.6g} s (t_end = {t_end:g} s)"
         V = np.asarray(_velocity_fn(model)(jnp.asarray(X), jnp.asarray(Rs), jnp.asarray(P)))
+        if code == 1 and lay.has_attitude:  # the usual cause with a fast-spinning body, said plainly
+            turn = float(dt * np.linalg.norm(V[-1][lay.omega]))
+            if turn > 0.5:
+                reason += (f"; h|Omega| = {turn:.3g} rad at the last kept state: the Cayley step "
+                           "(2 J c/(1+|c|^2) ~ h Pi) has no solution beyond about 1 rad per step (a fast spin, or a "
+                           "body spun up by a diverging string) - reduce dt")
         return Trajectory(
             t=K * dt, x=X, attitude=Rs if lay.has_attitude else None, velocity=V, work=Ws, momentum=P,
             attitude_kind="matrix", status=status, reason=reason,

@@ -25,7 +25,8 @@ import numpy as np
 from scipy import integrate as _si
 from scipy.optimize import brentq
 
-from integrators.base import Capability, Integrator, Status, Trajectory, check_positive, save_times
+from integrators.base import (Capability, Integrator, Status, Trajectory, check_positive, energy_bound,
+                              energy_error_ode, energy_reason, save_times)
 from models import build_model, load_scene
 from models._jax import jax
 from models.scene import Scene
@@ -91,6 +92,16 @@ def margin_function(model):
     sl = model.layout.y_x
     f = jax.jit(lambda y: model.deployed_length_margin(y[sl]))
     return lambda y: float(f(y))
+
+
+@functools.lru_cache(maxsize=64)
+def energy_guard(model):
+    """(error, bound): ``error(y)`` = |E − W − E0| of an ODE state (float), and the bound of
+    `integrators.base.energy_bound` beyond which the run is ``diverged``."""
+    x0, R0, w0 = model.initial_state()
+    E0 = float(model.energy(x0, R0, w0))
+    f = jax.jit(lambda y: energy_error_ode(model, y, E0))
+    return (lambda y: float(f(y))), energy_bound(model)
 
 
 def make_trajectory(model, scene, t, y, *, status, reason, stats, integrator, settings) -> Trajectory:
@@ -162,6 +173,8 @@ class ScipyIVP(Integrator):
         margin = margin_function(model)
         if margin is not None:
             margin(y0)
+        e_err, e_bound = energy_guard(model)
+        e_err(y0)
         compile_time = time.perf_counter() - tc
 
         # float(t): scipy passes numpy scalars, which would trace a second (strongly typed) version
@@ -180,11 +193,17 @@ class ScipyIVP(Integrator):
         steps = 0
         status, reason = Status.OK, ""
         event_time = None
+        step_sizes = []
+        rejected = 0
+        counts_attempts = isinstance(solver, _si._ivp.rk.RungeKutta)  # explicit RK: n_stages evals per attempt
         while solver.status == "running":
             if max_steps is not None and steps >= max_steps:
                 status, reason = Status.MAX_STEPS, f"max_steps = {max_steps} reached at t = {solver.t:.6g} (t_end = {t_end:g})"
                 break
+            nfev_before = solver.nfev
             message = solver.step()
+            if counts_attempts:
+                rejected += max(0, (solver.nfev - nfev_before) // solver.n_stages - 1)
             if solver.status == "failed":
                 msg = message or "solver failed"
                 status = Status.STEP_SIZE_COLLAPSE if "step size" in msg.lower() else Status.FAILED
@@ -194,6 +213,7 @@ class ScipyIVP(Integrator):
                 break
             steps += 1
             t_old, t_new = solver.t_old, solver.t
+            step_sizes.append(t_new - t_old)
             if not state_ok(solver.y):
                 status = Status.DIVERGED
                 reason = f"non-finite or blown-up state (|y| >= {BLOWUP:g}) in the step ({t_old:.6g}, {t_new:.6g}]"
@@ -209,17 +229,24 @@ class ScipyIVP(Integrator):
                     event_time = t_new
                 t_stop = event_time
                 status = Status.LENGTH_LIMIT
-                reason = f"deployed length left (0, L - b) at t = {event_time:.6g}"
+                ell = float(model.L - dense(event_time)[0])
+                reason = f"the deployed length reached {model.length_limit_name(ell)} at t = {event_time:.6g} s"
             while k < len(t_save) and (t_save[k] < t_stop if event_time is not None else t_save[k] <= t_new):
                 if t_save[k] == t_new:
                     yk = solver.y.copy()
                 else:
                     dense = dense or solver.dense_output()
                     yk = np.asarray(dense(t_save[k]), dtype=float)
+                err = e_err(yk)  # energy guard at saved points (issue #7)
+                if not err <= e_bound:
+                    status = Status.DIVERGED
+                    reason = energy_reason(err, e_bound, float(t_save[k]),
+                                           f"; trajectory kept up to the previous saved point t = {out_t[-1]:.6g} s")
+                    break
                 out_t.append(float(t_save[k]))
                 out_y.append(yk)
                 k += 1
-            if event_time is not None:
+            if event_time is not None or status is Status.DIVERGED:
                 break
             if self.projected and lay.has_attitude:
                 normalise_quaternion(model, solver.y)
@@ -240,6 +267,11 @@ class ScipyIVP(Integrator):
             "wall_time": wall,
             "compile_time": compile_time,
         }
+        if step_sizes:
+            stats.update(min_step=float(np.min(step_sizes)), median_step=float(np.median(step_sizes)),
+                         max_step=float(np.max(step_sizes)))
+        if counts_attempts:  # Radau does not expose its rejections
+            stats["rejected_steps"] = int(rejected)
         if event_time is not None:
             stats["event_time"] = float(event_time)
         return make_trajectory(model, scene, np.array(out_t)[:n], y_arr[:n], status=status, reason=reason,

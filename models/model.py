@@ -125,6 +125,7 @@ class StringPendulum:
         self.r_p = np.array(rl.exit_point)
         self.t_g = np.array(rl.exit_direction)
         self.u = rl.control_moment if scene.has("reel_control") else 0.0
+        self.ell_min = rl.min_deployed_length
         self.g = scene.g if scene.has("gravity") else 0.0
         #: s_p of a fixed-length scene (locked)
         self.s_fixed = self.L - ini.deployed_length
@@ -359,13 +360,20 @@ class StringPendulum:
         return self._clip_tension(self.EA * (jnp.linalg.norm(q[1:] - q[:-1], axis=1) / l - 1.0))
 
     def deployed_length_margin(self, x):
-        """Distance of the deployed length L - s_p from the ends of its range (0, L - b).
+        """Distance of the deployed length L - s_p from the ends of its range (ℓ_min, L - b).
 
-        Positive inside the range; every integrator stops with status ``length_limit``
-        when it would become <= 0 (always positive for a fixed-length scene).
+        ℓ_min is ``reel.min_deployed_length`` (default 0). Positive inside the range; every
+        integrator stops with status ``length_limit`` when it would become <= 0 (always
+        positive for a fixed-length scene).
         """
         ell = self.L - self.reel_coordinate(x)
-        return jnp.minimum(ell, self.L - self.b - ell)
+        return jnp.minimum(ell - self.ell_min, self.L - self.b - ell)
+
+    def length_limit_name(self, ell: float) -> str:
+        """Which end of (ℓ_min, L - b) a deployed length ``ell`` is at (for status reasons)."""
+        if abs(ell - self.ell_min) <= abs(self.L - self.b - ell):
+            return f"its lower limit min_deployed_length = {self.ell_min:g} m"
+        return f"its upper limit total_length - guide_length = {self.L - self.b:g} m (the string ran out)"
 
     # ------------------------------------------------------------------------------------
     # Legendre transform
@@ -427,14 +435,18 @@ class StringPendulum:
         return jnp.concatenate(parts)
 
     # ------------------------------------------------------------------------------------
-    # Initial state (SCENARIOS.md: straight, unstretched string along `direction`)
+    # Initial state (SCENARIOS.md: straight string along `direction`, stretched by `initial.stretch`)
     # ------------------------------------------------------------------------------------
     def initial_state(self):
-        """(x0, R0, w0) as numpy arrays."""
+        """(x0, R0, w0) as numpy arrays.
+
+        The string is straight along ``initial.direction``, uniformly stretched by
+        ``initial.stretch`` (stretched / unstretched length; 1 = unstretched, < 1 compressed).
+        """
         ini, lay = self.scene.initial, self.layout
         ell0 = ini.deployed_length
         a = np.arange(2, self.N + 2, dtype=float)  # nodes 2 .. N+1
-        q = ((a - 1) / self.N * ell0)[:, None] * np.array(ini.direction)[None, :]
+        q = ((a - 1) / self.N * ell0 * ini.stretch)[:, None] * np.array(ini.direction)[None, :]
         qd = ((a - 1) / self.N)[:, None] * np.array(ini.tip_velocity)[None, :]
         x = np.concatenate([[self.L - ell0] if lay.has_reel else [], q.ravel()])
         w = np.concatenate([[ini.reel_rate] if lay.has_reel else [], qd.ravel(),

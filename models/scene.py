@@ -86,6 +86,7 @@ _SCHEMA: dict[str, dict[str, _Key] | _Key] = {
         "exit_point": _Key(_VEC3, default=(0.0, 0.0, 0.0)),
         "exit_direction": _Key(_VEC3, "nonzero", default=(0.0, 0.0, 1.0)),
         "control_moment": _Key("float", default=0.0),
+        "min_deployed_length": _Key("float", "nonnegative", default=0.0),
     },
     "initial": {
         "deployed_length": _Key("float", "deployed_length", required=True),
@@ -94,6 +95,7 @@ _SCHEMA: dict[str, dict[str, _Key] | _Key] = {
         "tip_velocity": _Key(_VEC3, default=(0.0, 0.0, 0.0)),
         "attitude": _Key(_MAT3, "rotation", default=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))),
         "angular_velocity": _Key(_VEC3, default=(0.0, 0.0, 0.0)),
+        "stretch": _Key("float", "stretch", default=1.0),
     },
     "environment": {
         "g": _Key("float", "nonnegative", default=9.81),
@@ -108,7 +110,12 @@ _RULE_TEXT = {
     "nonzero": "a finite nonzero 3-vector",
     "spd": "a symmetric positive-definite 3x3 matrix (body frame, kg m^2)",
     "rotation": "a 3x3 rotation matrix (orthonormal to 1e-9, det +1)",
+    "stretch": f"a finite number in [{1.0 / 100:g}, {100:g}] (stretched / unstretched initial length)",
 }
+
+#: Allowed range of `initial.stretch` (ratio of the initial stretched to unstretched length).
+#: 1 = unstretched (the paper's start); < 1 starts compressed (near-slack), > 1 pre-tensioned.
+STRETCH_RANGE = (0.01, 100.0)
 
 
 class SceneError(ValueError):
@@ -145,6 +152,7 @@ class ReelParams:
     exit_point: tuple  # r_p
     exit_direction: tuple  # t_g (unit)
     control_moment: float  # u
+    min_deployed_length: float = 0.0  # lower end of the deployed length's range (retrieval stops there)
 
 
 @dataclass(frozen=True)
@@ -155,6 +163,7 @@ class InitialState:
     tip_velocity: tuple
     attitude: tuple  # 3x3 nested tuple
     angular_velocity: tuple
+    stretch: float = 1.0  # initial stretched / unstretched length of every element
 
 
 @dataclass(frozen=True)
@@ -433,6 +442,11 @@ class _Validator:
         if spec.kind == "float":
             if spec.rule == "deployed_length":
                 return self.number(key, value, "positive")
+            if spec.rule == "stretch":
+                v = self.number(key, value, "stretch")
+                if not STRETCH_RANGE[0] <= v <= STRETCH_RANGE[1]:
+                    raise self.fail(key, value, _RULE_TEXT["stretch"])
+                return v
             return self.number(key, value, spec.rule)
         if spec.kind == "int":
             return self.number(key, value, spec.rule, integer=True)
@@ -449,6 +463,11 @@ class _Validator:
             raise SceneError(
                 f"{self.source}: key 'initial.deployed_length' = {i['deployed_length']!r} is invalid: "
                 f"allowed 0 < deployed_length < total_length - guide_length = {L - guide!r}"
+            )
+        if not r["min_deployed_length"] < i["deployed_length"]:
+            raise SceneError(
+                f"{self.source}: key 'reel.min_deployed_length' = {r['min_deployed_length']!r} is invalid: "
+                f"allowed 0 <= min_deployed_length < initial.deployed_length = {i['deployed_length']!r}"
             )
         if "rigid_body" in effects:
             if b["box"] is not None and b["inertia"] is not None:
@@ -470,7 +489,13 @@ class _Validator:
             inertia = np.array(b["inertia"])
         else:
             inertia = np.zeros((3, 3))
-        raw = json.dumps({k: v for k, v in d.items() if v is not None}, sort_keys=True)
+        raw_d = {k: v for k, v in d.items() if v is not None}
+        # keys added later are left out at their defaults, so that existing scenes keep their key()
+        if i["stretch"] == 1.0:
+            raw_d["initial"] = {k: v for k, v in i.items() if k != "stretch"}
+        if r["min_deployed_length"] == 0.0:
+            raw_d["reel"] = {k: v for k, v in r.items() if k != "min_deployed_length"}
+        raw = json.dumps(raw_d, sort_keys=True)
         return Scene(
             name=d["name"],
             description=d["description"],
@@ -490,6 +515,7 @@ class _Validator:
                 tip_velocity=tuple(i["tip_velocity"]),
                 attitude=tuple(tuple(row) for row in i["attitude"]),
                 angular_velocity=tuple(i["angular_velocity"]),
+                stretch=i["stretch"],
             ),
             g=d["environment"]["g"],
             source=self.source,

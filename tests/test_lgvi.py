@@ -296,9 +296,12 @@ def test_newton_iteration_cap_fails_cleanly(fixed):
 
 
 def test_absurd_step_fails_cleanly(fixed):
-    # h = 10 ms exceeds the string's stability limit (h ω_max ≈ 2.2): Newton fails, no NaNs
+    # h = 10 ms exceeds the string's stability limit (h ω_max ≈ 2.2): the body spins up until
+    # the step's rotation has no Cayley solution (Newton fails) or only one beyond 90° (the
+    # Cayley guard stops it: measured at step 24); either way a named status and no NaNs
     tr = LGVI_.solve(fixed, t_end=2.0, dt=0.01, save_every=0.05)
-    assert tr.status == Status.NEWTON_FAILED.value, tr.status
+    assert tr.status in (Status.NEWTON_FAILED.value, Status.DIVERGED.value), tr.status
+    assert ("Newton" in tr.reason) or ("Cayley" in tr.reason), tr.reason
     assert "step" in tr.reason and _all_finite(tr) and 0 < tr.t[-1] < 2.0
     assert tr.t[-1] == pytest.approx(tr.stats["steps"] * 0.01)
 

@@ -1,0 +1,81 @@
+"""The stability map's logic (benchmark.stability), without running integrators: the ladder,
+skips, failure rows, and the generated reading. The map itself is results/stability/."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from benchmark import runner, stability
+from models import load_scene
+
+
+def test_every_case_is_a_shipped_hard_scene_and_jobs_validate_names():
+    for case in stability.CASES:
+        load_scene(case.scene, **dict(case.overrides))
+    jobs = stability.jobs_for()
+    assert {j[0].scene for j in jobs} == {c.scene for c in stability.CASES}
+    assert {(j[1], j[2]) for j in jobs} >= {("lgvi", "fixed"), ("tsit5", "fixed"), ("tsit5", "adaptive")}
+    with pytest.raises(ValueError):
+        stability.jobs_for(integrators=["no_such_method"])
+    with pytest.raises(ValueError, match="no stability case"):
+        stability.jobs_for(scenes=["fixed_length"])
+
+
+def test_ladder_halves_from_the_top_and_keeps_ten_steps_per_run():
+    case = next(c for c in stability.CASES if c.scene == "stiff_string")
+    tasks = stability.ladder(case, "lgvi")
+    dts = [t.dt for t in tasks]
+    assert dts == sorted(dts, reverse=True)
+    np.testing.assert_allclose(np.array(dts[:-1]) / np.array(dts[1:]), 2.0)
+    assert all(t.t_end / t.dt >= 10 for t in tasks)
+
+
+def test_ladder_stops_at_the_first_bounded_rung_and_failures_are_rows(monkeypatch):
+    case = stability.Case("near_slack", 2.0)
+    calls = []
+
+    def fake_run_task(task, cache_dir=None, repeats=3, *, reference=True, finished=("ok",)):
+        calls.append(task.dt)
+        status = "ok" if task.dt <= 0.005 else "diverged"
+        return {"dt": task.dt, "status": status, "reason": "" if status == "ok" else "energy", "steps": 2.0 / task.dt,
+                "t_reached": 2.0, "setting": task.setting, "run_time": 0.1}
+
+    monkeypatch.setattr(runner, "run_task", fake_run_task)
+    row = stability.run_job(case, "lgvi", "fixed")
+    assert calls == [0.04, 0.02, 0.01, 0.005]
+    assert row["largest_stable_dt"] == 0.005 and row["first_unstable_dt"] == 0.01
+    assert row["unstable_status"] == "diverged" and row["bounded"] is True
+
+    def broken(*a, **k):
+        raise RuntimeError("boom")
+
+    monkeypatch.setattr(runner, "run_task", broken)
+    row = stability.run_job(case, "rk45", "adaptive")
+    assert row["status"] == "error" and "boom" in row["reason"] and row["bounded"] is False
+
+
+def test_skips_are_rows_with_reasons_and_explicit_requests_run_them():
+    case = next(c for c in stability.CASES if c.scene == "many_elements")
+    row = stability.run_job(case, "radau", "adaptive")
+    assert row["status"] == "skipped" and "Jacobian" in row["reason"]
+    default_only = next(c for c in stability.CASES if "kvaerno5" in c.default_skip)
+    assert stability.run_job(default_only, "kvaerno5", "adaptive")["status"] == "skipped"
+    assert all(j[3] is False for j in stability.jobs_for(integrators=["kvaerno5"]))
+
+
+def test_reading_is_generated_from_the_rows():
+    df = stability.to_frame([
+        {"scene": "stiff_string", "integrator": "lgvi", "kind": "fixed", "horizon": 0.2, "bounded": True,
+         "largest_stable_dt": 1.25e-3, "rungs_tried": 6, "first_unstable_dt": 2.5e-3, "unstable_status": "diverged",
+         "status": "ok", "run_time": 0.5, "energy_error": 1e-3},
+        {"scene": "stiff_string", "integrator": "tsit5", "kind": "fixed", "horizon": 0.2, "bounded": True,
+         "largest_stable_dt": 6.25e-4, "rungs_tried": 7, "status": "ok", "run_time": 1.0},
+        {"scene": "stiff_string", "integrator": "rk45", "kind": "adaptive", "horizon": 0.2, "bounded": True,
+         "status": "ok", "steps": 900, "run_time": 2.0, "median_step": 2e-4},
+        {"scene": "stiff_string", "integrator": "radau", "kind": "adaptive", "horizon": 0.2, "bounded": False,
+         "status": "skipped", "reason": "cost"},
+    ])
+    text = stability.reading(df)
+    assert "dt = 0.00125 s" in text and "`diverged`" in text and "step ratio 2" in text
+    assert "`rk45`" in text and "left out" in text
+    assert isinstance(df, pd.DataFrame) and list(df.columns) == stability.COLUMNS
