@@ -201,6 +201,8 @@ def test_hard_scene_matrix(scene_name, integrator):
     horizon, ov, expected, dt = SLOW_CASES[scene_name]
     if scene_name == "many_elements" and integrator in ("radau", "kvaerno5"):
         pytest.skip("implicit baselines on N = 320: dense autodiff Jacobian of a 1,927-dim state (see the map)")
+    if integrator == "kvaerno5":  # measured: the first case had not finished after 25 min on the shared 2 cores
+        pytest.skip("kvaerno5 (full-Newton ESDIRK through the autodiff model) compiles and runs for minutes per scene")
     scene = load_scene(scene_name, **ov)
     kw = dict(SLOW_SETTINGS[integrator])
     if integrator == "lgvi":
