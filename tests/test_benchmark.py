@@ -119,3 +119,13 @@ def test_cli_refuses_bad_input_before_work(tmp_path, capsys):
     assert not any(tmp_path.iterdir())  # nothing was written
     assert main(["list"]) == 0
     assert "lgvi" in capsys.readouterr().out
+
+
+def test_atomic_writes_keep_the_umask_mode(tmp_path):
+    import os
+
+    target = tmp_path / "table.csv"
+    atomic_write_text(target, "a\n")
+    umask = os.umask(0)
+    os.umask(umask)
+    assert os.stat(target).st_mode & 0o777 == 0o666 & ~umask
