@@ -101,6 +101,11 @@ def test_invalid_scene_is_refused_with_file_key_and_range(mutate, fragments, tmp
             scene_from_dict(d, source="x.toml")
         return
     mutate(d)
+    assert_refused(d, fragments)
+
+
+def assert_refused(d, fragments):
+    """Loading ``d`` raises a SceneError naming the file and every fragment (key, allowed range)."""
     with pytest.raises(SceneError) as err:
         scene_from_dict(d, source="bad_scene.toml")
     msg = str(err.value)
