@@ -192,7 +192,8 @@ class DiscreteLagrangian:
         self.J_d = jnp.asarray(model.J_d)
         #: string forces (axial damping) present: explicit forcing from w_k = M⁻¹ p_k
         self.node_forced = bool(model.string_forces)
-        self._legendre = ClosedFormEOM(model).velocity_from_momentum if self.node_forced else None
+        #: w = M(x, R)⁻¹ p by the structured O(N) solve (string forcing, the LGVI's energy guard)
+        self.legendre = ClosedFormEOM(model).velocity_from_momentum
 
     # -------------------------------------------------------------------------------------
     def context(self, t, x, R, gradV, p=None) -> StepContext:
@@ -232,7 +233,7 @@ class DiscreteLagrangian:
             return jnp.zeros(self.nw), (jnp.asarray(0.0), jnp.zeros((self.N, 3)), jnp.zeros(3))
         if p is None:
             raise ValueError("DiscreteLagrangian.context needs p_k when the model has string forces")
-        w = self._legendre(x, R, p)
+        w = self.legendre(x, R, p)
         return w, self.split_force(self.model.string_force(t, x, w))
 
     def end_forcing(self, ctx: StepContext, h, ds, dq):

@@ -160,6 +160,12 @@ def energy_bound(model) -> float:
     return ENERGY_GROWTH_FACTOR * energy_scale(model)
 
 
+def initial_energy(model) -> float:
+    """E0: the energy of the scene's initial state (the reference of every energy guard)."""
+    x0, R0, w0 = model.initial_state()
+    return float(model.energy(x0, R0, w0))
+
+
 def energy_error(model, x, R, w, W, E0):
     """|E(x, R, w) − W − E0| (traceable by JAX; w are velocities)."""
     from models._jax import jnp

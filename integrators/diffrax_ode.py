@@ -28,7 +28,7 @@ import numpy as np
 import optimistix as optx
 
 from integrators.base import (Capability, Integrator, Status, Trajectory, check_positive, energy_bound,
-                              energy_error_ode, energy_reason, save_times)
+                              energy_error_ode, energy_reason, initial_energy, save_times)
 from integrators.scipy_ivp import (
     BLOWUP,
     check_max_steps,
@@ -76,8 +76,7 @@ def _stop_condition(model):
     """Event condition: deployed length out of range, non-finite / blown-up state, or the
     energy balance error beyond `integrators.base.energy_bound` (checked at every step)."""
     lay = model.layout
-    x0, R0, w0 = model.initial_state()
-    E0 = float(model.energy(x0, R0, w0))
+    E0 = initial_energy(model)
     e_bound = energy_bound(model)
 
     def cond_fn(t, y, args, **kwargs):

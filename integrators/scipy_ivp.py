@@ -26,7 +26,7 @@ from scipy import integrate as _si
 from scipy.optimize import brentq
 
 from integrators.base import (Capability, Integrator, Status, Trajectory, check_positive, energy_bound,
-                              energy_error_ode, energy_reason, save_times)
+                              energy_error_ode, energy_reason, initial_energy, save_times)
 from models import build_model, load_scene
 from models._jax import jax
 from models.scene import Scene
@@ -98,8 +98,7 @@ def margin_function(model):
 def energy_guard(model):
     """(error, bound): ``error(y)`` = |E − W − E0| of an ODE state (float), and the bound of
     `integrators.base.energy_bound` beyond which the run is ``diverged``."""
-    x0, R0, w0 = model.initial_state()
-    E0 = float(model.energy(x0, R0, w0))
+    E0 = initial_energy(model)
     f = jax.jit(lambda y: energy_error_ode(model, y, E0))
     return (lambda y: float(f(y))), energy_bound(model)
 
