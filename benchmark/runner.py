@@ -114,6 +114,18 @@ def _worker_env() -> None:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 
+def worker_pool(workers: int) -> cf.ProcessPoolExecutor:
+    """The process pool every sweep uses: spawned workers (JAX does not survive fork), one XLA
+    thread each (`_worker_env`)."""
+    _worker_env()
+    return cf.ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+
+
+def crash_reason(exc: BaseException) -> str:
+    """The `reason` of a row whose worker died (status "crashed")."""
+    return f"{type(exc).__name__}: {exc}"[:300]
+
+
 def execute(
     tasks: list[Task],
     *,
@@ -155,9 +167,7 @@ def execute(
         for i, t in enumerate(tasks):
             done(i, run_task(t, cache_dir, repeats))
     elif executor == "process":
-        _worker_env()
-        ctx = multiprocessing.get_context("spawn")  # JAX does not survive fork
-        with cf.ProcessPoolExecutor(max_workers=jobs, mp_context=ctx) as pool:
+        with worker_pool(jobs) as pool:
             log(f"references for {len(refs)} scene(s) ...")
             for fut in [pool.submit(_reference_task, *ref, cache_dir) for ref in refs]:
                 fut.result()
@@ -171,8 +181,7 @@ def execute(
                 try:
                     batch_rows = fut.result()
                 except Exception as exc:  # the worker process died
-                    reason = f"{type(exc).__name__}: {exc}"[:300]
-                    batch_rows = [{**_empty_row(tasks[i]), "status": "crashed", "reason": reason} for i in idx]
+                    batch_rows = [{**_empty_row(tasks[i]), "status": "crashed", "reason": crash_reason(exc)} for i in idx]
                 for i, row in zip(idx, batch_rows):
                     done(i, row)
     else:
@@ -193,7 +202,7 @@ def execute(
                 row = fut.result()
             except Exception as exc:
                 row = _empty_row(tasks[i])
-                row.update(status="crashed", reason=f"{type(exc).__name__}: {exc}"[:300])
+                row.update(status="crashed", reason=crash_reason(exc))
             done(i, row)
     return to_frame([rows[k] for k in sorted(rows)])
 

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import datetime
-import multiprocessing
 import os
 import sys
 import time
@@ -233,9 +232,7 @@ def execute(jobs: list[tuple[Case, str, str, bool]], *, workers: int = 2, on_row
         for i in order:
             done(i, run_job(*jobs[i]))
     else:
-        runner._worker_env()
-        ctx = multiprocessing.get_context("spawn")  # JAX does not survive fork
-        with cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+        with runner.worker_pool(workers) as pool:
             futures = {pool.submit(run_job, *jobs[i]): i for i in order}
             for fut in cf.as_completed(futures):
                 i = futures[fut]
@@ -244,7 +241,7 @@ def execute(jobs: list[tuple[Case, str, str, bool]], *, workers: int = 2, on_row
                 except Exception as exc:  # the worker process died
                     case, integ, kind, _ = jobs[i]
                     row = _base_row(case, integ, kind)
-                    row.update(status="crashed", reason=f"{type(exc).__name__}: {exc}"[:300], bounded=False)
+                    row.update(status="crashed", reason=runner.crash_reason(exc), bounded=False)
                 done(i, row)
     return to_frame([rows[k] for k in sorted(rows)])
 
