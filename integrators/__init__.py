@@ -10,7 +10,7 @@ group, exactly as an outside plugin would be.
 
 from models import _jax  # noqa: F401  (float64 first)
 from integrators.base import Capability, Integrator, Status, Trajectory, save_times
-from integrators.registry import ENTRY_POINT_GROUP, available, get_integrator, plugin_errors, register
+from integrators.registry import ENTRY_POINT_GROUP, available, get_integrator, plugin_errors, register, unregister
 
 __all__ = [
     "Capability",
@@ -23,5 +23,6 @@ __all__ = [
     "plugin_errors",
     "register",
     "save_times",
+    "unregister",
 ]
 from integrators import lgvi  # noqa: F401,E402  (registers "lgvi")

@@ -35,6 +35,16 @@ def register(cls: type[Integrator]) -> type[Integrator]:
     return cls
 
 
+def unregister(name: str) -> None:
+    """Forget the integrator (or failed plugin) registered as ``name``; unknown names are ignored.
+
+    For tests and interactive sessions that register temporary methods: a later
+    `available()` reloads an entry-point plugin of that name, if one is installed.
+    """
+    _REGISTRY.pop(name, None)
+    _PLUGIN_ERRORS.pop(name, None)
+
+
 def _load_plugins() -> None:
     for ep in entry_points(group=ENTRY_POINT_GROUP):
         if ep.name in _REGISTRY or ep.name in _PLUGIN_ERRORS:

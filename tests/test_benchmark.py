@@ -38,8 +38,8 @@ def flaky_integrators():
             return inner
 
     yield
-    registry._REGISTRY.pop("test_raises", None)
-    registry._REGISTRY.pop("test_diverges", None)
+    registry.unregister("test_raises")
+    registry.unregister("test_diverges")
 
 
 def test_tiny_sweep_rows_statuses_and_orders(tmp_path, flaky_integrators):

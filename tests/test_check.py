@@ -33,7 +33,7 @@ def sloppy():
     registry.register(Sloppy)
     yield Sloppy
     Sloppy.loosen = 1.0
-    registry._REGISTRY.pop("test_sloppy", None)
+    registry.unregister("test_sloppy")
 
 
 def tiny(names):

@@ -59,9 +59,8 @@ def plugin_on_path(tmp_path, monkeypatch):
     )
     monkeypatch.syspath_prepend(str(tmp_path))
     yield
-    registry._REGISTRY.pop("test_euler", None)
-    registry._PLUGIN_ERRORS.pop("test_euler", None)
-    registry._PLUGIN_ERRORS.pop("test_broken", None)
+    registry.unregister("test_euler")
+    registry.unregister("test_broken")
     sys.modules.pop("reelbench_test_plugin", None)
 
 
@@ -98,7 +97,7 @@ def test_decorator_registration_and_errors():
             class Other(Dummy):
                 name = "test_dummy"
     finally:
-        registry._REGISTRY.pop("test_dummy", None)
+        registry.unregister("test_dummy")
     with pytest.raises(ValueError, match="unknown integrator 'test_dumy'"):
         get_integrator("test_dumy")
     with pytest.raises(TypeError):
