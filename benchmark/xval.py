@@ -3,8 +3,10 @@
 The same fixed-length string is built in three codes from one scene:
 
 * **ours**: `models` with ``string.mass_model`` "consistent" (the paper's) and "lumped"
-  (MODEL.md §8), integrated by scipy's DOP853 on the closed-form right-hand side at tight
-  tolerances (the time error is then far below the differences studied here);
+  (MODEL.md §8). The study integrates it with our LGVI at the outside codes' step / `OURS_REFINE`
+  (`run_ours_lgvi`; its time error is then far below the differences studied, and the
+  lumped-vs-outside rows measure it); the tests use scipy's DOP853 on the closed-form
+  right-hand side at tight tolerances (`run_ours`);
 * **MoorDyn** (point mass only): one line from a fixed point at r_p to a free point of mass
   m_b, fluid density 0 and every hydrodynamic coefficient 0 (no buoyancy, drag or added mass),
   internal damping BA = 0, bending EI = 0, water depth 10 km (no seabed contact), RK4. MoorDyn's
@@ -550,6 +552,25 @@ def tables(res: dict):
     return pd.DataFrame(diff), pd.DataFrame(conv), pd.DataFrame(lim), pd.DataFrame(cost)
 
 
+def error_vs_limit(res: dict, case: str):
+    """Max-over-t distance of ours_consistent and ours_lumped at each N (but the two finest, which
+    define it) from the Richardson limit of ours_consistent."""
+    import pandas as pd
+
+    runs = res["runs"]
+    Ns = sorted(N for c, N in runs if c == case)
+    if len(Ns) < 3:
+        return pd.DataFrame(columns=["case", "N", "consistent_m", "lumped_m", "lumped_over_consistent"])
+    xa, xb = runs[(case, Ns[-2])]["ours_consistent"].tip, runs[(case, Ns[-1])]["ours_consistent"].tip
+    limit = xb + (xb - xa) / ((Ns[-1] / Ns[-2]) ** 2 - 1)
+    rows = []
+    for N in Ns[:-2]:
+        ec = _max_dist(runs[(case, N)]["ours_consistent"].tip, limit)
+        el = _max_dist(runs[(case, N)]["ours_lumped"].tip, limit)
+        rows.append(dict(case=case, N=N, consistent_m=ec, lumped_m=el, lumped_over_consistent=el / ec))
+    return pd.DataFrame(rows)
+
+
 def plot(res: dict, case: str, path: Path) -> None:
     import matplotlib
 
@@ -596,7 +617,13 @@ def write_outputs(res: dict, scene: Scene, out: Path, command: str, wall_s: floa
 
     out.mkdir(parents=True, exist_ok=True)
     diff, conv, lim, cost = tables(res)
-    for name, df in (("differences", diff), ("self_convergence", conv), ("limits", lim), ("cost", cost)):
+    runs = res["runs"]
+    cases = sorted({c for c, _ in runs}, key=list(CASES).index)
+    import pandas as pd
+
+    err_all = pd.concat([error_vs_limit(res, c) for c in cases], ignore_index=True)
+    for name, df in (("differences", diff), ("self_convergence", conv), ("limits", lim), ("cost", cost),
+                     ("error_vs_limit", err_all)):
         atomic_write_text(out / f"{name}.csv", df.to_csv(index=False))
     runs = res["runs"]
     cases = sorted({c for c, _ in runs}, key=list(CASES).index)
@@ -636,7 +663,7 @@ def write_outputs(res: dict, scene: Scene, out: Path, command: str, wall_s: floa
         f"scipy {version('scipy')}, jax {version('jax')}, Python {platform.python_version()}",
         f"- scene: `{scene.name}` at fixed length ℓ = {scene.initial.deployed_length:g} m, μ = {scene.string.mass_per_length:g} kg/m, "
         f"EA = {scene.string.axial_stiffness:g} N, m_b = {scene.body.mass:g} kg, straight unstretched start along "
-        f"{list(np.round(scene.initial.direction, 6))}, tip velocity {list(scene.initial.tip_velocity)} m/s, "
+        f"{[round(float(x), 6) for x in scene.initial.direction]}, tip velocity {[float(x) for x in scene.initial.tip_velocity]} m/s, "
         f"over {settings['t_end']:g} s; point_mass = the same without `rigid_body`.",
         f"- compared quantity: the attachment point r_p + q_(N+1) (the tip) at t = 0, {OUTPUT_INTERVAL:g}, … s; "
         "every distance below is the maximum over those times.",
@@ -680,6 +707,11 @@ def write_outputs(res: dict, scene: Scene, out: Path, command: str, wall_s: floa
         v = row(lc, pair="ours_consistent - ours_lumped")
         if len(v):
             lines.append(f"- Richardson limits: ours_consistent vs ours_lumped agree to {_fmt(float(v.max_limit_distance_m.iloc[0]))} m.")
+        err = error_vs_limit(res, case)
+        if len(err):
+            ratios = ", ".join(f"{r:.2f} (N = {n})" for n, r in zip(err.N, err.lumped_over_consistent))
+            lines.append(f"- Error against the Richardson limit of ours_consistent (max over t), lumped / consistent at "
+                         f"equal N: {ratios} (`error_vs_limit.csv`).")
         minstrain = min(s["min_strain_ours_lumped"] for s in settings["runs"] if s["case"] == case)
         lines.append(f"- Smallest element strain of our lumped runs: {minstrain:.2e} (MoorDyn's lines are tension-only; "
                      "a clearly negative value would make MoorDyn differ).")

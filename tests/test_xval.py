@@ -135,3 +135,42 @@ def test_cli_refuses_with_exit_code_2(capsys, tmp_path):
     assert not (tmp_path / "x").exists()  # refused before any work
     assert cli_main(["xval", "--elements", "5", "--out", str(tmp_path / "x")]) == 2
     assert "--elements" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------------------
+# Tables and README from known synthetic runs (no simulation)
+# ------------------------------------------------------------------------------------------
+def test_tables_and_readme_from_synthetic_runs(tmp_path, body_scene):
+    """Tips x_N(t) = X(t) + c_code/N²: observed order 2, Richardson limits equal X, the lumped
+    codes' error ratio c_lumped/c_consistent, and the README quotes those numbers."""
+    times = np.linspace(0.0, 1.0, 21)
+    X = np.stack([np.sin(times), np.cos(times), times], axis=1)
+    coef = {"ours_consistent": 1.0, "ours_lumped": -2.0, "moordyn": -2.0, "mujoco": -2.0}
+    runs = {}
+    for case, codes in xval.CASES.items():
+        for N in (5, 10, 20, 40):
+            r = {}
+            for code in ("ours_consistent", "ours_lumped") + codes:
+                shape = np.array([1.0, 0.5, 0.25]) * coef[code] / N**2
+                r[code] = xval.CodeRun(code, N, 1e-4, X + shape[None, :], 1000, 0.01 * N,
+                                       {"min_strain": 1e-3} if code.startswith("ours") else {})
+            runs[(case, N)] = r
+    res = {"times": times, "runs": runs}
+    readme = xval.write_outputs(res, body_scene, tmp_path, "python -m benchmark xval --test", 1.0, "0.1, 0.1, 0.1")
+    import pandas as pd
+
+    lim = pd.read_csv(tmp_path / "limits.csv")
+    assert lim.max_limit_distance_m.max() < 1e-14
+    conv = pd.read_csv(tmp_path / "self_convergence.csv").dropna()
+    np.testing.assert_allclose(conv.observed_order, 2.0, atol=1e-9)
+    err = pd.read_csv(tmp_path / "error_vs_limit.csv")
+    np.testing.assert_allclose(err.lumped_over_consistent, 2.0, rtol=1e-9)
+    cost = pd.read_csv(tmp_path / "cost.csv")
+    np.testing.assert_allclose(cost.us_per_step, 10.0 * cost.N, rtol=1e-12)  # 0.01 N s / 1000 steps
+    text = readme.read_text()
+    assert "python -m benchmark xval --test" in text and "moordyn 2." in text and "mujoco " in text
+    assert "lumped / consistent at equal N: 2.00 (N = 5), 2.00 (N = 10)" in text
+    assert "| 40 | 0.0001 | 400.0 | 400.0 | 400.0 | 400.0 |" in text
+    assert (tmp_path / "inputs" / "moordyn_point_mass_N5.txt").exists()
+    assert (tmp_path / "inputs" / "mujoco_rigid_body_N40.xml").exists()
+    assert (tmp_path / "convergence_rigid_body.png").stat().st_size > 10_000
