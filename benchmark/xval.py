@@ -52,7 +52,7 @@ from models.scene import Scene
 #: Effects the translation understands (everything else is refused).
 SUPPORTED_EFFECTS = ("gravity", "elasticity", "rigid_body")
 #: Default N sequence and horizon of `python -m benchmark xval`.
-DEFAULT_ELEMENTS = (5, 10, 20, 40, 80, 160)
+DEFAULT_ELEMENTS = (5, 10, 20, 40, 80)  # N = 160 (`--elements 5,10,20,40,80,160`) costs 4x the rest
 DEFAULT_T_END = 5.0
 #: Fixed time step of MoorDyn / MuJoCo: dt = min(DT_MAX, CFL / ω_max) with ω_max = (2/l)·√(EA/μ)
 #: the highest frequency of the lumped chain (RK4: stable up to 2.8; its error ∝ (ω dt)⁴).
@@ -644,6 +644,9 @@ def write_outputs(res: dict, scene: Scene, out: Path, command: str, wall_s: floa
             settings["runs"].append({"case": case, "N": N, "dt": dt, "scene_key_lumped": sc.key(),
                                      "min_strain_ours_lumped": r["ours_lumped"].extra["min_strain"]})
     atomic_write_text(out / "settings.json", json.dumps(settings, indent=1))
+    # the raw tip trajectories, so that the tables can be recomputed without rerunning
+    np.savez_compressed(out / "tips.npz", times=res["times"],
+                        **{f"{case}_N{N}_{code}": run.tip for (case, N), r in runs.items() for code, run in r.items()})
     for case in cases:
         plot(res, case, out / f"convergence_{case}.png")
 
@@ -671,8 +674,8 @@ def write_outputs(res: dict, scene: Scene, out: Path, command: str, wall_s: floa
         "`settings.json`); their exact inputs are in `inputs/`. Ours: our LGVI at that dt / "
         f"{OURS_REFINE} (consistent = the paper's mass matrix, lumped = MODEL.md §8).",
         "- files: `differences.csv` (codes at equal N), `self_convergence.csv` (each code, N → next N), "
-        "`limits.csv` (Richardson limits, order 2, from the two finest N), `cost.csv` (wall time per step), "
-        "`convergence_*.png`.",
+        "`limits.csv` (Richardson limits, order 2, from the two finest N), `error_vs_limit.csv`, `cost.csv` "
+        "(wall time per step), `convergence_*.png`, `tips.npz` (every tip trajectory), `settings.json`.",
         "",
         "## Reading",
         "",
@@ -684,7 +687,7 @@ def write_outputs(res: dict, scene: Scene, out: Path, command: str, wall_s: floa
         lines.append("")
         same = [float(row(diff, case=case, pair=f"ours_lumped - {c}").max_tip_distance_m.max()) for c in outside]
         lines.append(f"- Same discrete model: our lumped model vs {' and '.join(outside)} at equal N: at most "
-                     f"{_fmt(max(same))} m over N = {Ns[0]}…{Ns[-1]}"
+                     f"{_fmt(max(same))} m over N = {Ns[0]}…{Ns[-1]} (what is left is the time-step error of the codes)"
                      + (f"; MoorDyn vs MuJoCo: at most {_fmt(float(row(diff, case=case, pair='moordyn - mujoco').max_tip_distance_m.max()))} m."
                         if len(outside) == 2 else "."))
         for c in outside:

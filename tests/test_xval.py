@@ -174,3 +174,5 @@ def test_tables_and_readme_from_synthetic_runs(tmp_path, body_scene):
     assert (tmp_path / "inputs" / "moordyn_point_mass_N5.txt").exists()
     assert (tmp_path / "inputs" / "mujoco_rigid_body_N40.xml").exists()
     assert (tmp_path / "convergence_rigid_body.png").stat().st_size > 10_000
+    tips = np.load(tmp_path / "tips.npz")
+    np.testing.assert_array_equal(tips["point_mass_N10_moordyn"], runs[("point_mass", 10)]["moordyn"].tip)
