@@ -1,4 +1,4 @@
-"""Command line: ``python -m benchmark {run,check,simulate,figures,speed,stability,list}`` (also ``reelbench``)."""
+"""Command line: ``python -m benchmark {run,check,simulate,figures,speed,stability,xval,list}`` (also ``reelbench``)."""
 
 from __future__ import annotations
 
@@ -187,6 +187,28 @@ def cmd_stability(args) -> int:
                           command=command)
 
 
+def cmd_xval(args) -> int:
+    """Cross-validation against MoorDyn and MuJoCo (benchmark/xval.py); exit 2 on a scene it cannot translate."""
+    import importlib.util
+
+    from benchmark import xval
+    from models import load_scene
+
+    ints = [int(v) for v in _names(args.elements)] if args.elements else list(xval.DEFAULT_ELEMENTS)
+    if any(n < 2 for n in ints) or len(ints) < 2:
+        raise ValueError(f"--elements {args.elements!r}: allowed two or more integers >= 2 (e.g. 5,10,20)")
+    if args.t_end is not None and not args.t_end > 0:
+        raise ValueError(f"--t-end {args.t_end!r}: allowed a number > 0 (seconds)")
+    xval.check_scene(load_scene(args.scene))  # names what cannot be translated, before any import or work
+    missing = [m for m in ("moordyn", "mujoco") if importlib.util.find_spec(m) is None]
+    if missing:
+        raise ValueError(f"xval needs {', '.join(missing)}: pip install 'reelbench[xval]'")
+    command = "python -m benchmark " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    readme = xval.main(args.scene, ints, args.t_end or xval.DEFAULT_T_END, args.out, command=command, log=_log)
+    _log(f"wrote {readme}")
+    return 0
+
+
 def cmd_list(args) -> int:
     from integrators import available, get_integrator, plugin_errors
     from models import available_scenes
@@ -264,6 +286,14 @@ def parser() -> argparse.ArgumentParser:
     st.add_argument("--jobs", type=int, default=2, help="worker processes (0: run in this process)")
     st.add_argument("--out", default="results/stability")
     st.set_defaults(func=cmd_stability)
+
+    xv = sub.add_parser("xval", help="cross-validation against MoorDyn and MuJoCo at equal N -> results/xval/ "
+                                     "(needs the [xval] extra)")
+    xv.add_argument("--scene", default="fixed_length", help="fixed-length scene name or path (default fixed_length)")
+    xv.add_argument("--elements", help="comma-separated N >= 2 (default 5,10,20,40,80; 5,10,20,40,80,160 takes about 4x longer)")
+    xv.add_argument("--t-end", type=float, help="horizon in s (default 5)")
+    xv.add_argument("--out", default="results/xval")
+    xv.set_defaults(func=cmd_xval)
 
     ls = sub.add_parser("list", help="registered integrators and shipped scenes")
     ls.set_defaults(func=cmd_list)

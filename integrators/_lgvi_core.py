@@ -160,7 +160,7 @@ jax.tree_util.register_dataclass(
 
 
 class DiscreteLagrangian:
-    """Closed-form derivatives of MODEL.md §6's L_d for one model (consistent string mass)."""
+    """Closed-form derivatives of MODEL.md §6's L_d for one model (string mass of `string.mass_model`)."""
 
     def __init__(self, model):
         self.model = model
@@ -181,10 +181,12 @@ class DiscreteLagrangian:
         cnext = -(1 + 3 * N - 3 * a)
         cprev[-1], cself[-1], cnext[-1] = 2.0, 1.0, 0.0
         self.cprev, self.cself, self.cnext = (jnp.asarray(v * mu / (6 * N)) for v in (cprev, cself, cnext))
-        # consistent mass coefficients, times μ l
-        self.msub = jnp.full(N, 1.0 / 6.0)
-        self.mdiag = jnp.asarray(np.where(last > 0, 1.0 / 3.0, 2.0 / 3.0))
-        self.msup = jnp.asarray(np.where(last > 0, 0.0, 1.0 / 6.0))
+        # string mass coefficients, times μ l (models.model.STRING_MASS: consistent 1/6, 2/3,
+        # 1/3; lumped 0, 1, 1/2 — the lumped one only at fixed length, so C and M0 stay unused)
+        sm = model.string_mass
+        self.msub = jnp.full(N, sm.o / sm.den)
+        self.mdiag = jnp.asarray(np.where(last > 0, sm.d / sm.den, 2.0 * sm.d / sm.den))
+        self.msup = jnp.asarray(np.where(last > 0, 0.0, sm.o / sm.den))
         self.c31 = jnp.asarray(model.c31)
         self.c23 = jnp.asarray(model.c23)
         self.rho = jnp.asarray(model.rho_c)

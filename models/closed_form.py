@@ -11,6 +11,8 @@ Notation (nodes a = 1 … N+1, q_1 ≡ 0, v_a = q̇_a, v_1 = 0, ṡ = ṡ_p, l =
     D_a = q_a − q_{a+1},  Ḋ_a = v_a − v_{a+1}                       (elements a = 1 … N)
     C_b = c31_b D_b + c23_{b−1} D_{b−1}   (b = 2 … N+1; c31_{N+1} D_{N+1} ≡ 0)
     S(v)_b = (μl/6)(v_{b−1} + 4 v_b + v_{b+1}),  S(v)_{N+1} = (μl/6)(v_N + 2 v_{N+1})
+    (`string.mass_model = "lumped"`, fixed length only: S(v)_b = μl v_b, S(v)_{N+1} = (μl/2) v_{N+1};
+    the coefficients come from `models.model.STRING_MASS`)
     u = Rᵀ v_{N+1}
 
 Mass matrix, w = (ṡ, v_2 … v_{N+1}, Ω):
@@ -69,14 +71,18 @@ class ClosedFormEOM:
         if tri_solve not in ("dense", "lapack"):
             raise ValueError(f"tri_solve must be 'auto', 'dense' or 'lapack', not {tri_solve!r}")
         self.tri_solve = tri_solve
+        # string mass = (μl/den)·tri(o, 2d, o), last diagonal d (models.model.StringMass);
+        # consistent: tri(1, 4, 1) and 2 below, lumped: diagonal
+        sm = m.string_mass
+        self.mass_den, self.mass_d, self.mass_o = sm.den, sm.d, sm.o
         if n > 0:
-            tri = 4.0 * np.eye(n) + np.eye(n, k=1) + np.eye(n, k=-1)
+            tri = 2.0 * sm.d * np.eye(n) + sm.o * (np.eye(n, k=1) + np.eye(n, k=-1))
             self._tri_inv = np.linalg.inv(tri)
-            #: z = tri⁻¹ e_last (constant)
-            self._z = self._tri_inv[:, -1].copy()
-            self._tri_dl = np.concatenate([[0.0], np.ones(n - 1)])
-            self._tri_d = 4.0 * np.ones(n)
-            self._tri_du = np.concatenate([np.ones(n - 1), [0.0]])
+            #: z = o tri⁻¹ e_last (constant): the coupling of the interior to node N+1
+            self._z = sm.o * self._tri_inv[:, -1]
+            self._tri_dl = np.concatenate([[0.0], sm.o * np.ones(n - 1)])
+            self._tri_d = 2.0 * sm.d * np.ones(n)
+            self._tri_du = np.concatenate([sm.o * np.ones(n - 1), [0.0]])
 
     # ------------------------------------------------------------------------------------
     # Pieces
@@ -97,8 +103,9 @@ class ClosedFormEOM:
     def _string_apply_full(self, v, l):
         # v has N+1 rows; v[:-1] are nodes b−1 for b = 2..N+1, v[1:] the nodes themselves
         right = jnp.concatenate([v[2:], jnp.zeros((1, 3))], axis=0)
-        diag = jnp.asarray(np.concatenate([4.0 * np.ones(self.N - 1), [2.0]]))
-        return (self.mu * l / 6.0) * (v[:-1] + diag[:, None] * v[1:] + right)
+        d, o = self.mass_d, self.mass_o
+        diag = jnp.asarray(np.concatenate([2.0 * d * np.ones(self.N - 1), [d]]))
+        return (self.mu * l / self.mass_den) * (o * v[:-1] + diag[:, None] * v[1:] + o * right)
 
     def J_body(self, R):
         """M_ΩΩ = J_c − m_b ρ_c^ (RᵀR) ρ_c^ (= J_o when R is orthogonal; the ODE state's R(quat)
@@ -135,9 +142,10 @@ class ClosedFormEOM:
         """M(x, R) assembled block-wise (dense nw × nw)."""
         lay, N = self.layout, self.N
         q, l = self.model.nodes(x), self.model.element_length(x)
-        tri = (4.0 * np.eye(N) + np.eye(N, k=1) + np.eye(N, k=-1))
-        tri[-1, -1] = 2.0
-        K = (self.mu * l / 6.0) * jnp.asarray(tri)
+        d, o = self.mass_d, self.mass_o
+        tri = (2.0 * d * np.eye(N) + o * (np.eye(N, k=1) + np.eye(N, k=-1)))
+        tri[-1, -1] = d
+        K = (self.mu * l / self.mass_den) * jnp.asarray(tri)
         K = K.at[-1, -1].add(self.m_b)
         Mqq = jnp.kron(K, jnp.eye(3))
         r = lay.n_reel
@@ -213,7 +221,8 @@ class ClosedFormEOM:
         """a = M(x, R)⁻¹ F by a Schur complement on (s̈, q̈_{N+1}, Ω̇); O(N) with 'lapack'."""
         lay, N, n = self.layout, self.N, self.n_int
         q, l = self.model.nodes(x), self.model.element_length(x)
-        h = self.mu * l / 6.0  # off-diagonal string mass; interior block is h·tri(1,4,1)
+        h = self.mu * l / self.mass_den  # interior block is h·tri(o, 2d, o) (h·tri(1,4,1) consistent)
+        d, o = self.mass_d, self.mass_o
         Fq = F[lay.nodes].reshape(N, 3)
         r_int, r_L = Fq[:-1], Fq[-1]
         has_s, has_b = lay.has_reel, lay.has_attitude
@@ -227,18 +236,18 @@ class ClosedFormEOM:
             z = jnp.asarray(self._z)
         # border system on u = (a_s, a_L, α)
         I3 = jnp.eye(3)
-        dL = 2.0 * h + self.m_b - (h * z[-1] if n > 0 else 0.0)
+        dL = d * h + self.m_b - (o * h * z[-1] if n > 0 else 0.0)
         rows, rhs = [], []
         # row for a_L
         blk_L = []
         if has_s:
-            cL = C[-1] - (h * ZC[-1] if n > 0 else 0.0)
+            cL = C[-1] - (o * h * ZC[-1] if n > 0 else 0.0)
             blk_L.append(cL[:, None])
         blk_L.append(dL * I3)
         if has_b:
             blk_L.append(-self.m_b * R @ jnp.asarray(self.rho_hat))
         rows.append(jnp.concatenate(blk_L, axis=1))
-        rhs.append(r_L - (h * Zr[-1] if n > 0 else 0.0))
+        rhs.append(r_L - (o * h * Zr[-1] if n > 0 else 0.0))
         if has_s:
             Ci = C[:-1]
             ss = self.M0(x[0]) - (jnp.sum(Ci * ZC) if n > 0 else 0.0)

@@ -16,6 +16,7 @@ Without a rigid body R is ignored (pass the identity).
 from __future__ import annotations
 
 import functools
+from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
@@ -87,6 +88,27 @@ def rot_to_quat(R) -> np.ndarray:
     return q if q[0] >= 0 else -q
 
 
+@dataclass(frozen=True)
+class StringMass:
+    """The string's element mass matrix (μ l / den)·[[d, o], [o, d]] (MODEL.md §3, §8).
+
+    The one place the string mass comes from: the autodiff kinetic energy, the closed form
+    (`models.closed_form`) and the LGVI (`integrators._lgvi_core`) all read these numbers.
+    Assembled over nodes 2 … N+1 it is (μ l / den)·tridiag(o, 2d, o), last diagonal entry d
+    (before the body mass). Written as small integers over a denominator so that the
+    consistent matrix is evaluated exactly as before this option existed (μ l / 6 times 1, 4, 1).
+    """
+
+    den: float
+    d: float  # diagonal entry of the element matrix
+    o: float  # off-diagonal entry (node a with node a+1)
+
+
+#: "consistent": linear elements, (μl/6)[[2, 1], [1, 2]]; "lumped": half of each element's
+#: mass at each end node, (μl/2)[[1, 0], [0, 1]] (MoorDyn's and a MuJoCo chain's masses).
+STRING_MASS = {"consistent": StringMass(6.0, 2.0, 1.0), "lumped": StringMass(2.0, 1.0, 0.0)}
+
+
 def quat_rate(quat, omega):
     """q̇uat = ½ quat ⊗ (0, Ω), Ω in the body frame."""
     w, x, y, z = quat
@@ -133,6 +155,9 @@ class StringPendulum:
         # M31_a = c31_a (q_a - q_{a+1}), M23_a = c23_a (q_a - q_{a+1})   (MODEL.md §3)
         self.c31 = self.mu / (6 * self.N) * (2 + 3 * self.N - 3 * a)
         self.c23 = self.mu / (6 * self.N) * (1 + 3 * self.N - 3 * a)
+        #: element mass matrix of `string.mass_model` (the scene refuses "lumped" with a reel:
+        #: M0 and the M31/M23 coupling above are the consistent element's axial-flow terms)
+        self.string_mass = STRING_MASS[scene.string.mass_model]
 
         # Effects -> terms, decided once here (not by branches in the integrators).
         lay = self.layout
@@ -200,7 +225,9 @@ class StringPendulum:
     def _T_string(self, x, R, w):
         q, qd, l = self.nodes(x), self.node_velocities(w), self.element_length(x)
         va, vb = qd[:-1], qd[1:]
-        T = jnp.sum(self.mu * l / 6.0 * (jnp.sum(va * va, 1) + jnp.sum(va * vb, 1) + jnp.sum(vb * vb, 1)))
+        sm = self.string_mass
+        hd = 0.5 * sm.d  # ½ vᵀ M v per element = (μl/den)(hd|va|² + o va·vb + hd|vb|²)
+        T = jnp.sum(self.mu * l / sm.den * (hd * jnp.sum(va * va, 1) + sm.o * jnp.sum(va * vb, 1) + hd * jnp.sum(vb * vb, 1)))
         if self.layout.has_reel:
             dq = q[:-1] - q[1:]
             coupling = jnp.sum(self.c31 * jnp.sum(dq * va, 1) + self.c23 * jnp.sum(dq * vb, 1))

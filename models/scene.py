@@ -71,6 +71,7 @@ _SCHEMA: dict[str, dict[str, _Key] | _Key] = {
         "axial_stiffness": _Key("float", "positive", required=True),
         "elements": _Key("int", "at_least_1", required=True),
         "axial_damping": _Key("float", "nonnegative", required_by=("axial_damping",), only_with_effect=True),
+        "mass_model": _Key("str", "mass_model", default="consistent"),
     },
     "body": {
         "mass": _Key("float", "positive", required=True),
@@ -113,6 +114,10 @@ _RULE_TEXT = {
     "stretch": f"a finite number in [{1.0 / 100:g}, {100:g}] (stretched / unstretched initial length)",
 }
 
+#: Values of `string.mass_model` (MODEL.md §8); the first is the default.
+MASS_MODELS = ("consistent", "lumped")
+_RULE_TEXT["mass_model"] = "one of " + ", ".join(repr(m) for m in MASS_MODELS)
+
 #: Allowed range of `initial.stretch` (ratio of the initial stretched to unstretched length).
 #: 1 = unstretched (the paper's start); < 1 starts compressed (near-slack), > 1 pre-tensioned.
 STRETCH_RANGE = (0.01, 100.0)
@@ -134,6 +139,7 @@ class StringParams:
     axial_stiffness: float  # EA
     elements: int  # N
     axial_damping: float | None = None  # c, N s (only with effect `axial_damping`)
+    mass_model: str = "consistent"  # string mass matrix, MODEL.md §8 (models.model.STRING_MASS)
 
 
 @dataclass(frozen=True)
@@ -434,6 +440,8 @@ class _Validator:
                 raise SceneError(f"{self.source}: missing key '{key}'{why}: allowed {_RULE_TEXT.get(spec.rule, spec.kind)}")
             return copy.deepcopy(spec.default)
         if spec.kind == "str":
+            if spec.rule == "mass_model" and value not in MASS_MODELS:
+                raise self.fail(key, repr(value), _RULE_TEXT["mass_model"])
             if not isinstance(value, str):
                 raise self.fail(key, value, "a string")
             return value
@@ -477,6 +485,13 @@ class _Validator:
         elif any(x != 0.0 for x in i["angular_velocity"]):
             raise self.fail("initial.angular_velocity", i["angular_velocity"],
                             "[0, 0, 0] without effect 'rigid_body' (a point mass has no attitude)")
+        if s["mass_model"] == "lumped" and "reel" in effects:
+            # the lumped string's axial-flow terms (its M0 and M31/M23) are not derived (MODEL.md §8)
+            raise SceneError(
+                f"{self.source}: key 'string.mass_model' = 'lumped' is not available with effect 'reel': "
+                f"allowed 'consistent' with a reel (the lumped string's axial-flow terms are not derived, "
+                f"MODEL.md §8); 'lumped' needs a fixed-length scene"
+            )
         if "reel" not in effects and i["reel_rate"] != 0.0:
             raise self.fail("initial.reel_rate", i["reel_rate"], "0 without effect 'reel' (the length is fixed)")
         if "reel_control" not in effects and r["control_moment"] != 0.0 and "reel" in effects:
@@ -493,6 +508,8 @@ class _Validator:
         # keys added later are left out at their defaults, so that existing scenes keep their key()
         if i["stretch"] == 1.0:
             raw_d["initial"] = {k: v for k, v in i.items() if k != "stretch"}
+        if s["mass_model"] == "consistent":
+            raw_d["string"] = {k: v for k, v in s.items() if k != "mass_model"}
         if r["min_deployed_length"] == 0.0:
             raw_d["reel"] = {k: v for k, v in r.items() if k != "min_deployed_length"}
         raw = json.dumps(raw_d, sort_keys=True)

@@ -1,0 +1,754 @@
+"""Cross-validation against MoorDyn and MuJoCo (``python -m benchmark xval``).
+
+The same fixed-length string is built in three codes from one scene:
+
+* **ours**: `models` with ``string.mass_model`` "consistent" (the paper's) and "lumped"
+  (MODEL.md §8). The study integrates it with our LGVI at the outside codes' step / `OURS_REFINE`
+  (`run_ours_lgvi`; its time error is then far below the differences studied, and the
+  lumped-vs-outside rows measure it); the tests use scipy's DOP853 on the closed-form
+  right-hand side at tight tolerances (`run_ours`);
+* **MoorDyn** (point mass only): one line from a fixed point at r_p to a free point of mass
+  m_b, fluid density 0 and every hydrodynamic coefficient 0 (no buoyancy, drag or added mass),
+  internal damping BA = 0, bending EI = 0, water depth 10 km (no seabed contact), RK4. MoorDyn's
+  z points up and ours (e3) down: ours (x, y, z) is MoorDyn's (x, −y, −z) (a rotation by π about
+  e1, so handedness is kept). MoorDyn builds its own (catenary) initial line shape even without
+  initial-condition solving, so its state is saved, the positions and velocities are overwritten
+  with ours (straight, unstretched, linear velocity profile) and the state is loaded back;
+  the positions it reports are read only after a step;
+* **MuJoCo** (point mass and rigid body): each free node a point body on three slide joints,
+  neighbours linked by spatial tendons of stiffness EA/l and spring length l, gravity (0, 0, g)
+  in our frame (MuJoCo has no preferred "up"), contacts off, RK4. The rigid body is a body on a
+  free joint whose frame origin is the attachment point (the last tendon's site), carrying J_c
+  and m_b at ρ_c plus the last node's lumped mass μl/2 at its origin (one combined inertia).
+
+Both outside codes are lumped-mass discretisations, so at equal N they and our lumped model are
+the *same* discrete system (tests/test_xval.py checks that to 1e-8 m); our consistent model
+converges to the same continuum limit. Which differences, orders and limits are written where
+is described in the generated README.
+
+Not translated (refused with `Untranslatable`, naming it): a reel or its effects, `slack`
+(MuJoCo's tendon springs are two-sided; MoorDyn's lines are tension-only, so both codes agree
+with ours only while every element stays stretched, which `run` checks), `axial_damping`, an
+initial compression (`initial.stretch` < 1); MoorDyn is not given the rigid body (its Body model
+was not validated here: the body runs are against MuJoCo only).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import struct
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from models.scene import Scene
+
+#: Effects the translation understands (everything else is refused).
+SUPPORTED_EFFECTS = ("gravity", "elasticity", "rigid_body")
+#: Default N sequence and horizon of `python -m benchmark xval`.
+DEFAULT_ELEMENTS = (5, 10, 20, 40, 80)  # N = 160 (`--elements 5,10,20,40,80,160`) costs 4x the rest
+DEFAULT_T_END = 5.0
+#: Fixed time step of MoorDyn / MuJoCo: dt = min(DT_MAX, CFL / ω_max) with ω_max = (2/l)·√(EA/μ)
+#: the highest frequency of the lumped chain (RK4: stable up to 2.8; its error ∝ (ω dt)⁴).
+CFL = 0.05
+DT_MAX = 1e-3
+#: Our reference runs: DOP853 tolerances.
+RTOL, ATOL = 1e-11, 1e-12
+
+
+class Untranslatable(ValueError):
+    """The scene has something the outside codes cannot represent; the message names it."""
+
+
+# ------------------------------------------------------------------------------------------
+# What can be translated
+# ------------------------------------------------------------------------------------------
+def check_translatable(scene: Scene, code: str) -> None:
+    """Raise `Untranslatable` naming every part of ``scene`` that ``code`` ("moordyn" or
+    "mujoco") cannot represent."""
+    if code not in ("moordyn", "mujoco"):
+        raise ValueError(f"code must be 'moordyn' or 'mujoco', not {code!r}")
+    why = []
+    for e in scene.effects:
+        if e not in SUPPORTED_EFFECTS:
+            what = {"reel": "a reel (effect 'reel': the deployed length changes)",
+                    "carnot": "effect 'carnot' (needs a reel)", "reel_control": "effect 'reel_control' (needs a reel)",
+                    "slack": "effect 'slack' (tension-only elasticity: MuJoCo's tendon springs are two-sided)",
+                    "axial_damping": "effect 'axial_damping' (string damping)"}.get(e, f"effect {e!r}")
+            why.append(what)
+    if scene.initial.stretch < 1.0:
+        why.append(f"initial.stretch = {scene.initial.stretch:g} < 1 (a compressed start: MoorDyn's lines carry no "
+                   "compression)")
+    if code == "moordyn" and scene.has("rigid_body"):
+        why.append("effect 'rigid_body' (MoorDyn is given point masses only; the body runs are against MuJoCo)")
+    if why:
+        raise Untranslatable(f"{code} cannot translate scene {scene.name!r}: " + "; ".join(why))
+
+
+def time_step(scene: Scene) -> float:
+    """The fixed step used for MoorDyn and MuJoCo at this scene's N (see `CFL`)."""
+    st = scene.string
+    l = scene.initial.deployed_length / st.elements
+    omega = 2.0 / l * math.sqrt(st.axial_stiffness / st.mass_per_length)
+    return min(DT_MAX, CFL / omega)
+
+
+def _initial_nodes(scene: Scene):
+    """Absolute node positions (N+1, 3) and velocities of our initial state (our frame)."""
+    from models import build_model
+
+    model = build_model(scene)
+    x, R, w = model.initial_state()
+    N, lay = model.N, model.layout
+    q = np.vstack([np.zeros(3), np.asarray(x[lay.nodes]).reshape(N, 3)]) + model.r_p
+    v = np.vstack([np.zeros(3), np.asarray(w[lay.nodes]).reshape(N, 3)])
+    return q, v, np.asarray(R), np.asarray(model.omega(w))
+
+
+# ------------------------------------------------------------------------------------------
+# MoorDyn
+# ------------------------------------------------------------------------------------------
+#: ours (x, y, z), e3 down  <->  MoorDyn (x, −y, −z), z up (rotation by π about e1; its own inverse)
+TO_MOORDYN = np.diag([1.0, -1.0, -1.0])
+MOORDYN_DEPTH = 1e4  # m: no seabed contact
+
+
+def moordyn_input(scene: Scene, dt: float) -> str:
+    """MoorDyn v2 input file of the scene (point mass, fixed length)."""
+    check_translatable(scene, "moordyn")
+    st = scene.string
+    q, _, _, _ = _initial_nodes(scene)
+    a, b = TO_MOORDYN @ q[0], TO_MOORDYN @ q[-1]
+    f = "{:.17g}".format
+    # diameter only sets MoorDyn's volume (buoyancy, drag): irrelevant with fluid density 0
+    return "\n".join([
+        "--------------------- MoorDyn Input File ------------------------------------",
+        f"reelbench xval: scene {scene.name} (generated by benchmark/xval.py)",
+        "----------------------- LINE TYPES ------------------------------------------",
+        "TypeName   Diam    Mass/m     EA     BA/-zeta    EI    Cd     Ca     CdAx    CaAx",
+        "(name)     (m)     (kg/m)     (N)    (N-s/-)     (-)   (-)    (-)    (-)     (-)",
+        f"string     0.01    {f(st.mass_per_length)}    {f(st.axial_stiffness)}    0.0    0.0    0.0    0.0    0.0    0.0",
+        "---------------------------- POINTS -----------------------------------------",
+        "ID    Attachment  X       Y     Z      Mass   Volume  CdA    Ca",
+        "(#)   (-)         (m)    (m)   (m)    (kg)   (m^3)   (m^2)  (-)",
+        f"1     Fixed       {f(a[0])}    {f(a[1])}    {f(a[2])}    0.0    0.0    0.0    0.0",
+        f"2     Free        {f(b[0])}    {f(b[1])}    {f(b[2])}    {f(scene.body.mass)}    0.0    0.0    0.0",
+        "-------------------------- LINES -------------------------------------------------",
+        "ID   LineType   AttachA  AttachB  UnstrLen  NumSegs  LineOutputs",
+        "(#)  (name)     (#)      (#)      (m)       (-)      (-)",
+        f"1    string     1        2        {f(scene.initial.deployed_length)}    {st.elements}    -",
+        "-------------------------- SOLVER OPTIONS ---------------------------------------",
+        f"{f(dt)}    dtM       - time step",
+        "RK4    tScheme   - 4th order Runge-Kutta",
+        f"{f(scene.g if scene.has('gravity') else 0.0)}    g         - gravity (along MoorDyn's -z = our +e3)",
+        "0.0    WtrDnsty  - fluid density: no buoyancy, drag or added mass",
+        f"{f(MOORDYN_DEPTH)}    WtrDpth   - no seabed contact",
+        "0.0    TmaxIC    - no initial-condition solve (the state is overwritten)",
+        "--------------------------- OUTPUTS -----------------------------------------------",
+        "------------------------- need this line --------------------------------------",
+        "",
+    ])
+
+
+@contextlib.contextmanager
+def _quiet_c_output(log_path: Path):
+    """Send the C/C++ stdout and stderr of the block to a file (MoorDyn prints a banner)."""
+    import sys
+
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = os.dup(1), os.dup(2)
+    with open(log_path, "ab") as log:
+        os.dup2(log.fileno(), 1)
+        os.dup2(log.fileno(), 2)
+        try:
+            yield
+        finally:
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            os.close(saved[0])
+            os.close(saved[1])
+
+
+def _read_state(path: Path):
+    """MoorDyn state file: header b'MoorDyn' + 2 version bytes, uint64 size, uint64 count, then
+    per instance uint64 rows, uint64 cols and rows × cols doubles (position, velocity rows)."""
+    raw = path.read_bytes()
+    if raw[:7] != b"MoorDyn":
+        raise RuntimeError(f"{path}: not a MoorDyn state file")
+    head, off = raw[:25], 25
+    count = struct.unpack("<Q", raw[17:25])[0]
+    blocks = []
+    for _ in range(count):
+        n, m = struct.unpack("<QQ", raw[off:off + 16])
+        off += 16
+        blocks.append(np.frombuffer(raw, "<f8", n * m, off).reshape(n, m).copy())
+        off += 8 * n * m
+    if off != len(raw):
+        raise RuntimeError(f"{path}: {len(raw) - off} unexpected trailing bytes")
+    return head, blocks
+
+
+def _write_state(path: Path, head: bytes, blocks) -> None:
+    body = b"".join(struct.pack("<QQ", *b.shape) + b.astype("<f8").tobytes() for b in blocks)
+    path.write_bytes(head + body)
+
+
+@dataclass
+class CodeRun:
+    """Attachment-point (tip) positions of one code at the output times, and its cost."""
+
+    code: str
+    N: int
+    dt: float | None
+    tip: np.ndarray  # (n_t, 3), our frame, absolute
+    steps: int
+    wall_s: float
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def us_per_step(self) -> float:
+        """Median over output intervals when they were timed one by one (robust to load spikes
+        and first-call set-up), else the whole run's mean."""
+        if "interval_s" in self.extra:
+            return 1e6 * float(np.median(self.extra["interval_s"])) / self.extra["steps_per_interval"]
+        return 1e6 * self.wall_s / self.steps if self.steps else float("nan")
+
+
+def run_moordyn(scene: Scene, times, dt: float | None = None, workdir: Path | None = None) -> CodeRun:
+    """Tip positions of MoorDyn at ``times`` (times[0] = 0, evenly spaced, multiples of dt)."""
+    import moordyn
+
+    dt = time_step(scene) if dt is None else dt
+    times = np.asarray(times, float)
+    steps_per_out = _steps_per_interval(times, dt)
+    q, v, _, _ = _initial_nodes(scene)
+    N = scene.string.elements
+    with tempfile.TemporaryDirectory(dir=workdir) as tmp:
+        tmp = Path(tmp)
+        inp = tmp / "line.txt"
+        inp.write_text(moordyn_input(scene, dt))
+        log = tmp / "moordyn.log"
+        with _quiet_c_output(log):
+            sys_ = moordyn.Create(str(inp))
+            moordyn.SetVerbosity(sys_, moordyn.LEVEL_ERR)
+            if moordyn.Init_NoIC(sys_, [], []) != 0:
+                raise RuntimeError(f"MoorDyn init failed; log: {log.read_text()[-2000:]}")
+            point = moordyn.GetPoint(sys_, 2)
+            p0 = np.array(moordyn.GetPointPos(point))
+            # replace MoorDyn's initial line shape by ours (see the module docstring)
+            state = tmp / "state.bin"
+            moordyn.SaveState(sys_, str(state))
+            head, blocks = _read_state(state)
+            line_block = blocks[-1]  # lines come last in MoorDyn's state
+            if line_block.shape != (N - 1, 6):
+                raise RuntimeError(f"MoorDyn state: line block {line_block.shape}, expected {(N - 1, 6)}")
+            line_block[:, :3] = q[1:-1] @ TO_MOORDYN.T
+            line_block[:, 3:] = v[1:-1] @ TO_MOORDYN.T
+            tips = [i for i, b in enumerate(blocks[:-1]) if b.shape == (1, 6) and np.allclose(b[0, :3], p0, atol=1e-12)]
+            if len(tips) != 1:
+                raise RuntimeError("MoorDyn state: cannot identify the free point's block")
+            blocks[tips[0]][0, :3] = TO_MOORDYN @ q[-1]
+            blocks[tips[0]][0, 3:] = TO_MOORDYN @ v[-1]
+            _write_state(state, head, blocks)
+            moordyn.LoadState(sys_, str(state))
+            out, intervals = [q[-1]], []
+            for k in range(1, len(times)):
+                t0 = time.perf_counter()
+                moordyn.Step(sys_, [], [], float(times[k - 1]), float(times[k] - times[k - 1]))
+                intervals.append(time.perf_counter() - t0)
+                out.append(TO_MOORDYN @ np.array(moordyn.GetPointPos(point)))
+            moordyn.Close(sys_)
+    return CodeRun("moordyn", N, dt, np.array(out), int(steps_per_out * (len(times) - 1)), float(sum(intervals)),
+                   {"version": moordyn_version(), "interval_s": intervals, "steps_per_interval": steps_per_out})
+
+
+def moordyn_version() -> str:
+    from importlib.metadata import version
+
+    return version("moordyn")
+
+
+def _steps_per_interval(times, dt) -> int:
+    dt_out = times[1] - times[0]
+    n = round(dt_out / dt)
+    if n < 1 or abs(n * dt - dt_out) > 1e-9 * dt_out or not np.allclose(np.diff(times), dt_out, rtol=1e-12, atol=1e-12):
+        raise ValueError(f"output times must be evenly spaced multiples of dt = {dt:g} s (got spacing {dt_out:g} s)")
+    return n
+
+
+# ------------------------------------------------------------------------------------------
+# MuJoCo
+# ------------------------------------------------------------------------------------------
+def _combined_inertia(m_b, J_c, rho, m_n):
+    """Mass, CoM and inertia about the CoM of the body (m_b, J_c at ρ_c) plus a point mass m_n at
+    the body-frame origin (the last string node's lumped mass)."""
+    M = m_b + m_n
+    com = m_b * rho / M
+    def shift(m, r):
+        return m * (r @ r * np.eye(3) - np.outer(r, r))
+    J = J_c + shift(m_b, rho - com) + shift(m_n, -com)
+    return M, com, J
+
+
+def mujoco_xml(scene: Scene, dt: float) -> str:
+    """MuJoCo MJCF of the scene's lumped chain (and free rigid body, if any)."""
+    check_translatable(scene, "mujoco")
+    st = scene.string
+    N = st.elements
+    l = scene.initial.deployed_length / N
+    mu_l = st.mass_per_length * l
+    q, _, R0, _ = _initial_nodes(scene)
+    f = "{:.17g}".format
+    vec = lambda a: " ".join(f(x) for x in a)  # noqa: E731
+    g = scene.g if scene.has("gravity") else 0.0
+    lines = [
+        '<mujoco model="reelbench_xval">',
+        f'  <!-- scene {scene.name}, N = {N}: generated by benchmark/xval.py; frame = ours (e3 down) -->',
+        f'  <option timestep="{f(dt)}" integrator="RK4" gravity="0 0 {f(g)}" density="0" viscosity="0">',
+        '    <flag contact="disable"/>',
+        '  </option>',
+        '  <worldbody>',
+        f'    <site name="s1" pos="{vec(q[0])}"/>',
+    ]
+    for a in range(2, N + 2):
+        last = a == N + 1
+        if last and scene.has("rigid_body"):
+            from models.model import rot_to_quat
+
+            M, com, J = _combined_inertia(scene.body.mass, scene.inertia, np.array(scene.body.attachment_to_com), mu_l / 2)
+            full = [J[0, 0], J[1, 1], J[2, 2], J[0, 1], J[0, 2], J[1, 2]]
+            lines += [
+                f'    <body name="body" pos="{vec(q[-1])}" quat="{vec(rot_to_quat(R0))}">',
+                '      <freejoint name="body"/>',
+                f'      <inertial pos="{vec(com)}" mass="{f(M)}" fullinertia="{vec(full)}"/>',
+                f'      <site name="s{a}" pos="0 0 0"/>',
+                '    </body>',
+            ]
+            continue
+        mass = mu_l / 2 + scene.body.mass if last else mu_l
+        lines += [
+            f'    <body name="n{a}" pos="{vec(q[a - 1])}">',
+            *(f'      <joint name="n{a}{c}" type="slide" axis="{ax}"/>' for c, ax in (("x", "1 0 0"), ("y", "0 1 0"), ("z", "0 0 1"))),
+            # a point body on slide joints: its rotational inertia never enters (any positive value)
+            f'      <inertial pos="0 0 0" mass="{f(mass)}" diaginertia="1 1 1"/>',
+            f'      <site name="s{a}" pos="0 0 0"/>',
+            '    </body>',
+        ]
+    lines += ['  </worldbody>', '  <tendon>']
+    for a in range(1, N + 1):
+        lines.append(f'    <spatial name="e{a}" stiffness="{f(st.axial_stiffness / l)}" springlength="{f(l)}" damping="0">'
+                     f'<site site="s{a}"/><site site="s{a + 1}"/></spatial>')
+    lines += ['  </tendon>', '</mujoco>', '']
+    return "\n".join(lines)
+
+
+def run_mujoco(scene: Scene, times, dt: float | None = None) -> CodeRun:
+    import mujoco
+
+    dt = time_step(scene) if dt is None else dt
+    times = np.asarray(times, float)
+    n_sub = _steps_per_interval(times, dt)
+    model = mujoco.MjModel.from_xml_string(mujoco_xml(scene, dt))
+    data = mujoco.MjData(model)
+    _, v, _, om = _initial_nodes(scene)
+    N = scene.string.elements
+    n_slide = N - 1 if scene.has("rigid_body") else N
+    data.qvel[: 3 * n_slide] = v[1:n_slide + 1].ravel()
+    if scene.has("rigid_body"):
+        # free joint: linear velocity of the frame origin (world), angular velocity (body frame)
+        data.qvel[3 * n_slide:3 * n_slide + 3] = v[-1]
+        data.qvel[3 * n_slide + 3:3 * n_slide + 6] = om
+    site = model.site(f"s{N + 1}").id
+
+    def tip():
+        mujoco.mj_kinematics(model, data)
+        return data.site_xpos[site].copy()
+
+    out, intervals = [tip()], []
+    for _ in range(1, len(times)):
+        t0 = time.perf_counter()
+        mujoco.mj_step(model, data, nstep=n_sub)
+        intervals.append(time.perf_counter() - t0)
+        out.append(tip())
+    return CodeRun("mujoco", N, dt, np.array(out), n_sub * (len(times) - 1), float(sum(intervals)),
+                   {"version": mujoco.__version__, "interval_s": intervals, "steps_per_interval": n_sub})
+
+
+# ------------------------------------------------------------------------------------------
+# Ours
+# ------------------------------------------------------------------------------------------
+def run_ours(scene: Scene, times, rtol: float = RTOL, atol: float = ATOL) -> CodeRun:
+    """Tip positions of our model (the scene's own mass model) by DOP853 on the closed form."""
+    from scipy.integrate import solve_ivp
+
+    from models import build_model
+    from models.closed_form import build_closed_form
+
+    model = build_model(scene)
+    f = build_closed_form(scene).ode_rhs_jit
+    y0 = model.initial_ode_state()
+    f(0.0, y0).block_until_ready()  # compile outside the timing
+    times = np.asarray(times, float)
+    t0 = time.perf_counter()
+    sol = solve_ivp(lambda t, y: np.asarray(f(t, y)), (0.0, times[-1]), y0, method="DOP853",
+                    rtol=rtol, atol=atol, t_eval=times)
+    wall = time.perf_counter() - t0
+    if sol.status != 0:
+        raise RuntimeError(f"DOP853 failed on {scene.name}: {sol.message}")
+    lay = model.layout
+    x = sol.y.T[:, lay.y_x]
+    tip = x[:, lay.nodes][:, -3:] + model.r_p
+    # MoorDyn's lines are tension-only: equal only while every element stays stretched
+    strain = np.array([np.asarray(model.tensions(xi)).min() for xi in x]) / model.EA
+    # DOP853 takes 12 right-hand sides per step (rejected steps included): cost is per RHS here
+    return CodeRun(f"ours_{scene.string.mass_model}", model.N, None, tip, int(sol.nfev), wall, {"rhs_evals": int(sol.nfev), "min_strain": float(strain.min()), "rtol": rtol, "atol": atol})
+
+
+def run_ours_lgvi(scene: Scene, times, dt: float) -> CodeRun:
+    """Tip positions of our model by our LGVI (fixed step ``dt``, compile time excluded).
+
+    The study's own runs: second order, so at the outside codes' CFL-limited dt divided by
+    `OURS_REFINE` its time error is far below the spatial differences (the lumped-vs-MoorDyn
+    and lumped-vs-MuJoCo rows of the tables measure it: same discrete model)."""
+    from integrators.lgvi import LGVI
+    from models import build_model
+
+    times = np.asarray(times, float)
+    _steps_per_interval(times, dt)
+    tr = LGVI().solve(scene, t_end=float(times[-1]), dt=dt, save_every=float(times[1] - times[0]))
+    if not tr.ok:
+        raise RuntimeError(f"lgvi failed on {scene.name} at dt = {dt:g}: {tr.reason}")
+    if len(tr.t) != len(times) or not np.allclose(tr.t, times, atol=1e-9):
+        raise RuntimeError(f"lgvi saved times {tr.t[:3]}… do not match the output times")
+    model = build_model(scene)
+    lay = model.layout
+    tip = np.asarray(tr.x)[:, lay.nodes][:, -3:] + model.r_p
+    strain = np.array([np.asarray(model.tensions(xi)).min() for xi in tr.x]) / model.EA
+    return CodeRun(f"ours_{scene.string.mass_model}", model.N, dt, tip, int(tr.stats["steps"]),
+                   float(tr.stats["wall_time"]), {"min_strain": float(strain.min()), "method": "lgvi"})
+
+
+#: our LGVI runs at the outside codes' dt / OURS_REFINE
+OURS_REFINE = 4
+
+
+# ------------------------------------------------------------------------------------------
+# The study: N sequence, tables, plots, README
+# ------------------------------------------------------------------------------------------
+#: Cases and the outside codes that get them: the scene without its rigid body (point mass
+#: m_b at the tip) and, when the scene has one, the scene itself.
+CASES = {"point_mass": ("moordyn", "mujoco"), "rigid_body": ("mujoco",)}
+
+
+def case_scene(scene: Scene, case: str) -> Scene:
+    """The scene of one case (``point_mass`` drops `rigid_body` and Ω0)."""
+    if case == "point_mass":
+        return scene.with_(effects=[e for e in scene.effects if e != "rigid_body"], angular_velocity=[0.0, 0.0, 0.0])
+    if case == "rigid_body":
+        if not scene.has("rigid_body"):
+            raise ValueError(f"case 'rigid_body' needs effect 'rigid_body' in scene {scene.name!r}")
+        return scene
+    raise ValueError(f"unknown case {case!r}: allowed {', '.join(CASES)}")
+
+
+def cases_of(scene: Scene) -> tuple[str, ...]:
+    return ("point_mass", "rigid_body") if scene.has("rigid_body") else ("point_mass",)
+
+
+def check_scene(scene: Scene) -> None:
+    """Refuse (`Untranslatable`) a scene that some code of some case cannot represent."""
+    check_translatable(scene, "mujoco")
+    for case in cases_of(scene):
+        for code in CASES[case]:
+            check_translatable(case_scene(scene, case), code)
+
+
+OUTPUT_INTERVAL = 0.05  # s between compared samples
+
+
+def _dt_for(scene: Scene, interval: float) -> float:
+    """`time_step` rounded down so that it divides the output interval."""
+    return interval / math.ceil(interval / time_step(scene) - 1e-9)
+
+
+def _max_dist(a, b) -> float:
+    return float(np.max(np.linalg.norm(a - b, axis=1)))
+
+
+def study(scene: Scene, elements=DEFAULT_ELEMENTS, t_end: float = DEFAULT_T_END, cases=None,
+          log=print) -> dict:
+    """Run every code of every case at every N; returns the raw runs (tips, costs)."""
+    times = np.linspace(0.0, t_end, round(t_end / OUTPUT_INTERVAL) + 1)
+    out = {"times": times, "runs": {}}
+    check_scene(scene)  # refuse before any work
+    for case in cases or cases_of(scene):
+        codes = CASES[case]
+        base = case_scene(scene, case).with_(t_end=t_end)
+        for N in elements:
+            sc = base.with_(elements=N, mass_model="lumped")
+            dt = _dt_for(sc, OUTPUT_INTERVAL)
+            runs = {"ours_consistent": run_ours_lgvi(base.with_(elements=N, mass_model="consistent"), times, dt / OURS_REFINE),
+                    "ours_lumped": run_ours_lgvi(sc, times, dt / OURS_REFINE)}
+            for code in codes:
+                runs[code] = (run_moordyn if code == "moordyn" else run_mujoco)(sc, times, dt)
+            out["runs"][(case, N)] = runs
+            log(f"xval {case} N={N}: dt={dt:.3g} s; " + ", ".join(
+                f"{k} {r.wall_s:.2f} s" for k, r in runs.items()))
+    return out
+
+
+PAIRS = [("ours_lumped", "moordyn"), ("ours_lumped", "mujoco"), ("moordyn", "mujoco"),
+         ("ours_consistent", "moordyn"), ("ours_consistent", "mujoco"), ("ours_consistent", "ours_lumped")]
+TRAJ_CODES = ("ours_consistent", "ours_lumped", "moordyn", "mujoco")
+
+
+def tables(res: dict):
+    """(differences at equal N, self-convergence, Richardson limits, cost) as DataFrames."""
+    import pandas as pd
+
+    runs = res["runs"]
+    cases = sorted({c for c, _ in runs}, key=list(CASES).index)
+    diff, conv, lim, cost = [], [], [], []
+    for case in cases:
+        Ns = sorted(N for c, N in runs if c == case)
+        for N in Ns:
+            r = runs[(case, N)]
+            for a, b in PAIRS:
+                if a in r and b in r:
+                    diff.append(dict(case=case, N=N, pair=f"{a} - {b}", max_tip_distance_m=_max_dist(r[a].tip, r[b].tip),
+                                     final_tip_distance_m=float(np.linalg.norm(r[a].tip[-1] - r[b].tip[-1]))))
+            for code, run in r.items():
+                row = dict(case=case, N=N, code=code, dt_s=run.dt, steps=run.steps, wall_s=run.wall_s,
+                           us_per_step=run.us_per_step if run.dt is not None else float("nan"),
+                           us_per_rhs=(1e6 * run.wall_s / run.extra["rhs_evals"]) if "rhs_evals" in run.extra else float("nan"),
+                           min_strain=run.extra.get("min_strain", float("nan")))
+                cost.append(row)
+        for code in TRAJ_CODES:
+            have = [N for N in Ns if code in runs[(case, N)]]
+            tips = {N: runs[(case, N)][code].tip for N in have}
+            prev = None
+            for N1, N2 in zip(have[:-1], have[1:]):
+                d = _max_dist(tips[N1], tips[N2])
+                conv.append(dict(case=case, code=code, N=N1, N_next=N2, max_change_m=d,
+                                 observed_order=(math.log(prev / d) / math.log(N2 / N1)) if prev else float("nan")))
+                prev = d
+        # Richardson limits from the two finest N (order 2: x_inf = x_2N + (x_2N - x_N)/3)
+        have_all = [N for N in Ns]
+        if len(have_all) >= 2:
+            Na, Nb = have_all[-2], have_all[-1]
+            limits = {}
+            for code in TRAJ_CODES:
+                if code in runs[(case, Nb)]:
+                    xa, xb = runs[(case, Na)][code].tip, runs[(case, Nb)][code].tip
+                    limits[code] = xb + (xb - xa) / ((Nb / Na) ** 2 - 1)
+            for i, a in enumerate(limits):
+                for b in list(limits)[i + 1:]:
+                    lim.append(dict(case=case, N_pair=f"{Na},{Nb}", pair=f"{a} - {b}",
+                                    max_limit_distance_m=_max_dist(limits[a], limits[b])))
+    return pd.DataFrame(diff), pd.DataFrame(conv), pd.DataFrame(lim), pd.DataFrame(cost)
+
+
+def error_vs_limit(res: dict, case: str):
+    """Max-over-t distance of ours_consistent and ours_lumped at each N (but the two finest, which
+    define it) from the Richardson limit of ours_consistent."""
+    import pandas as pd
+
+    runs = res["runs"]
+    Ns = sorted(N for c, N in runs if c == case)
+    if len(Ns) < 3:
+        return pd.DataFrame(columns=["case", "N", "consistent_m", "lumped_m", "lumped_over_consistent"])
+    xa, xb = runs[(case, Ns[-2])]["ours_consistent"].tip, runs[(case, Ns[-1])]["ours_consistent"].tip
+    limit = xb + (xb - xa) / ((Ns[-1] / Ns[-2]) ** 2 - 1)
+    rows = []
+    for N in Ns[:-2]:
+        ec = _max_dist(runs[(case, N)]["ours_consistent"].tip, limit)
+        el = _max_dist(runs[(case, N)]["ours_lumped"].tip, limit)
+        rows.append(dict(case=case, N=N, consistent_m=ec, lumped_m=el, lumped_over_consistent=el / ec))
+    return pd.DataFrame(rows)
+
+
+def plot(res: dict, case: str, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    runs = res["runs"]
+    Ns = sorted(N for c, N in runs if c == case)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    ax = axes[0]
+    # curves of the same discrete model coincide: distinct markers and dashes keep each visible
+    styles = [dict(marker=m, linestyle=ls, markersize=ms, markerfacecolor="none")
+              for m, ls, ms in zip("osx^+d", ["-", "--", ":", "-.", "-", "--"], [9, 7, 6, 5, 4, 3])]
+    for (a, b), st in zip(PAIRS, styles):
+        vals = [(N, _max_dist(runs[(case, N)][a].tip, runs[(case, N)][b].tip)) for N in Ns
+                if a in runs[(case, N)] and b in runs[(case, N)]]
+        if vals:
+            ax.loglog(*zip(*vals), label=f"{a} − {b}", **st)
+    ax.set(xlabel="N (elements)", ylabel="max over t of tip distance [m]", title=f"{case}: codes at equal N")
+    ax.legend(fontsize=7)
+    ax = axes[1]
+    for code, st in zip(TRAJ_CODES, styles):
+        have = [N for N in Ns if code in runs[(case, N)]]
+        vals = [(N2, _max_dist(runs[(case, N1)][code].tip, runs[(case, N2)][code].tip)) for N1, N2 in zip(have[:-1], have[1:])]
+        if vals:
+            ax.loglog(*zip(*vals), label=code, **st)
+    if Ns:
+        ref = np.array(Ns[1:], float)
+        ax.loglog(ref, 0.5 * (ref / ref[0]) ** -2, "k:", label="slope −2")
+    ax.set(xlabel="N", ylabel="max |tip(N) − tip(N/2)| [m]", title=f"{case}: self-convergence")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def _fmt(x) -> str:
+    return f"{x:.2e}"
+
+
+def write_outputs(res: dict, scene: Scene, out: Path, command: str, wall_s: float, load: str) -> Path:
+    """Tables (CSV + README), plots and the exact inputs given to MoorDyn and MuJoCo."""
+    import platform
+    from importlib.metadata import version
+
+    from models.io import atomic_write_text
+
+    out.mkdir(parents=True, exist_ok=True)
+    diff, conv, lim, cost = tables(res)
+    runs = res["runs"]
+    cases = sorted({c for c, _ in runs}, key=list(CASES).index)
+    import pandas as pd
+
+    err_all = pd.concat([error_vs_limit(res, c) for c in cases], ignore_index=True)
+    for name, df in (("differences", diff), ("self_convergence", conv), ("limits", lim), ("cost", cost),
+                     ("error_vs_limit", err_all)):
+        atomic_write_text(out / f"{name}.csv", df.to_csv(index=False))
+    runs = res["runs"]
+    cases = sorted({c for c, _ in runs}, key=list(CASES).index)
+    inputs = out / "inputs"
+    inputs.mkdir(exist_ok=True)
+    settings = {"scene": scene.name, "t_end": float(res["times"][-1]), "output_interval": OUTPUT_INTERVAL,
+                "cfl": CFL, "dt_max": DT_MAX, "ours": {"method": "lgvi", "dt": f"outside dt / {OURS_REFINE}"},
+                "runs": []}
+    for case in cases:
+        for N in sorted(N for c, N in runs if c == case):
+            r = runs[(case, N)]
+            sc = case_scene(scene, case).with_(elements=N, mass_model="lumped", t_end=settings["t_end"])
+            dt = next(v.dt for k, v in r.items() if k in ("moordyn", "mujoco"))
+            if "moordyn" in r:
+                atomic_write_text(inputs / f"moordyn_{case}_N{N}.txt", moordyn_input(sc, dt))
+            if "mujoco" in r:
+                atomic_write_text(inputs / f"mujoco_{case}_N{N}.xml", mujoco_xml(sc, dt))
+            settings["runs"].append({"case": case, "N": N, "dt": dt, "scene_key_lumped": sc.key(),
+                                     "min_strain_ours_lumped": r["ours_lumped"].extra["min_strain"]})
+    atomic_write_text(out / "settings.json", json.dumps(settings, indent=1))
+    # the raw tip trajectories, so that the tables can be recomputed without rerunning
+    np.savez_compressed(out / "tips.npz", times=res["times"],
+                        **{f"{case}_N{N}_{code}": run.tip for (case, N), r in runs.items() for code, run in r.items()})
+    for case in cases:
+        plot(res, case, out / f"convergence_{case}.png")
+
+    def row(df, **kw):
+        sel = df
+        for k, v in kw.items():
+            sel = sel[sel[k] == v]
+        return sel
+
+    lines = [
+        "# Cross-validation against MoorDyn and MuJoCo",
+        "",
+        "Generated by `benchmark/xval.py`; do not edit by hand.",
+        "",
+        f"- command: `{command}` ({wall_s:.0f} s wall, load average before the run: {load})",
+        f"- versions: moordyn {version('moordyn')}, mujoco {version('mujoco')}, numpy {version('numpy')}, "
+        f"scipy {version('scipy')}, jax {version('jax')}, Python {platform.python_version()}",
+        f"- scene: `{scene.name}` at fixed length ℓ = {scene.initial.deployed_length:g} m, μ = {scene.string.mass_per_length:g} kg/m, "
+        f"EA = {scene.string.axial_stiffness:g} N, m_b = {scene.body.mass:g} kg, straight unstretched start along "
+        f"{[round(float(x), 6) for x in scene.initial.direction]}, tip velocity {[float(x) for x in scene.initial.tip_velocity]} m/s, "
+        f"over {settings['t_end']:g} s; point_mass = the same without `rigid_body`.",
+        f"- compared quantity: the attachment point r_p + q_(N+1) (the tip) at t = 0, {OUTPUT_INTERVAL:g}, … s; "
+        "every distance below is the maximum over those times.",
+        f"- MoorDyn and MuJoCo: RK4 at dt = min({DT_MAX:g}, {CFL:g}/ω_max), ω_max = (2/l)√(EA/μ) (dt per N in "
+        "`settings.json`); their exact inputs are in `inputs/`. Ours: our LGVI at that dt / "
+        f"{OURS_REFINE} (consistent = the paper's mass matrix, lumped = MODEL.md §8).",
+        "- files: `differences.csv` (codes at equal N), `self_convergence.csv` (each code, N → next N), "
+        "`limits.csv` (Richardson limits, order 2, from the two finest N), `error_vs_limit.csv`, `cost.csv` "
+        "(wall time per step), `convergence_*.png`, `tips.npz` (every tip trajectory), `settings.json`.",
+        "",
+        "## Reading",
+        "",
+    ]
+    for case in cases:
+        Ns = sorted(N for c, N in runs if c == case)
+        outside = [c for c in ("moordyn", "mujoco") if c in runs[(case, Ns[0])]]
+        lines.append(f"### {case} (outside codes: {', '.join(outside)})")
+        lines.append("")
+        same = [float(row(diff, case=case, pair=f"ours_lumped - {c}").max_tip_distance_m.max()) for c in outside]
+        lines.append(f"- Same discrete model: our lumped model vs {' and '.join(outside)} at equal N: at most "
+                     f"{_fmt(max(same))} m over N = {Ns[0]}…{Ns[-1]} (what is left is the time-step error of the codes)"
+                     + (f"; MoorDyn vs MuJoCo: at most {_fmt(float(row(diff, case=case, pair='moordyn - mujoco').max_tip_distance_m.max()))} m."
+                        if len(outside) == 2 else "."))
+        for c in outside:
+            d = row(diff, case=case, pair=f"ours_consistent - {c}")
+            lines.append(f"- Our consistent model vs {c}: {_fmt(float(d.max_tip_distance_m.iloc[0]))} m at N = {Ns[0]}, "
+                         f"{_fmt(float(d.max_tip_distance_m.iloc[-1]))} m at N = {Ns[-1]}.")
+        for code in ("ours_consistent", "ours_lumped") + tuple(outside):
+            cv = row(conv, case=case, code=code)
+            orders = cv.observed_order.dropna()
+            lines.append(f"- Self-convergence of {code}: max |tip(N) − tip(N/2)| from {_fmt(float(cv.max_change_m.iloc[0]))} "
+                         f"(N = {int(cv.N_next.iloc[0])}) to {_fmt(float(cv.max_change_m.iloc[-1]))} m (N = {int(cv.N_next.iloc[-1])}); "
+                         f"observed orders {', '.join(f'{o:.2f}' for o in orders)}.")
+        lc = row(lim, case=case)
+        for c in outside:
+            for ours in ("ours_consistent", "ours_lumped"):
+                v = row(lc, pair=f"{ours} - {c}")
+                if len(v):
+                    lines.append(f"- Richardson limits (N = {v.N_pair.iloc[0]}): {ours} vs {c} agree to "
+                                 f"{_fmt(float(v.max_limit_distance_m.iloc[0]))} m.")
+        v = row(lc, pair="ours_consistent - ours_lumped")
+        if len(v):
+            lines.append(f"- Richardson limits: ours_consistent vs ours_lumped agree to {_fmt(float(v.max_limit_distance_m.iloc[0]))} m.")
+        err = error_vs_limit(res, case)
+        if len(err):
+            ratios = ", ".join(f"{r:.2f} (N = {n})" for n, r in zip(err.N, err.lumped_over_consistent))
+            lines.append(f"- Error against the Richardson limit of ours_consistent (max over t), lumped / consistent at "
+                         f"equal N: {ratios} (`error_vs_limit.csv`).")
+        minstrain = min(s["min_strain_ours_lumped"] for s in settings["runs"] if s["case"] == case)
+        lines.append(f"- Smallest element strain of our lumped runs: {minstrain:.2e} (MoorDyn's lines are tension-only; "
+                     "a clearly negative value would make MoorDyn differ).")
+        lines.append("")
+        lines.append("Wall time per step at equal N (µs; MoorDyn and MuJoCo: one RK4 step = 4 force evaluations, at dt, "
+                     f"median over the {len(res['times']) - 1} output intervals; ours: one LGVI step, at dt/{OURS_REFINE}, "
+                     "mean over the run, compile time excluded):")
+        lines.append("")
+        codes = [c for c in ("moordyn", "mujoco", "ours_consistent", "ours_lumped") if c in set(row(cost, case=case).code)]
+        lines.append("| N | dt [s] | " + " | ".join(codes) + " |")
+        lines.append("|---|---|" + "---|" * len(codes))
+        for N in Ns:
+            cN = row(cost, case=case, N=N).set_index("code")
+            dt = float(cN.loc[outside[0], "dt_s"])
+            lines.append(f"| {N} | {dt:.3g} | " + " | ".join(f"{float(cN.loc[c, 'us_per_step']):.1f}" for c in codes) + " |")
+        lines.append("")
+    lines += ["Timings are single runs on a shared machine (see the load average above): read them as magnitudes.", ""]
+    atomic_write_text(out / "README.md", "\n".join(lines))
+    return out / "README.md"
+
+
+def main(scene_name: str = "fixed_length", elements=DEFAULT_ELEMENTS, t_end: float = DEFAULT_T_END,
+         out: str | Path = "results/xval", command: str = "python -m benchmark xval", log=print) -> Path:
+    from models import load_scene
+
+    scene = load_scene(scene_name)
+    check_scene(scene)  # refuse an untranslatable scene before any work
+    load = ", ".join(f"{x:.2f}" for x in os.getloadavg())
+    t0 = time.perf_counter()
+    res = study(scene, elements, t_end, log=log)
+    return write_outputs(res, scene, Path(out), command, time.perf_counter() - t0, load)
