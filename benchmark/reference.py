@@ -83,8 +83,12 @@ class CacheError(ValueError):
 def load_reference(path: Path, ident: dict):
     """The trajectory in ``path`` if it loads, is the reference ``ident`` describes and matches
     its checksum; CacheError saying what is wrong otherwise."""
+    import zipfile
+
     from integrators import Trajectory
 
+    if not zipfile.is_zipfile(path):  # an .npz is a zip archive; random bytes, a pickle or a cut file are not
+        raise CacheError("cannot be read (not an .npz archive: truncated or not written by reelbench)")
     try:
         with np.load(path, allow_pickle=False) as data:
             files = set(data.files)

@@ -56,7 +56,7 @@ def plugin_env(tmp_path):
 def _sweep(out: Path, env: dict, *extra: str) -> subprocess.Popen:
     cmd = [sys.executable, "-m", "benchmark", "run", "--scenes", "fixed_length", "--integrators", "test_slow",
            "--dts", "0.01,0.005", "--t-end", "0.04", "--set", "elements=1", "--no-figures", "--repeats", "1",
-           "--jobs", "2", "--out", str(out), *extra]
+           "--jobs", "1", "--out", str(out), *extra]
     return subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             start_new_session=True)
 
@@ -107,8 +107,12 @@ pytestmark = pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="ne
 def test_a_signal_stops_the_sweep_at_once_saves_the_rows_and_leaves_no_worker(tmp_path, plugin_env, sig, rc, name):
     out = tmp_path / "out"
     proc = _sweep(out, plugin_env)
-    # the fast run (dt = 0.01) is saved; the slow one (dt = 0.005) keeps a worker busy for 60 s
-    _wait_for(lambda: _rows(out / "runs.csv") >= 1, 240, "the first row", proc)
+    if sig == signal.SIGINT:
+        # the fast run (dt = 0.01) is saved; the slow one (dt = 0.005) keeps the worker busy for 60 s
+        _wait_for(lambda: _rows(out / "runs.csv") >= 1, 240, "the first row", proc)
+    else:  # as soon as the pool has started: nothing finished yet
+        _wait_for(lambda: _children(proc.pid), 60, "the worker", proc)
+        time.sleep(1.0)
     workers = _children(proc.pid)
     assert workers, "the sweep has no worker processes"
     t0 = time.monotonic()
@@ -119,9 +123,10 @@ def test_a_signal_stops_the_sweep_at_once_saves_the_rows_and_leaves_no_worker(tm
     assert took < 8, f"took {took:.1f} s to stop"
     assert "Traceback" not in err, err
     last = err.strip().splitlines()[-1]
-    assert last.startswith(f"stopped by {name}: 1 finished run(s) are saved in") and "resume" in last, last
+    saved = "1 finished run(s) are saved in" if sig == signal.SIGINT else "no run had finished, nothing saved"
+    assert last.startswith(f"stopped by {name}: {saved}") and "resume" in last, last
     _wait_for(lambda: not any(_alive(w) for w in workers), 5, "the workers to exit")
-    assert _rows(out / "runs.csv") == 1
+    assert _rows(out / "runs.csv") == (1 if sig == signal.SIGINT else 0)
     assert not (out / ".reelbench.lock").exists()
 
 
@@ -150,9 +155,27 @@ def test_killed_sweep_leaves_no_worker_and_a_rerun_resumes(tmp_path, plugin_env)
     assert rows.iloc[0]["run_time"] == kept.iloc[0]["run_time"]
     assert rows.iloc[0]["run_key"] == kept.iloc[0]["run_key"]
 
-    fresh = _sweep(out, env, "--fresh")
-    _, err = fresh.communicate(timeout=240)
-    assert fresh.returncode == 0 and "resuming" not in err and err.count("] fixed_length test_slow") == 2, err
+
+def test_fresh_ignores_the_rows_already_there(tmp_path, monkeypatch):
+    from benchmark import cli, runner
+
+    class Stop(Exception):
+        pass
+
+    seen = {}
+
+    def execute(tasks, **kw):
+        seen["previous"] = kw["previous"]
+        raise Stop
+
+    monkeypatch.setattr(runner, "read_previous", lambda *a, **k: [{"run_key": "x"}])
+    monkeypatch.setattr(runner, "execute", execute)
+    args = ["run", "--scenes", "fixed_length", "--integrators", "lgvi", "--dts", "0.01", "--t-end", "0.02",
+            "--no-figures", "--out", str(tmp_path)]
+    for extra, previous in (([], [{"run_key": "x"}]), (["--fresh"], [])):
+        with pytest.raises(Stop):
+            cli.main(args + extra)
+        assert seen["previous"] == previous
 
 
 # ------------------------------------------------------------------------------------------
