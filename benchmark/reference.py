@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from integrators import Trajectory, get_integrator
+
 REFERENCE_METHOD = {"integrator": "dop853", "rtol": 1e-12, "atol": 1e-14}
 CACHE_DIR = Path("results") / "cache"
 #: Version of the file layout below; a file of another format is recomputed.
@@ -85,8 +87,6 @@ def load_reference(path: Path, ident: dict):
     its checksum; CacheError saying what is wrong otherwise."""
     import zipfile
 
-    from integrators import Trajectory
-
     if not zipfile.is_zipfile(path):  # an .npz is a zip archive; random bytes, a pickle or a cut file are not
         raise CacheError("cannot be read (not an .npz archive: truncated or not written by reelbench)")
     try:
@@ -118,8 +118,6 @@ def load_reference(path: Path, ident: dict):
 def get_reference(scene, t_end: float, save_every: float, cache_dir: Path = CACHE_DIR, log=_log_stderr):
     """The cached reference for (scene, t_end, save_every), computing it on first use, or when
     the cached file cannot be trusted (reported through ``log`` by file name)."""
-    from integrators import get_integrator
-
     path = reference_path(scene, t_end, save_every, cache_dir)
     ident = identity(scene, t_end, save_every)
     if path.exists():

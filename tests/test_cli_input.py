@@ -148,3 +148,16 @@ def test_help_and_refusals_do_not_import_jax(args):
     res = json.loads(out.stdout.strip().splitlines()[-1])
     assert res["rc"] == (0 if "--help" in args else 2), out.stderr
     assert res["heavy"] == [], res
+
+
+def test_simulate_and_figures_write_next_to_the_user(tmp_path, monkeypatch, capsys):
+    """Not into the repository's tracked results/: into the current directory, or --out."""
+    monkeypatch.chdir(tmp_path)
+    assert main(["simulate", "fixed_length", "--set", "elements=1", "--t-end", "0.04", "--dt", "0.01"]) == 0
+    assert (tmp_path / "simulate_fixed_length_lgvi.npz").exists()
+    assert (tmp_path / "simulate_fixed_length_lgvi.csv").exists()
+    assert main(["figures", "simulate_fixed_length_lgvi.npz", "--set", "elements=1"]) == 0
+    assert (tmp_path / "simulate_fixed_length_lgvi.png").exists()
+    assert main(["figures", "simulate_fixed_length_lgvi.npz", "--set", "elements=1", "--out", "sub/f.png"]) == 0
+    assert (tmp_path / "sub" / "f.png").exists()
+    assert not (tmp_path / "results").exists()
