@@ -245,3 +245,19 @@ def test_worker_pool_workers_exit_when_their_parent_dies(tmp_path):
     proc.kill()
     proc.wait()
     _wait_for(lambda: not any(_alive(w) for w in workers), 10, "the orphaned workers to exit")
+
+
+def test_dask_workers_get_one_xla_thread_and_run_the_sweep(tmp_path, monkeypatch):
+    distributed = pytest.importorskip("distributed")
+    from benchmark.cli import main
+
+    monkeypatch.delenv("XLA_FLAGS", raising=False)  # the workers must get it from the runner, not inherit it
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        rc = main(["run", "--executor", "dask", "--scheduler", cluster.scheduler_address, "--scenes", "fixed_length",
+                   "--integrators", "lgvi", "--dts", "0.01", "--t-end", "0.04", "--set", "elements=1",
+                   "--no-figures", "--repeats", "1", "--out", str(tmp_path)])
+        assert rc == 0
+        with distributed.Client(cluster.scheduler_address) as client:
+            flags = list(client.run(lambda: os.environ.get("XLA_FLAGS")).values())
+    assert flags == ["--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"]
+    assert (pd.read_csv(tmp_path / "runs.csv")["status"] == "ok").all()
