@@ -304,7 +304,9 @@ def _suggest(word: str, options) -> str:
     return f" (did you mean {close[0]!r}?)" if close else ""
 
 
-def _apply_overrides(data: dict, overrides: Mapping, source: str) -> None:
+def _apply_overrides(data: dict, overrides: Mapping, source: str) -> set[str]:
+    """Apply ``overrides`` to ``data`` in place; returns the dotted keys they set."""
+    applied: set[str] = set()
     leaf_owner: dict[str, list[str]] = {}
     for section, spec in _SCHEMA.items():
         if isinstance(spec, dict):
@@ -322,26 +324,32 @@ def _apply_overrides(data: dict, overrides: Mapping, source: str) -> None:
             raise SceneError(f"{source}: unknown override {name!r}{_suggest(name, valid)}")
         if section is None:
             data[key] = value
+            applied.add(key)
             continue
         if section not in _SCHEMA or not isinstance(_SCHEMA[section], dict) or key not in _SCHEMA[section]:
             raise SceneError(f"{source}: unknown override {name!r}")
         sec = data.setdefault(section, {})
         sec[key] = value
+        applied.add(f"{section}.{key}")
         # box and inertia are alternatives: an override of one replaces the other.
         if section == "body" and key in ("box", "inertia"):
             sec.pop("inertia" if key == "box" else "box", None)
+    return applied
 
 
 def _build(data: dict, source: str, overrides: Mapping) -> Scene:
     data = copy.deepcopy(dict(data))
-    _apply_overrides(data, overrides, source)
-    v = _Validator(source)
+    v = _Validator(source, _apply_overrides(data, overrides, source))
     return v.scene(data)
 
 
 class _Validator:
-    def __init__(self, source: str):
+    def __init__(self, source: str, overridden: set[str] = frozenset()):
         self.source = source
+        self.overridden = overridden  # keys whose value came from an override, not the file
+
+    def _where(self, key: str) -> str:
+        return f"{self.source} (overridden)" if key in self.overridden else self.source
 
     def fail(self, key: str, value: Any, allowed: str) -> SceneError:
         # repr for strings and floats: `mass = "1.0"` must not read as the number 1.0
@@ -350,7 +358,7 @@ class _Validator:
             shown = '"' + value.replace('"', '\\"') + '"'
             allowed += " (a quoted value is a string in TOML: write the number without quotes)" \
                 if _looks_numeric(value) else ""
-        return SceneError(f"{self.source}: key '{key}' = {shown} is invalid: allowed {allowed}")
+        return SceneError(f"{self._where(key)}: key '{key}' = {shown} is invalid: allowed {allowed}")
 
     # -- scalar / vector parsing -----------------------------------------------------
     def number(self, key: str, value: Any, rule: str, integer: bool = False) -> float | int:
@@ -488,7 +496,7 @@ class _Validator:
             mag = abs(float(value))
         if mag != 0.0 and not lo <= mag <= hi:
             raise SceneError(
-                f"{self.source}: key '{key}' = {raw!r} is implausible: allowed a magnitude in [{lo:g}, {hi:g}] "
+                f"{self._where(key)}: key '{key}' = {raw!r} is implausible: allowed a magnitude in [{lo:g}, {hi:g}] "
                 f"(SI units; see models/README.md). Check the units and the exponent")
 
     def _value(self, key: str, value: Any, spec: _Key, effects) -> Any:

@@ -161,3 +161,21 @@ def test_simulate_and_figures_write_next_to_the_user(tmp_path, monkeypatch, caps
     assert main(["figures", "simulate_fixed_length_lgvi.npz", "--set", "elements=1", "--out", "sub/f.png"]) == 0
     assert (tmp_path / "sub" / "f.png").exists()
     assert not (tmp_path / "results").exists()
+
+
+def test_size_estimate_warns_about_a_long_run_and_refuses_what_cannot_fit():
+    from benchmark import options
+    from models import load_scene
+
+    said = []
+    big = load_scene("fixed_length", elements=2000)
+    size = options.check_size(big, 10.0, 0.02, 1e-4, warn=said.append, what="big")
+    assert size["steps"] == pytest.approx(1e5) and size["seconds"] > options.TIME_WARN
+    assert len(said) == 1 and said[0].startswith("warning: big takes 1e+05 steps; estimated"), said
+    said.clear()
+    options.check_size(load_scene("fixed_length"), 10.0, 0.02, 0.005, warn=said.append)
+    assert said == []  # the paper's scene at its step: nothing to say
+    with pytest.raises(options.UsageError, match="saved points"):
+        options.check_size(big, 1e5, 1e-3, None)
+    with pytest.raises(options.UsageError, match="steps of dt"):
+        options.check_size(big, 10.0, 0.02, 1e-9)
