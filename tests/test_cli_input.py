@@ -169,9 +169,9 @@ def test_size_estimate_warns_about_a_long_run_and_refuses_what_cannot_fit():
 
     said = []
     big = load_scene("fixed_length", elements=2000)
-    size = options.check_size(big, 10.0, 0.02, 1e-4, warn=said.append, what="big")
-    assert size["steps"] == pytest.approx(1e5) and size["seconds"] > options.TIME_WARN
-    assert len(said) == 1 and said[0].startswith("warning: big takes 1e+05 steps; estimated"), said
+    size = options.check_size(big, 10.0, 0.02, 1e-5, warn=said.append, what="big")
+    assert size["steps"] == pytest.approx(1e6) and size["seconds"] > options.TIME_WARN
+    assert len(said) == 1 and said[0].startswith("warning: big takes 1e+06 steps; estimated"), said
     said.clear()
     options.check_size(load_scene("fixed_length"), 10.0, 0.02, 0.005, warn=said.append)
     assert said == []  # the paper's scene at its step: nothing to say
