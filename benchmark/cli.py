@@ -3,8 +3,9 @@
 Every command checks all of its input first -- option types and ranges, conflicting options,
 the scene (and the plausibility of its values), the output place (created and test-written)
 and the size of the run -- and only then imports JAX and starts work. A mistake is answered
-in well under a second with ``error: ...`` and exit status 2, without a traceback; an
-unexpected internal error keeps its traceback. Ctrl-C or SIGTERM stops a command with one
+in well under a second with ``error: ...`` and exit status 2, without a traceback (set
+REELBENCH_DEBUG=1 to see where a ValueError came from); any other exception is an internal
+error and keeps its traceback. Ctrl-C or SIGTERM stops a command with one
 line saying what was saved (exit status 130 or 143).
 
 The model and the scene format: models/README.md. The integrators: integrators/README.md.
@@ -14,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shlex
 import sys
 import threading
@@ -143,8 +145,6 @@ def _run(args, scene_names, ov, t_end, out: Path, saved: list) -> int:
                           repeats=args.repeats, cache_dir=str(out / CACHE_DIR.name), on_row=write,
                           previous=previous)
     write(runs.to_dict("records"))
-    import pandas as pd  # noqa: F401  (heavy imports only after the sweep's input is known good)
-
     from benchmark import plots, report
     from benchmark.metrics import observed_orders
     from integrators import get_integrator
@@ -465,6 +465,8 @@ def main(argv=None) -> int:
             return exc.code if isinstance(exc.code, int) else 2
         return args.func(args)
     except ValueError as exc:  # bad input (UsageError, SceneError, an integrator's argument check)
+        if os.environ.get("REELBENCH_DEBUG"):  # a developer chasing a ValueError gets its traceback
+            raise
         _log(f"error: {exc}")
         return 2
     except KeyboardInterrupt as exc:  # a command without its own stop message
