@@ -93,13 +93,13 @@ def cmd_run(args) -> int:
         raise UsageError("--executor dask needs --scheduler ADDRESS (e.g. tcp://host:8786)")
     if args.scheduler and args.executor != "dask":
         raise UsageError(f"--scheduler is only used with --executor dask (got --executor {args.executor})")
-    scene_names = args.scenes or ["fixed_length", "deployment", "retrieval"]
+    from benchmark import sweep  # no JAX until build_tasks
+
+    scene_names = args.scenes or list(sweep.PAPER_SCENES)
     ov = _overrides(args.set)
     if args.t_end is not None:
         ov = {"t_end": args.t_end, **ov}  # validated (and checked for plausibility) with the scene
     scenes = [load_scene(s, **ov) for s in scene_names]
-    from benchmark import sweep  # no JAX until build_tasks
-
     sweep.check_settings(args.dts, args.rtols)
     t_end = args.t_end or (sweep.QUICK_T_END if args.quick else None)
     for sc in scenes:
@@ -154,7 +154,7 @@ def _run(args, scene_names, ov, t_end, out: Path, saved: list) -> int:
     orders = observed_orders(runs)
     atomic_write_text(out / "orders.csv", orders.to_csv(index=False))
     figures = []
-    horizon = args.horizon if args.horizon is not None else (10.0 if args.quick else 100.0)
+    horizon = args.horizon if args.horizon is not None else (QUICK_HORIZON if args.quick else FULL_HORIZON)
     if not args.no_figures:
         for s in scene_names:
             figures.append(plots.work_precision(runs, load_scene(s, **ov).name, out).name)
@@ -174,6 +174,9 @@ def _run(args, scene_names, ov, t_end, out: Path, saved: list) -> int:
     _log(f"done in {wall:.0f} s: {len(runs)} runs, {n_bad} not ok; see {out}/README.md")
     return 0
 
+
+#: length (s) of the long-horizon energy study (run --horizon), full and --quick
+FULL_HORIZON, QUICK_HORIZON = 100.0, 10.0
 
 # LGVI step for the paper figures: inside its stability limit (h ω_max < 2) on all three
 # scenes at N = 10 (deployment's short elements diverge at 5 ms, measured).
@@ -352,7 +355,13 @@ class _Help(argparse.ArgumentDefaultsHelpFormatter):
         return super()._get_help_string(action)
 
 
+def _csv(values) -> str:
+    return ",".join(f"{v:g}" if isinstance(v, float) else str(v) for v in values)
+
+
 def parser() -> argparse.ArgumentParser:
+    from benchmark import sweep  # constants only (no JAX): the defaults shown in --help are the real ones
+
     p = argparse.ArgumentParser(prog="python -m benchmark", description=__doc__, formatter_class=_Help)
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
@@ -364,17 +373,20 @@ def parser() -> argparse.ArgumentParser:
             "into an OUT that holds rows of the same sweep (same scene physics, integrator, setting, horizon "
             "and code) keeps them and computes only the rest (--fresh recomputes all). Ctrl-C stops cleanly.")
     r.add_argument("--scenes", type=opt.names, help="comma-separated scene names or .toml paths "
-                                                    "(default: fixed_length,deployment,retrieval)")
+                                                    f"(default: {_csv(sweep.PAPER_SCENES)})")
     r.add_argument("--integrators", type=opt.names, help="comma-separated integrator names (default: every "
                                                          "registered one; see `list`)")
-    r.add_argument("--quick", action="store_true", help="reduced sweep: 1 s horizon, 3 step sizes, 2 tolerances, "
-                                                        "10 s energy study")
+    r.add_argument("--quick", action="store_true", help=f"reduced sweep: {sweep.QUICK_T_END:g} s horizon, "
+                   f"{len(sweep.QUICK_DTS)} step sizes, {len(sweep.QUICK_RTOLS)} tolerances, {QUICK_HORIZON:g} s energy study")
     r.add_argument("--dts", type=opt.positive_floats, help="comma-separated step sizes (s) for fixed-step methods, "
-                   "each dividing the save interval 0.02 s (default: 0.02,0.01,0.005,0.0025,0.00125; "
-                   "--quick: 0.01,0.005,0.0025)")
+                   f"each dividing the save interval {sweep.SAVE_EVERY:g} s (default: {_csv(sweep.FULL_DTS)}; "
+                   f"--quick: {_csv(sweep.QUICK_DTS)})")
     r.add_argument("--rtols", type=opt.tolerances, help="comma-separated relative tolerances for adaptive methods, "
-                   "atol = rtol/100 (default: 1e-4,1e-6,1e-8,1e-10; implicit methods 1e-3,1e-4,1e-6)")
-    r.add_argument("--t-end", type=opt.positive_float, help="horizon in s (default: each scene's t_end; --quick: 1)")
+                   f"atol = rtol × {sweep.ATOL_FACTOR:g} (default: {_csv(sweep.FULL_RTOLS)}; implicit methods "
+                   f"{_csv(sweep.IMPLICIT_FULL_RTOLS)}; --quick: {_csv(sweep.QUICK_RTOLS)}, implicit "
+                   f"{_csv(sweep.IMPLICIT_QUICK_RTOLS)})")
+    r.add_argument("--t-end", type=opt.positive_float,
+                   help=f"horizon in s (default: each scene's t_end; --quick: {sweep.QUICK_T_END:g})")
     r.add_argument("--set", action="append", metavar="KEY=VALUE", help="scene override, repeatable, e.g. "
                                                                          "--set elements=20")
     r.add_argument("--jobs", type=opt.positive_int, help="worker processes (default: CPU count, at most one per run)")
@@ -385,8 +397,8 @@ def parser() -> argparse.ArgumentParser:
                    help="where runs execute: worker processes, this process, or a Dask cluster")
     r.add_argument("--scheduler", help="Dask scheduler address, with --executor dask (e.g. tcp://host:8786)")
     r.add_argument("--horizon", type=opt.nonnegative_float,
-                   help="length (s) of the long-horizon energy study on fixed_length; 0 = off (default: 100; "
-                        "--quick: 10)")
+                   help=f"length (s) of the long-horizon energy study on fixed_length; 0 = off (default: "
+                        f"{FULL_HORIZON:g}; --quick: {QUICK_HORIZON:g})")
     r.add_argument("--no-figures", action="store_true", help="skip the figures and the energy study")
     r.add_argument("--fresh", action="store_true", help="recompute every run, ignoring rows already in OUT/runs.csv")
     r.add_argument("--out", default="results", help="output directory (created if missing); the default is the "
