@@ -17,8 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from integrators.lgvi import LGVI
-from models import load_scene
+from benchmark import options as opt
 
 #: step at N = 10 per scene, scaled by 10/N: the LGVI is explicit in the elastic forces, so it
 #: needs h ω_max < 2 with ω_max ∝ N (fixed_length N = 10: h < ~9 ms; deployment: h < ~2.7 ms).
@@ -26,6 +25,9 @@ DEFAULT_DT10 = {"fixed_length": 0.005, "deployment": 0.002, "retrieval": 0.004}
 
 
 def measure(scene_name: str, n: int, steps: int, repeats: int, dt: float | None = None) -> dict:
+    from integrators.lgvi import LGVI  # JAX: only once the options are known good
+    from models import load_scene
+
     scene = load_scene(scene_name, elements=n)
     h = dt or DEFAULT_DT10.get(scene_name, 0.002) * 10.0 / n
     integ = LGVI()
@@ -42,16 +44,23 @@ def measure(scene_name: str, n: int, steps: int, repeats: int, dt: float | None 
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="lgvi_speed", description=__doc__.splitlines()[0])
-    ap.add_argument("--elements", default="10,40,160,640", help="comma-separated N values")
-    ap.add_argument("--scenes", default="fixed_length,deployment", help="comma-separated scene names")
-    ap.add_argument("--steps", type=int, default=2000, help="steps per timed run")
-    ap.add_argument("--repeats", type=int, default=3, help="timed repeats (median)")
-    ap.add_argument("--dt", type=float, default=None, help="step size (default: per-scene stable step at N = 10, times 10/N)")
+    ap = argparse.ArgumentParser(prog="python -m benchmark speed", description=__doc__.splitlines()[0],
+                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    ap.add_argument("--elements", type=opt.positive_ints, default=[10, 40, 160, 640], help="comma-separated N values")
+    ap.add_argument("--scenes", type=opt.names, default=["fixed_length", "deployment"], help="comma-separated scene names")
+    ap.add_argument("--steps", type=opt.positive_int, default=2000, help="steps per timed run")
+    ap.add_argument("--repeats", type=opt.positive_int, default=3, help="timed repeats (median)")
+    ap.add_argument("--dt", type=opt.positive_float, default=None, help="step size (default: per-scene stable step at N = 10, times 10/N)")
     ap.add_argument("--out", help="also write the table (Markdown, with the command and machine) to this file")
     args = ap.parse_args(argv)
-    ns = [int(v) for v in args.elements.split(",") if v.strip()]
-    scenes = [v.strip() for v in args.scenes.split(",") if v.strip()]
+    ns, scenes = args.elements, args.scenes
+    from models import load_scene
+
+    for sc in scenes:  # every scene and N is checked (names, plausibility) before any work
+        for n in ns:
+            load_scene(sc, elements=n)
+    if args.out:
+        opt.writable_file(args.out)
     print(f"{'scene':<14}{'N':>6}{'compile s':>11}{'us/step':>10}{'steps/s':>11}{'newton/step':>13}  status")
     md = ["| scene | N | compile (s) | µs/step | steps/s | Newton iterations/step | status |", "|---|---|---|---|---|---|---|"]
     slopes = []

@@ -104,6 +104,8 @@ def paper_panels(scene, traj, df: pd.DataFrame, out_path: Path, n_snapshots: int
     ax.set_xlabel("t (s)"), ax.legend(fontsize=8), ax.grid(True, which="both", alpha=0.3)
     ax.set_title("(d) conserved quantities and orthogonality")
     status = "" if traj.ok else f"  [stopped: {traj.status}]"
-    fig.suptitle(f"{scene.name} — {traj.integrator} {traj.settings}{status}")
+    setting = ", ".join(f"{k} = {v:g}" if isinstance(v, (int, float)) else f"{k} = {v}"
+                        for k, v in traj.settings.items() if v is not None)
+    fig.suptitle(f"{scene.name} — {traj.integrator} ({setting}){status}")
     fig.tight_layout()
     return _save(fig, Path(out_path))

@@ -4,14 +4,26 @@ Each task runs in a worker process (or a Dask worker): one solve for the errors,
 separate timing pass (minimum wall time over repeats, compilation excluded). A failed or
 diverged run becomes a row with its status; an exception inside a task becomes a row with
 status "error"; a crashed worker becomes a row with status "crashed". The sweep goes on.
+
+Stopping and resuming: Ctrl-C or SIGTERM (`install_stop_handlers`) stops a sweep at once; the
+pool's workers are terminated (`worker_pool`), and each worker also exits by itself when its
+parent disappears (killed with -9), so none is left running. Every row carries a `run_key`
+(scene physics hash, integrator, setting, horizon, code version); `execute(previous=...)`
+keeps the rows of earlier runs with the same key and computes only the rest. `OutputLock`
+keeps two sweeps from writing into one directory.
 """
 
 from __future__ import annotations
 
 import concurrent.futures as cf
+import hashlib
+import json
 import multiprocessing
 import os
+import signal
+import socket
 import sys
+import threading
 import time
 import traceback
 from pathlib import Path
@@ -85,6 +97,7 @@ def run_task(task: Task, cache_dir: str = str(CACHE_DIR), repeats: int = 3, *, r
                 times.append(integ.solve(scene, **kw).stats.get("wall_time", np.nan))
                 spent += time.perf_counter() - t0
             row["run_time"] = float(np.nanmin(times))
+            row["run_time_median"] = float(np.nanmedian(times))
             row["timing_samples"] = len(times)
         return row
     except Exception as exc:  # a bug in one task must not lose the other rows
@@ -114,11 +127,199 @@ def _worker_env() -> None:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 
+#: How often (s) a worker checks that its parent is still alive.
+PARENT_POLL = 0.5
+
+
+def _watch_parent(parent: int) -> None:
+    while True:
+        time.sleep(PARENT_POLL)
+        if os.getppid() != parent:  # re-parented: the sweep's process is gone (e.g. kill -9)
+            os._exit(3)
+
+
+def _worker_init(parent: int) -> None:
+    """Runs first in every pool worker: Ctrl-C is the parent's to handle (it terminates the
+    workers; a worker that also caught it would print a traceback), and the worker exits on
+    its own once the parent is gone."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    threading.Thread(target=_watch_parent, args=(parent,), daemon=True, name="watch-parent").start()
+
+
+class _Pool(cf.ProcessPoolExecutor):
+    """A process pool that, when its ``with`` block ends by an exception (Ctrl-C, SIGTERM, an
+    error), terminates its workers instead of waiting for their tasks to finish."""
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None:
+            return super().__exit__(exc_type, exc, tb)
+        self.terminate()
+        return False
+
+    def terminate(self, grace: float = 2.0) -> None:
+        procs = list((getattr(self, "_processes", None) or {}).values())
+        for p in procs:
+            if p.is_alive():
+                p.terminate()
+        self.shutdown(wait=False, cancel_futures=True)
+        deadline = time.monotonic() + grace
+        for p in procs:
+            p.join(max(0.0, deadline - time.monotonic()))
+            if p.is_alive():
+                p.kill()
+                p.join(1.0)
+
+
 def worker_pool(workers: int) -> cf.ProcessPoolExecutor:
     """The process pool every sweep uses: spawned workers (JAX does not survive fork), one XLA
-    thread each (`_worker_env`)."""
+    thread each (`_worker_env`), which ignore Ctrl-C, exit when the parent dies, and are
+    terminated when the ``with`` block is left by an exception."""
     _worker_env()
-    return cf.ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+    return _Pool(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+                 initializer=_worker_init, initargs=(os.getpid(),))
+
+
+def install_stop_handlers() -> None:
+    """SIGTERM stops the process like Ctrl-C does (KeyboardInterrupt in the main thread), so
+    one ``except KeyboardInterrupt`` handles both and the pool's workers are terminated."""
+
+    def stop(signum, frame):
+        raise KeyboardInterrupt(f"signal {signal.Signals(signum).name}")
+
+    signal.signal(signal.SIGTERM, stop)
+
+
+# ------------------------------------------------------------------------------------------
+# Resume: which rows of an earlier run belong to this sweep
+# ------------------------------------------------------------------------------------------
+_CODE_DIRS = ("models", "integrators")
+_CODE_FILES = ("benchmark/runner.py", "benchmark/metrics.py", "benchmark/reference.py", "benchmark/sweep.py")
+
+
+def code_version() -> str:
+    """A hash of the source that determines a row (the model, the integrators, the metrics):
+    rows computed by other code are recomputed on resume, never mixed in."""
+    root = Path(__file__).resolve().parent.parent
+    files = sorted(p for d in _CODE_DIRS for p in (root / d).rglob("*") if p.suffix in (".py", ".toml"))
+    files += [root / f for f in _CODE_FILES]
+    h = hashlib.sha256()
+    for f in files:
+        h.update(str(f.relative_to(root)).encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()[:12]
+
+
+def run_key(task: Task, code: str | None = None) -> str:
+    """Identity of a task's row: the scene's physics hash (not its name), the integrator, the
+    setting, horizon and save interval, and the code version."""
+    scene = _scene(task)
+    what = {"scene": scene.key(), "integrator": task.integrator, "dt": task.dt, "rtol": task.rtol,
+            "atol": task.atol, "t_end": task.t_end if task.t_end is not None else scene.t_end,
+            "save_every": task.save_every, "code": code or code_version()}
+    return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()[:16]
+
+
+#: Rows with these statuses are recomputed on resume (the cause may have been transient).
+RETRY_STATUSES = ("crashed", "error")
+
+
+def read_previous(path: str | os.PathLike, log: Callable[[str], None] | None = None) -> list[dict]:
+    """The rows of an earlier run's ``runs.csv`` that can be resumed from (none if the file is
+    missing, unreadable or has no `run_key` column)."""
+    path = Path(path)
+    if not path.exists():
+        return []
+    try:
+        df = pd.read_csv(path)
+    except Exception as exc:  # a damaged table is not a reason to stop: start afresh
+        if log:
+            log(f"warning: {path} cannot be read ({type(exc).__name__}); its rows are recomputed")
+        return []
+    if "run_key" not in df or "status" not in df:
+        return []
+    df = df[~df["status"].isin(RETRY_STATUSES)]
+    if "reason" in df:
+        df["reason"] = df["reason"].fillna("")
+    return df.to_dict("records")
+
+
+# ------------------------------------------------------------------------------------------
+# One writer per output directory
+# ------------------------------------------------------------------------------------------
+class LockedError(ValueError):
+    """Another live process holds the output directory's lock."""
+
+
+class OutputLock:
+    """``with OutputLock(out):`` -- at most one sweep writes into ``out`` at a time.
+
+    The lock is a file holding the owner's pid and host; a lock whose pid no longer runs on
+    this host (a run killed with -9) is taken over."""
+
+    NAME = ".reelbench.lock"
+
+    def __init__(self, directory: str | os.PathLike, log: Callable[[str], None] | None = None):
+        self.path = Path(directory) / self.NAME
+        self.log = log
+        self.held = False
+
+    def _holder(self) -> dict | None:
+        try:
+            return json.loads(self.path.read_text())
+        except (OSError, ValueError):
+            return None
+
+    @staticmethod
+    def _alive(pid: int) -> bool:
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return False
+        except PermissionError:  # exists, owned by someone else
+            return True
+        return True
+
+    def acquire(self) -> "OutputLock":
+        me = {"pid": os.getpid(), "host": socket.gethostname(), "command": " ".join(sys.argv)}
+        for _ in range(3):
+            try:
+                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+            except FileExistsError:
+                holder = self._holder()
+                if holder is None:  # half-written by a holder that is starting: give it a moment
+                    time.sleep(0.2)
+                    holder = self._holder() or {}
+                pid, host = holder.get("pid"), holder.get("host")
+                if isinstance(pid, int) and (host != socket.gethostname() or self._alive(pid)):
+                    raise LockedError(
+                        f"{self.path.parent}/ is in use by another run (pid {pid} on {host}: "
+                        f"{holder.get('command', '?')}); lock file {self.path}. Wait for it to finish or "
+                        f"use another --out; if that run is gone, delete the lock file") from None
+                if self.log:
+                    self.log(f"taking over the stale lock {self.path} (pid {pid} is not running)")
+                try:
+                    self.path.unlink()
+                except FileNotFoundError:
+                    pass
+                continue
+            with os.fdopen(fd, "w") as fh:
+                json.dump(me, fh)
+            self.held = True
+            return self
+        raise LockedError(f"could not take the lock {self.path}; delete it if no run is using {self.path.parent}/")
+
+    def release(self) -> None:
+        if self.held:
+            holder = self._holder()
+            if holder is None or holder.get("pid") == os.getpid():
+                self.path.unlink(missing_ok=True)
+            self.held = False
+
+    def __enter__(self) -> "OutputLock":
+        return self.acquire()
+
+    def __exit__(self, *exc) -> None:
+        self.release()
 
 
 def crash_reason(exc: BaseException) -> str:
@@ -137,43 +338,69 @@ def execute(
     on_row: Callable[[list[dict]], None] | None = None,
     log: Callable[[str], None] = lambda s: print(s, file=sys.stderr, flush=True),
     group: Callable[[Task], Hashable] | None = None,
+    previous: Iterable[dict] | None = None,
 ) -> pd.DataFrame:
     """Run ``tasks`` and return the runs table (task order). ``on_row`` gets the rows so far
     after each completion (used to write partial results atomically).
+
+    ``previous``: rows of an earlier run (`read_previous`); a task whose `run_key` is among
+    them keeps that row and is not run again.
 
     ``group`` (process executor): tasks with the same ``group(task)`` run in one worker, one
     after another, so what that worker compiled for the first (JAX solves are cached per
     model and solver) serves the others; e.g. ``lambda t: (t.scene, t.integrator)``."""
     if executor not in ("process", "serial", "dask"):
         raise ValueError(f"executor = {executor!r} is invalid (allowed: process, serial, dask)")
-    jobs = jobs or min(len(tasks), os.cpu_count() or 1) or 1
-    refs = sorted({(t.scene, t.overrides, t.t_end, t.save_every) for t in tasks}, key=str)
+    if jobs is not None and jobs < 1:
+        raise ValueError(f"jobs = {jobs!r} is invalid (allowed: >= 1)")
+    code = code_version()
+    keys = [run_key(t, code) for t in tasks]
     rows: dict[int, dict] = {}
-    start = time.perf_counter()
-
-    def done(i: int, row: dict) -> None:
-        rows[i] = row
-        status = row["status"]
-        extra = f"{row['run_time']:.3g} s" if status == "ok" else f"{status}: {row['reason']}"[:120]
-        log(f"[{len(rows)}/{len(tasks)}] {row['scene']} {row['integrator']} {row['setting']}: {extra}"
-            f"  ({time.perf_counter() - start:.0f} s elapsed)")
+    kept = {r["run_key"]: r for r in (previous or []) if r.get("run_key")}
+    for i, k in enumerate(keys):
+        if k in kept:
+            rows[i] = kept[k]
+    if rows:
+        log(f"resuming: {len(rows)} of {len(tasks)} runs already done (kept); computing the other {len(tasks) - len(rows)}")
         if on_row:
             on_row([rows[k] for k in sorted(rows)])
+    todo = [i for i in range(len(tasks)) if i not in rows]
+    jobs = jobs or min(len(todo), os.cpu_count() or 1) or 1
+    refs = sorted({(tasks[i].scene, tasks[i].overrides, tasks[i].t_end, tasks[i].save_every) for i in todo}, key=str)
+    start = time.perf_counter()
+    n_new = [0]
+
+    def done(i: int, row: dict) -> None:
+        row["run_key"] = keys[i]
+        rows[i] = row
+        n_new[0] += 1
+        status = row["status"]
+        extra = f"{row['run_time']:.3g} s" if status == "ok" else f"{status}: {row['reason']}"[:120]
+        elapsed = time.perf_counter() - start
+        left = len(todo) - n_new[0]
+        eta = f", about {elapsed / n_new[0] * left:.0f} s left" if left else ""
+        log(f"[{len(rows)}/{len(tasks)}] {row['scene']} {row['integrator']} {row['setting']}: {extra}"
+            f"  ({elapsed:.0f} s elapsed{eta})")
+        if on_row:
+            on_row([rows[k] for k in sorted(rows)])
+
+    if not todo:
+        return to_frame([rows[k] for k in sorted(rows)])
 
     if executor == "serial":
         for ref in refs:
             log(f"reference: {ref[0]} ...")
             _reference_task(*ref, cache_dir)
-        for i, t in enumerate(tasks):
-            done(i, run_task(t, cache_dir, repeats))
+        for i in todo:
+            done(i, run_task(tasks[i], cache_dir, repeats))
     elif executor == "process":
         with worker_pool(jobs) as pool:
             log(f"references for {len(refs)} scene(s) ...")
             for fut in [pool.submit(_reference_task, *ref, cache_dir) for ref in refs]:
                 fut.result()
             batches: dict = {}
-            for i, t in enumerate(tasks):
-                batches.setdefault(group(t) if group else i, []).append(i)
+            for i in todo:
+                batches.setdefault(group(tasks[i]) if group else i, []).append(i)
             futures = {pool.submit(run_tasks, [tasks[i] for i in idx], cache_dir, repeats): idx
                        for idx in batches.values()}
             for fut in cf.as_completed(futures):
@@ -192,19 +419,45 @@ def execute(
         if not scheduler:
             raise ValueError("executor 'dask' needs --scheduler ADDRESS (e.g. tcp://host:8786)")
         client = Client(scheduler)
-        for fut in [client.submit(_reference_task, *ref, cache_dir, pure=False) for ref in refs]:
-            fut.result()
-        futures = {client.submit(run_task, t, cache_dir, repeats, pure=False): i for i, t in enumerate(tasks)}
-        index = {f.key: i for f, i in futures.items()}
-        for fut in as_completed(list(futures)):
-            i = index[fut.key]
-            try:
-                row = fut.result()
-            except Exception as exc:
-                row = _empty_row(tasks[i])
-                row.update(status="crashed", reason=crash_reason(exc))
-            done(i, row)
+        futures = {}
+        try:
+            _dask_worker_env(client)
+            for fut in [client.submit(_reference_task, *ref, cache_dir, pure=False) for ref in refs]:
+                fut.result()
+            futures = {client.submit(run_task, tasks[i], cache_dir, repeats, pure=False): i for i in todo}
+            index = {f.key: i for f, i in futures.items()}
+            for fut in as_completed(list(futures)):
+                i = index[fut.key]
+                try:
+                    row = fut.result()
+                except Exception as exc:
+                    row = _empty_row(tasks[i])
+                    row.update(status="crashed", reason=crash_reason(exc))
+                done(i, row)
+        except BaseException:
+            # a stopped sweep withdraws its tasks: the cluster's workers are not ours to kill
+            client.cancel(list(futures), force=True)
+            raise
+        finally:
+            client.close()
     return to_frame([rows[k] for k in sorted(rows)])
+
+
+def _dask_worker_env(client) -> None:
+    """The pool's one-XLA-thread setting (`_worker_env`) on every Dask worker, also on workers
+    that join or restart later (a worker plugin). It takes effect where JAX is not yet imported
+    in the worker, i.e. before its first task."""
+    from distributed.diagnostics.plugin import WorkerPlugin
+
+    class OneXlaThread(WorkerPlugin):
+        name = "reelbench-one-xla-thread"
+
+        def setup(self, worker):
+            _worker_env()
+
+    register = getattr(client, "register_plugin", None) or client.register_worker_plugin
+    register(OneXlaThread())
+    client.run(_worker_env)
 
 
 def to_frame(rows: Iterable[dict]) -> pd.DataFrame:

@@ -9,8 +9,6 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 
-from integrators import Capability, available, get_integrator
-
 PAPER_SCENES = ("fixed_length", "deployment", "retrieval")
 DEFAULT_INTEGRATORS = ("lgvi", "rk45", "dop853", "radau", "tsit5", "kvaerno5")
 SAVE_EVERY = 0.02  # s; every dt below divides it
@@ -61,6 +59,17 @@ class Task:
         return asdict(self)
 
 
+def check_settings(dts=(), rtols=()) -> None:
+    """ValueError for a step size that does not divide the save interval or a tolerance
+    outside (0, 1); needs no JAX, so the command line checks this before importing it."""
+    for v in dts or ():
+        if not (v > 0 and abs(SAVE_EVERY / v - round(SAVE_EVERY / v)) < 1e-9):
+            raise ValueError(f"dt = {v!r} is invalid (allowed: > 0 and dividing the save interval {SAVE_EVERY} s)")
+    for v in rtols or ():
+        if not 0 < v < 1:
+            raise ValueError(f"rtol = {v!r} is invalid (allowed: 0 < rtol < 1)")
+
+
 def build_tasks(
     scenes=PAPER_SCENES,
     integrators=None,
@@ -73,6 +82,8 @@ def build_tasks(
 ) -> list[Task]:
     """The sweep as tasks. ``integrators=None`` means every registered one among the defaults
     plus any plugin; unknown names raise ValueError before anything runs."""
+    from integrators import Capability, available, get_integrator  # JAX: only once the input is known good
+
     names = list(integrators) if integrators else [n for n in DEFAULT_INTEGRATORS if n in available()] + [
         n for n in available() if n not in DEFAULT_INTEGRATORS and not n.startswith("test_")
     ]
@@ -81,12 +92,7 @@ def build_tasks(
     rtols = tuple(rtols) if rtols else (QUICK_RTOLS if quick else FULL_RTOLS)
     if quick and t_end is None:
         t_end = QUICK_T_END
-    for v in dts:
-        if not (v > 0 and abs(SAVE_EVERY / v - round(SAVE_EVERY / v)) < 1e-9):
-            raise ValueError(f"dt = {v!r} is invalid (allowed: > 0 and dividing the save interval {SAVE_EVERY} s)")
-    for v in rtols + implicit_rtols:
-        if not 0 < v < 1:
-            raise ValueError(f"rtol = {v!r} is invalid (allowed: 0 < rtol < 1)")
+    check_settings(dts, rtols + implicit_rtols)
     ov = tuple(sorted((overrides or {}).items()))
     tasks = []
     for scene in scenes:

@@ -1,6 +1,6 @@
 """Baselines from `scipy.integrate`: RK45, Radau (autodiff Jacobian) and DOP853 (references).
 
-They integrate the model's continuous equations (MODEL.md §5) on the quaternion ODE state
+They integrate the model's continuous equations (models/README.md) on the quaternion ODE state
 ``y = (x, quat, w, W)`` of `models.layout`, with the model's jitted right-hand side returning
 numpy. The quaternion is *not* renormalised (the drift is part of what is measured), except by
 the clearly named ``rk45_projected`` variant, which rescales it to unit norm after every

@@ -6,12 +6,30 @@ Public API::
     scene = load_scene("fixed_length", elements=20)
     model = build_model(scene)        # energies, forces, Legendre transform, EOM
     from models.diagnostics import evaluate
+
+The model and the scene format are described in models/README.md.
+
+The JAX-backed names (`build_model`, `StringPendulum`) are imported on first use, so that
+loading and validating a scene (`load_scene`) does not import JAX: the command line refuses
+bad input in a fraction of a second. Every module that touches JAX imports `models._jax`
+first, which switches JAX to float64 before anything else.
 """
 
-from models import _jax  # noqa: F401  (float64 before anything else touches JAX)
 from models.layout import StateLayout
-from models.model import StringPendulum, build_model
 from models.scene import EFFECTS, Scene, SceneError, available_scenes, load_scene, scene_from_dict
+
+_LAZY = {"StringPendulum": "models.model", "build_model": "models.model"}
+
+
+def __getattr__(name):
+    if name in _LAZY:
+        import importlib
+
+        value = getattr(importlib.import_module(_LAZY[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'models' has no attribute {name!r}")
+
 
 __all__ = [
     "EFFECTS",

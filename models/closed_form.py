@@ -1,4 +1,4 @@
-"""Closed-form continuous-time equations of motion (MODEL.md §3, §5), hand-derived.
+"""Closed-form continuous-time equations of motion (models/README.md), hand-derived.
 
 `ClosedFormEOM(model)` wraps a `StringPendulum` and evaluates the same equations as its
 autodiff path (`mass_matrix`, `momentum`, `accelerations`, `ode_rhs`) without any

@@ -1,4 +1,4 @@
-"""Diagnostics of a trajectory, from any integrator's state (MODEL.md §4).
+"""Diagnostics of a trajectory, from any integrator's state (models/README.md, "What is reported").
 
     df = evaluate(scene, trajectory)   # pandas.DataFrame, one row per saved time
 

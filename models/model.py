@@ -1,4 +1,4 @@
-"""The string pendulum model: the single source of truth for the physics (MODEL.md §2–§5).
+"""The string pendulum model: the single source of truth for the physics (described in models/README.md).
 
 `StringPendulum(scene)` composes the energy terms and generalized forces of the scene's
 effects, once, at construction. Everything else is derived from those terms:

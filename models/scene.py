@@ -1,9 +1,10 @@
 """Scenes: one TOML file fully determines one simulation.
 
 A scene names its physical *effects*; the model builds only the terms those effects need
-(`models.model.StringPendulum`). The file format is described in SCENARIOS.md; every rule
-listed there is enforced here, before any computation, and every error names the file, the
-key and the allowed range (`SceneError`).
+(`models.model.StringPendulum`). The file format is described in models/README.md; every
+rule listed there is enforced here, before any computation, and every error names the file,
+the key and the allowed range (`SceneError`). Magnitudes far outside anything physical
+(`PLAUSIBLE`) are refused too, naming the key. No JAX is imported here.
 
     >>> from models import load_scene
     >>> scene = load_scene("fixed_length", elements=40)
@@ -123,6 +124,41 @@ _RULE_TEXT["mass_model"] = "one of " + ", ".join(repr(m) for m in MASS_MODELS)
 STRETCH_RANGE = (0.01, 100.0)
 
 
+#: Physically plausible magnitudes, (low, high) of |value| (vectors: of their length), in SI
+#: units. Far wider than any real string pendulum, but they stop typos and absurd values
+#: (mass 1e300, EA 1e308, a million elements, t_end 1e12 s) before a run overflows, takes
+#: days or fills the memory. A value of exactly 0 is judged by the key's own rule.
+PLAUSIBLE: dict[str, tuple[float, float]] = {
+    "t_end": (1e-9, 1e6),
+    "string.total_length": (1e-3, 1e5),
+    "string.mass_per_length": (1e-9, 1e5),
+    "string.axial_stiffness": (1e-6, 1e13),
+    "string.elements": (1, 10_000),
+    "string.axial_damping": (0.0, 1e12),
+    "body.mass": (1e-9, 1e9),
+    "body.box": (1e-6, 1e4),
+    "body.attachment_to_com": (0.0, 1e4),
+    "reel.radius": (1e-6, 1e4),
+    "reel.center": (0.0, 1e5),
+    "reel.guide_length": (0.0, 1e5),
+    "reel.equivalent_mass": (1e-9, 1e9),
+    "reel.exit_point": (0.0, 1e5),
+    "reel.control_moment": (0.0, 1e12),
+    "initial.reel_rate": (0.0, 1e4),
+    "initial.tip_velocity": (0.0, 1e4),
+    "initial.angular_velocity": (0.0, 1e5),
+    "environment.g": (0.0, 1e4),
+}
+
+
+def _looks_numeric(text: str) -> bool:
+    try:
+        float(text)
+        return True
+    except ValueError:
+        return False
+
+
 class SceneError(ValueError):
     """A scene file or override is invalid; the message names file, key and allowed range."""
 
@@ -239,6 +275,10 @@ def load_scene(name_or_path: str | Path | Scene, **overrides) -> Scene:
             data = tomllib.load(fh)
     except tomllib.TOMLDecodeError as exc:
         raise SceneError(f"{path}: not valid TOML: {exc}") from None
+    except UnicodeDecodeError:
+        raise SceneError(f"{path}: not a text file (not UTF-8): a scene is a TOML file, see models/README.md") from None
+    except OSError as exc:
+        raise SceneError(f"{path}: cannot read the scene file ({exc.strerror or exc})") from None
     return _build(data, str(path), overrides)
 
 
@@ -249,6 +289,9 @@ def scene_from_dict(data: Mapping, source: str = "<dict>", **overrides) -> Scene
 
 def _resolve(name_or_path: str | Path) -> Path:
     p = Path(name_or_path)
+    if p.is_dir():
+        raise SceneError(f"{p}: is a directory; give a scene name ({', '.join(available_scenes())}) "
+                         f"or the path of a .toml file")
     if p.suffix == ".toml" or p.exists():
         if not p.exists():
             raise SceneError(f"{p}: scene file not found")
@@ -267,7 +310,9 @@ def _suggest(word: str, options) -> str:
     return f" (did you mean {close[0]!r}?)" if close else ""
 
 
-def _apply_overrides(data: dict, overrides: Mapping, source: str) -> None:
+def _apply_overrides(data: dict, overrides: Mapping, source: str) -> set[str]:
+    """Apply ``overrides`` to ``data`` in place; returns the dotted keys they set."""
+    applied: set[str] = set()
     leaf_owner: dict[str, list[str]] = {}
     for section, spec in _SCHEMA.items():
         if isinstance(spec, dict):
@@ -285,30 +330,41 @@ def _apply_overrides(data: dict, overrides: Mapping, source: str) -> None:
             raise SceneError(f"{source}: unknown override {name!r}{_suggest(name, valid)}")
         if section is None:
             data[key] = value
+            applied.add(key)
             continue
         if section not in _SCHEMA or not isinstance(_SCHEMA[section], dict) or key not in _SCHEMA[section]:
             raise SceneError(f"{source}: unknown override {name!r}")
         sec = data.setdefault(section, {})
         sec[key] = value
+        applied.add(f"{section}.{key}")
         # box and inertia are alternatives: an override of one replaces the other.
         if section == "body" and key in ("box", "inertia"):
             sec.pop("inertia" if key == "box" else "box", None)
+    return applied
 
 
 def _build(data: dict, source: str, overrides: Mapping) -> Scene:
     data = copy.deepcopy(dict(data))
-    _apply_overrides(data, overrides, source)
-    v = _Validator(source)
+    v = _Validator(source, _apply_overrides(data, overrides, source))
     return v.scene(data)
 
 
 class _Validator:
-    def __init__(self, source: str):
+    def __init__(self, source: str, overridden: set[str] = frozenset()):
         self.source = source
+        self.overridden = overridden  # keys whose value came from an override, not the file
+
+    def _where(self, key: str) -> str:
+        return f"{self.source} (overridden)" if key in self.overridden else self.source
 
     def fail(self, key: str, value: Any, allowed: str) -> SceneError:
-        shown = value if not isinstance(value, float) else repr(value)
-        return SceneError(f"{self.source}: key '{key}' = {shown} is invalid: allowed {allowed}")
+        # repr for strings and floats: `mass = "1.0"` must not read as the number 1.0
+        shown = repr(value) if isinstance(value, (float, str)) else value
+        if isinstance(value, str):
+            shown = '"' + value.replace('"', '\\"') + '"'
+            allowed += " (a quoted value is a string in TOML: write the number without quotes)" \
+                if _looks_numeric(value) else ""
+        return SceneError(f"{self._where(key)}: key '{key}' = {shown} is invalid: allowed {allowed}")
 
     # -- scalar / vector parsing -----------------------------------------------------
     def number(self, key: str, value: Any, rule: str, integer: bool = False) -> float | int:
@@ -433,11 +489,29 @@ class _Validator:
         return out
 
     def value(self, key: str, value: Any, spec: _Key, effects) -> Any:
+        out = self._value(key, value, spec, effects)
+        if key in PLAUSIBLE and value is not None:
+            self.plausible(key, value, out)
+        return out
+
+    def plausible(self, key: str, raw: Any, value: Any) -> None:
+        lo, hi = PLAUSIBLE[key]
+        if isinstance(raw, (list, tuple)):  # a vector: its length (nonzero rules normalise `value`)
+            mag = math.sqrt(sum(float(x) ** 2 for x in raw))
+        else:
+            mag = abs(float(value))
+        if mag != 0.0 and not lo <= mag <= hi:
+            raise SceneError(
+                f"{self._where(key)}: key '{key}' = {raw!r} is implausible: allowed a magnitude in [{lo:g}, {hi:g}] "
+                f"(SI units; see models/README.md). Check the units and the exponent")
+
+    def _value(self, key: str, value: Any, spec: _Key, effects) -> Any:
         if value is None:
             needed = spec.required or (spec.required_by is not None and all(e in effects for e in spec.required_by))
             if needed:
                 why = f" (needed by effect {', '.join(spec.required_by)})" if spec.required_by else ""
-                raise SceneError(f"{self.source}: missing key '{key}'{why}: allowed {_RULE_TEXT.get(spec.rule, spec.kind)}")
+                allowed = "a string" if spec.kind == "str" else _RULE_TEXT.get(spec.rule, spec.kind)
+                raise SceneError(f"{self.source}: missing key '{key}'{why}: allowed {allowed}")
             return copy.deepcopy(spec.default)
         if spec.kind == "str":
             if spec.rule == "mass_model" and value not in MASS_MODELS:

@@ -1,4 +1,4 @@
-"""Scene loading and validation: every rule of SCENARIOS.md refuses bad input with a clear message."""
+"""Scene loading and validation: every rule of models/README.md refuses bad input with a clear message."""
 
 import copy
 import tomllib

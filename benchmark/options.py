@@ -1,0 +1,186 @@
+"""Checks of command-line input that need no JAX: option types and ranges, output places,
+and a size estimate of a run. Everything here answers in milliseconds, so that the command
+line refuses nonsense before it imports the model (`benchmark.cli`).
+
+Type functions (`positive_int`, `float_list`, ...) are argparse ``type=`` callables: argparse
+names the option in its message ("argument --jobs: ...") and exits with status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import tempfile
+from pathlib import Path
+
+
+class UsageError(ValueError):
+    """Bad input found before any work; the command line prints it as ``error: ...`` (exit 2)."""
+
+
+def _number(text: str, kind=float) -> float:
+    try:
+        v = kind(text)
+    except (TypeError, ValueError):
+        raise argparse.ArgumentTypeError(f"{text!r} is not {'an integer' if kind is int else 'a number'}") from None
+    if kind is float and not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
+    return v
+
+
+def positive_int(text: str) -> int:
+    v = _number(text, int)
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} is invalid (allowed: an integer >= 1)")
+    return v
+
+
+def nonnegative_int(text: str) -> int:
+    v = _number(text, int)
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"{text!r} is invalid (allowed: an integer >= 0)")
+    return v
+
+
+def positive_float(text: str) -> float:
+    v = _number(text)
+    if not v > 0:
+        raise argparse.ArgumentTypeError(f"{text!r} is invalid (allowed: a finite number > 0)")
+    return v
+
+
+def nonnegative_float(text: str) -> float:
+    v = _number(text)
+    if not v >= 0:
+        raise argparse.ArgumentTypeError(f"{text!r} is invalid (allowed: a finite number >= 0)")
+    return v
+
+
+def tolerance(text: str) -> float:
+    v = _number(text)
+    if not 0 < v < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} is invalid (allowed: 0 < tolerance < 1)")
+    return v
+
+
+def _list_of(item):
+    def parse(text: str) -> list:
+        parts = [p.strip() for p in text.split(",") if p.strip()]
+        if not parts:
+            raise argparse.ArgumentTypeError(f"{text!r} is empty (allowed: comma-separated values, e.g. 0.01,0.005)")
+        return [item(p) for p in parts]
+
+    parse.__name__ = f"list of {item.__name__}"
+    return parse
+
+
+positive_floats = _list_of(positive_float)
+positive_ints = _list_of(positive_int)
+tolerances = _list_of(tolerance)
+
+
+def names(text: str) -> list[str]:
+    parts = [p.strip() for p in text.split(",") if p.strip()]
+    if not parts:
+        raise argparse.ArgumentTypeError(f"{text!r} is empty (allowed: comma-separated names)")
+    return parts
+
+
+def writable_dir(path: str | os.PathLike, option: str = "--out") -> Path:
+    """Create ``path`` if needed and prove it takes a file (a write and a delete), or raise
+    UsageError naming the option, the place and the fix."""
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise UsageError(f"{option} {str(p)!r} is a file, not a directory: give a directory (it is created if missing)")
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".write-test-", dir=p)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        raise UsageError(f"{option} {str(p)!r} is not writable ({exc.strerror or exc}): "
+                         f"give a directory you can write to") from None
+    return p
+
+
+def writable_file(path: str | os.PathLike, option: str = "--out") -> Path:
+    """A file path whose directory takes a file (created if missing); refuses a directory."""
+    p = Path(path)
+    if p.is_dir():
+        raise UsageError(f"{option} {str(p)!r} is a directory: give a file name (e.g. {p / 'run.npz'})")
+    writable_dir(p.parent if str(p.parent) else ".", option=f"{option} (its directory)")
+    return p
+
+
+# --------------------------------------------------------------------------------------------
+# Size of a run, before it starts
+# --------------------------------------------------------------------------------------------
+#: Refuse a run whose saved trajectory would need more memory than this (bytes) ...
+MEMORY_REFUSE = 8 * 2**30
+#: ... and warn above this.
+MEMORY_WARN = 1 * 2**30
+#: Refuse a fixed-step run with more steps than this (at ~10 µs per step on the smallest
+#: scene, 1e9 steps is more than 3 hours; below it the time estimate warns instead).
+STEPS_REFUSE = 1e9
+#: Warn when the estimated wall time of one run exceeds this (s).
+TIME_WARN = 600.0
+#: LGVI time per step ≈ STEP_COST_10 × (N/10)^0.9 (results/lgvi_speed.md: 11 µs at N = 10 on
+#: one core, log-log slope 0.86–0.91); an estimate, not a promise.
+STEP_COST_10 = 12e-6
+
+
+def run_size(scene, t_end: float, save_every: float, dt: float | None = None) -> dict:
+    """Saved points, bytes of the saved trajectory and (fixed step) the steps and an estimated
+    wall time of one run of ``scene``; no JAX needed."""
+    n = scene.string.elements
+    nx = 3 * n + (1 if "reel" in scene.effects else 0)
+    nw = nx + (3 if "rigid_body" in scene.effects else 0)
+    per_point = 8 * (nx + nw + 9 + 1 + 1)  # x, velocity, attitude, work, t (float64)
+    points = math.floor(t_end / save_every) + 2
+    out = {"points": points, "bytes": points * per_point, "steps": None, "seconds": None}
+    if dt is not None:
+        out["steps"] = t_end / dt
+        out["seconds"] = out["steps"] * STEP_COST_10 * (n / 10.0) ** 0.9
+    return out
+
+
+def _human_bytes(b: float) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
+        if b < 1024 or unit == "TiB":
+            return f"{b:.3g} {unit}"
+        b /= 1024
+    return f"{b:.3g} TiB"  # pragma: no cover
+
+
+def _human_seconds(s: float) -> str:
+    if s < 120:
+        return f"{s:.0f} s"
+    if s < 7200:
+        return f"{s / 60:.0f} min"
+    if s < 2 * 86400:
+        return f"{s / 3600:.1f} h"
+    return f"{s / 86400:.3g} days"
+
+
+def check_size(scene, t_end: float, save_every: float, dt: float | None = None, *, warn=None,
+               what: str = "this run") -> dict:
+    """Refuse (UsageError) a run that cannot fit (memory, steps); warn through ``warn`` about a
+    large one. Returns `run_size`."""
+    size = run_size(scene, t_end, save_every, dt)
+    mem = (f"{size['points']:,} saved points × {scene.string.elements} elements ≈ "
+           f"{_human_bytes(size['bytes'])}")
+    if size["bytes"] > MEMORY_REFUSE:
+        raise UsageError(f"{what} would keep {mem} of trajectory in memory (limit {_human_bytes(MEMORY_REFUSE)}): "
+                         f"raise --save-every, shorten --t-end or use fewer elements")
+    if size["steps"] is not None and size["steps"] > STEPS_REFUSE:
+        raise UsageError(f"{what} would take {size['steps']:.3g} steps of dt = {dt:g} s to t_end = {t_end:g} s "
+                         f"(limit {STEPS_REFUSE:.0e}; estimated {_human_seconds(size['seconds'])}): "
+                         f"raise --dt or shorten --t-end")
+    if warn is not None:
+        if size["bytes"] > MEMORY_WARN:
+            warn(f"warning: {what} will keep {mem} in memory")
+        if size["seconds"] is not None and size["seconds"] > TIME_WARN:
+            warn(f"warning: {what} takes {size['steps']:.3g} steps; estimated {_human_seconds(size['seconds'])} "
+                 f"(at ~{STEP_COST_10 * 1e6 * (scene.string.elements / 10) ** 0.9:.0f} µs per step)")
+    return size

@@ -1,0 +1,181 @@
+"""The command line refuses nonsense at once (issue #15): every bad input below gets exit
+status 2 and one `error:` message naming the input, the problem and the fix, no traceback,
+before any work -- and, where no JAX is needed, without importing it."""
+
+import json
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from benchmark.cli import main
+
+ROOT = Path(__file__).resolve().parent.parent
+TINY = ["--scenes", "fixed_length", "--integrators", "lgvi", "--t-end", "0.02", "--no-figures"]
+
+
+@pytest.fixture
+def files(tmp_path):
+    scene = (ROOT / "models" / "scenes" / "fixed_length.toml").read_text()
+    (tmp_path / "garbage.toml").write_bytes(b"\x00\xff\xfe binary \x89PNG")
+    (tmp_path / "garbage.npz").write_bytes(b"\x00\xff\xfe binary \x89PNG")
+    (tmp_path / "afile").write_text("x")
+    (tmp_path / "noname.toml").write_text("\n".join(l for l in scene.splitlines() if not l.startswith("name")))
+    (tmp_path / "strmass.toml").write_text("\n".join('mass = "1.0"' if l.startswith("mass ") else l
+                                                     for l in scene.splitlines()))
+    return tmp_path
+
+
+# (arguments, fragments the message must contain); {d} is the test's directory
+CASES = [
+    (["run", "--out", "{d}/afile"], ["--out", "afile", "is a file, not a directory"]),
+    (["run", "--out", "/dev/null/sub"], ["--out", "/dev/null/sub", "not writable"]),
+    (["run", "--jobs", "0"], ["argument --jobs", "'0'", "integer >= 1"]),
+    (["run", "--jobs", "x"], ["argument --jobs", "'x' is not an integer"]),
+    (["run", "--repeats", "0"], ["argument --repeats", "integer >= 1"]),
+    (["run", "--repeats", "-1"], ["argument --repeats", "integer >= 1"]),
+    (["run", "--horizon", "-5"], ["argument --horizon", ">= 0"]),
+    (["run", "--dts", "abc"], ["argument --dts", "'abc' is not a number"]),
+    (["run", "--dts", "0.003", "--out", "{d}/o"], ["dt = 0.003", "dividing the save interval"]),
+    (["run", "--rtols", "2"], ["argument --rtols", "0 < tolerance < 1"]),
+    (["run", "--t-end", "-1"], ["argument --t-end", "> 0"]),
+    (["run", "--t-end", "nan"], ["argument --t-end", "not a finite number"]),
+    (["run", "--set", "mass"], ["--set 'mass'", "KEY=VALUE"]),
+    (["run", "--set", "mass=1e300", "--out", "{d}/o"], ["'body.mass'", "implausible", "[1e-09, 1e+09]"]),
+    (["run", "--set", "axial_stiffness=1e308", "--out", "{d}/o"], ["'string.axial_stiffness'", "implausible"]),
+    (["run", "--set", "elements=1000000", "--out", "{d}/o"], ["'string.elements'", "implausible"]),
+    (["run", "--set", "t_end=1e12", "--out", "{d}/o"], ["'t_end'", "implausible"]),
+    (["run", "--set", "elements=0", "--out", "{d}/o"], ["'string.elements'", "integer >= 1"]),
+    (["run", "--executor", "dask"], ["--executor dask needs --scheduler"]),
+    (["run", "--scheduler", "tcp://x:1"], ["--scheduler is only used with --executor dask"]),
+    (["simulate", "{d}"], ["is a directory", "give a scene name"]),
+    (["simulate", "nosuch"], ["unknown scene 'nosuch'"]),
+    (["simulate", "fixed_length", "--dt", "1e-300", "--out", "{d}/t.npz"], ["1e+301 steps", "raise --dt"]),
+    (["simulate", "fixed_length", "--dt", "0.002", "--rtol", "1e-6"], ["argument --rtol: not allowed with argument --dt"]),
+    (["simulate", "fixed_length", "--atol", "1e-8"], ["--atol needs --rtol"]),
+    (["simulate", "fixed_length", "--dt", "0"], ["argument --dt", "> 0"]),
+    (["simulate", "fixed_length", "--t-end", "1e12", "--dt", "0.01"], ["'t_end'", "implausible"]),
+    (["simulate", "fixed_length", "--dt", "0.01", "--out", "{d}"], ["is a directory", "give a file name"]),
+    (["simulate", "fixed_length", "--dt", "1e-3", "--t-end", "1e5", "--set", "elements=2000", "--out", "{d}/t.npz"],
+     ["saved points", "GiB", "raise --save-every"]),
+    (["simulate", "{d}/garbage.toml"], ["garbage.toml", "not a text file"]),
+    (["simulate", "{d}/noname.toml"], ["noname.toml", "missing key 'name': allowed a string"]),
+    (["simulate", "{d}/strmass.toml"], ["strmass.toml", "'body.mass' = \"1.0\"", "without quotes"]),
+    (["figures", "{d}/missing.npz"], ["missing.npz: no such file"]),
+    (["figures", "{d}/garbage.npz"], ["garbage.npz: not a trajectory file"]),
+    (["figures", "{d}"], ["is not a file"]),
+    (["speed", "--elements", "0"], ["argument --elements", "integer >= 1"]),
+    (["speed", "--elements", "abc"], ["argument --elements", "'abc' is not an integer"]),
+    (["speed", "--elements", "1000000"], ["'string.elements'", "implausible"]),
+    (["stability", "--jobs", "-1"], ["argument --jobs", ">= 0"]),
+    (["stability", "--out", "{d}/afile"], ["is a file, not a directory"]),
+]
+
+
+@pytest.mark.parametrize("args, fragments", CASES, ids=[" ".join(a) for a, _ in CASES])
+def test_bad_input_exit_2_with_a_message(files, capsys, args, fragments):
+    rc = main([a.format(d=files) for a in args])
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    assert "Traceback" not in err
+    line = err.strip().splitlines()[-1]
+    assert "error: " in line, err  # argparse's lines read "prog: error: ...", ours "error: ..."
+    for f in fragments:
+        assert f in line, (f, line)
+
+
+def test_check_outside_the_repository_says_where_to_run_it(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert main(["check"]) == 2
+    err = capsys.readouterr().err
+    assert "repository's root directory" in err and "--baseline" in err and "--update" not in err
+
+
+def test_figures_refuses_a_trajectory_of_another_scene(tmp_path, capsys):
+    from integrators import get_integrator
+    from models import load_scene
+
+    traj = get_integrator("lgvi").solve(load_scene("fixed_length", elements=1), t_end=0.02, dt=0.01)
+    traj.save(tmp_path / "t.npz")
+    assert main(["figures", str(tmp_path / "t.npz"), "--scene", "deployment"]) == 2
+    err = capsys.readouterr().err
+    assert "does not fit scene 'deployment'" in err and "recorded: 'fixed_length'" in err
+
+
+def test_every_option_is_documented_with_its_default(capsys):
+    from benchmark.cli import parser
+
+    p = parser()
+    sub = next(a for a in p._actions if a.__class__.__name__ == "_SubParsersAction")
+    for name, sp in sub.choices.items():
+        for action in sp._actions:
+            if action.dest in ("help",):
+                continue
+            assert action.help, (name, action.dest)
+        assert main([name, "--help"]) == 0
+        text = capsys.readouterr().out
+        assert text.strip(), name
+    assert main(["run", "--help"]) == 0
+    text = " ".join(capsys.readouterr().out.split())
+    for expected in ("--out OUT", "(default: results)", "--repeats", "(default: 3)", "--horizon", "--fresh"):
+        assert expected in text, expected
+    assert main(["simulate", "--help"]) == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert "(default: lgvi)" in text and "(default: 0.02)" in text and "current directory" in text
+
+
+PROBE = textwrap.dedent("""
+    import json, sys, time
+    t0 = time.perf_counter()
+    from benchmark.cli import main
+    rc = main(json.loads(sys.argv[1]))
+    heavy = sorted(m for m in ("jax", "diffrax", "pandas", "matplotlib", "integrators", "scipy.integrate")
+                   if m in sys.modules)
+    print(json.dumps({"rc": rc, "heavy": heavy, "seconds": time.perf_counter() - t0}))
+""")
+
+
+@pytest.mark.parametrize("args", [["--help"], ["run", "--help"], ["run", "--jobs", "0"],
+                                  ["run", "--set", "mass=1e300"], ["run", "--dts", "0.003"],
+                                  ["simulate", "fixed_length", "--dt", "1e-300"], ["simulate", "/tmp"],
+                                  ["figures", "missing.npz"], ["speed", "--elements", "0"],
+                                  ["run", "--out", "/dev/null/x"]])
+def test_help_and_refusals_do_not_import_jax(args):
+    out = subprocess.run([sys.executable, "-c", PROBE, json.dumps(args)], cwd=ROOT, capture_output=True,
+                         text=True, timeout=60)
+    res = json.loads(out.stdout.strip().splitlines()[-1])
+    assert res["rc"] == (0 if "--help" in args else 2), out.stderr
+    assert res["heavy"] == [], res
+
+
+def test_simulate_and_figures_write_next_to_the_user(tmp_path, monkeypatch, capsys):
+    """Not into the repository's tracked results/: into the current directory, or --out."""
+    monkeypatch.chdir(tmp_path)
+    assert main(["simulate", "fixed_length", "--set", "elements=1", "--t-end", "0.04", "--dt", "0.01"]) == 0
+    assert (tmp_path / "simulate_fixed_length_lgvi.npz").exists()
+    assert (tmp_path / "simulate_fixed_length_lgvi.csv").exists()
+    assert main(["figures", "simulate_fixed_length_lgvi.npz", "--set", "elements=1"]) == 0
+    assert (tmp_path / "simulate_fixed_length_lgvi.png").exists()
+    assert main(["figures", "simulate_fixed_length_lgvi.npz", "--set", "elements=1", "--out", "sub/f.png"]) == 0
+    assert (tmp_path / "sub" / "f.png").exists()
+    assert not (tmp_path / "results").exists()
+
+
+def test_size_estimate_warns_about_a_long_run_and_refuses_what_cannot_fit():
+    from benchmark import options
+    from models import load_scene
+
+    said = []
+    big = load_scene("fixed_length", elements=2000)
+    size = options.check_size(big, 10.0, 0.02, 1e-5, warn=said.append, what="big")
+    assert size["steps"] == pytest.approx(1e6) and size["seconds"] > options.TIME_WARN
+    assert len(said) == 1 and said[0].startswith("warning: big takes 1e+06 steps; estimated"), said
+    said.clear()
+    options.check_size(load_scene("fixed_length"), 10.0, 0.02, 0.005, warn=said.append)
+    assert said == []  # the paper's scene at its step: nothing to say
+    with pytest.raises(options.UsageError, match="saved points"):
+        options.check_size(big, 1e5, 1e-3, None)
+    with pytest.raises(options.UsageError, match="steps of dt"):
+        options.check_size(big, 10.0, 0.02, 1e-9)
