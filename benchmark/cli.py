@@ -338,11 +338,11 @@ def cmd_xval(args) -> int:
     ints = args.elements or None
     if ints is not None and (len(ints) < 2 or any(n < 2 for n in ints)):
         raise UsageError(f"--elements {_csv(ints)}: allowed two or more integers >= 2 (e.g. 5,10,20)")
-    out = opt.writable_dir(args.out)
     from benchmark import xval
     from models import load_scene
 
     xval.check_scene(load_scene(args.scene))  # names what cannot be translated, before any work
+    out = opt.writable_dir(args.out)
     missing = [m for m in ("moordyn", "mujoco") if importlib.util.find_spec(m) is None]
     if missing:
         raise UsageError(f"xval needs {', '.join(missing)}: pip install 'reelbench[xval]'")
