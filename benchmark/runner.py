@@ -23,6 +23,7 @@ import pandas as pd
 from benchmark.metrics import ACCURACY, COLUMNS, run_metrics
 from benchmark.reference import CACHE_DIR, get_reference
 from benchmark.sweep import Task
+from models._jax import append_xla_flags
 
 TIMING_BUDGET = 10.0  # s of repeated solves per task, at most (at least one repeat)
 
@@ -109,7 +110,8 @@ def _reference_task(scene_name: str, overrides: tuple, t_end, save_every: float,
 
 def _worker_env() -> None:
     # One XLA thread per worker: the workers are the parallelism, and timings stay per-core.
-    os.environ.setdefault("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1")
+    # appended: XLA_FLAGS already holds reelbench's own options (models._jax) and maybe a user's
+    append_xla_flags(("--xla_cpu_multi_thread_eigen=false", "intra_op_parallelism_threads=1"))
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
