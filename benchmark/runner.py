@@ -20,7 +20,7 @@ from typing import Callable, Hashable, Iterable
 import numpy as np
 import pandas as pd
 
-from benchmark.metrics import ACCURACY, COLUMNS, run_metrics
+from benchmark.metrics import ACCURACY, COLUMNS, run_metrics, work_evals
 from benchmark.reference import CACHE_DIR, get_reference
 from benchmark.sweep import Task
 from models._jax import append_xla_flags
@@ -68,9 +68,10 @@ def run_task(task: Task, cache_dir: str = str(CACHE_DIR), repeats: int = 3, *, r
         traj = integ.solve(scene, **kw)
         st = traj.stats
         row.update(
-            status=traj.status, reason=traj.reason,
+            status=traj.status, reason=traj.reason, rhs=st.get("rhs", traj.settings.get("rhs", "")),
             steps=st.get("steps", np.nan), rhs_evals=st.get("rhs_evals", np.nan),
-            jac_evals=st.get("jac_evals", np.nan), newton_iterations=st.get("newton_iterations", np.nan),
+            jac_evals=st.get("jac_evals", np.nan), lu_decompositions=st.get("lu_decompositions", np.nan),
+            newton_iterations=st.get("newton_iterations", np.nan), work_evals=work_evals(st),
             compile_time=st.get("compile_time", np.nan), run_time=st.get("wall_time", np.nan),
             t_reached=float(traj.t[-1]) if len(traj.t) else 0.0,
         )
