@@ -253,7 +253,8 @@ def parser() -> argparse.ArgumentParser:
     f.add_argument("--out")
     f.set_defaults(func=cmd_figures)
 
-    sp = sub.add_parser("speed", help="LGVI time per step vs N, compile time separately (see `speed --help`)")
+    sp = sub.add_parser("speed", help="time per step of every fixed-step method and per-call cost of each right-hand "
+                                       "side vs N, compile time separately (see `speed --help`)")
     sp.add_argument("rest", nargs=argparse.REMAINDER)
     sp.set_defaults(func=cmd_speed)
 
