@@ -65,7 +65,8 @@ def cmd_run(args) -> int:
         atomic_write_text(out / "runs.csv", df.drop(columns=[c for c in ("traceback",) if c in df]).to_csv(index=False))
 
     runs = runner.execute(tasks, jobs=args.jobs, executor=args.executor, scheduler=args.scheduler,
-                          repeats=args.repeats, cache_dir=str(out / CACHE_DIR.name), on_row=write)
+                          repeats=args.repeats, cache_dir=str(out / CACHE_DIR.name), on_row=write,
+                          group=lambda t: (t.scene, t.integrator))  # one worker per (scene, method): one compile
     write(runs.to_dict("records"))
     atomic_write_text(out / "runs.md", report.markdown_table(runs.drop(columns=[c for c in ("traceback", "reason") if c in runs])))
     orders = observed_orders(runs)
