@@ -20,23 +20,33 @@ COLUMNS = [
 ]
 
 #: The machine-independent work count of a run (column ``work_evals``, the x axis of the
-#: work-precision-vs-work plots): right-hand-side evaluations plus Newton iterations, each
-#: counted as one evaluation. For the ODE baselines it is ``rhs_evals`` (their Newton
-#: iterations are already right-hand-side evaluations, counted there); for the LGVI it is its
-#: Newton iterations (one per step on a fixed-length scene, where the step is one explicit
-#: O(N) string solve), each an O(N) pass through the discrete equations like one evaluation of
-#: the closed-form right-hand side. Jacobian evaluations and LU factorisations are reported
-#: apart (``jac_evals``, ``lu_decompositions``), not folded in. NaN when the integrator
-#: reports neither count (diffrax Kvaerno5: diffrax does not expose its Newton iterations).
-WORK_DEFINITION = ("work = right-hand-side evaluations + Newton iterations (LGVI: one per iteration; "
-                   "Jacobians and LU factorisations not included)")
+#: work-precision-vs-work plots), in right-hand-side-equivalent evaluations:
+#: ``rhs_evals + newton_iterations + ny × jac_evals``. For the ODE baselines the Newton
+#: iterations are already right-hand-side evaluations (counted in ``rhs_evals``); a Jacobian
+#: counts as the ny evaluations a finite-difference Jacobian costs (the classical convention;
+#: ny = size of the ODE state), LU factorisations are not counted (reported apart in
+#: ``lu_decompositions``). For the LGVI it is its Newton iterations (one per step on a
+#: fixed-length scene, where the step is one explicit O(N) string solve), each an O(N) pass
+#: through the discrete equations like one evaluation of the closed-form right-hand side.
+#: NaN when the integrator reports no count (diffrax Kvaerno5: diffrax does not expose its
+#: Newton iterations).
+WORK_DEFINITION = ("work = RHS evaluations + Newton iterations + ny × Jacobian evaluations "
+                   "(LU factorisations not counted)")
 
 
-def work_evals(stats: dict) -> float:
-    """``rhs_evals + newton_iterations`` of a run's stats (see `WORK_DEFINITION`); NaN if neither is known."""
-    counts = [stats.get(k) for k in ("rhs_evals", "newton_iterations")]
-    counts = [float(c) for c in counts if c is not None and np.isfinite(c)]
-    return float(sum(counts)) if counts else np.nan
+def work_evals(stats: dict, ny: int | None = None) -> float:
+    """Work of a run's stats in RHS-equivalent evaluations (see `WORK_DEFINITION`; ``ny`` is the
+    ODE state size, needed when the run evaluated Jacobians); NaN if no count is known."""
+    def count(key):
+        v = stats.get(key)
+        return float(v) if v is not None and np.isfinite(v) else None
+
+    rhs, newton, jac = count("rhs_evals"), count("newton_iterations"), count("jac_evals")
+    if rhs is None and newton is None:
+        return np.nan
+    if jac and ny is None:
+        raise ValueError("work_evals: ny (the ODE state size) is required for a run with Jacobian evaluations")
+    return (rhs or 0.0) + (newton or 0.0) + (jac or 0.0) * (ny or 0)
 
 
 #: Accuracy metrics: reported only for runs that finished ("ok"); NaN otherwise.

@@ -31,7 +31,7 @@ def _save(fig, path: Path) -> Path:
 
 #: x axes of the work-precision figure: wall time (this machine) and a machine-independent work count
 COST_AXES = (("run_time", "run time (s): solve() after compilation, min of repeats"),
-             ("work_evals", "work: RHS evaluations + Newton iterations"))
+             ("work_evals", "work (RHS-equivalent evaluations)"))
 
 
 def work_precision(runs: pd.DataFrame, scene: str, out_dir: Path) -> Path:

@@ -55,7 +55,7 @@ def environment() -> str:
             f"XLA_FLAGS: `{xla_flags() or '(none)'}` (set in models/_jax.py; sweep workers add one XLA thread each).")
 
 
-COSTS = (("run_time", "wall time", "{:.3g} s"), ("work_evals", "work count (RHS evaluations + Newton iterations)", "{:.3g}"))
+COSTS = (("run_time", "wall time", "{:.3g} s"), ("work_evals", "work count (RHS-equivalent evaluations, see above)", "{:.3g}"))
 
 
 def answers(runs: pd.DataFrame) -> str:

@@ -60,6 +60,7 @@ def run_task(task: Task, cache_dir: str = str(CACHE_DIR), repeats: int = 3, *, r
     scene = None
     try:
         from integrators import get_integrator
+        from models import build_model
 
         scene = _scene(task)
         row = _empty_row(task, scene)
@@ -74,7 +75,8 @@ def run_task(task: Task, cache_dir: str = str(CACHE_DIR), repeats: int = 3, *, r
             status=traj.status, reason=traj.reason, rhs=st.get("rhs", traj.settings.get("rhs", "")),
             steps=st.get("steps", np.nan), rhs_evals=st.get("rhs_evals", np.nan),
             jac_evals=st.get("jac_evals", np.nan), lu_decompositions=st.get("lu_decompositions", np.nan),
-            newton_iterations=st.get("newton_iterations", np.nan), work_evals=work_evals(st),
+            newton_iterations=st.get("newton_iterations", np.nan),
+            work_evals=work_evals(st, build_model(scene).layout.ny),
             compile_time=st.get("compile_time", np.nan), run_time=st.get("wall_time", np.nan),
             t_reached=float(traj.t[-1]) if len(traj.t) else 0.0,
         )

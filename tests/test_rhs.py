@@ -142,8 +142,11 @@ def test_run_time_includes_output_conversion(name, monkeypatch):
 
 def test_work_evals_definition():
     assert work_evals({"rhs_evals": 10, "newton_iterations": 5}) == 15
-    assert work_evals({"rhs_evals": 10}) == 10 and work_evals({"newton_iterations": 7}) == 7
-    assert np.isnan(work_evals({"steps": 3}))
+    assert work_evals({"rhs_evals": 10, "jac_evals": 0}) == 10 and work_evals({"newton_iterations": 7}) == 7
+    assert work_evals({"rhs_evals": 10, "jac_evals": 2, "lu_decompositions": 9}, ny=67) == 10 + 2 * 67
+    assert np.isnan(work_evals({"steps": 3})) and np.isnan(work_evals({"rhs_evals": float("nan")}))
+    with pytest.raises(ValueError, match="ny"):
+        work_evals({"rhs_evals": 10, "jac_evals": 2})
 
 
 def test_xla_flags_are_appended_not_clobbered():
