@@ -163,3 +163,32 @@ def test_xla_flags_are_appended_not_clobbered():
 
     if os.environ.get("REELBENCH_XLA_DEFAULTS", "1") != "0":
         assert DEFAULT_XLA_FLAGS[0].split("=", 1)[0] in xla_flags()
+
+
+def test_speed_covers_every_registered_fixed_step_method(monkeypatch):
+    """`python -m benchmark speed` takes its methods from the registry, not from a list."""
+    from benchmark import lgvi_speed
+    from integrators import registry
+    from integrators.base import Integrator
+
+    class Probe(Integrator):
+        name = "speed_probe"
+        capabilities = frozenset({Capability.FIXED_STEP})
+
+        def solve(self, *a, **k):  # pragma: no cover - never run here
+            raise NotImplementedError
+
+    monkeypatch.setitem(registry._REGISTRY, Probe.name, Probe)
+    methods = lgvi_speed.fixed_step_methods()
+    assert "speed_probe" in methods and {"lgvi", "tsit5"} <= set(methods)
+    assert not {"rk45", "radau", "dop853", "kvaerno5"} & set(methods)
+    with pytest.raises(ValueError, match="not a fixed-step method"):
+        lgvi_speed.main(["--methods", "rk45", "--elements", "2", "--rhs", ""])
+
+
+def test_speed_times_each_rhs_per_call():
+    from benchmark import lgvi_speed
+
+    rows = [lgvi_speed.measure_rhs("fixed_length", 2, rhs, calls=20) for rhs in rhs_module.RHS_CHOICES]
+    assert [r["rhs"] for r in rows] == list(rhs_module.RHS_CHOICES)
+    assert all(r["us_per_call"] > 0 and r["calls"] == 20 for r in rows)
