@@ -143,7 +143,8 @@ def _run(args, scene_names, ov, t_end, out: Path, saved: list) -> int:
 
     runs = runner.execute(tasks, jobs=args.jobs, executor=args.executor, scheduler=args.scheduler,
                           repeats=args.repeats, cache_dir=str(out / CACHE_DIR.name), on_row=write,
-                          previous=previous)
+                          previous=previous,
+                          group=lambda t: (t.scene, t.integrator))  # one worker per (scene, method): one compile
     write(runs.to_dict("records"))
     from benchmark import plots, report
     from benchmark.metrics import observed_orders
@@ -166,7 +167,7 @@ def _run(args, scene_names, ov, t_end, out: Path, saved: list) -> int:
             figures.append(plots.paper_panels(scene, traj, evaluate(scene, traj), out / f"paper_{scene.name}.png").name)
             _log(f"figure: paper_{scene.name}.png ({traj.status})")
         if horizon > 0:
-            figures.append(_horizon_study(horizon, out, {k: v for k, v in ov.items() if k != "t_end"}).name)
+            figures.append(_horizon_study(horizon, out, {k: v for k, v in ov.items() if k != "t_end"}, args.jobs).name)
     wall = time.perf_counter() - t0
     report.write_readme(out, runs, orders, command=_command(), wall_time=wall, figures=figures,
                         horizons={"sweep": t_end, "energy study": horizon if not args.no_figures else 0.0})
@@ -186,25 +187,37 @@ HORIZON_METHODS = (("lgvi", {"dt": 0.005}), ("rk45", {"rtol": 1e-6, "atol": 1e-8
                    ("tsit5", {"rtol": 1e-6, "atol": 1e-8}), ("dop853", {"rtol": 1e-8, "atol": 1e-10}))
 
 
-def _horizon_study(t_end: float, out: Path, ov: dict) -> Path:
-    """Energy error vs time on the fixed-length scene over a long horizon."""
+def _horizon_run(name: str, kw: dict, t_end: float, ov: dict):
+    """One method of the horizon study (a worker task): (label, energy history)."""
+    from benchmark.metrics import energy_history
+    from integrators import get_integrator
+    from models import load_scene
+
+    scene = load_scene("fixed_length", **ov)
+    traj = get_integrator(name).solve(scene, t_end=t_end, save_every=0.1, **kw)
+    label = f"{name} {', '.join(f'{k}={v:g}' for k, v in kw.items())}" + ("" if traj.ok else f" [{traj.status}]")
+    return label, energy_history(scene, traj)
+
+
+def _horizon_study(t_end: float, out: Path, ov: dict, jobs: int | None = None) -> Path:
+    """Energy error vs time on the fixed-length scene over a long horizon (the methods run in
+    parallel worker processes: serially they were the main job's longest tail)."""
     import pandas as pd
 
     from benchmark import plots
-    from benchmark.metrics import energy_history
-    from integrators import get_integrator
+    from benchmark.runner import worker_pool
     from models import load_scene
     from models.io import atomic_write_text
 
     scene = load_scene("fixed_length", **ov)
     histories, frames = {}, []
-    for name, kw in HORIZON_METHODS:
-        _log(f"horizon: {name} {kw} to t = {t_end:g} s ...")
-        traj = get_integrator(name).solve(scene, t_end=t_end, save_every=0.1, **kw)
-        label = f"{name} {', '.join(f'{k}={v:g}' for k, v in kw.items())}" + ("" if traj.ok else f" [{traj.status}]")
-        h = energy_history(scene, traj)
-        histories[label] = h
-        frames.append(h.assign(method=label))
+    _log(f"horizon: {', '.join(name for name, _ in HORIZON_METHODS)} to t = {t_end:g} s ...")
+    with worker_pool(jobs or min(len(HORIZON_METHODS), os.cpu_count() or 1)) as pool:
+        futures = [pool.submit(_horizon_run, name, kw, t_end, ov) for name, kw in HORIZON_METHODS]
+        for fut in futures:
+            label, h = fut.result()
+            histories[label] = h
+            frames.append(h.assign(method=label))
     atomic_write_text(out / "energy_horizon.csv", pd.concat(frames).to_csv(index=False))
     return plots.energy_horizon(histories, scene.name, out)
 
@@ -465,7 +478,8 @@ def parser() -> argparse.ArgumentParser:
     f.add_argument("--out", help="figure file (.png; default: ./TRAJECTORY.png in the current directory)")
     f.set_defaults(func=cmd_figures)
 
-    sp = add("speed", "LGVI time per step vs N, compile time separately (options: `speed --help`)")
+    sp = add("speed", "time per step of every fixed-step method and per-call cost of each right-hand side vs N, "
+                      "compile time separately (options: `speed --help`)")
     sp.add_argument("rest", nargs=argparse.REMAINDER, help="options of benchmark.lgvi_speed (see `speed --help`)")
 
     st = add("stability", "stability map of the hard scenes: largest stable dt (fixed step), step statistics "

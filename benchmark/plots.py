@@ -29,21 +29,33 @@ def _save(fig, path: Path) -> Path:
     return path
 
 
+#: x axes of the work-precision figure: wall time (this machine) and a machine-independent work count
+COST_AXES = (("run_time", "run time (s): solve() after compilation, min of repeats"),
+             ("work_evals", "work (RHS-equivalent evaluations)"))
+
+
 def work_precision(runs: pd.DataFrame, scene: str, out_dir: Path) -> Path:
-    """Error vs run time, one curve per integrator and sweep axis, log-log, one panel per error kind."""
+    """Error vs cost, one curve per integrator and sweep axis, log-log: one column per error kind,
+    one row per cost axis (`COST_AXES`: wall time, then the work count of `benchmark.metrics.WORK_DEFINITION`,
+    so a reader on another machine can check the ranking)."""
+    from benchmark.metrics import WORK_DEFINITION
+
     g = runs[(runs["scene"] == scene) & (runs["status"] == "ok")]
-    fig, axes = plt.subplots(1, len(ERROR_LABELS), figsize=(5.2 * len(ERROR_LABELS), 4.2))
-    for ax, (err, label) in zip(axes, ERROR_LABELS.items()):
-        for (integ, axis), c in g.assign(axis=np.where(g["dt"].notna(), "fixed dt", "adaptive")).groupby(["integrator", "axis"]):
-            c = c[c[err] > 0].sort_values("run_time")
-            if len(c):
-                ax.loglog(c["run_time"], c[err], "o-" if axis == "adaptive" else "s--", label=f"{integ} ({axis})")
-        ax.set_xlabel("run time (s, min over repeats, compile excluded)")
-        ax.set_ylabel(label)
-        ax.grid(True, which="both", alpha=0.3)
-    axes[0].legend(fontsize=8)
+    fig, axes = plt.subplots(len(COST_AXES), len(ERROR_LABELS), figsize=(5.2 * len(ERROR_LABELS), 4.2 * len(COST_AXES)),
+                             squeeze=False)
+    for row, (cost, cost_label) in zip(axes, COST_AXES):
+        for ax, (err, label) in zip(row, ERROR_LABELS.items()):
+            for (integ, axis), c in g.assign(axis=np.where(g["dt"].notna(), "fixed dt", "adaptive")).groupby(["integrator", "axis"]):
+                c = c[(c[err] > 0) & (c[cost] > 0)].sort_values(cost) if cost in c else c.iloc[:0]
+                if len(c):
+                    ax.loglog(c[cost], c[err], "o-" if axis == "adaptive" else "s--", label=f"{integ} ({axis})")
+            ax.set_xlabel(cost_label)
+            ax.set_ylabel(label)
+            ax.grid(True, which="both", alpha=0.3)
+        row[0].legend(fontsize=8)
     failed = runs[(runs["scene"] == scene) & (runs["status"] != "ok")]
-    fig.suptitle(f"{scene}: work–precision" + (f"  ({len(failed)} runs failed, see runs.csv)" if len(failed) else ""))
+    fig.suptitle(f"{scene}: work–precision" + (f"  ({len(failed)} runs failed, see runs.csv)" if len(failed) else "")
+                 + f"\nbottom row: {WORK_DEFINITION}", fontsize=10)
     return _save(fig, Path(out_dir) / f"work_precision_{scene}.png")
 
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 import abc
 import enum
 import math
+import time
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -107,6 +108,27 @@ class Trajectory:
             meta = json.loads(str(data["meta"]))
             arrays = {k: data[k] if k in data else None for k in ("t", "x", "attitude", "velocity", "momentum", "work")}
         return cls(**arrays, **meta)
+
+
+def stamp_wall_time(traj: Trajectory, started: float) -> Trajectory:
+    """Set ``traj.stats["wall_time"]``: one definition of run time for every integrator (issue
+    #11) — the whole ``solve()`` call, from ``started`` (`time.perf_counter()` at its entry) to
+    the finished `Trajectory` (output conversion included), minus ``stats["compile_time"]``.
+    Call it last, on the trajectory about to be returned."""
+    traj.stats["wall_time"] = time.perf_counter() - started - float(traj.stats.get("compile_time", 0.0))
+    return traj
+
+
+def build_model_timed(scene):
+    """(model of ``scene``, seconds spent building it): 0.0 when `models.build_model` had it
+    cached. A first build (which also starts JAX's backend) is one-time setup: the adapters book
+    it with ``compile_time``, not with the run time of `stamp_wall_time`."""
+    from models import build_model
+
+    misses = build_model.cache_info().misses
+    t0 = time.perf_counter()
+    model = build_model(scene)
+    return model, (time.perf_counter() - t0 if build_model.cache_info().misses > misses else 0.0)
 
 
 def save_times(t_end: float, save_every: float | None, dt: float | None = None) -> np.ndarray:

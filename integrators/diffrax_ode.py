@@ -1,11 +1,23 @@
 """Baselines from diffrax: Tsit5 (adaptive, or constant step when only ``dt`` is given) and
 Kvaerno5 (implicit ESDIRK, adaptive).
 
+The right-hand side is the O(N) closed form by default, the autodiff one with
+``rhs="autodiff"`` (`integrators.rhs`); Kvaerno5's Newton differentiates it by forward mode.
+
 The whole solve is one jitted function of (y0, t1, saved times, rtol, atol, dt0, min_step),
 compiled ahead of time with ``jax.jit(...).lower(...).compile()`` and cached per
-(model, solver, step-size mode, number of saved times, max_steps, dt0 given), so repeated calls
-with other tolerances, horizons or step sizes do not recompile; ``stats["compile_time"]`` is
-that compilation (0 when cached) and ``stats["wall_time"]`` the run alone.
+(model, rhs, solver, step-size mode, number of saved times, max_steps, dt0 given), so repeated
+calls with other tolerances, horizons or step sizes do not recompile; ``stats["compile_time"]``
+is that compilation (0 when cached) and ``stats["wall_time"]`` the rest of the ``solve()`` call,
+output conversion included (`integrators.base.stamp_wall_time`).
+
+``stats["rhs_evals"]`` (Tsit5) is the algorithm's count: 6 per attempted step (7 stages, the
+first shared with the previous step's last: FSAL), 1 at the start, and 2 more for the initial
+step-size guess when no ``dt`` is given (diffrax's PID controller evaluates f at y0 and at
+y0 + h0 f0). Checked against a counting right-hand side in tests/test_rhs.py: exact with a
+``dt``; without one XLA may merge the repeated f(t0, y0) evaluations, so the executed count
+is 1-2 lower (measured: 6n + 1 or 6n + 2). Kvaerno5's Newton iterations are not
+exposed by diffrax, so its evaluation counts are left empty (NaN), not estimated.
 
 Failures never raise (``throw=False``); ``sol.result`` is mapped to a status:
 ``max_steps_reached`` -> "max_steps", ``dt_min_reached`` -> "step_size_collapse" (the PID
@@ -27,8 +39,10 @@ import diffrax as dfx
 import numpy as np
 import optimistix as optx
 
+from integrators import rhs as _rhs
 from integrators.base import (Capability, Integrator, Status, Trajectory, check_positive, energy_bound,
-                              energy_error_ode, energy_reason, initial_energy, save_times)
+                              energy_error_ode, energy_reason, initial_energy, save_times, stamp_wall_time,
+                              build_model_timed)
 from integrators.scipy_ivp import (
     BLOWUP,
     check_max_steps,
@@ -39,7 +53,6 @@ from integrators.scipy_ivp import (
     make_trajectory,
     resolve_scene,
 )
-from models import build_model
 from models._jax import jax, jnp
 
 #: Default step budget (diffrax's own default, 4096, is too small for tight tolerances here).
@@ -89,8 +102,10 @@ def _stop_condition(model):
     return cond_fn
 
 
-def _build(model, solver_name: str, adaptive: bool, n_save: int, max_steps: int, dt0_given: bool):
-    term = dfx.ODETerm(lambda t, y, args: model.ode_rhs(t, y))
+def _build(model, solver_name: str, adaptive: bool, n_save: int, max_steps: int, dt0_given: bool,
+           rhs: str = _rhs.DEFAULT_RHS):
+    f = _rhs.ode_rhs(model, rhs)
+    term = dfx.ODETerm(lambda t, y, args: f(t, y))
     event = dfx.Event(_stop_condition(model))
 
     def run(y0, t1, ts, rtol, atol, dt0, min_step):
@@ -119,14 +134,14 @@ def _build(model, solver_name: str, adaptive: bool, n_save: int, max_steps: int,
     return jax.jit(run)
 
 
-def _compiled(model, solver_name, adaptive, n_save, max_steps, dt0_given, example_args):
+def _compiled(model, solver_name, adaptive, n_save, max_steps, dt0_given, example_args, rhs=_rhs.DEFAULT_RHS):
     """(compiled solve, compile time in s; 0 when it was cached)."""
-    key = (model, solver_name, adaptive, n_save, max_steps, dt0_given)
+    key = (model, rhs, solver_name, adaptive, n_save, max_steps, dt0_given)
     fn = _COMPILED.get(key)
     if fn is not None:
         return fn, 0.0
     tc = time.perf_counter()
-    fn = _build(model, solver_name, adaptive, n_save, max_steps, dt0_given).lower(*example_args).compile()
+    fn = _build(model, solver_name, adaptive, n_save, max_steps, dt0_given, rhs).lower(*example_args).compile()
     compile_time = time.perf_counter() - tc
     _COMPILED[key] = fn
     return fn, compile_time
@@ -143,11 +158,16 @@ class DiffraxODE(Integrator):
     solver_name: ClassVar[str] = ""
     allows_constant_step: ClassVar[bool] = False
     option_names: ClassVar[tuple[str, ...]] = ("min_step",)
+    #: stages of an explicit FSAL Runge-Kutta method (rhs_evals follow from the steps); 0: not counted
+    fsal_stages: ClassVar[int] = 0
 
     def solve(self, scene, t_end=None, *, dt=None, rtol=None, atol=None, save_every=None, max_steps=None,
-              **options) -> Trajectory:
+              rhs=_rhs.DEFAULT_RHS, **options) -> Trajectory:
+        """``rhs``: "closed_form" (default, O(N)) or "autodiff" (see `integrators.rhs`)."""
+        started = time.perf_counter()  # run time = the whole call minus compilation (issue #11)
         # ---- arguments, all checked before any work ----
         check_options(self.name, options, self.option_names)
+        _rhs.check_rhs(rhs)
         scene = resolve_scene(scene)
         t_end = scene.t_end if t_end is None else t_end
         check_positive("t_end", t_end)
@@ -167,7 +187,7 @@ class DiffraxODE(Integrator):
         min_step = options.get("min_step", DEFAULT_MIN_STEP_REL * t_end)
         check_positive("min_step", min_step)
 
-        model = build_model(scene)
+        model, setup_time = build_model_timed(scene)  # a first build is setup: booked with compile time
         y0 = jnp.asarray(model.initial_ode_state())
         if constant:
             t_save = save_times(t_end, save_every, dt)
@@ -181,18 +201,23 @@ class DiffraxODE(Integrator):
             t1 = t_end
             budget = max_steps if max_steps is not None else DEFAULT_MAX_STEPS
         settings = {"rtol": rtol, "atol": atol, "dt": dt, "save_every": save_every, "max_steps": budget,
-                    "t_end": t_end, "step_size": "constant" if constant else "pid", "min_step": None if constant else min_step}
+                    "t_end": t_end, "step_size": "constant" if constant else "pid", "min_step": None if constant else min_step,
+                    "rhs": rhs}
         t_save = np.minimum(t_save, t1)  # diffrax refuses saved times past t1, even by an ulp
         dt0_given = dt is not None
         args = (y0, jnp.asarray(t1), jnp.asarray(t_save), jnp.asarray(rtol if rtol is not None else 0.0),
                 jnp.asarray(atol if atol is not None else 0.0), jnp.asarray(min(dt, t1) if dt0_given else 0.0),
                 jnp.asarray(min_step))
-        fn, compile_time = _compiled(model, self.solver_name, not constant, len(t_save), int(budget), dt0_given, args)
+        fn, compile_time = _compiled(model, self.solver_name, not constant, len(t_save), int(budget), dt0_given, args, rhs)
+        compile_time += setup_time
+        e_err, e_bound = energy_guard(model)  # used on the saved points of a failed run
+        if compile_time > setup_time:  # a first solve of this model: compile the guard with it, not in the run time
+            tc = time.perf_counter()
+            e_err(np.asarray(y0))
+            compile_time += time.perf_counter() - tc
 
         # ---- run ----
-        tw = time.perf_counter()
         out = jax.block_until_ready(fn(*args))
-        wall = time.perf_counter() - tw
 
         ts = np.asarray(out["ts"], dtype=float)
         ys = np.asarray(out["ys"], dtype=float)
@@ -206,7 +231,6 @@ class DiffraxODE(Integrator):
             ts, ys = np.zeros(1), np.asarray(y0, dtype=float)[None, :]
         reason = ""
         if code == _EVENT:
-            e_err, e_bound = energy_guard(model)
             if not (np.all(np.isfinite(y_final)) and np.max(np.abs(y_final)) < BLOWUP):
                 status = Status.DIVERGED
                 reason = f"non-finite or blown-up state (|y| >= {BLOWUP:g}) in the step ending at t = {t_final:.6g}"
@@ -232,7 +256,6 @@ class DiffraxODE(Integrator):
         ts, ys = ts[:n], ys[:n]
         # the event stops the solve at the end of the step that crossed the energy bound, and that
         # point may be a saved one: keep only saved points within the bound
-        e_err, e_bound = energy_guard(model)
         errs = np.array([e_err(y) for y in ys]) if status is not Status.OK else np.zeros(len(ys))
         over = np.flatnonzero(~(errs <= e_bound))
         if over.size:
@@ -252,19 +275,24 @@ class DiffraxODE(Integrator):
             "steps": int(out["num_accepted_steps"]),
             "rejected_steps": int(out["num_rejected_steps"]),
             "attempted_steps": int(out["num_steps"]),
-            "wall_time": wall,
             "compile_time": compile_time,
+            "rhs": rhs,
         }
+        if self.fsal_stages:  # explicit FSAL Runge-Kutta: the count follows from the steps (docstring)
+            stats["rhs_evals"] = (self.fsal_stages - 1) * int(out["num_steps"]) + 1 + (0 if dt0_given else 2)
+            stats["jac_evals"] = stats["lu_decompositions"] = 0
         if status is Status.LENGTH_LIMIT:
             stats["event_time"] = float(t_final)
-        return make_trajectory(model, scene, ts, ys, status=status, reason=reason, stats=stats,
+        traj = make_trajectory(model, scene, ts, ys, status=status, reason=reason, stats=stats,
                                integrator=self.name, settings=settings)
+        return stamp_wall_time(traj, started)
 
 
 class Tsit5(DiffraxODE):
     name = "tsit5"
     solver_name = "tsit5"
     allows_constant_step = True
+    fsal_stages = 7
     capabilities = frozenset({Capability.ADAPTIVE, Capability.FIXED_STEP})
     order = 5
     description = "diffrax Tsit5: PID-adaptive (rtol/atol) or constant step (dt alone), quaternion attitude"

@@ -1,8 +1,8 @@
-"""Baselines from `scipy.integrate`: RK45, Radau (autodiff Jacobian) and DOP853 (references).
+"""Baselines from `scipy.integrate`: RK45, Radau (Jacobian by forward-mode autodiff) and DOP853 (references).
 
 They integrate the model's continuous equations (models/README.md) on the quaternion ODE state
-``y = (x, quat, w, W)`` of `models.layout`, with the model's jitted right-hand side returning
-numpy. The quaternion is *not* renormalised (the drift is part of what is measured), except by
+``y = (x, quat, w, W)`` of `models.layout`, with a jitted right-hand side returning numpy:
+the O(N) closed form by default, the autodiff one with ``rhs="autodiff"`` (`integrators.rhs`). The quaternion is *not* renormalised (the drift is part of what is measured), except by
 the clearly named ``rk45_projected`` variant, which rescales it to unit norm after every
 accepted step.
 
@@ -25,9 +25,11 @@ import numpy as np
 from scipy import integrate as _si
 from scipy.optimize import brentq
 
+from integrators import rhs as _rhs
 from integrators.base import (Capability, Integrator, Status, Trajectory, check_positive, energy_bound,
-                              energy_error_ode, energy_reason, initial_energy, save_times)
-from models import build_model, load_scene
+                              energy_error_ode, energy_reason, initial_energy, save_times, stamp_wall_time,
+                              build_model_timed)
+from models import load_scene
 from models._jax import jax
 from models.scene import Scene
 
@@ -86,12 +88,18 @@ def state_ok(y: np.ndarray) -> bool:
 
 @functools.lru_cache(maxsize=64)
 def margin_function(model):
-    """Jitted deployed-length margin of an ODE state (None for a fixed-length scene)."""
+    """Deployed-length margin of an ODE state (None for a fixed-length scene): the same formula
+    as `StringPendulum.deployed_length_margin` in numpy, because it runs after every step and a
+    jitted call from numpy costs ~30 µs, as much as a right-hand side."""
     if not model.layout.has_reel:
         return None
-    sl = model.layout.y_x
-    f = jax.jit(lambda y: model.deployed_length_margin(y[sl]))
-    return lambda y: float(f(y))
+    i_s = model.layout.y_x.start  # s_p is the first coordinate
+    L, lo, hi = float(model.L), float(model.ell_min), float(model.L - model.b)
+
+    def margin(y):
+        ell = L - float(y[i_s])
+        return min(ell - lo, hi - ell)
+    return margin
 
 
 @functools.lru_cache(maxsize=64)
@@ -141,9 +149,12 @@ class ScipyIVP(Integrator):
     projected: ClassVar[bool] = False
 
     def solve(self, scene, t_end=None, *, dt=None, rtol=None, atol=None, save_every=None, max_steps=None,
-              **options) -> Trajectory:
+              rhs=_rhs.DEFAULT_RHS, **options) -> Trajectory:
+        """``rhs``: "closed_form" (default, O(N)) or "autodiff" (see `integrators.rhs`)."""
+        started = time.perf_counter()  # run time = the whole call minus compilation (issue #11)
         # ---- arguments, all checked before any work ----
         check_options(self.name, options)
+        _rhs.check_rhs(rhs)
         scene = resolve_scene(scene)
         t_end = scene.t_end if t_end is None else t_end
         check_positive("t_end", t_end)
@@ -153,20 +164,20 @@ class ScipyIVP(Integrator):
         check_max_steps(max_steps)
         t_end = float(t_end)
         settings = {"rtol": rtol, "atol": atol, "dt": dt, "save_every": save_every, "max_steps": max_steps,
-                    "t_end": t_end, "method": self.solver_class.__name__, "projected": self.projected}
+                    "t_end": t_end, "method": self.solver_class.__name__, "projected": self.projected, "rhs": rhs}
 
-        model = build_model(scene)
+        model, setup_time = build_model_timed(scene)  # a first build is setup: booked with compile time
         lay = model.layout
         y0 = np.asarray(model.initial_ode_state(), dtype=float)
         t_save = np.minimum(save_times(t_end, save_every), t_end)  # the last one may be t_end + 1 ulp
 
         # ---- compile (the jitted functions are cached on the model) ----
-        f_jit = model.ode_rhs_jit
         tc = time.perf_counter()
+        f_jit = _rhs.rhs_jit(model, rhs)
         np.asarray(f_jit(0.0, y0))
         jac = None
         if self.uses_jacobian:
-            jac_jit = model.ode_jacobian_jit
+            jac_jit = _rhs.jacobian_jit(model, rhs)
             np.asarray(jac_jit(0.0, y0))
             jac = lambda t, y: np.asarray(jac_jit(float(t), y))  # noqa: E731
         margin = margin_function(model)
@@ -174,7 +185,7 @@ class ScipyIVP(Integrator):
             margin(y0)
         e_err, e_bound = energy_guard(model)
         e_err(y0)
-        compile_time = time.perf_counter() - tc
+        compile_time = time.perf_counter() - tc + setup_time
 
         # float(t): scipy passes numpy scalars, which would trace a second (strongly typed) version
         fun = lambda t, y: np.asarray(f_jit(float(t), y))  # noqa: E731
@@ -185,7 +196,6 @@ class ScipyIVP(Integrator):
             kwargs["jac"] = jac
 
         # ---- integrate ----
-        tw = time.perf_counter()
         solver = self.solver_class(fun, 0.0, y0.copy(), t_end, **kwargs)
         out_t, out_y = [0.0], [y0.copy()]
         k = 1  # next saved time
@@ -251,8 +261,6 @@ class ScipyIVP(Integrator):
                 normalise_quaternion(model, solver.y)
                 if hasattr(solver, "f"):
                     solver.f = fun(solver.t, solver.y)  # keep FSAL consistent with the projected state
-        wall = time.perf_counter() - tw
-
         y_arr = np.array(out_y)
         n = finite_prefix(y_arr)
         if n < len(y_arr):
@@ -263,8 +271,8 @@ class ScipyIVP(Integrator):
             "rhs_evals": int(solver.nfev),
             "jac_evals": int(solver.njev),
             "lu_decompositions": int(solver.nlu),
-            "wall_time": wall,
             "compile_time": compile_time,
+            "rhs": rhs,
         }
         if step_sizes:
             stats.update(min_step=float(np.min(step_sizes)), median_step=float(np.median(step_sizes)),
@@ -273,8 +281,9 @@ class ScipyIVP(Integrator):
             stats["rejected_steps"] = int(rejected)
         if event_time is not None:
             stats["event_time"] = float(event_time)
-        return make_trajectory(model, scene, np.array(out_t)[:n], y_arr[:n], status=status, reason=reason,
+        traj = make_trajectory(model, scene, np.array(out_t)[:n], y_arr[:n], status=status, reason=reason,
                                stats=stats, integrator=self.name, settings=settings)
+        return stamp_wall_time(traj, started)
 
 
 class RK45(ScipyIVP):
@@ -291,7 +300,7 @@ class Radau(ScipyIVP):
     uses_jacobian = True
     capabilities = frozenset({Capability.ADAPTIVE, Capability.IMPLICIT})
     order = 5
-    description = "scipy Radau IIA (order 5, implicit) with the autodiff Jacobian, quaternion attitude"
+    description = "scipy Radau IIA (order 5, implicit), Jacobian by jacfwd of the RHS, quaternion attitude"
 
 
 class DOP853(ScipyIVP):

@@ -193,7 +193,9 @@ def test_damping_zero_equals_no_damping(taut_runs, rng):
     two, zero = taut_runs[()], taut_runs[("axial_damping",)]
     assert zero.ok
     np.testing.assert_allclose(zero.x, two.x, rtol=1e-13, atol=1e-14)
-    np.testing.assert_allclose(zero.momentum, two.momentum, rtol=1e-13, atol=1e-14)
+    # atol 1e-13 on momenta of order 1: the two runs are different compiled programs, and with the XLA
+    # small-loop option (models/_jax.py) their fused loops may round differently (measured: 1.9e-14)
+    np.testing.assert_allclose(zero.momentum, two.momentum, rtol=1e-13, atol=1e-13)
     np.testing.assert_array_equal(zero.work, 0.0)
     eff = ["gravity", "elasticity", "rigid_body", "reel", "carnot"]
     plain = build_model(scene_with_effects(eff, elements=3))
