@@ -15,7 +15,9 @@ keeps two sweeps from writing into one directory.
 
 from __future__ import annotations
 
+import collections
 import concurrent.futures as cf
+import contextlib
 import hashlib
 import json
 import multiprocessing
@@ -402,23 +404,44 @@ def execute(
         for i in todo:
             done(i, run_task(tasks[i], cache_dir, repeats))
     elif executor == "process":
-        with worker_pool(jobs) as pool:
+        # Tasks of one group go, one after another, to the same single-process pool (so what it
+        # compiled for the first serves the others), yet each task is its own future: a row is
+        # saved as soon as it is done, so a stopped sweep keeps every finished run.
+        batches: dict = {}
+        for i in todo:
+            batches.setdefault(group(tasks[i]) if group else i, []).append(i)
+        queue = collections.deque(batches.values())
+        with contextlib.ExitStack() as stack:
+            pools = [stack.enter_context(worker_pool(1)) for _ in range(min(jobs, len(queue)))]
             log(f"references for {len(refs)} scene(s) ...")
-            for fut in [pool.submit(_reference_task, *ref, cache_dir) for ref in refs]:
+            for fut in [pools[k % len(pools)].submit(_reference_task, *ref, cache_dir) for k, ref in enumerate(refs)]:
                 fut.result()
-            batches: dict = {}
-            for i in todo:
-                batches.setdefault(group(tasks[i]) if group else i, []).append(i)
-            futures = {pool.submit(run_tasks, [tasks[i] for i in idx], cache_dir, repeats): idx
-                       for idx in batches.values()}
-            for fut in cf.as_completed(futures):
-                idx = futures[fut]
-                try:
-                    batch_rows = fut.result()
-                except Exception as exc:  # the worker process died
-                    batch_rows = [{**_empty_row(tasks[i]), "status": "crashed", "reason": crash_reason(exc)} for i in idx]
-                for i, row in zip(idx, batch_rows):
+            running: dict = {}  # future -> (pool index, task index)
+            broken: set = set()
+
+            def feed(k: int) -> None:
+                if k in broken:  # its worker died: the next group gets a fresh one
+                    pools[k] = stack.enter_context(worker_pool(1))
+                    broken.discard(k)
+                if queue:
+                    for i in queue.popleft():
+                        running[pools[k].submit(run_task, tasks[i], cache_dir, repeats)] = (k, i)
+
+            for k in range(len(pools)):
+                feed(k)
+            while running:
+                finished, _ = cf.wait(running, return_when=cf.FIRST_COMPLETED)
+                for fut in finished:
+                    k, i = running.pop(fut)
+                    try:
+                        row = fut.result()
+                    except Exception as exc:  # the worker process died
+                        if isinstance(exc, cf.process.BrokenProcessPool):
+                            broken.add(k)
+                        row = {**_empty_row(tasks[i]), "status": "crashed", "reason": crash_reason(exc)}
                     done(i, row)
+                    if all(kk != k for kk, _ in running.values()):
+                        feed(k)
     else:
         try:
             from distributed import Client, as_completed

@@ -259,5 +259,8 @@ def test_dask_workers_get_one_xla_thread_and_run_the_sweep(tmp_path, monkeypatch
         assert rc == 0
         with distributed.Client(cluster.scheduler_address) as client:
             flags = list(client.run(lambda: os.environ.get("XLA_FLAGS")).values())
-    assert flags == ["--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"]
+    from models._jax import DEFAULT_XLA_FLAGS  # reelbench's own options, then the worker's one thread
+
+    one_thread = ["--xla_cpu_multi_thread_eigen=false", "intra_op_parallelism_threads=1"]
+    assert flags == [" ".join([*DEFAULT_XLA_FLAGS, *one_thread])]
     assert (pd.read_csv(tmp_path / "runs.csv")["status"] == "ok").all()
