@@ -286,3 +286,39 @@ def test_damped_iteration_cap_fails_cleanly():
 def test_bad_arguments_name_the_method():
     with pytest.raises(ValueError, match="lgvi_suzuki4: unknown option"):
         get_integrator("lgvi_suzuki4").solve(load_scene("fixed_length", elements=2), dt=1e-3, bogus=1)
+
+
+# ------------------------------------------------------------------------------------------
+# Hard case: the reel reverses (ṡ_p changes sign, ṡ|ṡ| only C¹ there)
+# ------------------------------------------------------------------------------------------
+def test_reel_reversal_keeps_the_orders():
+    """reel_reversal (N = 5, to 0.96 s; ṡ_p changes sign at t = 0.517 s): lgvi_sym stays second
+    order and Suzuki fourth. Expected: ṡ|ṡ| has a jump in its second time derivative, so the
+    solution is C³ with a bounded fourth derivative and the one step across the kink commits an
+    O(h⁴) error: harmless up to order 4 (an order-5 method would drop to 4). Measured with
+    ``python -m benchmark.reel_reversal`` (every method and h: orders 1.99-2.00 and 3.98-4.02)."""
+    from benchmark.reel_reversal import errors, reference
+    scene = load_scene("reel_reversal", elements=5)
+    ref, flips = reference(scene, 0.96, 13)
+    assert len(flips) == 1 and 0.4 < flips[0] < 0.6
+    assert ref.velocity[0, 0] < 0 < ref.velocity[-1, 0]  # deploys, then retrieves
+    e0 = float(evaluate(scene, ref).energy_minus_work.iloc[0])
+    for method, hs, low in (("lgvi_sym", (0.002, 0.001), 1.9), ("lgvi_suzuki4", (0.004, 0.002), 3.7)):
+        errs = []
+        for h in hs:
+            tr = get_integrator(method).solve(scene, t_end=0.96, dt=h, save_every=0.08)
+            assert tr.ok, tr.reason
+            errs.append(errors(scene, tr, ref, e0))
+        orders = np.log2(np.array(errs[0]) / np.array(errs[1]))
+        print("reel_reversal", method, errs, orders)
+        assert np.all(orders >= low), orders
+
+
+def test_reel_reversal_full_scene_runs_ok():
+    scene = load_scene("reel_reversal")
+    for method in ("lgvi_sym", "lgvi_suzuki4"):
+        tr = get_integrator(method).solve(scene, dt=0.0025, save_every=0.02)
+        assert tr.ok, tr.reason
+        df = evaluate(scene, tr)
+        assert df.reel_rate.iloc[0] < 0 < df.reel_rate.iloc[-1]
+        assert summary(df, has_work=True)["orthogonality_error"] < 1e-13
