@@ -12,7 +12,7 @@ from integrators import Status, get_integrator
 from integrators._lgvi_core import DiscreteLagrangian, cayley
 from integrators.lgvi_sym import SUZUKI4, YOSHIDA4
 from models import build_model, load_scene
-from models._jax import jnp
+from models._jax import jax, jnp
 from models.diagnostics import evaluate, summary
 
 from _helpers import effect_combinations, random_state, reference_solution, scene_with_effects
@@ -87,7 +87,6 @@ def test_symmetric_residuals_match_autodiff(effects, rng):
         r, J, dq_red = dl.reduced_system(ctx, p_k, h, z, uv)
         assert np.max(np.abs(np.asarray(r))) < 1e-12 * scale
         np.testing.assert_allclose(dq_red, dq, atol=1e-12)
-        from models._jax import jax
         J_ad = jax.jacfwd(lambda zz: dl.reduced_residual(ctx, p_k, h, zz)[0])(z)
         np.testing.assert_allclose(J, J_ad, rtol=1e-9, atol=1e-12 * np.max(np.abs(J_ad)))
 
