@@ -23,7 +23,8 @@ from integrators.base import Trajectory
 
 #: step sizes per method (s): each in its asymptotic range on the smooth reel scenes, above round-off
 DEFAULT_HS = {"lgvi": (0.004, 0.002, 0.001, 0.0005), "lgvi_sym": (0.004, 0.002, 0.001, 0.0005),
-              "lgvi_yoshida4": (0.004, 0.002, 0.001, 0.0005), "lgvi_suzuki4": (0.008, 0.004, 0.002, 0.001)}
+              "lgvi_yoshida4": (0.004, 0.002, 0.001, 0.0005), "lgvi_suzuki4": (0.008, 0.004, 0.002, 0.001),
+              "tsit5": (0.016, 0.008, 0.004, 0.002)}  # constant-step Tsit5 (order 5), for comparison
 COMPARE_EVERY = 0.08
 
 
