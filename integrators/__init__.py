@@ -3,7 +3,7 @@
     from integrators import get_integrator
     traj = get_integrator("dop853").solve(scene, t_end=1.0, rtol=1e-10, atol=1e-12)
 
-Built-in: ``lgvi`` (registered by decorator). Baselines ``rk45``, ``radau``, ``dop853``,
+Built-in: ``lgvi`` and the symmetric ``lgvi_sym``, ``lgvi_yoshida4``, ``lgvi_suzuki4`` (registered by decorator). Baselines ``rk45``, ``radau``, ``dop853``,
 ``tsit5``, ``kvaerno5`` are registered through the ``reelbench.integrators`` entry-point
 group, exactly as an outside plugin would be.
 """
@@ -26,3 +26,4 @@ __all__ = [
     "unregister",
 ]
 from integrators import lgvi  # noqa: F401,E402  (registers "lgvi")
+from integrators import lgvi_sym  # noqa: F401,E402  (registers "lgvi_sym", "lgvi_yoshida4", "lgvi_suzuki4")

@@ -39,6 +39,7 @@ equations; the work of step k is (f⁻ + f⁺)·Δx / h):
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -160,10 +161,21 @@ jax.tree_util.register_dataclass(
 
 
 class DiscreteLagrangian:
-    """Closed-form derivatives of MODEL.md §6's L_d for one model (string mass of `string.mass_model`)."""
+    """Closed-form derivatives of the LGVI's L_d for one model (string mass of `string.mass_model`).
 
-    def __init__(self, model):
+    ``symmetric=False``: MODEL.md §6 (the paper's: s_p-dependent mass terms and the forcing at
+    g_k; first order while the length changes). ``symmetric=True``: MODEL.md §9, L_d^sym = L_d^§6
+    + C(Δx)/h (mass terms at the step midpoint) with every force evaluated once at the midpoint
+    with the secant velocity, f⁻ = f⁺ = (h/2) Q(t_k + h/2, x_{k+½}, Δx/h): the forced map is
+    self-adjoint, hence second order everywhere (and composable to higher order). The two
+    differ only in `q_coeffs` (l_{k+1} in the consistent mass), `hp_s`, `hp_k1` (the ∇C terms),
+    the reel forcing (`forcing`) and the string forcing (`end_forcing`, `with_forcing`). At
+    fixed length without string forces both are the same computation (C ∝ Δs = 0).
+    """
+
+    def __init__(self, model, symmetric: bool = False):
         self.model = model
+        self.symmetric = bool(symmetric)
         lay = model.layout
         self.N = N = model.N
         self.reel = lay.has_reel
@@ -238,18 +250,55 @@ class DiscreteLagrangian:
         w = self.legendre(x, R, p)
         return w, self.split_force(self.model.string_force(t, x, w))
 
+    def step_vector(self, ds, dq):
+        """Δx over x's layout."""
+        return jnp.concatenate([jnp.atleast_1d(ds), dq.ravel()]) if self.reel else dq.ravel()
+
+    def midpoint(self, ctx: StepContext, h, ds, dq):
+        """(t_k + h/2, x_{k+½}, secant velocity) of the symmetric forcing (MODEL.md §9.3).
+
+        The Ω slot of the velocity is zero: the forces act on (s_p, q) and depend on Ω not at all.
+        """
+        dx = self.step_vector(ds, dq)
+        w = jnp.concatenate([dx / h, jnp.zeros(self.nw - dx.shape[0])])
+        return ctx.t + 0.5 * h, ctx.x + 0.5 * dx, w
+
     def end_forcing(self, ctx: StepContext, h, ds, dq):
-        """(Q_s, Q_q, Q_Ω) of f⁺ = (h/2) Q(t_k + h, x_{k+1}, 2Δx/h − ẋ_k) (Heun predictor)."""
+        """(Q_s, Q_q, Q_Ω) of f⁺ = (h/2) Q⁺.
+
+        §6: Q⁺ = Q(t_k + h, x_{k+1}, 2Δx/h − ẋ_k) (Heun predictor). Symmetric: Q⁺ = Q⁻ =
+        Q(t_k + h/2, x_{k+½}, Δx/h), the same midpoint force on both ends.
+        """
         if not self.node_forced:
             return jnp.asarray(0.0), jnp.zeros((self.N, 3)), jnp.zeros(3)
+        if self.symmetric:
+            return self.split_force(self.model.string_force(*self.midpoint(ctx, h, ds, dq)))
         nx = self.model.layout.nx
-        dx = jnp.concatenate([jnp.atleast_1d(ds), dq.ravel()]) if self.reel else dq.ravel()
+        dx = self.step_vector(ds, dq)
         w1 = jnp.concatenate([2.0 * dx / h - ctx.w[:nx], ctx.w[nx:]])
         return self.split_force(self.model.string_force(ctx.t + h, ctx.x + dx, w1))
 
+    def with_forcing(self, ctx: StepContext, h, ds, dq) -> StepContext:
+        """The symmetric scheme's context with f⁻ = (h/2) Q(t_k + h/2, x_{k+½}, Δx/h) at (Δs, Δq).
+
+        The midpoint string force depends on the step itself, and through the element
+        directions it is not a scalar times I₃: solving it inside the tridiagonal system would
+        cost a 3×3-block solve. The step instead lags it by one iteration (fixed point around the
+        scalar solve, `integrators.lgvi`), which contracts by about h γ_max / 2 per iteration:
+        the explicit §6 forcing's stability limit h γ_max < 2, met with iterations instead of a
+        blow-up. ``ctx`` is returned unchanged without string forces or for the §6 scheme.
+        """
+        if not (self.symmetric and self.node_forced):
+            return ctx
+        fs, fq, feta = self.end_forcing(ctx, h, ds, dq)
+        return dataclasses.replace(ctx, fs=fs, fq=fq, feta=feta)
+
     def work(self, ctx: StepContext, h, ds, dq):
-        """Work of the forcing on step k: Q_k Δs (reel) + ½ (Q⁻ + Q⁺)·Δx (string forces)."""
-        dW = self.forcing(ctx, ds, h) * ds
+        """Work of the forcing on step k: Q_k Δs (reel) + ½ (Q⁻ + Q⁺)·Δx (string forces).
+
+        Symmetric: Q_{k+½} Δs + Q_{k+½}·Δx, the same forces as in f⁻ and f⁺ (MODEL.md §9.3).
+        """
+        dW = self.forcing(ctx, ds, h, dq) * ds
         if self.node_forced:
             fs1, fq1, _ = self.end_forcing(ctx, h, ds, dq)
             dW = dW + 0.5 * jnp.sum((ctx.fq + fq1) * dq)
@@ -278,10 +327,15 @@ class DiscreteLagrangian:
         return jnp.concatenate(parts) if parts else jnp.zeros(0)
 
     # -------------------------------------------------------------------------------------
-    def forcing(self, ctx: StepContext, ds, h):
-        """Q_k = Q_u(t_k) + Q_c(s_k, Δs/h, q_{k,2})."""
+    def forcing(self, ctx: StepContext, ds, h, dq=None):
+        """The reel force of the step: §6 Q_k = Q_u(t_k) + Q_c(s_k, Δs/h, q_{k,2}); symmetric
+        Q_{k+½} = Q_u(t_k + h/2) + Q_c(s_{k+½}, Δs/h, q_{k+½,2}) (needs ``dq``)."""
         if not self.reel or not self.model.reel_forces:
             return jnp.asarray(0.0)
+        if self.symmetric:
+            if dq is None:
+                raise ValueError("DiscreteLagrangian.forcing: the symmetric scheme needs dq (its midpoint state)")
+            return self.model.reel_force(*self.midpoint(ctx, h, ds, dq))
         w = jnp.zeros(self.nw).at[0].set(ds / h)
         return self.model.reel_force(ctx.t, ctx.x, w)
 
@@ -292,8 +346,11 @@ class DiscreteLagrangian:
         return self.model.m_b * (ctx.R @ (F @ self.rho - self.rho))
 
     def q_coeffs(self, ctx: StepContext, ds):
-        """Tridiagonal (sub, diag, sup) of the q rows of the p_k equations, in h·p units."""
-        mul = self.model.mu * ctx.l
+        """Tridiagonal (sub, diag, sup) of the q rows of the p_k equations, in h·p units.
+
+        Symmetric: the consistent-mass part at l_{k+1} = l_k − Δs/N (MODEL.md §9.4).
+        """
+        mul = self.model.mu * (ctx.l - ds / self.N if self.symmetric else ctx.l)
         sub = mul * self.msub + ds * self.cprev
         diag = mul * self.mdiag + self.model.m_b * self.e_last + ds * self.cself
         sup = mul * self.msup + ds * self.cnext
@@ -307,14 +364,23 @@ class DiscreteLagrangian:
         return tridiag_solve(sub, diag, sup, rhs)
 
     def hp_s(self, ctx: StepContext, h, ds, dq):
-        """h p_{s,k} side of the s_p row as a function of (Δs, Δq) (MODEL.md §6)."""
-        mu, N = self.model.mu, self.N
+        """h p_{s,k} side of the s_p row as a function of (Δs, Δq) (MODEL.md §6, §9.4).
+
+        Symmetric: −(μ/3)Δs² + (μ/6N) Σ quad_a becomes +(μ/6)Δs² (the Δq-quadratic cancels).
+        """
+        mu = self.model.mu
+        Q = self.forcing(ctx, ds, h, dq)
+        if self.symmetric:
+            return ctx.M0 * ds + jnp.sum(ctx.C * dq) + mu / 6.0 * ds * ds + 0.5 * h * h * (ctx.dVs - Q - ctx.fs)
+        return (ctx.M0 * ds + jnp.sum(ctx.C * dq) - mu / 3.0 * ds * ds + mu / (6 * self.N) * self._quad(dq)
+                + 0.5 * h * h * (ctx.dVs - Q - ctx.fs))
+
+    @staticmethod
+    def _quad(dq):
+        """Σ_a |Δq_a|² + Δq_a·Δq_{a+1} + |Δq_{a+1}|² (Δq_1 = 0)."""
         dqf = jnp.concatenate([jnp.zeros((1, 3)), dq], axis=0)
         da, db = dqf[:-1], dqf[1:]
-        quad = jnp.sum(da * da) + jnp.sum(db * db) + jnp.sum(da * db)
-        Q = self.forcing(ctx, ds, h)
-        return (ctx.M0 * ds + jnp.sum(ctx.C * dq) - mu / 3.0 * ds * ds + mu / (6 * N) * quad
-                + 0.5 * h * h * (ctx.dVs - Q - ctx.fs))
+        return jnp.sum(da * da) + jnp.sum(db * db) + jnp.sum(da * db)
 
     def hp_Pi(self, ctx: StepContext, h, c, dq_tip):
         """h Π_k side: (F J_d − J_d Fᵀ)^∨ + m_b ρ × R_kᵀ Δq_{N+1} + (h²/2) ∂_η V_k.
@@ -411,10 +477,12 @@ class DiscreteLagrangian:
         return self.join(hps, rows, hPi)
 
     def hp_k1(self, ctx: StepContext, h, ds, dq, c, gradV1):
-        """h·p_{k+1} (w's layout) from the step X and ∇V(g_{k+1}) — MODEL.md §6."""
+        """h·p_{k+1} (w's layout) from the step X and ∇V(g_{k+1}) — MODEL.md §6, §9.4 (symmetric:
+        the consistent mass at l_{k+1}, +(μ/2)Δs² − (μ/6N) Σ quad_a in the s_p row, Q_{k+½})."""
         F = cayley(c) if self.rigid else jnp.eye(3)
         N, lay = self.N, self.model.layout
-        mul = self.model.mu * ctx.l
+        mu = self.model.mu
+        mul = mu * (ctx.l - ds / N if self.symmetric else ctx.l)
         diag = mul * self.mdiag + self.model.m_b * self.e_last
         dqf = jnp.concatenate([jnp.zeros((1, 3)), dq, jnp.zeros((1, 3))], axis=0)
         lin = (mul * self.msub)[:, None] * dqf[:-2] + diag[:, None] * dqf[1:-1] + (mul * self.msup)[:, None] * dqf[2:]
@@ -423,8 +491,10 @@ class DiscreteLagrangian:
         hpq = lin - 0.5 * h * h * (gradV1[lay.nodes].reshape(N, 3) - fq1)
         hps = 0.0
         if self.reel:
-            Q = self.forcing(ctx, ds, h)
+            Q = self.forcing(ctx, ds, h, dq)
             hps = ctx.M0 * ds + jnp.sum(ctx.C * dq) - 0.5 * h * h * gradV1[0] + 0.5 * h * h * (Q + fs1)
+            if self.symmetric:  # ∂C/∂Δs (MODEL.md §9.4)
+                hps = hps + mu / 2.0 * ds * ds - mu / (6 * N) * self._quad(dq)
         hPi = jnp.zeros(3)
         if self.rigid:
             hPi = (vee(self.J_d @ F - F.T @ self.J_d)  # the matrix is skew: vee gives its axial vector

@@ -219,6 +219,15 @@ def check_positive(name: str, value, *, allow_none: bool = False) -> None:
         raise ValueError(f"{name} = {value!r} is invalid (allowed: a finite number > 0)")
 
 
+#: The situations an integrator may declare its own order for (`Integrator.orders`).
+SITUATIONS = ("fixed_length", "reel")
+
+
+def situation(scene) -> str:
+    """"reel" when the scene's deployed length is a degree of freedom, else "fixed_length"."""
+    return "reel" if scene.has("reel") else "fixed_length"
+
+
 class Integrator(abc.ABC):
     """Base class of every integrator. Subclasses set the class attributes and `solve`.
 
@@ -226,16 +235,23 @@ class Integrator(abc.ABC):
         name: registry name (lower case).
         capabilities: frozenset of `Capability`, declared.
         order: the method's classical order of accuracy (for convergence tests), or None.
+        orders: optional per-situation orders where they differ from ``order``, keyed by
+            `SITUATIONS` (e.g. the paper's LGVI: {"fixed_length": 2, "reel": 1}); see `order_for`.
         description: one line for tables and ``python -m benchmark list``.
     """
 
     name: ClassVar[str] = ""
     capabilities: ClassVar[frozenset[Capability]] = frozenset()
     order: ClassVar[int | None] = None
+    orders: ClassVar[dict[str, int] | None] = None
     description: ClassVar[str] = ""
 
     def has(self, capability: Capability) -> bool:
         return capability in self.capabilities
+
+    def order_for(self, scene) -> int | None:
+        """The order this method has on ``scene``'s situation (`situation`), else ``order``."""
+        return (self.orders or {}).get(situation(scene), self.order)
 
     @abc.abstractmethod
     def solve(

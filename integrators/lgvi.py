@@ -10,6 +10,14 @@ time), stopping cleanly with a `Status` when Newton fails, the state stops being
 deployed length leaves (ℓ_min, L − b), a step's Cayley parameter exceeds `CAYLEY_BOUND` or (at
 save points) the energy balance error exceeds `integrators.base.energy_bound`.
 
+The same loop runs the symmetric LGVI of MODEL.md §9 and its compositions
+(`integrators.lgvi_sym`): a `Scheme` selects the discrete Lagrangian
+(`DiscreteLagrangian(symmetric=...)`) and the substep coefficients γ_i; the guards, statuses and
+the structured solver are shared. With the symmetric scheme and string forces (axial damping)
+the midpoint string force is found by a fixed point around the structured solve (see
+`DiscreteLagrangian.with_forcing`): it costs more Newton iterations per step (measured N = 4,
+c = 0.5 N s: 5.3 vs 1.0 per step at fixed length, 9.2 vs 2.5 on retrieval, at h = 4 ms).
+
 Forcing (MODEL.md §6): (h/2) Q_k at both ends of the step, Q_k = Q_u(t_k) + Q_c(s_k, Δs/h,
 q_{k,2}); the work of step k is Q_k Δs and is accumulated in ``Trajectory.work``. The string
 forces (axial damping) are explicit (Heun: (h/2) Q at g_k from w_k = M⁻¹ p_k, (h/2) Q at
@@ -20,6 +28,8 @@ g_{k+1} from the predicted velocity 2Δx/h − ẋ_k), see `integrators._lgvi_co
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
@@ -47,73 +57,116 @@ _VELOCITY: dict = {}
 _MASS: dict = {}
 
 
-def _make_run(model):
+@dataclass(frozen=True)
+class Scheme:
+    """Which LGVI: the discrete Lagrangian (§6 or the symmetric §9) and the composition.
+
+    ``gammas``: substep fractions γ_i of a composition Φ_{γ_m h} ∘ … ∘ Φ_{γ_1 h} of the
+    (symmetric) step (Σ γ_i = 1), or None for one step per step.
+    """
+
+    symmetric: bool = False
+    gammas: tuple | None = None
+
+    @property
+    def substeps(self) -> int:
+        """Symmetric steps per step (the work of one step is this many LGVI steps)."""
+        return len(self.gammas) if self.gammas else 1
+
+
+SECTION6 = Scheme()
+
+
+def _make_run(model, scheme: Scheme = SECTION6):
     """The whole run as one function of (x0, R0, p0, h, save_idx, n_save, tol, maxit).
 
     ``save_idx`` is padded to a bucketed length so that runs of other lengths reuse the
     compiled code; only its first ``n_save`` entries are used.
     """
-    dl = DiscreteLagrangian(model)
+    dl = DiscreteLagrangian(model, symmetric=scheme.symmetric)
     lay = model.layout
     nz = dl.nz
     # energy guard (issue #7): velocities from momenta by the O(N) closed-form solve
     e_bound = energy_bound(model)
+    # the symmetric scheme's midpoint string force depends on the step: fixed point around the
+    # structured solve (`DiscreteLagrangian.with_forcing`)
+    lagged = dl.symmetric and dl.node_forced
 
     def energy_err(x, R, p, W, E0):
         return energy_error(model, x, R, dl.legendre(x, R, p), W, E0)
 
-    def step(x, R, p, gV, z, k, h, tol, maxit):
-        t = k * h
-        ctx = dl.context(t, x, R, gV, p)
+    def solve_x(ctx, p, h, z0, uv, tol, maxit):
+        """(Δs, c, F, Δq, iterations, ok, z) of the p_k equations for the forcing in ``ctx``."""
         ps, pq, Pi = dl.split_momentum(p)
-        uv = None if dl.reel else dl.string_solve(ctx, pq, h, jnp.asarray(0.0))
         if nz == 0:
-            ds, c, F = jnp.asarray(0.0), jnp.zeros(3), jnp.eye(3)
             dq = uv[0]
-            it = jnp.asarray(1, jnp.int32)
-            newton_ok = jnp.all(jnp.isfinite(dq))
-            z_new = z
-        else:
-            # With a reel, chord-Newton: the exact reduced Jacobian is assembled on the first
-            # iteration and kept while the iteration contracts fast; later iterations only
-            # evaluate the residual (about a quarter of the cost: J needs a tangent Thomas
-            # pass). A slow contraction (ratio > CHORD_REFRESH) re-assembles J, so hard steps
-            # still get full Newton. Without a reel J is cheap: plain Newton. The first guess
-            # extrapolates the last two steps' solutions (z holds both), which saves one
-            # iteration per step.
-            def cond(c_):
-                _, _, _, it_, conv, bad, _ = c_
-                return (~conv) & (~bad) & (it_ < maxit)
+            return (jnp.asarray(0.0), jnp.zeros(3), jnp.eye(3), dq, jnp.asarray(1, jnp.int32),
+                    jnp.all(jnp.isfinite(dq)), z0)
+        # With a reel, chord-Newton: the exact reduced Jacobian is assembled on the first
+        # iteration and kept while the iteration contracts fast; later iterations only
+        # evaluate the residual (about a quarter of the cost: J needs a tangent Thomas
+        # pass). A slow contraction (ratio > CHORD_REFRESH) re-assembles J, so hard steps
+        # still get full Newton. Without a reel J is cheap: plain Newton.
+        def cond(c_):
+            _, _, _, it_, conv, bad, _ = c_
+            return (~conv) & (~bad) & (it_ < maxit)
 
-            def body(c_):
-                zz, J, dz_prev, it_, _, _, refresh = c_
+        def body(c_):
+            zz, J, dz_prev, it_, _, _, refresh = c_
 
-                def exact(zz_):
-                    r_, J_, _ = dl.reduced_system(ctx, p, h, zz_, uv)
-                    return r_, J_
+            def exact(zz_):
+                r_, J_, _ = dl.reduced_system(ctx, p, h, zz_, uv)
+                return r_, J_
 
-                def chord(zz_):
-                    return dl.reduced_residual(ctx, p, h, zz_, uv)[0], J
+            def chord(zz_):
+                return dl.reduced_residual(ctx, p, h, zz_, uv)[0], J
 
-                r, J = jax.lax.cond(refresh, exact, chord, zz) if dl.reel else exact(zz)
-                dz = -small_solve(J, r)
-                zn = zz + dz
-                bad = ~jnp.all(jnp.isfinite(zn))
-                size = jnp.max(jnp.abs(dz))
-                conv = size <= tol
-                refresh = size > CHORD_REFRESH * dz_prev
-                return jnp.where(bad, zz, zn), J, size, it_ + 1, conv, bad, refresh
+            r, J = jax.lax.cond(refresh, exact, chord, zz) if dl.reel else exact(zz)
+            dz = -small_solve(J, r)
+            zn = zz + dz
+            bad = ~jnp.all(jnp.isfinite(zn))
+            size = jnp.max(jnp.abs(dz))
+            conv = size <= tol
+            refresh = size > CHORD_REFRESH * dz_prev
+            return jnp.where(bad, zz, zn), J, size, it_ + 1, conv, bad, refresh
 
-            z_sol, _, _, it, conv, bad, _ = jax.lax.while_loop(
-                cond, body, (2.0 * z[1] - z[0], jnp.zeros((nz, nz)), jnp.asarray(jnp.inf), jnp.asarray(0, jnp.int32),
-                             jnp.asarray(False), jnp.asarray(False), jnp.asarray(True)))
-            newton_ok = conv & ~bad
-            z_new = jnp.stack([z[1], z_sol])
-            ds, c = dl.unpack_z(z_sol)
-            F = cayley(c) if dl.rigid else jnp.eye(3)
-            u, v = dl.string_solve(ctx, pq, h, ds) if dl.reel else uv
-            dq = u - v[:, None] * dl.body_term(ctx, F)[None, :]
-            newton_ok = newton_ok & jnp.all(jnp.isfinite(dq))
+        z_sol, _, _, it, conv, bad, _ = jax.lax.while_loop(
+            cond, body, (z0, jnp.zeros((nz, nz)), jnp.asarray(jnp.inf), jnp.asarray(0, jnp.int32),
+                         jnp.asarray(False), jnp.asarray(False), jnp.asarray(True)))
+        ds, c = dl.unpack_z(z_sol)
+        F = cayley(c) if dl.rigid else jnp.eye(3)
+        u, v = dl.string_solve(ctx, pq, h, ds) if dl.reel else uv
+        dq = u - v[:, None] * dl.body_term(ctx, F)[None, :]
+        return ds, c, F, dq, it, conv & ~bad & jnp.all(jnp.isfinite(dq)), z_sol
+
+    def step(x, R, p, gV, z, t, h, tol, maxit):
+        ctx = dl.context(t, x, R, gV, p)
+        _, pq, _ = dl.split_momentum(p)
+        uv = None if dl.reel else dl.string_solve(ctx, pq, h, jnp.asarray(0.0))
+        # the first guess extrapolates the last two steps' solutions (z holds both), which
+        # saves one iteration per step
+        z0 = 2.0 * z[1] - z[0] if nz else z[1]
+        ds, c, F, dq, it, newton_ok, z_sol = solve_x(ctx, p, h, z0, uv, tol, maxit)
+        if lagged:
+            # first pass: §6's explicit force at g_k (`context`); then the midpoint force of the
+            # last iterate until Δx stops changing (contraction ≈ h γ_max / 2, see with_forcing)
+            def fp_cond(c_):
+                *_, n, conv, ok_ = c_
+                return (~conv) & ok_ & (n < maxit)
+
+            def fp_body(c_):
+                ds_, c_prev, F_, dq_, it_, zz, n, _, _ = c_
+                ctx_ = dl.with_forcing(ctx, h, ds_, dq_)
+                uv_ = None if dl.reel else dl.string_solve(ctx_, pq, h, jnp.asarray(0.0))
+                ds1, c1, F1, dq1, it1, ok1, z1 = solve_x(ctx_, p, h, zz, uv_, tol, maxit)
+                conv = (jnp.max(jnp.abs(dq1 - dq_)) <= tol) & (jnp.abs(ds1 - ds_) <= tol)
+                return ds1, c1, F1, dq1, it_ + it1, z1, n + 1, conv, ok1
+
+            ds, c, F, dq, it, z_sol, _, conv, ok = jax.lax.while_loop(
+                fp_cond, fp_body, (ds, c, F, dq, it, z_sol, jnp.asarray(0, jnp.int32), jnp.asarray(False), newton_ok))
+            newton_ok = conv & ok
+            ctx = dl.with_forcing(ctx, h, ds, dq)
+        z_new = jnp.stack([z[1], z_sol])
         dx = jnp.concatenate([jnp.atleast_1d(ds), dq.ravel()]) if dl.reel else dq.ravel()
         x1 = x + dx
         R1 = R @ F if dl.rigid else R
@@ -123,13 +176,41 @@ def _make_run(model):
         finite = jnp.all(jnp.isfinite(x1)) & jnp.all(jnp.isfinite(p1)) & jnp.all(jnp.isfinite(R1)) & jnp.isfinite(dW)
         inside = model.deployed_length_margin(x1) > 0
         code = jnp.where(~newton_ok, 1, jnp.where(~finite, 2, jnp.where(~inside, 3, 0))).astype(jnp.int32)
+        if dl.rigid:  # -- Cayley guard (issue #7): |c| > CAYLEY_BOUND ends the run (code 5) --
+            code = jnp.where(((code == 0) | (code == 2)) & (c @ c > CAYLEY_BOUND ** 2), 5, code).astype(jnp.int32)
         return (x1, R1, p1, gV1, dW, z_new), it, code
+
+    if scheme.gammas is None:
+        def macro_step(x, R, p, gV, z, k, h, tol, maxit):
+            return step(x, R, p, gV, z, k * h, h, tol, maxit)
+
+        z_shape = (2, nz)
+    else:
+        # composition: substep i of size γ_i h starts at t_k + (γ_1 + … + γ_{i−1}) h; each substep
+        # keeps its own Newton history (z[i]: its last two solutions), since the sizes differ.
+        # A failed substep's successors still run (scan), but the macro step is then rejected.
+        gam = jnp.asarray(scheme.gammas)
+        tau = jnp.asarray(np.concatenate([[0.0], np.cumsum(scheme.gammas)[:-1]]))
+
+        def macro_step(x, R, p, gV, z, k, h, tol, maxit):
+            def sub(carry, inp):
+                x_, R_, p_, gV_, W_, it_, code_ = carry
+                g, tt, zi = inp
+                (x1, R1, p1, gV1, dW, z1), it1, code1 = step(x_, R_, p_, gV_, zi, (k + tt) * h, g * h, tol, maxit)
+                code1 = jnp.where(code_ == 0, code1, code_)
+                return (x1, R1, p1, gV1, W_ + dW, it_ + it1, code1), z1
+
+            init = (x, R, p, gV, jnp.asarray(0.0), jnp.asarray(0, jnp.int32), jnp.asarray(0, jnp.int32))
+            (x1, R1, p1, gV1, dW, it, code), z1 = jax.lax.scan(sub, init, (gam, tau, z))
+            return (x1, R1, p1, gV1, dW, z1), it, code
+
+        z_shape = (len(scheme.gammas), 2, nz)
 
     def run(x0, R0, p0, h, save_idx, n_save, tol, maxit):
         n_buf = save_idx.shape[0]
         gV0 = model.potential_gradient(x0, R0)
         E0 = model.energy(x0, R0, dl.legendre(x0, R0, p0))
-        z0 = jnp.zeros((2, nz))  # reduced unknowns of the last two steps (Newton's first guess)
+        z0 = jnp.zeros(z_shape)  # reduced unknowns of the last two steps (Newton's first guess)
         bufs = (jnp.zeros((n_buf, lay.nx)).at[0].set(x0), jnp.zeros((n_buf, 3, 3)).at[0].set(R0),
                 jnp.zeros((n_buf, lay.nw)).at[0].set(p0), jnp.zeros(n_buf), jnp.zeros(n_buf, jnp.int32))
         i0 = jnp.asarray(0, jnp.int32)
@@ -145,10 +226,7 @@ def _make_run(model):
         def inner_body(c_):
             state, stats, target = c_
             x, R, p, gV, W, z, k = state
-            (x1, R1, p1, gV1, dW, z1), it, code = step(x, R, p, gV, z, k, h, tol, maxit)
-            if dl.rigid:  # -- Cayley guard (issue #7): |c| > CAYLEY_BOUND ends the run (code 5) --
-                c1 = dl.unpack_z(z1[1])[1]  # z1 holds the last two steps' unknowns; [1] is this one
-                code = jnp.where(((code == 0) | (code == 2)) & (c1 @ c1 > CAYLEY_BOUND ** 2), 5, code).astype(jnp.int32)
+            (x1, R1, p1, gV1, dW, z1), it, code = macro_step(x, R, p, gV, z, k, h, tol, maxit)
             good = code == 0
             sel = lambda a, b: jnp.where(good, a, b)  # noqa: E731
             new_state = (sel(x1, x), sel(R1, R), sel(p1, p), sel(gV1, gV), sel(W + dW, W), sel(z1, z),
@@ -185,14 +263,14 @@ def _bucket(n):
     return max(256, 1 << (int(n) - 1).bit_length())
 
 
-def _compiled_run(model, n_buf, example_args):
-    """AOT-compiled run for (model, buffer length); returns (compiled, compile_seconds)."""
-    key = (id(model), n_buf)
+def _compiled_run(model, n_buf, example_args, scheme: Scheme = SECTION6):
+    """AOT-compiled run for (model, buffer length, scheme); returns (compiled, compile_seconds)."""
+    key = (id(model), n_buf, scheme)
     hit = _COMPILED.get(key)
     if hit is not None and hit[0] is model:
         return hit[1], 0.0
     t0 = time.perf_counter()
-    compiled = jax.jit(_make_run(model)).lower(*example_args).compile()
+    compiled = jax.jit(_make_run(model, scheme)).lower(*example_args).compile()
     dt = time.perf_counter() - t0
     _COMPILED[key] = (model, compiled)
     return compiled, dt
@@ -242,7 +320,11 @@ class LGVI(Integrator):
     capabilities = frozenset({Capability.FIXED_STEP, Capability.IMPLICIT, Capability.VARIATIONAL,
                               Capability.GROUP_PRESERVING})
     order = 2
+    #: measured (tests/test_orders.py): second order at fixed length, first while the length changes
+    orders = {"fixed_length": 2, "reel": 1}
     description = "Lie group variational integrator (Lee-Leok-McClamroch 2011): Cayley SO(3), structured Newton"
+    #: the discrete Lagrangian and composition (subclasses: integrators.lgvi_sym)
+    scheme: ClassVar[Scheme] = SECTION6
 
     def solve(self, scene, t_end=None, *, dt=None, rtol=None, atol=None, save_every=None, max_steps=None,
               newton_tol=1e-12, newton_max_iter=20, **options) -> Trajectory:
@@ -253,7 +335,7 @@ class LGVI(Integrator):
         """
         started = time.perf_counter()  # run time = the whole call minus compilation (issue #11)
         if options:
-            raise ValueError(f"lgvi: unknown option(s) {', '.join(sorted(options))} "
+            raise ValueError(f"{self.name}: unknown option(s) {', '.join(sorted(options))} "
                              "(allowed: dt, t_end, save_every, max_steps, newton_tol, newton_max_iter)")
         if isinstance(scene, str):
             scene = load_scene(scene)
@@ -283,7 +365,7 @@ class LGVI(Integrator):
         # numpy, not jnp: an eager int64 -> int32 conversion compiles on first use (~0.1 s each, in the run time)
         args = (x0, R0, p0, np.float64(dt), np.asarray(idx_buf, np.int32), np.int32(len(idx)),
                 np.float64(newton_tol), np.int32(newton_max_iter))
-        compiled, compile_time = _compiled_run(model, n_buf, args)
+        compiled, compile_time = _compiled_run(model, n_buf, args, self.scheme)
         velocity, compile_v = _velocity_fn(model, n_buf, (np.zeros((n_buf, lay.nx)), np.zeros((n_buf, 3, 3)),
                                                           np.zeros((n_buf, lay.nw))))
         compile_time += compile_p0 + compile_v + setup_time

@@ -25,14 +25,17 @@ LGVI_ = LGVI()
 # ------------------------------------------------------------------------------------------
 # Autodiff discrete Lagrangian (MODEL.md §6 formula; V from model.potential)
 # ------------------------------------------------------------------------------------------
-def discrete_lagrangian(model, h):
+def discrete_lagrangian(model, h, symmetric=False):
+    """L_d of MODEL.md §6 (mass terms at g_k), or with ``symmetric`` L_d^sym of §9.2 (mass
+    terms at x_{k+½} = x_k + Δx/2)."""
     lay, N, mu = model.layout, model.N, model.mu
     J_d, rho = jnp.asarray(model.J_d), jnp.asarray(model.rho_c)
     c31, c23 = jnp.asarray(model.c31), jnp.asarray(model.c23)
 
     def Ld(x, R, dx, F):
-        q, dqf = model.nodes(x), model.nodes(dx)  # nodes() prepends q_1 = 0 (so Δq_1 = 0)
-        s = model.reel_coordinate(x)
+        xm = x + 0.5 * dx if symmetric else x  # where the s_p-dependent mass terms are evaluated
+        q, dqf = model.nodes(xm), model.nodes(dx)  # nodes() prepends q_1 = 0 (so Δq_1 = 0)
+        s = model.reel_coordinate(xm)
         l = (model.L - s) / N
         da, db = dqf[:-1], dqf[1:]
         K = jnp.sum(mu * l / 6 * (jnp.sum(da * da, 1) + jnp.sum(da * db, 1) + jnp.sum(db * db, 1))) / h
@@ -49,17 +52,24 @@ def discrete_lagrangian(model, h):
     return Ld
 
 
-def autodiff_momenta(model, h, t, x, R, dx, F):
+def autodiff_momenta(model, h, t, x, R, dx, F, symmetric=False):
     """Discrete Lagrange–d'Alembert: p_k = −D_1 L_d − (h/2)Q, p_{k+1} = D_2 L_d + (h/2)Q.
 
     With g_{k+1} = g_k f_k: for vector coordinates D_1 = ∂_x L_d − ∂_Δ L_d, D_2 = ∂_Δ L_d; on
     SO(3), left-trivialised: Π_k·η = −d/dε L_d(R e^{εη̂}, e^{−εη̂} F), Π_{k+1}·η = d/dε L_d(R, F e^{εη̂}).
+    §6: the reel force Q(t_k, x_k, Δs/h) only (the explicit string forcing is the caller's).
+    ``symmetric`` (MODEL.md §9.3): L_d^sym and every force, the string forces included, once at
+    (t_k + h/2, x_k + Δx/2) with the secant velocity Δx/h.
     """
     lay = model.layout
-    Ld = discrete_lagrangian(model, h)
+    Ld = discrete_lagrangian(model, h, symmetric)
     Lx, Ldx = jax.grad(Ld, argnums=(0, 2))(x, R, dx, F)
     pk, pk1 = Ldx - Lx, Ldx
-    if lay.has_reel:
+    if symmetric:
+        w = jnp.zeros(lay.nw).at[: lay.nx].set(dx / h)
+        Q = model.generalized_force(t + h / 2, x + dx / 2, w)[: lay.nx]
+        pk, pk1 = pk - h / 2 * Q, pk1 + h / 2 * Q
+    elif lay.has_reel:
         Q = model.reel_force(t, x, jnp.zeros(lay.nw).at[0].set(dx[0] / h))
         pk, pk1 = pk.at[0].add(-h / 2 * Q), pk1.at[0].add(h / 2 * Q)
     if lay.has_attitude:
