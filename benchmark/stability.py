@@ -44,8 +44,7 @@ ADAPTIVE_RTOL = 1e-6
 ADAPTIVE_ATOL = 1e-8
 SAVED_POINTS = 100  # per run: the energy guard is checked at these (LGVI, scipy)
 
-#: implicit *baselines* (their Jacobian compiles through the autodiff model; the LGVIs are
-#: implicit too but structured): left out where that cost is prohibitive
+#: implicit *baselines* (the LGVIs are implicit too, but structured)
 IMPLICIT = ("radau", "kvaerno5")
 DEFAULT_INTEGRATORS = ("lgvi", "lgvi_sym", "lgvi_yoshida4", "lgvi_suzuki4", "rk45", "dop853", "tsit5", "radau",
                        "kvaerno5")
@@ -77,37 +76,24 @@ class Case:
     note: str = ""
 
 
-_SLOW_N320 = ("the baselines' right-hand side solves the dense 963x963 mass matrix (autodiff model, O(N^3)) "
-              "at every stage")
 _SCIPY_500 = "scipy baseline: 500 s is ~1e5 Python-driven steps, minutes per run"
-#: Implicit baselines compile a Jacobian (radau) or a full-Newton ESDIRK (kvaerno5) through the autodiff
-#: model per scene: measured on the shared 2-core machine, 100-115 s (radau) and 245-300 s (kvaerno5)
-#: of compilation per scene, so the default map runs them on the scenes where implicitness matters.
-_IMPLICIT_COST = {
-    "radau": "default run: radau compiles its autodiff Jacobian per scene (~100 s here); run it with --integrators radau",
-    "kvaerno5": "default run: kvaerno5 compiles per scene for 4-5 min here; run it with --integrators kvaerno5",
-}
-_KV_ONLY = {"kvaerno5": _IMPLICIT_COST["kvaerno5"]}
+#: Since the baselines run on the O(N) closed form (issue #11), the implicit ones compile in
+#: seconds and run on every hard scene; on the 1,927-dimensional many_elements state each of
+#: their steps still factorises a dense Jacobian (O(n^3)), so they get a shorter horizon there.
+_DENSE_LU = "implicit baseline: a dense LU of the 1,927 x 1,927 Jacobian per step (O(n^3))"
 CASES = (
-    Case("stiff_string", 0.2, note="EA = 20 kN, N = 40",
-         short={"radau": (0.05, "implicit baseline: compile + Newton cost"),
-                "kvaerno5": (0.02, "implicit baseline: compile + Newton cost")}, default_skip=_KV_ONLY),
-    Case("many_elements", 1.0, note="N = 320",
-         short={n: (0.002, "explicit baseline: " + _SLOW_N320) for n in ("rk45", "dop853", "tsit5")},
-         skip={n: "implicit baseline: its Jacobian is a jacfwd through that dense solve (1,927-dim state); "
-                  "one run exceeds the map's time budget" for n in IMPLICIT}),
-    Case("fast_spin", 2.0, note="|Omega0| = 30 rad/s", default_skip=dict(_IMPLICIT_COST)),
+    Case("stiff_string", 0.2, note="EA = 20 kN, N = 40"),
+    Case("many_elements", 1.0, note="N = 320", short={n: (0.05, _DENSE_LU) for n in IMPLICIT}),
+    Case("fast_spin", 2.0, note="|Omega0| = 30 rad/s"),
     Case("retrieval_to_limit", 10.0, bounded=("length_limit",), overrides=(("deployed_length", 3.0),),
-         note="started at 3 m (scene: 15 m) to reach the 2 m limit sooner; bounded = ends with length_limit",
-         default_skip=dict(_IMPLICIT_COST)),
+         note="started at 3 m (scene: 15 m) to reach the 2 m limit sooner; bounded = ends with length_limit"),
     Case("deployment_to_end", 10.0, bounded=("length_limit",), overrides=(("deployed_length", 36.0),),
-         note="started at 36 m (scene: 3 m) to reach the 39 m limit sooner; bounded = ends with length_limit",
-         default_skip=dict(_IMPLICIT_COST)),
+         note="started at 36 m (scene: 3 m) to reach the 39 m limit sooner; bounded = ends with length_limit"),
     Case("long_horizon", 500.0, note="the scene's full 500 s for the LGVI and constant-step Tsit5",
-         short={"rk45": (20.0, _SCIPY_500), "dop853": (20.0, _SCIPY_500),
-                ("tsit5", "adaptive"): (100.0, "adaptive Tsit5 at rtol 1e-6 needs > 1e5 steps (its default step budget) for 500 s")},
-         default_skip=dict(_IMPLICIT_COST)),
-    Case("near_slack", 2.0, note="string compressed by 5 % at t = 0", default_skip=dict(_IMPLICIT_COST)),
+         short={"rk45": (20.0, _SCIPY_500), "dop853": (20.0, _SCIPY_500), "radau": (20.0, _SCIPY_500),
+                "kvaerno5": (20.0, "implicit baseline: 500 s is ~1e5 steps with a Newton solve each"),
+                ("tsit5", "adaptive"): (100.0, "adaptive Tsit5 at rtol 1e-6 needs > 1e5 steps (its default step budget) for 500 s")}),
+    Case("near_slack", 2.0, note="string compressed by 5 % at t = 0"),
 )
 
 
