@@ -169,7 +169,12 @@ def _run(args, scene_names, ov, t_end, out: Path, saved: list) -> int:
         if horizon > 0:
             figures.append(_horizon_study(horizon, out, {k: v for k, v in ov.items() if k != "t_end"}, args.jobs).name)
     wall = time.perf_counter() - t0
-    report.write_readme(out, runs, orders, command=_command(), wall_time=wall, figures=figures,
+    compared = ""
+    if args.compare_with:
+        import pandas as pd
+
+        compared = report.changes_since(pd.read_csv(args.compare_with), runs, f"`{args.compare_with}`")
+    report.write_readme(out, runs, orders, command=_command(), wall_time=wall, figures=figures, compared=compared,
                         horizons={"sweep": t_end, "energy study": horizon if not args.no_figures else 0.0})
     n_bad = int((runs["status"] != "ok").sum())
     _log(f"done in {wall:.0f} s: {len(runs)} runs, {n_bad} not ok; see {out}/README.md")
@@ -435,6 +440,8 @@ def parser() -> argparse.ArgumentParser:
                         f"{FULL_HORIZON:g}; --quick: {QUICK_HORIZON:g})")
     r.add_argument("--no-figures", action="store_true", help="skip the figures and the energy study")
     r.add_argument("--fresh", action="store_true", help="recompute every run, ignoring rows already in OUT/runs.csv")
+    r.add_argument("--compare-with", type=opt.runs_table, metavar="RUNS.csv",
+                   help="an earlier run's runs.csv: the README then says which conclusions changed and by how much")
     r.add_argument("--out", default="results", help="output directory (created if missing); the default is the "
                                                     "repository's committed results/, which this overwrites")
     r.set_defaults(func=cmd_run)

@@ -80,6 +80,22 @@ positive_ints = _list_of(positive_int)
 tolerances = _list_of(tolerance)
 
 
+def runs_table(text: str) -> str:
+    """An existing runs.csv with the columns a comparison needs (checked without pandas)."""
+    path = Path(text)
+    if not path.is_file():
+        raise argparse.ArgumentTypeError(f"{text!r} is not a file (allowed: the runs.csv of an earlier run)")
+    try:
+        with open(path, encoding="utf-8") as fh:
+            header = fh.readline().strip().split(",")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise argparse.ArgumentTypeError(f"{text!r} cannot be read ({exc})") from None
+    missing = [c for c in ("scene", "integrator", "setting", "status", "run_time") if c not in header]
+    if missing:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a runs table: no column(s) {', '.join(missing)}")
+    return text
+
+
 def names(text: str) -> list[str]:
     parts = [p.strip() for p in text.split(",") if p.strip()]
     if not parts:

@@ -112,8 +112,56 @@ def answers(runs: pd.DataFrame) -> str:
     return "".join(out)
 
 
+def changes_since(before: pd.DataFrame, runs: pd.DataFrame, label: str) -> str:
+    """What changed against an earlier run's table ``before`` (e.g. the results of an earlier
+    version): the cheapest method per scene and target then and now, and each method's
+    speed-up on the runs both tables have (same scene, integrator and setting, ok in both)."""
+    out = [f"## Compared with {label}\n\n"]
+    for err, target, what in TARGETS:
+        if err not in before or err not in runs:
+            continue
+        then, now = fastest_at(before, err, target), fastest_at(runs, err, target)
+        out.append(f"Cheapest to reach {what}, by wall time (last column: the two methods ranked first "
+                   f"and second then, compared now):\n\n| scene | then | now | then's pair now |\n|---|---|---|---|\n")
+        for scene in sorted(set(runs["scene"]) | set(before["scene"])):
+            cells = []
+            for t in (then, now):
+                g = t[t["scene"] == scene] if not t.empty else t
+                if g.empty:
+                    cells.append("no run reached it")
+                    continue
+                first = g.iloc[0]
+                nxt = (f", {g['factor'].iloc[1]:.2g}× cheaper than `{g['integrator'].iloc[1]}`" if len(g) > 1 else "")
+                cells.append(f"`{first['integrator']}` ({first['setting']}, {first['run_time']:.3g} s){nxt}")
+            pair = ""
+            g_then = then[then["scene"] == scene] if not then.empty else then
+            g_now = now[now["scene"] == scene] if not now.empty else now
+            if len(g_then) > 1 and not g_now.empty:
+                a, b = g_then["integrator"].iloc[0], g_then["integrator"].iloc[1]
+                ta = g_now.loc[g_now["integrator"] == a, "run_time"]
+                tb = g_now.loc[g_now["integrator"] == b, "run_time"]
+                if len(ta) and len(tb):
+                    pair = f"`{b}` / `{a}` = {tb.iloc[0] / ta.iloc[0]:.2g}× (then {g_then['factor'].iloc[1]:.2g}×)"
+            out.append(f"| {scene} | {cells[0]} | {cells[1]} | {pair} |\n")
+        out.append("\n")
+    key = ["scene", "integrator", "setting"]
+    both = before[before["status"] == "ok"].merge(runs[runs["status"] == "ok"], on=key, suffixes=("_then", "_now"))
+    if not both.empty:
+        speed = (both["run_time_then"] / both["run_time_now"]).groupby(both["integrator"]).median()
+        out.append("Median speed-up of each method (run time then / now, over the "
+                   f"{len(both)} runs both tables finished):\n\n| integrator | runs | speed-up |\n|---|---|---|\n")
+        counts = both.groupby("integrator").size()
+        for name, v in speed.sort_values(ascending=False).items():
+            out.append(f"| {name} | {counts[name]} | {v:.3g}× |\n")
+        out.append("\n")
+    new = sorted(set(runs["integrator"]) - set(before["integrator"]))
+    if new:
+        out.append("New in this run: " + ", ".join(f"`{n}`" for n in new) + ".\n\n")
+    return "".join(out)
+
+
 def write_readme(out_dir: Path, runs: pd.DataFrame, orders: pd.DataFrame, *, command: str, wall_time: float, figures: list[str],
-                 notes: str = "", horizons: dict | None = None) -> Path:
+                 notes: str = "", horizons: dict | None = None, compared: str = "") -> Path:
     status = runs.groupby(["integrator", "status"]).size().unstack(fill_value=0).reset_index()
     now = utc_now()
     text = f"""# Benchmark results
@@ -137,7 +185,7 @@ work-precision figures, for comparing methods independently of this machine. Ene
 ## What accuracy costs in time
 
 {answers(runs)}
-## Observed convergence orders
+{compared}## Observed convergence orders
 
 Slope p of error ∝ steps^(−p) on the body position at t_end (fixed-step: the order in dt):
 the mean over consecutive settings, and from the two finest settings alone. Over these
