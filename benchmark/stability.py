@@ -44,11 +44,31 @@ ADAPTIVE_RTOL = 1e-6
 ADAPTIVE_ATOL = 1e-8
 SAVED_POINTS = 100  # per run: the energy guard is checked at these (LGVI, scipy)
 
-#: implicit *baselines* (their Jacobian compiles through the autodiff model; the LGVIs are
-#: implicit too but structured): left out where that cost is prohibitive
-IMPLICIT = ("radau", "kvaerno5")
-DEFAULT_INTEGRATORS = ("lgvi", "lgvi_sym", "lgvi_yoshida4", "lgvi_suzuki4", "rk45", "dop853", "tsit5", "radau",
-                       "kvaerno5")
+
+
+def implicit_baseline(integ) -> bool:
+    """An implicit *baseline* (declares IMPLICIT, not VARIATIONAL): its Jacobian or Newton compiles
+    through the ODE model per scene. The LGVIs are implicit too, but structured."""
+    from integrators import Capability
+
+    return integ.has(Capability.IMPLICIT) and not integ.has(Capability.VARIATIONAL)
+
+
+def explicit_baseline(integ) -> bool:
+    """An explicit ODE method (neither IMPLICIT nor VARIATIONAL)."""
+    from integrators import Capability
+
+    return not integ.has(Capability.IMPLICIT) and not integ.has(Capability.VARIATIONAL)
+
+
+def default_integrators() -> list[str]:
+    """The map's default methods: the sweep's shipped defaults (`benchmark.sweep.DEFAULT_INTEGRATORS`,
+    plugins are mapped when named), implicit baselines last (their jobs are the longest)."""
+    from benchmark.sweep import DEFAULT_INTEGRATORS
+    from integrators import available, get_integrator
+
+    names = [n for n in DEFAULT_INTEGRATORS if n in available()]
+    return sorted(names, key=lambda n: implicit_baseline(get_integrator(n)))
 
 
 def kinds(name: str) -> list[str]:
@@ -68,46 +88,56 @@ class Case:
     horizon: float
     bounded: tuple[str, ...] = ("ok",)
     overrides: tuple = ()
-    #: shorter horizons for some integrators (name or (name, kind) -> (s, reason))
+    #: shorter horizons for some integrators: key a name, (name, kind), or a selector (a function
+    #: of the integrator, true when it applies) -> (s, reason)
     short: dict = field(default_factory=dict)
-    #: integrators left out of this scene (name -> reason written into the table)
-    skip: dict = field(default_factory=dict)
-    #: left out of the default run only (``--integrators`` naming them runs them), with the reason
-    default_skip: dict = field(default_factory=dict)
+    #: integrators left out of this scene: selectors, functions of the integrator returning the
+    #: reason written into the table (or None), see `skip_reason`
+    skip: tuple = ()
+    #: left out of the default run only (``--integrators`` naming them runs them), same form
+    default_skip: tuple = ()
     note: str = ""
 
 
 _SLOW_N320 = ("the baselines' right-hand side solves the dense 963x963 mass matrix (autodiff model, O(N^3)) "
               "at every stage")
 _SCIPY_500 = "scipy baseline: 500 s is ~1e5 Python-driven steps, minutes per run"
-#: Implicit baselines compile a Jacobian (radau) or a full-Newton ESDIRK (kvaerno5) through the autodiff
-#: model per scene: measured on the shared 2-core machine, 100-115 s (radau) and 245-300 s (kvaerno5)
-#: of compilation per scene, so the default map runs them on the scenes where implicitness matters.
-_IMPLICIT_COST = {
-    "radau": "default run: radau compiles its autodiff Jacobian per scene (~100 s here); run it with --integrators radau",
-    "kvaerno5": "default run: kvaerno5 compiles per scene for 4-5 min here; run it with --integrators kvaerno5",
-}
-_KV_ONLY = {"kvaerno5": _IMPLICIT_COST["kvaerno5"]}
+
+
+def _expensive(integ) -> str | None:
+    """Default run: leave out a method whose declared cost (`Integrator.expensive`, measured) is
+    prohibitive on this scene."""
+    return f"default run: {integ.name} {integ.expensive}; run it with --integrators {integ.name}" if integ.expensive else None
+
+
+def _very_expensive(integ) -> str | None:
+    """`_expensive`, for the methods whose declared compile time exceeds 200 s per scene."""
+    return _expensive(integ) if integ.cost_hint[0] > 200 else None
+
+
+def _implicit_on_n320(integ) -> str | None:
+    return ("implicit baseline: its Jacobian is a jacfwd through that dense solve (1,927-dim state); "
+            "one run exceeds the map's time budget") if implicit_baseline(integ) else None
+
+
 CASES = (
     Case("stiff_string", 0.2, note="EA = 20 kN, N = 40",
          short={"radau": (0.05, "implicit baseline: compile + Newton cost"),
-                "kvaerno5": (0.02, "implicit baseline: compile + Newton cost")}, default_skip=_KV_ONLY),
+                "kvaerno5": (0.02, "implicit baseline: compile + Newton cost")}, default_skip=(_very_expensive,)),
     Case("many_elements", 1.0, note="N = 320",
-         short={n: (0.002, "explicit baseline: " + _SLOW_N320) for n in ("rk45", "dop853", "tsit5")},
-         skip={n: "implicit baseline: its Jacobian is a jacfwd through that dense solve (1,927-dim state); "
-                  "one run exceeds the map's time budget" for n in IMPLICIT}),
-    Case("fast_spin", 2.0, note="|Omega0| = 30 rad/s", default_skip=dict(_IMPLICIT_COST)),
+         short={explicit_baseline: (0.002, "explicit baseline: " + _SLOW_N320)}, skip=(_implicit_on_n320,)),
+    Case("fast_spin", 2.0, note="|Omega0| = 30 rad/s", default_skip=(_expensive,)),
     Case("retrieval_to_limit", 10.0, bounded=("length_limit",), overrides=(("deployed_length", 3.0),),
          note="started at 3 m (scene: 15 m) to reach the 2 m limit sooner; bounded = ends with length_limit",
-         default_skip=dict(_IMPLICIT_COST)),
+         default_skip=(_expensive,)),
     Case("deployment_to_end", 10.0, bounded=("length_limit",), overrides=(("deployed_length", 36.0),),
          note="started at 36 m (scene: 3 m) to reach the 39 m limit sooner; bounded = ends with length_limit",
-         default_skip=dict(_IMPLICIT_COST)),
+         default_skip=(_expensive,)),
     Case("long_horizon", 500.0, note="the scene's full 500 s for the LGVI and constant-step Tsit5",
          short={"rk45": (20.0, _SCIPY_500), "dop853": (20.0, _SCIPY_500),
                 ("tsit5", "adaptive"): (100.0, "adaptive Tsit5 at rtol 1e-6 needs > 1e5 steps (its default step budget) for 500 s")},
-         default_skip=dict(_IMPLICIT_COST)),
-    Case("near_slack", 2.0, note="string compressed by 5 % at t = 0", default_skip=dict(_IMPLICIT_COST)),
+         default_skip=(_expensive,)),
+    Case("near_slack", 2.0, note="string compressed by 5 % at t = 0", default_skip=(_expensive,)),
 )
 
 
@@ -116,11 +146,32 @@ def _log(msg: str) -> None:
 
 
 def _horizon(case: Case, integrator: str, kind: str = "adaptive") -> tuple[float, str]:
-    """(horizon, why it is shorter than the case's): `Case.short` keys are a name or (name, kind)."""
+    """(horizon, why it is shorter than the case's): `Case.short` keys are a name, (name, kind)
+    or a selector (a function of the integrator)."""
     for key in ((integrator, kind), integrator):
         if key in case.short:
             return case.short[key]
+    selectors = [k for k in case.short if callable(k)]
+    if selectors:
+        from integrators import get_integrator
+
+        integ = get_integrator(integrator)
+        for key in selectors:
+            if key(integ):
+                return case.short[key]
     return case.horizon, ""
+
+
+def skip_reason(case: Case, integrator: str, default_run: bool = True) -> str | None:
+    """Why ``integrator`` is left out of ``case`` (`Case.skip`, and `Case.default_skip` in the
+    default run), or None when it runs."""
+    selectors = case.skip + (case.default_skip if default_run else ())
+    if not selectors:
+        return None
+    from integrators import get_integrator
+
+    integ = get_integrator(integrator)
+    return next((r for r in (sel(integ) for sel in selectors) if r), None)
 
 
 def ladder(case: Case, integrator: str) -> list[Task]:
@@ -149,9 +200,9 @@ def run_job(case: Case, integrator: str, kind: str, default_run: bool = True) ->
     """One row of the map: a whole ladder (kind "fixed") or one adaptive run. Never raises."""
     t0 = time.perf_counter()
     row = _base_row(case, integrator, kind)
-    skip = {**case.skip, **(case.default_skip if default_run else {})}
-    if integrator in skip:
-        row.update(status="skipped", reason=skip[integrator], bounded=False)
+    why = skip_reason(case, integrator, default_run)
+    if why:
+        row.update(status="skipped", reason=why, bounded=False)
         return row
     try:
         if kind == "fixed":
@@ -201,7 +252,7 @@ def to_frame(rows: list[dict]) -> pd.DataFrame:
 def jobs_for(scenes=None, integrators=None) -> list[tuple[Case, str, str, bool]]:
     from integrators import get_integrator
 
-    names = list(integrators) if integrators else list(DEFAULT_INTEGRATORS)
+    names = list(integrators) if integrators else default_integrators()
     for n in names:
         get_integrator(n)  # unknown names raise before any work
     cases = [c for c in CASES if scenes is None or c.scene in scenes]
@@ -255,13 +306,13 @@ def execute(jobs: list[tuple[Case, str, str, bool]], *, workers: int = 2, on_row
 
 def _cost_hint(case: Case, integrator: str, kind: str, default_run: bool = True) -> float:
     """Rough job cost, to start the longest jobs first (compilation dominates the short ones)."""
-    skip = {**case.skip, **(case.default_skip if default_run else {})}
-    if integrator in skip:
+    from integrators import get_integrator
+
+    if skip_reason(case, integrator, default_run):
         return 0.0
-    compile_s = {"kvaerno5": 300, "radau": 110}.get(integrator, 30)
+    compile_s, per_step = get_integrator(integrator).cost_hint  # declared by each method
     horizon, _ = _horizon(case, integrator, kind)
     per_s = {"stiff_string": 200, "many_elements": 400}.get(case.scene, 1)
-    per_step = {"lgvi": 0.3, "lgvi_sym": 0.3, "lgvi_yoshida4": 0.9, "lgvi_suzuki4": 1.5}.get(integrator, 1)
     return compile_s + horizon * per_s * per_step
 
 

@@ -222,6 +222,8 @@ class Integrator(abc.ABC):
         orders: optional per-situation orders where they differ from ``order``, keyed by
             `SITUATIONS` (e.g. the paper's LGVI: {"fixed_length": 2, "reel": 1}); see `order_for`.
         description: one line for tables and ``python -m benchmark list``.
+        horizon_settings, expensive, cost_hint: what the benchmark reads instead of method
+            names (the long-horizon study, the stability map's default run and its scheduling).
     """
 
     name: ClassVar[str] = ""
@@ -229,6 +231,16 @@ class Integrator(abc.ABC):
     order: ClassVar[int | None] = None
     orders: ClassVar[dict[str, int] | None] = None
     description: ClassVar[str] = ""
+    #: settings of this method in the benchmark's long-horizon energy study (`benchmark run
+    #: --horizon`), e.g. {"dt": 0.005} or {"rtol": 1e-6, "atol": 1e-8}; None: not in the study.
+    #: Set it explicitly on a subclass that should not inherit it.
+    horizon_settings: ClassVar[dict[str, float] | None] = None
+    #: why the stability map's default run leaves this method out of the scenes where its cost
+    #: is prohibitive, in words (e.g. a measured compile time per scene); None: it never is
+    expensive: ClassVar[str | None] = None
+    #: (compile seconds per scene, run cost per step relative to an explicit RK step): a rough
+    #: scheduling hint (the stability map starts the longest jobs first), never a result
+    cost_hint: ClassVar[tuple[float, float]] = (30.0, 1.0)
 
     def has(self, capability: Capability) -> bool:
         return capability in self.capabilities

@@ -296,6 +296,7 @@ class Tsit5(DiffraxODE):
     capabilities = frozenset({Capability.ADAPTIVE, Capability.FIXED_STEP})
     order = 5
     description = "diffrax Tsit5: PID-adaptive (rtol/atol) or constant step (dt alone), quaternion attitude"
+    horizon_settings = {"rtol": 1e-6, "atol": 1e-8}
 
 
 class Kvaerno5(DiffraxODE):
@@ -304,3 +305,6 @@ class Kvaerno5(DiffraxODE):
     capabilities = frozenset({Capability.ADAPTIVE, Capability.IMPLICIT})
     order = 5
     description = "diffrax Kvaerno5 (implicit ESDIRK 5(4), full Newton), PID-adaptive, quaternion attitude"
+    #: measured on the shared 2-core machine: 245-300 s of compilation per scene
+    expensive = "compiles per scene for 4-5 min here"
+    cost_hint = (300.0, 1.0)

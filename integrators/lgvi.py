@@ -310,6 +310,8 @@ class LGVI(Integrator):
     #: measured (tests/test_orders.py): second order at fixed length, first while the length changes
     orders = {"fixed_length": 2, "reel": 1}
     description = "Lie group variational integrator (Lee-Leok-McClamroch 2011): Cayley SO(3), structured Newton"
+    horizon_settings = {"dt": 0.005}
+    cost_hint = (30.0, 0.3)
     #: the discrete Lagrangian and composition (subclasses: integrators.lgvi_sym)
     scheme: ClassVar[Scheme] = SECTION6
 

@@ -243,6 +243,7 @@ class RK45(ScipyIVP):
     capabilities = frozenset({Capability.ADAPTIVE})
     order = 5
     description = "scipy RK45 (Dormand–Prince 5(4)), quaternion attitude, not renormalised"
+    horizon_settings = {"rtol": 1e-6, "atol": 1e-8}
 
 
 class Radau(ScipyIVP):
@@ -252,6 +253,9 @@ class Radau(ScipyIVP):
     capabilities = frozenset({Capability.ADAPTIVE, Capability.IMPLICIT})
     order = 5
     description = "scipy Radau IIA (order 5, implicit), Jacobian by jacfwd of the RHS, quaternion attitude"
+    #: measured on the shared 2-core machine: 100-115 s of compilation per scene
+    expensive = "compiles its autodiff Jacobian per scene (~100 s here)"
+    cost_hint = (110.0, 1.0)
 
 
 class DOP853(ScipyIVP):
@@ -260,9 +264,11 @@ class DOP853(ScipyIVP):
     capabilities = frozenset({Capability.ADAPTIVE})
     order = 8
     description = "scipy DOP853 (Dormand–Prince 8(5,3)), used for reference solutions"
+    horizon_settings = {"rtol": 1e-8, "atol": 1e-10}
 
 
 class RK45Projected(RK45):
     name = "rk45_projected"
     projected = True
+    horizon_settings = None
     description = "scipy RK45 with the quaternion rescaled to unit norm after every accepted step"
