@@ -77,5 +77,7 @@ def test_reading_is_generated_from_the_rows():
     ])
     text = stability.reading(df)
     assert "dt = 0.00125 s" in text and "`diverged`" in text and "step ratio 2" in text
+    # the compared pair follows from the declared capabilities (VARIATIONAL or not), not from names in code
+    assert "(`lgvi` vs `tsit5`" in text and "is 2–2x" in text.split("**Robustness.**")[1]
     assert "`rk45`" in text and "left out" in text
     assert list(df.columns) == stability.COLUMNS
