@@ -235,6 +235,9 @@ class Integrator(abc.ABC):
     #: --horizon`), e.g. {"dt": 0.005} or {"rtol": 1e-6, "atol": 1e-8}; None: not in the study.
     #: Set it explicitly on a subclass that should not inherit it.
     horizon_settings: ClassVar[dict[str, float] | None] = None
+    #: settings of the run that draws the paper's panels in `benchmark run` (the paper's method
+    #: declares them); None: not the paper's method. Set it explicitly on a subclass.
+    paper_settings: ClassVar[dict[str, float] | None] = None
     #: why the stability map's default run leaves this method out of the scenes where its cost
     #: is prohibitive, in words (e.g. a measured compile time per scene); None: it never is
     expensive: ClassVar[str | None] = None
