@@ -217,10 +217,16 @@ class StringPendulum:
     # ------------------------------------------------------------------------------------
     # Energy terms (MODEL.md §3), one per effect
     # ------------------------------------------------------------------------------------
+    def reel_mass(self, s):
+        """M0(s) = μ s + κ_d + μ (L − s)/3: the s_p diagonal of the mass matrix (the stored
+        string, the reel's equivalent mass and the deployed string's axial flow). The one
+        definition: the autodiff T (`_T_reel`), the closed form (`ClosedFormEOM.M0`) and the
+        LGVI's discrete equations (`integrators._lgvi_core`) all call it."""
+        return self.mu * s + self.kappa + self.mu * (self.L - s) / 3.0
+
     def _T_reel(self, x, R, w):
         s, sd = x[0], w[0]
-        M0 = self.mu * s + self.kappa + self.mu * (self.L - s) / 3.0
-        return 0.5 * M0 * sd * sd
+        return 0.5 * self.reel_mass(s) * sd * sd
 
     def _T_string(self, x, R, w):
         q, qd, l = self.nodes(x), self.node_velocities(w), self.element_length(x)
