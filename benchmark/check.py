@@ -41,7 +41,8 @@ import numpy as np
 import pandas as pd
 
 from benchmark import runner, sweep
-from benchmark.metrics import ACCURACY, observed_orders
+from benchmark.metrics import ACCURACY, DIRECTIONS, observed_orders
+from benchmark.metrics import FLOORS as METRIC_FLOORS
 from benchmark.reference import CACHE_DIR, REFERENCE_METHOD
 from benchmark.report import environment, markdown_table
 from integrators import Capability, available, get_integrator, plugin_errors
@@ -60,16 +61,9 @@ IMPLICIT_RTOLS = (1e-3, 1e-4)  # implicit solves cost 10-100x more per step: loo
 
 DEFAULT_FACTOR = 2.0
 DEFAULT_ORDER_MARGIN = 0.5
-#: Absolute floors: below these a value is round-off or the reference's own error.
-FLOORS = {
-    "energy_error": 1e-10,
-    "pi3_error": 1e-10,
-    "orthogonality_error": 1e-10,
-    "position_error_final": 1e-10,
-    "position_error_max": 1e-10,
-    "attitude_error_final": 1e-10,
-    "attitude_error_max": 1e-10,
-}
+#: Absolute floors (below them a value is round-off or the reference's own error) and directions:
+#: the metric registry's (`benchmark.metrics.METRICS`).
+FLOORS = dict(METRIC_FLOORS)
 ORDER = "observed_order"
 KEY = ["scene", "integrator", "setting"]
 COLUMNS = KEY + ["status", *ACCURACY, ORDER, "steps", "run_time", "compile_time", "reason"]
@@ -319,12 +313,20 @@ def compare(baseline: pd.DataFrame, current: pd.DataFrame, tol: Tolerance = Tole
                     out.notes.append(f"{' / '.join(key)}: {m} now {_g(cv)} (none in the baseline)")
                 continue
             floor = tol.floors.get(m, 0.0)
-            limit = max(tol.factor * bv, floor)
-            if not np.isfinite(cv) or cv > limit:
-                change = f"x{cv / bv:.3g}" if np.isfinite(cv) and bv > 0 else "missing" if not np.isfinite(cv) else "from 0"
-                add(out.regressions, key, m, _g(bv), _g(cv), change, f"<= {_g(limit)}")
-            elif bv > floor and cv < bv / tol.factor:
-                add(out.improvements, key, m, _g(bv), _g(cv), f"x{cv / bv:.3g}", "")
+            if DIRECTIONS.get(m, "lower") == "lower":  # smaller is better: worse is above factor x baseline
+                limit = max(tol.factor * bv, floor)
+                if not np.isfinite(cv) or cv > limit:
+                    change = f"x{cv / bv:.3g}" if np.isfinite(cv) and bv > 0 else "missing" if not np.isfinite(cv) else "from 0"
+                    add(out.regressions, key, m, _g(bv), _g(cv), change, f"<= {_g(limit)}")
+                elif bv > floor and cv < bv / tol.factor:
+                    add(out.improvements, key, m, _g(bv), _g(cv), f"x{cv / bv:.3g}", "")
+            else:  # larger is better: worse is below baseline / factor (values under the floor never fail)
+                limit = bv / tol.factor
+                if not np.isfinite(cv) or (cv < limit and bv > floor):
+                    change = f"x{cv / bv:.3g}" if np.isfinite(cv) and bv > 0 else "missing"
+                    add(out.regressions, key, m, _g(bv), _g(cv), change, f">= {_g(limit)}")
+                elif cv > tol.factor * bv and cv > floor:
+                    add(out.improvements, key, m, _g(bv), _g(cv), f"x{cv / bv:.3g}", "")
 
     out.timing = _timing(base, cur)
     return out

@@ -159,11 +159,12 @@ def _run(args, scene_names, ov, t_end, out: Path, saved: list) -> int:
     if not args.no_figures:
         for s in scene_names:
             figures.append(plots.work_precision(runs, load_scene(s, **ov).name, out).name)
-        # the paper's panels from the LGVI at the paper's step size
+        # the paper's panels from the method that declares the paper's settings (the LGVI at its step size)
+        paper, paper_kw = paper_method()
         for s in scene_names:
             scene = load_scene(s, **ov)
             te = t_end or scene.t_end
-            traj = get_integrator("lgvi").solve(scene, t_end=te, dt=PAPER_DT, save_every=0.02)
+            traj = get_integrator(paper).solve(scene, t_end=te, save_every=0.02, **paper_kw)
             figures.append(plots.paper_panels(scene, traj, evaluate(scene, traj), out / f"paper_{scene.name}.png").name)
             _log(f"figure: paper_{scene.name}.png ({traj.status})")
         if horizon > 0:
@@ -184,12 +185,26 @@ def _run(args, scene_names, ov, t_end, out: Path, saved: list) -> int:
 #: length (s) of the long-horizon energy study (run --horizon), full and --quick
 FULL_HORIZON, QUICK_HORIZON = 100.0, 10.0
 
-# LGVI step for the paper figures: inside its stability limit (h ω_max < 2) on all three
-# scenes at N = 10 (deployment's short elements diverge at 5 ms, measured).
-PAPER_DT = 0.0025
 
-HORIZON_METHODS = (("lgvi", {"dt": 0.005}), ("rk45", {"rtol": 1e-6, "atol": 1e-8}),
-                   ("tsit5", {"rtol": 1e-6, "atol": 1e-8}), ("dop853", {"rtol": 1e-8, "atol": 1e-10}))
+
+def paper_method() -> tuple[str, dict]:
+    """(name, settings) of the method whose run draws the paper's panels: the first default
+    integrator declaring `Integrator.paper_settings` (the paper's LGVI at dt = 2.5 ms)."""
+    from benchmark.sweep import default_names
+    from integrators import get_integrator
+
+    return next((n, dict(s)) for n in default_names() if (s := get_integrator(n).paper_settings))
+
+
+def horizon_methods() -> tuple[tuple[str, dict], ...]:
+    """The methods of the long-horizon energy study, chosen by what they declare
+    (`Integrator.horizon_settings`), not by name: every default integrator and plugin with
+    settings for it, fixed-step first, then the loosest tolerance first (ties: the sweep's order)."""
+    from benchmark.sweep import default_names
+    from integrators import get_integrator
+
+    chosen = [(n, dict(s)) for n in default_names() if (s := get_integrator(n).horizon_settings)]
+    return tuple(sorted(chosen, key=lambda nk: ("dt" not in nk[1], -nk[1].get("rtol", 0.0))))
 
 
 def _horizon_run(name: str, kw: dict, t_end: float, ov: dict):
@@ -216,9 +231,10 @@ def _horizon_study(t_end: float, out: Path, ov: dict, jobs: int | None = None) -
 
     scene = load_scene("fixed_length", **ov)
     histories, frames = {}, []
-    _log(f"horizon: {', '.join(name for name, _ in HORIZON_METHODS)} to t = {t_end:g} s ...")
-    with worker_pool(jobs or min(len(HORIZON_METHODS), os.cpu_count() or 1)) as pool:
-        futures = [pool.submit(_horizon_run, name, kw, t_end, ov) for name, kw in HORIZON_METHODS]
+    methods = horizon_methods()
+    _log(f"horizon: {', '.join(name for name, _ in methods)} to t = {t_end:g} s ...")
+    with worker_pool(jobs or min(len(methods), os.cpu_count() or 1)) as pool:
+        futures = [pool.submit(_horizon_run, name, kw, t_end, ov) for name, kw in methods]
         for fut in futures:
             label, h = fut.result()
             histories[label] = h
@@ -492,8 +508,8 @@ def parser() -> argparse.ArgumentParser:
     st = add("stability", "stability map of the hard scenes: largest stable dt (fixed step), step statistics "
                           "(adaptive) -> --out")
     st.add_argument("--scenes", type=opt.names, help="comma-separated hard scenes (default: all seven)")
-    st.add_argument("--integrators", type=opt.names, help="comma-separated names (default: lgvi, rk45, dop853, "
-                                                          "tsit5, radau, kvaerno5)")
+    st.add_argument("--integrators", type=opt.names, help="comma-separated names (default: the shipped methods "
+                                                          "of the sweep, implicit baselines last)")
     st.add_argument("--jobs", type=opt.nonnegative_int, default=2, help="worker processes (0: run in this process)")
     st.add_argument("--out", default="results/stability", help="output directory (created if missing)")
     st.set_defaults(func=cmd_stability)

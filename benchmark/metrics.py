@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Callable
+
 import numpy as np
 import pandas as pd
 
 from models import build_model
-from models.diagnostics import energy_deviation, evaluate, summary
+from models.diagnostics import energy_deviation, evaluate
 from models.model import quat_to_rot
 
 #: Columns of the runs table, in order.
@@ -49,11 +52,69 @@ def work_evals(stats: dict, ny: int | None = None) -> float:
     return (rhs or 0.0) + (newton or 0.0) + (jac or 0.0) * (ny or 0)
 
 
+# ------------------------------------------------------------------------------------------
+# The metric registry: one entry per accuracy metric, read by runs.csv (`COLUMNS`, `run_metrics`),
+# `benchmark check` (floors and directions) and the stability map (the reference-free ones).
+# ------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Evidence:
+    """What the metrics of one finished run are computed from, computed once: the run's
+    diagnostics (`models.diagnostics.evaluate`), whether the scene has work terms, and, when a
+    reference was given and shares saved times with the run, the body-position distances
+    ``dpos`` (m) and attitude distances ``datt`` (Frobenius; None without a rigid body)."""
+
+    df: pd.DataFrame
+    has_work: bool
+    dpos: np.ndarray | None = None
+    datt: np.ndarray | None = None
+
+
+def _pi3_error(ev: Evidence) -> float:
+    pi0 = float(ev.df["pi3"].iloc[0])
+    dpi = float(np.max(np.abs(ev.df["pi3"] - pi0)))
+    return dpi / abs(pi0) if abs(pi0) > 1e-12 else dpi
+
+
+def _of(arr: str, how: str) -> Callable[[Evidence], float]:
+    def f(ev: Evidence) -> float:
+        a = getattr(ev, arr)
+        return np.nan if a is None else float(a[-1] if how == "final" else a.max())
+    return f
+
+
+@dataclass(frozen=True)
+class Metric:
+    """One accuracy metric: its ``function`` of the run's `Evidence`; ``floor``: below it a value
+    is round-off or the reference's own error (`benchmark check` never fails a value under it);
+    ``direction``: "lower" when smaller is better (all of them today); ``reference``: whether
+    it needs the reference solution (the stability map reports only those that do not)."""
+
+    name: str
+    function: Callable[[Evidence], float]
+    floor: float = 1e-10
+    direction: str = "lower"
+    reference: bool = False
+    description: str = ""
+
+
+METRICS: tuple[Metric, ...] = (
+    Metric("energy_error", lambda ev: float(energy_deviation(ev.df, has_work=ev.has_work).max()),
+           description="max |E − E0| / max T (E − W with non-conservative forces)"),
+    Metric("pi3_error", _pi3_error, description="max |π3 − π3(0)| / |π3(0)| (absolute if π3(0) = 0)"),
+    Metric("orthogonality_error", lambda ev: float(ev.df["orthogonality_error"].max()), description="max ‖I − RᵀR‖"),
+    Metric("position_error_final", _of("dpos", "final"), reference=True, description="body position error at t_end (m)"),
+    Metric("position_error_max", _of("dpos", "max"), reference=True,
+           description="body position error, max over saved times (m)"),
+    Metric("attitude_error_final", _of("datt", "final"), reference=True, description="attitude error at t_end"),
+    Metric("attitude_error_max", _of("datt", "max"), reference=True, description="attitude error, max over saved times"),
+)
 #: Accuracy metrics: reported only for runs that finished ("ok"); NaN otherwise.
-ACCURACY = [
-    "energy_error", "pi3_error", "orthogonality_error",
-    "position_error_final", "position_error_max", "attitude_error_final", "attitude_error_max",
-]
+ACCURACY = [m.name for m in METRICS]
+#: The metrics a run gives without a reference (conservation): the stability map's.
+CONSERVATION = [m.name for m in METRICS if not m.reference]
+#: name -> floor, name -> direction (`benchmark check`)
+FLOORS = {m.name: m.floor for m in METRICS}
+DIRECTIONS = {m.name: m.direction for m in METRICS}
 
 
 def attitude_matrices(traj) -> np.ndarray | None:
@@ -70,38 +131,35 @@ def body_positions(model, traj) -> np.ndarray:
     return model.r_p + np.asarray(traj.x)[:, -3:]
 
 
-def compare_to_reference(scene, traj, ref, save_every: float) -> dict:
-    """Final and L∞ errors of the body position (m) and attitude (Frobenius) vs ``ref``."""
+def _distances(scene, traj, ref, save_every: float):
+    """(dpos, datt) at the saved times ``traj`` and ``ref`` share, or (None, None) if none."""
     model = build_model(scene)
     k_traj = np.round(np.asarray(traj.t) / save_every).astype(int)
     k_ref = np.round(np.asarray(ref.t) / save_every).astype(int)
     common, i, j = np.intersect1d(k_traj, k_ref, return_indices=True)
     if len(common) == 0:
-        return {k: np.nan for k in ("position_error_final", "position_error_max", "attitude_error_final", "attitude_error_max")}
+        return None, None
     dpos = np.linalg.norm(body_positions(model, traj)[i] - body_positions(model, ref)[j], axis=1)
-    out = {"position_error_final": float(dpos[-1]), "position_error_max": float(dpos.max())}
     Ra, Rb = attitude_matrices(traj), attitude_matrices(ref)
-    if Ra is not None and Rb is not None:
-        datt = np.linalg.norm(Ra[i] - Rb[j], axis=(1, 2))
-        out.update(attitude_error_final=float(datt[-1]), attitude_error_max=float(datt.max()))
-    else:
-        out.update(attitude_error_final=np.nan, attitude_error_max=np.nan)
-    return out
+    datt = np.linalg.norm(Ra[i] - Rb[j], axis=(1, 2)) if Ra is not None and Rb is not None else None
+    return dpos, datt
+
+
+def compare_to_reference(scene, traj, ref, save_every: float) -> dict:
+    """Final and L∞ errors of the body position (m) and attitude (Frobenius) vs ``ref``."""
+    dpos, datt = _distances(scene, traj, ref, save_every)
+    ev = Evidence(df=pd.DataFrame(), has_work=False, dpos=dpos, datt=datt)
+    return {m.name: m.function(ev) for m in METRICS if m.reference}
 
 
 def run_metrics(scene, traj, ref, save_every: float, finished=("ok",)) -> dict:
-    """All accuracy metrics of one run (NaN if the run did not finish, i.e. its status is not
-    in ``finished``; the position/attitude errors are NaN without a reference ``ref``)."""
+    """All accuracy metrics of one run (`METRICS`; NaN if the run did not finish, i.e. its status
+    is not in ``finished``; the reference metrics are NaN without a reference ``ref``)."""
     if traj.status not in finished or len(traj.t) == 0:
         return {k: np.nan for k in ACCURACY}
-    df = evaluate(scene, traj)
-    has_work = build_model(scene).layout.has_work
-    out = summary(df, has_work=has_work)
-    if ref is not None:
-        out.update(compare_to_reference(scene, traj, ref, save_every))
-    else:
-        out.update({k: np.nan for k in ACCURACY if k not in out})
-    return out
+    dpos, datt = _distances(scene, traj, ref, save_every) if ref is not None else (None, None)
+    ev = Evidence(df=evaluate(scene, traj), has_work=build_model(scene).layout.has_work, dpos=dpos, datt=datt)
+    return {m.name: m.function(ev) for m in METRICS}
 
 
 def energy_history(scene, traj) -> pd.DataFrame:

@@ -34,6 +34,7 @@ import numpy as np
 import pandas as pd
 
 from benchmark import report, runner
+from benchmark.metrics import CONSERVATION
 from benchmark.sweep import Task
 from models.io import atomic_write_text
 
@@ -44,10 +45,24 @@ ADAPTIVE_RTOL = 1e-6
 ADAPTIVE_ATOL = 1e-8
 SAVED_POINTS = 100  # per run: the energy guard is checked at these (LGVI, scipy)
 
-#: implicit *baselines* (the LGVIs are implicit too, but structured)
-IMPLICIT = ("radau", "kvaerno5")
-DEFAULT_INTEGRATORS = ("lgvi", "lgvi_sym", "lgvi_yoshida4", "lgvi_suzuki4", "rk45", "dop853", "tsit5", "radau",
-                       "kvaerno5")
+
+
+def implicit_baseline(integ) -> bool:
+    """An implicit *baseline* (declares IMPLICIT, not VARIATIONAL): its Jacobian or Newton compiles
+    through the ODE model per scene. The LGVIs are implicit too, but structured."""
+    from integrators import Capability
+
+    return integ.has(Capability.IMPLICIT) and not integ.has(Capability.VARIATIONAL)
+
+
+def default_integrators() -> list[str]:
+    """The map's default methods: the sweep's shipped defaults (`benchmark.sweep.DEFAULT_INTEGRATORS`,
+    plugins are mapped when named), implicit baselines last (their jobs are the longest)."""
+    from benchmark.sweep import DEFAULT_INTEGRATORS
+    from integrators import available, get_integrator
+
+    names = [n for n in DEFAULT_INTEGRATORS if n in available()]
+    return sorted(names, key=lambda n: implicit_baseline(get_integrator(n)))
 
 
 def kinds(name: str) -> list[str]:
@@ -67,30 +82,36 @@ class Case:
     horizon: float
     bounded: tuple[str, ...] = ("ok",)
     overrides: tuple = ()
-    #: shorter horizons for some integrators (name or (name, kind) -> (s, reason))
+    #: shorter horizons for some integrators: key a name, (name, kind), or a selector (a function
+    #: of the integrator, true when it applies) -> (s, reason)
     short: dict = field(default_factory=dict)
-    #: integrators left out of this scene (name -> reason written into the table)
-    skip: dict = field(default_factory=dict)
-    #: left out of the default run only (``--integrators`` naming them runs them), with the reason
-    default_skip: dict = field(default_factory=dict)
+    #: integrators left out of this scene: selectors, functions of the integrator returning the
+    #: reason written into the table (or None), see `skip_reason`
+    skip: tuple = ()
+    #: left out of the default run only (``--integrators`` naming them runs them), same form
+    default_skip: tuple = ()
     note: str = ""
 
 
 _SCIPY_500 = "scipy baseline: 500 s is ~1e5 Python-driven steps, minutes per run"
 #: Since the baselines run on the O(N) closed form (issue #11), the implicit ones compile in
-#: seconds and run on every hard scene; on the 1,927-dimensional many_elements state each of
-#: their steps still factorises a dense Jacobian (O(n^3)), so they get a shorter horizon there.
+#: seconds and run on the hard scenes; on the 1,927-dimensional many_elements state each of
+#: their steps still factorises a dense Jacobian (O(n^3)), so radau gets a shorter horizon there,
+#: and a method declaring itself `expensive` (kvaerno5) stays out of the two stiff, large scenes.
 _DENSE_LU = "implicit baseline: a dense LU of the 1,927 x 1,927 Jacobian per step (O(n^3))"
-#: kvaerno5's full Newton re-forms the Jacobian at every iteration (`integrators.diffrax_ode`):
-#: measured on stiff_string, 0.2 s had not finished after 6 min on one core (2026-11-30)
-_KV_NEWTON = ("default run: kvaerno5 re-forms its Jacobian at every Newton iteration; on this scene that took "
-              "over 6 min for 0.2 s of stiff_string; run it with --integrators kvaerno5")
+
+
+def _expensive(integ) -> str | None:
+    """Default run: leave out a method whose declared cost (`Integrator.expensive`, measured) is
+    prohibitive on this scene."""
+    return f"default run: {integ.name} {integ.expensive}; run it with --integrators {integ.name}" if integ.expensive else None
+
+
 CASES = (
     Case("stiff_string", 0.2, note="EA = 20 kN, N = 40",
          short={"radau": (0.05, "implicit baseline: a Newton solve with LU per step on a stiff string")},
-         default_skip={"kvaerno5": _KV_NEWTON}),
-    Case("many_elements", 1.0, note="N = 320", short={"radau": (0.05, _DENSE_LU)},
-         default_skip={"kvaerno5": _KV_NEWTON.replace("on this scene that", "on stiff_string (N = 40) that")}),
+         default_skip=(_expensive,)),
+    Case("many_elements", 1.0, note="N = 320", short={"radau": (0.05, _DENSE_LU)}, default_skip=(_expensive,)),
     Case("fast_spin", 2.0, note="|Omega0| = 30 rad/s"),
     Case("retrieval_to_limit", 10.0, bounded=("length_limit",), overrides=(("deployed_length", 3.0),),
          note="started at 3 m (scene: 15 m) to reach the 2 m limit sooner; bounded = ends with length_limit"),
@@ -109,11 +130,32 @@ def _log(msg: str) -> None:
 
 
 def _horizon(case: Case, integrator: str, kind: str = "adaptive") -> tuple[float, str]:
-    """(horizon, why it is shorter than the case's): `Case.short` keys are a name or (name, kind)."""
+    """(horizon, why it is shorter than the case's): `Case.short` keys are a name, (name, kind)
+    or a selector (a function of the integrator)."""
     for key in ((integrator, kind), integrator):
         if key in case.short:
             return case.short[key]
+    selectors = [k for k in case.short if callable(k)]
+    if selectors:
+        from integrators import get_integrator
+
+        integ = get_integrator(integrator)
+        for key in selectors:
+            if key(integ):
+                return case.short[key]
     return case.horizon, ""
+
+
+def skip_reason(case: Case, integrator: str, default_run: bool = True) -> str | None:
+    """Why ``integrator`` is left out of ``case`` (`Case.skip`, and `Case.default_skip` in the
+    default run), or None when it runs."""
+    selectors = case.skip + (case.default_skip if default_run else ())
+    if not selectors:
+        return None
+    from integrators import get_integrator
+
+    integ = get_integrator(integrator)
+    return next((r for r in (sel(integ) for sel in selectors) if r), None)
 
 
 def ladder(case: Case, integrator: str) -> list[Task]:
@@ -142,9 +184,9 @@ def run_job(case: Case, integrator: str, kind: str, default_run: bool = True) ->
     """One row of the map: a whole ladder (kind "fixed") or one adaptive run. Never raises."""
     t0 = time.perf_counter()
     row = _base_row(case, integrator, kind)
-    skip = {**case.skip, **(case.default_skip if default_run else {})}
-    if integrator in skip:
-        row.update(status="skipped", reason=skip[integrator], bounded=False)
+    why = skip_reason(case, integrator, default_run)
+    if why:
+        row.update(status="skipped", reason=why, bounded=False)
         return row
     try:
         if kind == "fixed":
@@ -166,7 +208,7 @@ def run_job(case: Case, integrator: str, kind: str, default_run: bool = True) ->
             r = runner.run_task(adaptive_task(case, integrator), repeats=0, reference=False, finished=case.bounded)
         row.update({k: r.get(k, np.nan) for k in (
             "setting", "status", "reason", "steps", "rejected_steps", "min_step", "median_step", "newton_iterations",
-            "run_time", "compile_time", "energy_error", "pi3_error", "orthogonality_error", "t_reached")})
+            "run_time", "compile_time", *CONSERVATION, "t_reached")})
         row["bounded"] = r["status"] in case.bounded
         steps = row.get("steps")
         if steps is not None and np.isfinite(steps) and steps > 0:
@@ -194,7 +236,7 @@ def to_frame(rows: list[dict]) -> pd.DataFrame:
 def jobs_for(scenes=None, integrators=None) -> list[tuple[Case, str, str, bool]]:
     from integrators import get_integrator
 
-    names = list(integrators) if integrators else list(DEFAULT_INTEGRATORS)
+    names = list(integrators) if integrators else default_integrators()
     for n in names:
         get_integrator(n)  # unknown names raise before any work
     cases = [c for c in CASES if scenes is None or c.scene in scenes]
@@ -248,13 +290,13 @@ def execute(jobs: list[tuple[Case, str, str, bool]], *, workers: int = 2, on_row
 
 def _cost_hint(case: Case, integrator: str, kind: str, default_run: bool = True) -> float:
     """Rough job cost, to start the longest jobs first (compilation dominates the short ones)."""
-    skip = {**case.skip, **(case.default_skip if default_run else {})}
-    if integrator in skip:
+    from integrators import get_integrator
+
+    if skip_reason(case, integrator, default_run):
         return 0.0
-    compile_s = {"kvaerno5": 300, "radau": 110}.get(integrator, 30)
+    compile_s, per_step = get_integrator(integrator).cost_hint  # declared by each method
     horizon, _ = _horizon(case, integrator, kind)
     per_s = {"stiff_string": 200, "many_elements": 400}.get(case.scene, 1)
-    per_step = {"lgvi": 0.3, "lgvi_sym": 0.3, "lgvi_yoshida4": 0.9, "lgvi_suzuki4": 1.5}.get(integrator, 1)
     return compile_s + horizon * per_s * per_step
 
 
@@ -309,35 +351,52 @@ def _per_second(r) -> float:
     return r["run_time"] / r["t_reached"] if r["t_reached"] and np.isfinite(r["t_reached"]) and r["t_reached"] > 0 else np.nan
 
 
+def _variational(name: str) -> bool:
+    """Whether ``name`` declares VARIATIONAL (False for a name no longer registered)."""
+    from integrators import Capability, get_integrator
+
+    try:
+        return get_integrator(name).has(Capability.VARIATIONAL)
+    except ValueError:
+        return False
+
+
+def _best_pair(fx: pd.DataFrame):
+    """(variational row, other row) with the largest stable dt of each group among the fixed-step
+    rows ``fx`` (indexed by integrator), or None when a group has no stable rung."""
+    fx = fx[np.isfinite(fx["largest_stable_dt"].astype(float))]
+    var = fx[[_variational(n) for n in fx.index]]
+    other = fx[[not _variational(n) for n in fx.index]]
+    if not len(var) or not len(other):
+        return None
+    return var.loc[var["largest_stable_dt"].idxmax()], other.loc[other["largest_stable_dt"].idxmax()]
+
+
 def reading(df: pd.DataFrame) -> str:
-    """A short written reading of the map, generated from the rows."""
+    """A short written reading of the map, generated from the rows: numbers and the names in
+    the rows; which methods are compared follows from their declared capabilities (VARIATIONAL
+    or not), never from names in this code."""
     lines = []
     for scene, g in df.groupby("scene", sort=False):
         parts = []
         fx = g[g["kind"] == "fixed"].set_index("integrator")
-        if "lgvi" in fx.index:
-            l = fx.loc["lgvi"]
+        for name, l in fx.iterrows():
             if np.isfinite(l["largest_stable_dt"]):
                 top = " (the ladder's top rung for this horizon: its limit is at least that)" if l["rungs_tried"] == 1 else ""
-                parts.append(f"the LGVI stays bounded up to dt = {_fmt(l['largest_stable_dt'])} s{top} "
+                parts.append(f"`{name}` stays bounded up to dt = {_fmt(l['largest_stable_dt'])} s{top} "
                              f"({_fmt(_per_second(l))} s of run time per simulated second, energy error {_fmt(l['energy_error'])})")
             else:
-                parts.append(f"the LGVI found no stable rung down to {DT_MAX / 2 ** (LADDER_RUNGS - 1):.2g} s "
+                parts.append(f"`{name}` found no stable rung down to {DT_MAX / 2 ** (LADDER_RUNGS - 1):.2g} s "
                              f"({l['status']})")
             if isinstance(l.get("unstable_status"), str):
                 parts[-1] += f"; at 2x that it ends `{l['unstable_status']}`"
-        if "tsit5" in fx.index and np.isfinite(fx.loc["tsit5", "largest_stable_dt"]):
-            t5 = fx.loc["tsit5"]
-            top = " (the ladder's top rung for this horizon: at least that)" if t5["rungs_tried"] == 1 else ""
-            text = (f"constant-step Tsit5 up to dt = {_fmt(t5['largest_stable_dt'])} s{top} "
-                    f"({_fmt(_per_second(t5))} s per simulated second, energy error {_fmt(t5['energy_error'])})")
-            if "lgvi" in fx.index and np.isfinite(fx.loc["lgvi", "largest_stable_dt"]):
-                l = fx.loc["lgvi"]
-                ratio = l["largest_stable_dt"] / t5["largest_stable_dt"]
-                cost = _per_second(t5) / _per_second(l)
-                text += (f"; LGVI/Tsit5 stable step ratio {_fmt(ratio, '.2g')}, Tsit5 costs {_fmt(cost, '.2g')}x "
-                         "the LGVI's run time per simulated second at its own largest stable step")
-            parts.append(text)
+        pair = _best_pair(fx)
+        if pair is not None:
+            v, o = pair
+            parts.append(f"variational/other fixed-step stable step ratio {_fmt(v['largest_stable_dt'] / o['largest_stable_dt'], '.2g')} "
+                         f"(`{v.name}` vs `{o.name}`, the largest stable step of each), `{o.name}` costs "
+                         f"{_fmt(_per_second(o) / _per_second(v), '.2g')}x `{v.name}`'s run time per simulated second "
+                         "at its own largest stable step")
         ad = g[g["kind"] == "adaptive"]
         ran = ad[ad["status"] != "skipped"]
         ok = ran[ran["bounded"] == True]  # noqa: E712
@@ -362,14 +421,13 @@ def reading(df: pd.DataFrame) -> str:
         hz = " / ".join(f"{h:g}" for h in horizons)
         lines.append(f"- **{scene}** (horizon {hz} s): " + "; ".join(parts) + ".")
     # overall
-    fx = df[(df["kind"] == "fixed") & (df["integrator"] == "lgvi")].set_index("scene")
-    t5 = df[(df["kind"] == "fixed") & (df["integrator"] == "tsit5")].set_index("scene")
     ratios, costs = [], []
-    for scene in fx.index.intersection(t5.index):
-        a, b = fx.loc[scene], t5.loc[scene]
-        if np.isfinite(a["largest_stable_dt"]) and np.isfinite(b["largest_stable_dt"]):
-            ratios.append(a["largest_stable_dt"] / b["largest_stable_dt"])
-            costs.append(_per_second(b) / _per_second(a))
+    for scene, g in df[df["kind"] == "fixed"].groupby("scene", sort=False):
+        pair = _best_pair(g.set_index("integrator"))
+        if pair is not None:
+            v, o = pair
+            ratios.append(v["largest_stable_dt"] / o["largest_stable_dt"])
+            costs.append(_per_second(o) / _per_second(v))
     summary = []
     stiff = df[df["scene"].isin(["stiff_string", "many_elements"])]
     stiff_dt = float(np.nanmin(stiff["largest_stable_dt"])) if stiff["largest_stable_dt"].notna().any() else np.nan
@@ -377,22 +435,20 @@ def reading(df: pd.DataFrame) -> str:
     typical = [r["median_step"] if np.isfinite(r["median_step"]) else r["mean_step"] for _, r in ad_stiff.iterrows()]
     if ratios:
         summary.append(
-            f"**Robustness.** The LGVI's largest stable step is {_fmt(min(ratios), '.2g')}–{_fmt(max(ratios), '.2g')}x that "
-            "of constant-step Tsit5 (ladder resolution: a factor 2): both are limited by the fastest axial mode of the "
-            "string (h·ω_max < 2 for the LGVI), so the stiff and many-element scenes force steps of "
-            f"{_fmt(stiff_dt)} s on every fixed-step method"
-            + (", and Tsit5's larger stability interval buys it at most one rung elsewhere. " if min(ratios) >= 0.5 else ". ")
-            + 
-            f"**Cost.** At its largest stable step Tsit5 still needs {_fmt(min(costs), '.2g')}–{_fmt(max(costs), '.2g')}x "
-            "the LGVI's run time per simulated second (six right-hand sides per step, each solving the model's "
-            "dense mass matrix, against one O(N) structured Newton solve). Past its limit each method is stopped by "
-            "a guard with a status (the energy bound or a failed Newton solve), never with NaNs.")
+            f"**Robustness.** On each scene, the largest stable step of the best variational method is "
+            f"{_fmt(min(ratios), '.2g')}–{_fmt(max(ratios), '.2g')}x that of the best other fixed-step method "
+            f"(ladder resolution: a factor 2); the stiff and many-element scenes force steps of {_fmt(stiff_dt)} s on "
+            f"every fixed-step method. **Cost.** At its largest stable step the other method needs "
+            f"{_fmt(min(costs), '.2g')}–{_fmt(max(costs), '.2g')}x the variational one's run time per simulated second. "
+            "Past its limit each method is stopped by a guard with a status, never with NaNs.")
     longh = df[(df["scene"] == "long_horizon") & (df["kind"] == "fixed")].set_index("integrator")
-    if {"lgvi", "tsit5"} <= set(longh.index):
-        summary.append(f"**Long horizon.** Over 500 s at the same dt = {_fmt(longh.loc['lgvi', 'largest_stable_dt'])} s "
-                       f"the LGVI's energy error stays at {_fmt(longh.loc['lgvi', 'energy_error'])} of max T, while "
-                       f"constant-step Tsit5 drifts to {_fmt(longh.loc['tsit5', 'energy_error'])}: bounded is not the "
-                       "same as accurate.")
+    pair = _best_pair(longh) if len(longh) else None
+    if pair is not None:
+        v, o = pair
+        summary.append(f"**Long horizon.** Over {_fmt(float(v['horizon']), 'g')} s, `{v.name}` at dt = "
+                       f"{_fmt(v['largest_stable_dt'])} s keeps its energy error at {_fmt(v['energy_error'])} of max T, "
+                       f"while `{o.name}` at dt = {_fmt(o['largest_stable_dt'])} s ends at {_fmt(o['energy_error'])}: "
+                       "bounded is not the same as accurate.")
     ad = df[df["kind"] == "adaptive"]
     ran = ad[ad["status"] != "skipped"]
     unbounded = ran[ran["bounded"] != True]  # noqa: E712
@@ -402,9 +458,8 @@ def reading(df: pd.DataFrame) -> str:
                    + f"; {len(ad) - len(ran)} were left out (reasons in the table)."
                    + (f" On the stiff and many-element scenes their typical (median or mean) steps are "
                       f"{_fmt(min(typical))}–{_fmt(max(typical))} s, against {_fmt(stiff_dt)} s for the fixed-step "
-                      "methods: error control there works at the stability limit, not far below it." if typical else "")
-                   + " Both length limits end every run that reaches them with `length_limit`, located to the step "
-                   "(LGVI, diffrax) or by root finding on the dense output (scipy).")
+                      "methods." if typical else "")
+                   + " Both length limits end every run that reaches them with `length_limit`.")
     return "\n".join(lines) + "\n\n" + "\n\n".join(summary) + "\n"
 
 

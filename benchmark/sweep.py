@@ -83,6 +83,16 @@ def check_settings(dts=(), rtols=()) -> None:
             raise ValueError(f"rtol = {v!r} is invalid (allowed: 0 < rtol < 1)")
 
 
+def default_names() -> list[str]:
+    """The integrators a run without ``--integrators`` uses: the registered ones among
+    `DEFAULT_INTEGRATORS` in that order, then every other plugin (test-only ``test_*`` excepted)."""
+    from integrators import available
+
+    names = available()
+    return [n for n in DEFAULT_INTEGRATORS if n in names] + [
+        n for n in names if n not in DEFAULT_INTEGRATORS and not n.startswith("test_")]
+
+
 def build_tasks(
     scenes=PAPER_SCENES,
     integrators=None,
@@ -95,11 +105,9 @@ def build_tasks(
 ) -> list[Task]:
     """The sweep as tasks. ``integrators=None`` means every registered one among the defaults
     plus any plugin; unknown names raise ValueError before anything runs."""
-    from integrators import Capability, available, get_integrator  # JAX: only once the input is known good
+    from integrators import Capability, get_integrator  # JAX: only once the input is known good
 
-    names = list(integrators) if integrators else [n for n in DEFAULT_INTEGRATORS if n in available()] + [
-        n for n in available() if n not in DEFAULT_INTEGRATORS and not n.startswith("test_")
-    ]
+    names = list(integrators) if integrators else default_names()
     given_dts = bool(dts)
     dts = tuple(dts) if dts else (QUICK_DTS if quick else FULL_DTS)
     implicit_rtols = tuple(rtols) if rtols else (IMPLICIT_QUICK_RTOLS if quick else IMPLICIT_FULL_RTOLS)

@@ -10,12 +10,16 @@ group, exactly as an outside plugin would be.
 
 from models import _jax  # noqa: F401  (float64 first)
 from integrators.base import Capability, Integrator, Status, Trajectory, save_times
+from integrators.lifecycle import FixedStepMethod, Guards, ODEProblem
 from integrators.registry import ENTRY_POINT_GROUP, available, get_integrator, plugin_errors, register, unregister
 
 __all__ = [
     "Capability",
     "ENTRY_POINT_GROUP",
+    "FixedStepMethod",
+    "Guards",
     "Integrator",
+    "ODEProblem",
     "Status",
     "Trajectory",
     "available",

@@ -217,7 +217,7 @@ class DiscreteLagrangian:
         q = m.nodes(x)
         s = m.reel_coordinate(x)
         l = (m.L - s) / N
-        M0 = m.mu * s + m.kappa + m.mu * (m.L - s) / 3.0
+        M0 = m.reel_mass(s)  # the one definition (StringPendulum.reel_mass)
         if self.reel:
             D = q[:-1] - q[1:]  # (N, 3), q_a - q_{a+1}
             M31 = self.c31[:, None] * D

@@ -156,25 +156,9 @@ ENERGY_GROWTH_FACTOR = 1.0
 
 
 def energy_scale(model) -> float:
-    """The scene's energy scale in J (a fixed number, computed from the scene and its start):
-
-        T(0) + Σ_terms |V_term(0)|  +  g (m_b + μ L)(L + |ρ_c| + |r_d| + d)  +  |u| L / d
-
-    i.e. the initial kinetic energy, every initial potential term in absolute value (so that
-    terms of opposite sign do not cancel), the most potential energy gravity could release
-    over the whole string length, and the most work the constant reel moment can do over it.
-    The Carnot loss only dissipates what these supply. It is floored at 1e-9 J (a scene at
-    rest with nothing to move it).
-    """
-    from models._jax import jnp
-
-    x0, R0, w0 = (jnp.asarray(a) for a in model.initial_state())
-    T0 = float(model.kinetic(x0, R0, w0))
-    V0 = sum(abs(float(f(x0, R0))) for f in model.potential_terms.values())
-    reach = model.L + float(np.linalg.norm(model.rho_c)) + float(np.linalg.norm(model.r_d)) + model.d
-    gravity = model.g * (model.m_b + model.mu * model.L) * reach
-    control = abs(model.u) * model.L / model.d
-    return max(T0 + V0 + gravity + control, 1e-9)
+    """The scene's energy scale in J: the model's own (`models.StringPendulum.energy_scale`,
+    which says what it covers); kept here for the callers of issue #7's API."""
+    return model.energy_scale()
 
 
 def energy_bound(model) -> float:
@@ -238,6 +222,8 @@ class Integrator(abc.ABC):
         orders: optional per-situation orders where they differ from ``order``, keyed by
             `SITUATIONS` (e.g. the paper's LGVI: {"fixed_length": 2, "reel": 1}); see `order_for`.
         description: one line for tables and ``python -m benchmark list``.
+        horizon_settings, expensive, cost_hint: what the benchmark reads instead of method
+            names (the long-horizon study, the stability map's default run and its scheduling).
     """
 
     name: ClassVar[str] = ""
@@ -245,6 +231,19 @@ class Integrator(abc.ABC):
     order: ClassVar[int | None] = None
     orders: ClassVar[dict[str, int] | None] = None
     description: ClassVar[str] = ""
+    #: settings of this method in the benchmark's long-horizon energy study (`benchmark run
+    #: --horizon`), e.g. {"dt": 0.005} or {"rtol": 1e-6, "atol": 1e-8}; None: not in the study.
+    #: Set it explicitly on a subclass that should not inherit it.
+    horizon_settings: ClassVar[dict[str, float] | None] = None
+    #: settings of the run that draws the paper's panels in `benchmark run` (the paper's method
+    #: declares them); None: not the paper's method. Set it explicitly on a subclass.
+    paper_settings: ClassVar[dict[str, float] | None] = None
+    #: why the stability map's default run leaves this method out of the scenes where its cost
+    #: is prohibitive, in words (e.g. a measured compile time per scene); None: it never is
+    expensive: ClassVar[str | None] = None
+    #: (compile seconds per scene, run cost per step relative to an explicit RK step): a rough
+    #: scheduling hint (the stability map starts the longest jobs first), never a result
+    cost_hint: ClassVar[tuple[float, float]] = (30.0, 1.0)
 
     def has(self, capability: Capability) -> bool:
         return capability in self.capabilities

@@ -40,19 +40,13 @@ import numpy as np
 import optimistix as optx
 
 from integrators import rhs as _rhs
-from integrators.base import (Capability, Integrator, Status, Trajectory, check_positive, energy_bound,
-                              energy_error_ode, energy_reason, initial_energy, save_times, stamp_wall_time,
+from integrators.base import (Capability, Integrator, Status, Trajectory, check_positive,
+                              energy_error_ode, energy_reason, save_times, stamp_wall_time,
                               build_model_timed)
-from integrators.scipy_ivp import (
-    BLOWUP,
-    check_max_steps,
-    check_options,
-    check_tolerances,
-    energy_guard,
-    finite_prefix,
-    make_trajectory,
-    resolve_scene,
-)
+from integrators.lifecycle import (BLOWUP, blowup_reason, check_max_steps, check_options, check_tolerances,
+                                   guards_timed, length_reason, resolve_scene)
+from integrators.lifecycle import ode_trajectory as make_trajectory
+from integrators.scipy_ivp import energy_guard, finite_prefix
 from models._jax import jax, jnp
 
 #: Default step budget (diffrax's own default, 4096, is too small for tight tolerances here).
@@ -66,34 +60,39 @@ NEWTON_TOL_FACTOR = 1e-2
 _COMPILED: dict[tuple, object] = {}
 
 
-def _result_index(item) -> int:
-    return int(np.asarray(item._value))
+#: diffrax result -> status (diffrax's public API: items compared with ``==``, messages by
+#: ``RESULTS[item]``); an event is resolved by `_stop_condition`'s guards, other results are "failed".
+_RESULT_STATUS = (
+    (dfx.RESULTS.successful, Status.OK),
+    (dfx.RESULTS.max_steps_reached, Status.MAX_STEPS),
+    (dfx.RESULTS.dt_min_reached, Status.STEP_SIZE_COLLAPSE),
+)
 
 
-_RESULT_STATUS = {
-    _result_index(dfx.RESULTS.successful): Status.OK,
-    _result_index(dfx.RESULTS.max_steps_reached): Status.MAX_STEPS,
-    _result_index(dfx.RESULTS.dt_min_reached): Status.STEP_SIZE_COLLAPSE,
-}
-_EVENT = _result_index(dfx.RESULTS.event_occurred)
+def _status_of(result) -> Status | None:
+    """The status of a (concrete) diffrax result; None for an event, FAILED for any other."""
+    if bool(result == dfx.RESULTS.event_occurred):
+        return None
+    return next((status for item, status in _RESULT_STATUS if bool(result == item)), Status.FAILED)
 
 
-def _result_message(index: int) -> str:
+def _result_message(result) -> str:
     try:
-        return dfx.RESULTS._index_to_message[index]  # equinox Enumeration internals
-    except Exception:  # pragma: no cover - depends on the equinox version
-        return f"diffrax result code {index}"
+        return dfx.RESULTS[result]
+    except Exception:  # pragma: no cover - depends on the diffrax version
+        return f"diffrax result {result!r}"
 
 
 def _stop_condition(model):
     """Event condition: deployed length out of range, non-finite / blown-up state, or the
-    energy balance error beyond `integrators.base.energy_bound` (checked at every step)."""
+    energy balance error beyond the bound (checked at every step). The thresholds are the
+    solve's ``args`` = (E0, energy bound, blow-up bound) (`integrators.lifecycle.Guards`): run-time
+    values, not constants of the compiled solve."""
     lay = model.layout
-    E0 = initial_energy(model)
-    e_bound = energy_bound(model)
 
     def cond_fn(t, y, args, **kwargs):
-        bad = ~jnp.all(jnp.isfinite(y)) | (jnp.max(jnp.abs(y)) >= BLOWUP)
+        E0, e_bound, blowup = args
+        bad = ~jnp.all(jnp.isfinite(y)) | (jnp.max(jnp.abs(y)) >= blowup)
         bad = bad | ~(energy_error_ode(model, y, E0) <= e_bound)
         if lay.has_reel:
             bad = bad | ~(model.deployed_length_margin(y[lay.y_x]) > 0.0)
@@ -108,7 +107,7 @@ def _build(model, solver_name: str, adaptive: bool, n_save: int, max_steps: int,
     term = dfx.ODETerm(lambda t, y, args: f(t, y))
     event = dfx.Event(_stop_condition(model))
 
-    def run(y0, t1, ts, rtol, atol, dt0, min_step):
+    def run(y0, t1, ts, rtol, atol, dt0, min_step, E0, e_bound, blowup):
         if solver_name == "kvaerno5":
             # Full Newton (Jacobian every iteration): diffrax's default VeryChord (Jacobian frozen
             # over the step) failed to converge on about half the steps on the string and the
@@ -123,10 +122,10 @@ def _build(model, solver_name: str, adaptive: bool, n_save: int, max_steps: int,
         sol = dfx.diffeqsolve(
             term, solver, t0=0.0, t1=t1, dt0=dt0 if dt0_given else None, y0=y0,
             saveat=dfx.SaveAt(ts=ts, t1=True), stepsize_controller=controller, event=event,
-            max_steps=max_steps, throw=False,
+            max_steps=max_steps, throw=False, args=(E0, e_bound, blowup),
         )
         return {
-            "ts": sol.ts, "ys": sol.ys, "result": sol.result._value,
+            "ts": sol.ts, "ys": sol.ys, "result": sol.result,
             "num_steps": sol.stats["num_steps"], "num_accepted_steps": sol.stats["num_accepted_steps"],
             "num_rejected_steps": sol.stats["num_rejected_steps"],
         }
@@ -189,6 +188,8 @@ class DiffraxODE(Integrator):
 
         model, setup_time = build_model_timed(scene)  # a first build is setup: booked with compile time
         y0 = jnp.asarray(model.initial_ode_state())
+        guards, guards_time = guards_timed(model)  # the guards' thresholds: setup, booked with compile time
+        setup_time += guards_time
         if constant:
             t_save = save_times(t_end, save_every, dt)
             t1 = float(math.floor(t_end / dt + 1e-9) * dt)  # whole steps only, like the LGVI
@@ -207,7 +208,7 @@ class DiffraxODE(Integrator):
         dt0_given = dt is not None
         args = (y0, jnp.asarray(t1), jnp.asarray(t_save), jnp.asarray(rtol if rtol is not None else 0.0),
                 jnp.asarray(atol if atol is not None else 0.0), jnp.asarray(min(dt, t1) if dt0_given else 0.0),
-                jnp.asarray(min_step))
+                jnp.asarray(min_step), *map(jnp.asarray, (guards.E0, guards.energy_bound, guards.blowup)))
         fn, compile_time = _compiled(model, self.solver_name, not constant, len(t_save), int(budget), dt0_given, args, rhs)
         compile_time += setup_time
         e_err, e_bound = energy_guard(model)  # used on the saved points of a failed run
@@ -221,7 +222,8 @@ class DiffraxODE(Integrator):
 
         ts = np.asarray(out["ts"], dtype=float)
         ys = np.asarray(out["ys"], dtype=float)
-        code = int(out["result"])
+        result = out["result"]
+        code_status = _status_of(result)
         # diffrax writes the saved points in order and pads the rest with inf; the SaveAt(t1=True)
         # entry (the state where the solve stopped, for any result) follows the last saved time.
         n_valid = int(np.sum(np.isfinite(ts)))
@@ -230,10 +232,10 @@ class DiffraxODE(Integrator):
         if len(ts) == 0:  # stopped before the first accepted step: keep the initial state
             ts, ys = np.zeros(1), np.asarray(y0, dtype=float)[None, :]
         reason = ""
-        if code == _EVENT:
+        if code_status is None:  # the event: which guard stopped the run
             if not (np.all(np.isfinite(y_final)) and np.max(np.abs(y_final)) < BLOWUP):
                 status = Status.DIVERGED
-                reason = f"non-finite or blown-up state (|y| >= {BLOWUP:g}) in the step ending at t = {t_final:.6g}"
+                reason = blowup_reason(f"the step ending at t = {t_final:.6g}")
             elif not e_err(y_final) <= e_bound:
                 status = Status.DIVERGED
                 reason = energy_reason(e_err(y_final), e_bound, float(t_final),
@@ -241,13 +243,11 @@ class DiffraxODE(Integrator):
             else:
                 status = Status.LENGTH_LIMIT
                 ell = float(model.L - y_final[0])
-                reason = f"the deployed length reached {model.length_limit_name(ell)} in the step ending at t = {t_final:.6g} s"
-        elif code in _RESULT_STATUS:
-            status = _RESULT_STATUS[code]
-            if status is not Status.OK:
-                reason = f"{_result_message(code)} (stopped at t = {t_final:.6g})"
+                reason = length_reason(model, ell, f"in the step ending at t = {t_final:.6g} s")
         else:
-            status, reason = Status.FAILED, f"{_result_message(code)} (stopped at t = {t_final:.6g})"
+            status = code_status
+            if status is not Status.OK:
+                reason = f"{_result_message(result)} (stopped at t = {t_final:.6g})"
 
         # keep the saved points the solve actually reached, finite, inside the length range
         n = finite_prefix(ys)
@@ -296,6 +296,7 @@ class Tsit5(DiffraxODE):
     capabilities = frozenset({Capability.ADAPTIVE, Capability.FIXED_STEP})
     order = 5
     description = "diffrax Tsit5: PID-adaptive (rtol/atol) or constant step (dt alone), quaternion attitude"
+    horizon_settings = {"rtol": 1e-6, "atol": 1e-8}
 
 
 class Kvaerno5(DiffraxODE):
@@ -304,3 +305,8 @@ class Kvaerno5(DiffraxODE):
     capabilities = frozenset({Capability.ADAPTIVE, Capability.IMPLICIT})
     order = 5
     description = "diffrax Kvaerno5 (implicit ESDIRK 5(4), full Newton), PID-adaptive, quaternion attitude"
+    #: measured on the shared 2-core machine: 245-300 s of compilation per scene
+    #: measured 2026-11-30 (one core): 0.2 s of stiff_string had not finished after 6 min; its full
+    #: Newton re-forms the Jacobian at every iteration
+    expensive = "re-forms its Jacobian at every Newton iteration (0.2 s of stiff_string ran over 6 min here)"
+    cost_hint = (30.0, 3.0)

@@ -8,7 +8,8 @@ this module is the time loop: one jitted ``lax.while_loop`` over save slots with
 ``while_loop`` over steps, compiled ahead of time (compile time measured apart from run
 time), stopping cleanly with a `Status` when Newton fails, the state stops being finite, the
 deployed length leaves (ℓ_min, L − b), a step's Cayley parameter exceeds `CAYLEY_BOUND` or (at
-save points) the energy balance error exceeds `integrators.base.energy_bound`.
+save points) the energy balance error exceeds `integrators.base.energy_bound`; the thresholds are
+run-time arguments of the compiled loop (`integrators.lifecycle.Guards`).
 
 The same loop runs the symmetric LGVI of MODEL.md §9 and its compositions
 (`integrators.lgvi_sym`): a `Scheme` selects the discrete Lagrangian
@@ -34,12 +35,11 @@ from typing import ClassVar
 import numpy as np
 
 from integrators._lgvi_core import DiscreteLagrangian, cayley, small_solve
-from integrators.base import (Capability, Integrator, Status, Trajectory, check_positive, energy_bound, energy_error,
-                              energy_reason, initial_energy, save_times, stamp_wall_time,
-                              build_model_timed)
+from integrators.base import (Capability, Integrator, Status, Trajectory, check_positive, energy_error,
+                              energy_reason, stamp_wall_time, build_model_timed)
+from integrators.lifecycle import bucket, guards_timed, check_fixed_step, resolve_scene, step_indices  # noqa: F401
 from integrators.rhs import closed_form_of
 from integrators.registry import register
-from models import load_scene
 from models._jax import jax, jnp
 
 #: re-assemble the chord-Newton Jacobian when |dz| shrinks by less than this factor
@@ -78,7 +78,10 @@ SECTION6 = Scheme()
 
 
 def _make_run(model, scheme: Scheme = SECTION6):
-    """The whole run as one function of (x0, R0, p0, h, save_idx, n_save, tol, maxit).
+    """The whole run as one function of (x0, R0, p0, h, save_idx, n_save, tol, maxit, e_bound, cayley_bound).
+
+    ``e_bound`` (the energy guard, `integrators.lifecycle.Guards`) and ``cayley_bound`` (the Cayley
+    guard) are run-time arguments, not constants of the compiled loop.
 
     ``save_idx`` is padded to a bucketed length so that runs of other lengths reuse the
     compiled code; only its first ``n_save`` entries are used.
@@ -86,8 +89,6 @@ def _make_run(model, scheme: Scheme = SECTION6):
     dl = DiscreteLagrangian(model, symmetric=scheme.symmetric)
     lay = model.layout
     nz = dl.nz
-    # energy guard (issue #7): velocities from momenta by the O(N) closed-form solve
-    e_bound = energy_bound(model)
     # the symmetric scheme's midpoint string force depends on the step: fixed point around the
     # structured solve (`DiscreteLagrangian.with_forcing`)
     lagged = dl.symmetric and dl.node_forced
@@ -139,7 +140,7 @@ def _make_run(model, scheme: Scheme = SECTION6):
         dq = u - v[:, None] * dl.body_term(ctx, F)[None, :]
         return ds, c, F, dq, it, conv & ~bad & jnp.all(jnp.isfinite(dq)), z_sol
 
-    def step(x, R, p, gV, z, t, h, tol, maxit):
+    def step(x, R, p, gV, z, t, h, tol, maxit, cayley_bound):
         ctx = dl.context(t, x, R, gV, p)
         _, pq, _ = dl.split_momentum(p)
         uv = None if dl.reel else dl.string_solve(ctx, pq, h, jnp.asarray(0.0))
@@ -177,12 +178,12 @@ def _make_run(model, scheme: Scheme = SECTION6):
         inside = model.deployed_length_margin(x1) > 0
         code = jnp.where(~newton_ok, 1, jnp.where(~finite, 2, jnp.where(~inside, 3, 0))).astype(jnp.int32)
         if dl.rigid:  # -- Cayley guard (issue #7): |c| > CAYLEY_BOUND ends the run (code 5) --
-            code = jnp.where(((code == 0) | (code == 2)) & (c @ c > CAYLEY_BOUND ** 2), 5, code).astype(jnp.int32)
+            code = jnp.where(((code == 0) | (code == 2)) & (c @ c > cayley_bound ** 2), 5, code).astype(jnp.int32)
         return (x1, R1, p1, gV1, dW, z_new), it, code
 
     if scheme.gammas is None:
-        def macro_step(x, R, p, gV, z, k, h, tol, maxit):
-            return step(x, R, p, gV, z, k * h, h, tol, maxit)
+        def macro_step(x, R, p, gV, z, k, h, tol, maxit, cayley_bound):
+            return step(x, R, p, gV, z, k * h, h, tol, maxit, cayley_bound)
 
         z_shape = (2, nz)
     else:
@@ -192,11 +193,11 @@ def _make_run(model, scheme: Scheme = SECTION6):
         gam = jnp.asarray(scheme.gammas)
         tau = jnp.asarray(np.concatenate([[0.0], np.cumsum(scheme.gammas)[:-1]]))
 
-        def macro_step(x, R, p, gV, z, k, h, tol, maxit):
+        def macro_step(x, R, p, gV, z, k, h, tol, maxit, cayley_bound):
             def sub(carry, inp):
                 x_, R_, p_, gV_, W_, it_, code_ = carry
                 g, tt, zi = inp
-                (x1, R1, p1, gV1, dW, z1), it1, code1 = step(x_, R_, p_, gV_, zi, (k + tt) * h, g * h, tol, maxit)
+                (x1, R1, p1, gV1, dW, z1), it1, code1 = step(x_, R_, p_, gV_, zi, (k + tt) * h, g * h, tol, maxit, cayley_bound)
                 code1 = jnp.where(code_ == 0, code1, code_)
                 return (x1, R1, p1, gV1, W_ + dW, it_ + it1, code1), z1
 
@@ -206,7 +207,7 @@ def _make_run(model, scheme: Scheme = SECTION6):
 
         z_shape = (len(scheme.gammas), 2, nz)
 
-    def run(x0, R0, p0, h, save_idx, n_save, tol, maxit):
+    def run(x0, R0, p0, h, save_idx, n_save, tol, maxit, e_bound, cayley_bound):
         n_buf = save_idx.shape[0]
         gV0 = model.potential_gradient(x0, R0)
         E0 = model.energy(x0, R0, dl.legendre(x0, R0, p0))
@@ -226,7 +227,7 @@ def _make_run(model, scheme: Scheme = SECTION6):
         def inner_body(c_):
             state, stats, target = c_
             x, R, p, gV, W, z, k = state
-            (x1, R1, p1, gV1, dW, z1), it, code = macro_step(x, R, p, gV, z, k, h, tol, maxit)
+            (x1, R1, p1, gV1, dW, z1), it, code = macro_step(x, R, p, gV, z, k, h, tol, maxit, cayley_bound)
             good = code == 0
             sel = lambda a, b: jnp.where(good, a, b)  # noqa: E731
             new_state = (sel(x1, x), sel(R1, R), sel(p1, p), sel(gV1, gV), sel(W + dW, W), sel(z1, z),
@@ -258,9 +259,7 @@ def _make_run(model, scheme: Scheme = SECTION6):
     return run
 
 
-def _bucket(n):
-    """Save-buffer length: the next power of two (at least 256), to share compiled code."""
-    return max(256, 1 << (int(n) - 1).bit_length())
+_bucket = bucket  # the lifecycle's save-buffer length
 
 
 def _compiled_run(model, n_buf, example_args, scheme: Scheme = SECTION6):
@@ -302,18 +301,6 @@ def _velocity_fn(model, n_buf, example_args):
     return fn, dt
 
 
-def step_indices(t_end, dt, save_every, max_steps):
-    """Step indices to save (0 first, the last step run last) and the number of steps run."""
-    n = int(np.floor(t_end / dt + 1e-9))
-    idx = np.rint(save_times(t_end, save_every, dt) / dt).astype(np.int64)
-    truncated = max_steps is not None and n > max_steps
-    n_run = min(n, max_steps) if max_steps is not None else n
-    idx = idx[idx <= n_run]
-    if idx[-1] != n_run:
-        idx = np.append(idx, n_run)
-    return idx, n_run, truncated
-
-
 @register
 class LGVI(Integrator):
     name = "lgvi"
@@ -323,6 +310,11 @@ class LGVI(Integrator):
     #: measured (tests/test_orders.py): second order at fixed length, first while the length changes
     orders = {"fixed_length": 2, "reel": 1}
     description = "Lie group variational integrator (Lee-Leok-McClamroch 2011): Cayley SO(3), structured Newton"
+    horizon_settings = {"dt": 0.005}
+    #: the paper's figures: inside its stability limit (h ω_max < 2) on all three paper scenes at
+    #: N = 10 (deployment's short elements diverge at 5 ms, measured)
+    paper_settings = {"dt": 0.0025}
+    cost_hint = (30.0, 0.3)
     #: the discrete Lagrangian and composition (subclasses: integrators.lgvi_sym)
     scheme: ClassVar[Scheme] = SECTION6
 
@@ -337,23 +329,17 @@ class LGVI(Integrator):
         if options:
             raise ValueError(f"{self.name}: unknown option(s) {', '.join(sorted(options))} "
                              "(allowed: dt, t_end, save_every, max_steps, newton_tol, newton_max_iter)")
-        if isinstance(scene, str):
-            scene = load_scene(scene)
+        scene = resolve_scene(scene)
         t_end = scene.t_end if t_end is None else t_end
-        check_positive("t_end", t_end)
-        check_positive("dt", dt)
-        check_positive("save_every", save_every, allow_none=True)
+        check_fixed_step(t_end, dt, save_every, max_steps)
         check_positive("newton_tol", newton_tol)
         if isinstance(newton_max_iter, bool) or not isinstance(newton_max_iter, (int, np.integer)) or newton_max_iter < 1:
             raise ValueError(f"newton_max_iter = {newton_max_iter!r} is invalid (allowed: an integer >= 1)")
-        if max_steps is not None and (isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer))
-                                      or max_steps < 1):
-            raise ValueError(f"max_steps = {max_steps!r} is invalid (allowed: an integer >= 1)")
-        if dt > t_end:
-            raise ValueError(f"dt = {dt!r} is larger than t_end = {t_end!r}")
 
         model, setup_time = build_model_timed(scene)  # a first build is setup: booked with compile time
         lay = model.layout
+        guards, guards_time = guards_timed(model)  # the guards' thresholds: setup, booked with compile time
+        setup_time += guards_time
         idx, n_run, truncated = step_indices(t_end, dt, save_every, max_steps)
         tc = time.perf_counter()
         x0, R0, w0 = (jnp.asarray(a) for a in model.initial_state())
@@ -364,7 +350,8 @@ class LGVI(Integrator):
         idx_buf[: len(idx)] = idx
         # numpy, not jnp: an eager int64 -> int32 conversion compiles on first use (~0.1 s each, in the run time)
         args = (x0, R0, p0, np.float64(dt), np.asarray(idx_buf, np.int32), np.int32(len(idx)),
-                np.float64(newton_tol), np.int32(newton_max_iter))
+                np.float64(newton_tol), np.int32(newton_max_iter), np.float64(guards.energy_bound),
+                np.float64(CAYLEY_BOUND))
         compiled, compile_time = _compiled_run(model, n_buf, args, self.scheme)
         velocity, compile_v = _velocity_fn(model, n_buf, (np.zeros((n_buf, lay.nx)), np.zeros((n_buf, 3, 3)),
                                                           np.zeros((n_buf, lay.nw))))
@@ -377,9 +364,9 @@ class LGVI(Integrator):
         n = int(j)
         energy_note = ""
         if code == 4:  # the slot after the kept ones holds the state that failed the energy guard
-            err = float(energy_error(model, jnp.asarray(X[n]), jnp.asarray(Rs[n]), jnp.asarray(V[n]), float(Ws[n]), initial_energy(model)))
+            err = float(energy_error(model, jnp.asarray(X[n]), jnp.asarray(Rs[n]), jnp.asarray(V[n]), float(Ws[n]), guards.E0))
             kept = f"; trajectory kept up to the previous save point t = {K[n - 1] * dt:.6g} s"
-            energy_note = energy_reason(err, energy_bound(model), K[n] * dt, kept)
+            energy_note = energy_reason(err, guards.energy_bound, K[n] * dt, kept)
         X, Rs, P, Ws, K, V = X[:n], Rs[:n], P[:n], Ws[:n], K[:n], V[:n]
         if n >= 2 and K[-1] == K[-2]:  # failure right after a save: last slot repeats it
             X, Rs, P, Ws, K, V = X[:-1], Rs[:-1], P[:-1], Ws[:-1], K[:-1], V[:-1]

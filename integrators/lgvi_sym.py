@@ -34,6 +34,7 @@ class LGVISym(LGVI):
     order = 2
     orders = {"fixed_length": 2, "reel": 2}
     scheme = Scheme(symmetric=True)
+    horizon_settings = paper_settings = None
     description = "symmetric LGVI (MODEL.md §9): midpoint mass terms and forcing, second order while reeling"
 
 
@@ -43,6 +44,8 @@ class LGVIYoshida4(LGVI):
     order = 4
     orders = {"fixed_length": 4, "reel": 4}
     scheme = Scheme(symmetric=True, gammas=YOSHIDA4)
+    horizon_settings = paper_settings = None
+    cost_hint = (30.0, 0.9)
     description = "Yoshida triple-jump composition of the symmetric LGVI: order 4, 3 substeps per step"
 
 
@@ -52,4 +55,6 @@ class LGVISuzuki4(LGVI):
     order = 4
     orders = {"fixed_length": 4, "reel": 4}
     scheme = Scheme(symmetric=True, gammas=SUZUKI4)
+    horizon_settings = paper_settings = None
+    cost_hint = (30.0, 1.5)
     description = "Suzuki 5-stage composition of the symmetric LGVI: order 4, 5 substeps per step"

@@ -29,52 +29,15 @@ from integrators import rhs as _rhs
 from integrators.base import (Capability, Integrator, Status, Trajectory, check_positive, energy_bound,
                               energy_error_ode, energy_reason, initial_energy, save_times, stamp_wall_time,
                               build_model_timed)
-from models import load_scene
+from integrators.lifecycle import (BLOWUP, blowup_reason, check_max_steps, check_options, check_tolerances,
+                                   length_reason, ode_trajectory, resolve_scene)
 from models._jax import jax
-from models.scene import Scene
 
-#: A state component beyond this magnitude counts as divergence (positions are tens of metres,
-#: velocities at most hundreds of m/s in every shipped scene).
-BLOWUP = 1e8
 
 
 # ------------------------------------------------------------------------------------------
-# Helpers shared with `integrators.diffrax_ode`
+# Helpers shared with `integrators.diffrax_ode` (validation and assembly: `integrators.lifecycle`)
 # ------------------------------------------------------------------------------------------
-def resolve_scene(scene) -> Scene:
-    if isinstance(scene, Scene):
-        return scene
-    if isinstance(scene, str):
-        return load_scene(scene)
-    raise ValueError(f"scene = {scene!r} is invalid (allowed: a models.Scene or a scene name)")
-
-
-def check_tolerances(rtol, atol) -> None:
-    """rtol in (0, 1), atol > 0; both required."""
-    if rtol is None:
-        raise ValueError("rtol is required for an adaptive method (allowed: a finite number in (0, 1))")
-    if atol is None:
-        raise ValueError("atol is required for an adaptive method (allowed: a finite number > 0)")
-    check_positive("rtol", rtol)
-    if rtol >= 1:
-        raise ValueError(f"rtol = {rtol!r} is invalid (allowed: a finite number in (0, 1))")
-    check_positive("atol", atol)
-
-
-def check_max_steps(max_steps) -> None:
-    if max_steps is None:
-        return
-    if isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
-        raise ValueError(f"max_steps = {max_steps!r} is invalid (allowed: an integer >= 1, or None)")
-
-
-def check_options(name: str, options: dict, allowed: tuple[str, ...] = ()) -> None:
-    unknown = sorted(set(options) - set(allowed))
-    if unknown:
-        allowed_txt = ", ".join(allowed) if allowed else "none"
-        raise ValueError(f"{name}: unknown option(s) {', '.join(map(repr, unknown))} (allowed options: {allowed_txt})")
-
-
 def finite_prefix(y: np.ndarray) -> int:
     """Number of leading rows of y that are finite and below `BLOWUP` in magnitude."""
     good = np.all(np.isfinite(y), axis=1) & np.all(np.abs(np.nan_to_num(y, nan=np.inf)) < BLOWUP, axis=1)
@@ -111,24 +74,7 @@ def energy_guard(model):
     return (lambda y: float(f(y))), energy_bound(model)
 
 
-def make_trajectory(model, scene, t, y, *, status, reason, stats, integrator, settings) -> Trajectory:
-    lay = model.layout
-    t = np.asarray(t, dtype=float)
-    y = np.asarray(y, dtype=float).reshape(len(t), lay.ny)
-    return Trajectory(
-        t=t,
-        x=y[:, lay.y_x].copy(),
-        attitude=y[:, lay.y_quat].copy() if lay.has_attitude else None,
-        attitude_kind="quaternion",
-        velocity=y[:, lay.y_w].copy(),
-        work=y[:, lay.y_work][:, 0].copy() if lay.has_work else np.zeros(len(t)),
-        status=str(status.value if isinstance(status, Status) else status),
-        reason=reason,
-        stats=stats,
-        integrator=integrator,
-        settings=settings,
-        scene_name=scene.name,
-    )
+make_trajectory = ode_trajectory  # the lifecycle's assembly, under its former name
 
 
 def normalise_quaternion(model, y: np.ndarray) -> None:
@@ -141,6 +87,11 @@ def normalise_quaternion(model, y: np.ndarray) -> None:
 # ------------------------------------------------------------------------------------------
 # The adapter
 # ------------------------------------------------------------------------------------------
+#: scipy's public explicit Runge-Kutta solvers: each attempted step costs ``n_stages`` evaluations,
+#: so rejected steps follow from the evaluation count (Radau does not expose its rejections).
+EXPLICIT_RK = (_si.RK23, _si.RK45, _si.DOP853)
+
+
 class ScipyIVP(Integrator):
     """One adapter for scipy's ``OdeSolver`` classes; subclasses pick the method."""
 
@@ -204,7 +155,7 @@ class ScipyIVP(Integrator):
         event_time = None
         step_sizes = []
         rejected = 0
-        counts_attempts = isinstance(solver, _si._ivp.rk.RungeKutta)  # explicit RK: n_stages evals per attempt
+        counts_attempts = isinstance(solver, EXPLICIT_RK)  # explicit RK: n_stages evals per attempt
         while solver.status == "running":
             if max_steps is not None and steps >= max_steps:
                 status, reason = Status.MAX_STEPS, f"max_steps = {max_steps} reached at t = {solver.t:.6g} (t_end = {t_end:g})"
@@ -225,7 +176,7 @@ class ScipyIVP(Integrator):
             step_sizes.append(t_new - t_old)
             if not state_ok(solver.y):
                 status = Status.DIVERGED
-                reason = f"non-finite or blown-up state (|y| >= {BLOWUP:g}) in the step ({t_old:.6g}, {t_new:.6g}]"
+                reason = blowup_reason(f"the step ({t_old:.6g}, {t_new:.6g}]")
                 break
             t_stop = t_new
             dense = None
@@ -239,7 +190,7 @@ class ScipyIVP(Integrator):
                 t_stop = event_time
                 status = Status.LENGTH_LIMIT
                 ell = float(model.L - dense(event_time)[0])
-                reason = f"the deployed length reached {model.length_limit_name(ell)} at t = {event_time:.6g} s"
+                reason = length_reason(model, ell, f"at t = {event_time:.6g} s")
             while k < len(t_save) and (t_save[k] < t_stop if event_time is not None else t_save[k] <= t_new):
                 if t_save[k] == t_new:
                     yk = solver.y.copy()
@@ -292,6 +243,7 @@ class RK45(ScipyIVP):
     capabilities = frozenset({Capability.ADAPTIVE})
     order = 5
     description = "scipy RK45 (Dormand–Prince 5(4)), quaternion attitude, not renormalised"
+    horizon_settings = {"rtol": 1e-6, "atol": 1e-8}
 
 
 class Radau(ScipyIVP):
@@ -301,6 +253,8 @@ class Radau(ScipyIVP):
     capabilities = frozenset({Capability.ADAPTIVE, Capability.IMPLICIT})
     order = 5
     description = "scipy Radau IIA (order 5, implicit), Jacobian by jacfwd of the RHS, quaternion attitude"
+    #: measured on the shared 2-core machine: 100-115 s of compilation per scene
+    cost_hint = (15.0, 1.0)  # its Jacobian (jacfwd of the closed form) compiles in seconds
 
 
 class DOP853(ScipyIVP):
@@ -309,9 +263,11 @@ class DOP853(ScipyIVP):
     capabilities = frozenset({Capability.ADAPTIVE})
     order = 8
     description = "scipy DOP853 (Dormand–Prince 8(5,3)), used for reference solutions"
+    horizon_settings = {"rtol": 1e-8, "atol": 1e-10}
 
 
 class RK45Projected(RK45):
     name = "rk45_projected"
     projected = True
+    horizon_settings = None
     description = "scipy RK45 with the quaternion rescaled to unit norm after every accepted step"

@@ -114,7 +114,7 @@ class ClosedFormEOM:
         return jnp.asarray(self.J_c) - self.m_b * rh @ (R.T @ R) @ rh
 
     def M0(self, s):
-        return self.mu * s + self.kappa + self.mu * (self.L - s) / 3.0
+        return self.model.reel_mass(s)  # the one definition (StringPendulum.reel_mass)
 
     # ------------------------------------------------------------------------------------
     # Legendre transform

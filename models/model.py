@@ -217,10 +217,16 @@ class StringPendulum:
     # ------------------------------------------------------------------------------------
     # Energy terms (MODEL.md §3), one per effect
     # ------------------------------------------------------------------------------------
+    def reel_mass(self, s):
+        """M0(s) = μ s + κ_d + μ (L − s)/3: the s_p diagonal of the mass matrix (the stored
+        string, the reel's equivalent mass and the deployed string's axial flow). The one
+        definition: the autodiff T (`_T_reel`), the closed form (`ClosedFormEOM.M0`) and the
+        LGVI's discrete equations (`integrators._lgvi_core`) all call it."""
+        return self.mu * s + self.kappa + self.mu * (self.L - s) / 3.0
+
     def _T_reel(self, x, R, w):
         s, sd = x[0], w[0]
-        M0 = self.mu * s + self.kappa + self.mu * (self.L - s) / 3.0
-        return 0.5 * M0 * sd * sd
+        return 0.5 * self.reel_mass(s) * sd * sd
 
     def _T_string(self, x, R, w):
         q, qd, l = self.nodes(x), self.node_velocities(w), self.element_length(x)
@@ -395,6 +401,26 @@ class StringPendulum:
         """
         ell = self.L - self.reel_coordinate(x)
         return jnp.minimum(ell - self.ell_min, self.L - self.b - ell)
+
+    def energy_scale(self) -> float:
+        """The scene's energy scale in J (a fixed number, computed from the scene and its start):
+
+            T(0) + Σ_terms |V_term(0)|  +  g (m_b + μ L)(L + |ρ_c| + |r_d| + d)  +  |u| L / d
+
+        i.e. the initial kinetic energy, every initial potential term in absolute value (so that
+        terms of opposite sign do not cancel), the most potential energy gravity could release
+        over the whole string length, and the most work the constant reel moment can do over it.
+        The Carnot loss only dissipates what these supply. It is floored at 1e-9 J (a scene at
+        rest with nothing to move it). Every integrator's energy guard is a multiple of it
+        (`integrators.base.energy_bound`).
+        """
+        x0, R0, w0 = (jnp.asarray(a) for a in self.initial_state())
+        T0 = float(self.kinetic(x0, R0, w0))
+        V0 = sum(abs(float(f(x0, R0))) for f in self.potential_terms.values())
+        reach = self.L + float(np.linalg.norm(self.rho_c)) + float(np.linalg.norm(self.r_d)) + self.d
+        gravity = self.g * (self.m_b + self.mu * self.L) * reach
+        control = abs(self.u) * self.L / self.d
+        return max(T0 + V0 + gravity + control, 1e-9)
 
     def length_limit_name(self, ell: float) -> str:
         """Which end of (ℓ_min, L - b) a deployed length ``ell`` is at (for status reasons)."""

@@ -178,8 +178,11 @@ def test_speed_covers_every_registered_fixed_step_method(monkeypatch):
         def solve(self, *a, **k):  # pragma: no cover - never run here
             raise NotImplementedError
 
-    monkeypatch.setitem(registry._REGISTRY, Probe.name, Probe)
-    methods = lgvi_speed.fixed_step_methods()
+    registry.register(Probe)
+    try:
+        methods = lgvi_speed.fixed_step_methods()
+    finally:
+        registry.unregister(Probe.name)
     assert "speed_probe" in methods and {"lgvi", "tsit5"} <= set(methods)
     assert not {"rk45", "radau", "dop853", "kvaerno5"} & set(methods)
     with pytest.raises(ValueError, match="not a fixed-step method"):
