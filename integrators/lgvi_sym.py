@@ -32,29 +32,26 @@ SUZUKI4 = (_S, _S, 1.0 - 4.0 * _S, _S, _S)
 class LGVISym(LGVI):
     name = "lgvi_sym"
     order = 2
-    orders = {"fixed_length": 2, "reel": 2}
+    orders = None  # the same order at fixed length and while reeling (the paper's lgvi: 2 and 1)
     scheme = Scheme(symmetric=True)
-    horizon_settings = paper_settings = None
+    horizon_settings = paper_settings = None  # the paper's lgvi represents the family there
     description = "symmetric LGVI (MODEL.md §9): midpoint mass terms and forcing, second order while reeling"
 
 
+# The compositions differ from lgvi_sym only by their coefficients (and what follows from them).
 @register
-class LGVIYoshida4(LGVI):
+class LGVIYoshida4(LGVISym):
     name = "lgvi_yoshida4"
     order = 4
-    orders = {"fixed_length": 4, "reel": 4}
     scheme = Scheme(symmetric=True, gammas=YOSHIDA4)
-    horizon_settings = paper_settings = None
     cost_hint = (30.0, 0.9)
     description = "Yoshida triple-jump composition of the symmetric LGVI: order 4, 3 substeps per step"
 
 
 @register
-class LGVISuzuki4(LGVI):
+class LGVISuzuki4(LGVISym):
     name = "lgvi_suzuki4"
     order = 4
-    orders = {"fixed_length": 4, "reel": 4}
     scheme = Scheme(symmetric=True, gammas=SUZUKI4)
-    horizon_settings = paper_settings = None
     cost_hint = (30.0, 1.5)
     description = "Suzuki 5-stage composition of the symmetric LGVI: order 4, 5 substeps per step"
