@@ -45,7 +45,7 @@ from integrators.base import (Capability, Integrator, Status, Trajectory, check_
                               build_model_timed)
 from integrators.lifecycle import (BLOWUP, blowup_reason, check_max_steps, check_options, check_tolerances,
                                    guards_timed, length_reason, resolve_scene)
-from integrators.lifecycle import ode_trajectory as make_trajectory
+from integrators.lifecycle import ode_trajectory
 from integrators.scipy_ivp import energy_guard, finite_prefix
 from models._jax import jax, jnp
 
@@ -283,7 +283,7 @@ class DiffraxODE(Integrator):
             stats["jac_evals"] = stats["lu_decompositions"] = 0
         if status is Status.LENGTH_LIMIT:
             stats["event_time"] = float(t_final)
-        traj = make_trajectory(model, scene, ts, ys, status=status, reason=reason, stats=stats,
+        traj = ode_trajectory(model, scene, ts, ys, status=status, reason=reason, stats=stats,
                                integrator=self.name, settings=settings)
         return stamp_wall_time(traj, started)
 

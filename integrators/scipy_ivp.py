@@ -26,10 +26,9 @@ from scipy import integrate as _si
 from scipy.optimize import brentq
 
 from integrators import rhs as _rhs
-from integrators.base import (Capability, Integrator, Status, Trajectory, check_positive, energy_bound,
-                              energy_error_ode, energy_reason, initial_energy, save_times, stamp_wall_time,
-                              build_model_timed)
-from integrators.lifecycle import (BLOWUP, blowup_reason, check_max_steps, check_options, check_tolerances,
+from integrators.base import (Capability, Integrator, Status, Trajectory, check_positive, energy_error_ode,
+                              energy_reason, save_times, stamp_wall_time, build_model_timed)
+from integrators.lifecycle import (BLOWUP, Guards, blowup_reason, check_max_steps, check_options, check_tolerances,
                                    length_reason, ode_trajectory, resolve_scene)
 from models._jax import jax
 
@@ -68,13 +67,10 @@ def margin_function(model):
 @functools.lru_cache(maxsize=64)
 def energy_guard(model):
     """(error, bound): ``error(y)`` = |E − W − E0| of an ODE state (float), and the bound of
-    `integrators.base.energy_bound` beyond which the run is ``diverged``."""
-    E0 = initial_energy(model)
-    f = jax.jit(lambda y: energy_error_ode(model, y, E0))
-    return (lambda y: float(f(y))), energy_bound(model)
-
-
-make_trajectory = ode_trajectory  # the lifecycle's assembly, under its former name
+    `integrators.base.energy_bound` beyond which the run is ``diverged`` (the lifecycle's `Guards`)."""
+    guards = Guards.for_model(model)
+    f = jax.jit(lambda y: energy_error_ode(model, y, guards.E0))
+    return (lambda y: float(f(y))), guards.energy_bound
 
 
 def normalise_quaternion(model, y: np.ndarray) -> None:
@@ -232,7 +228,7 @@ class ScipyIVP(Integrator):
             stats["rejected_steps"] = int(rejected)
         if event_time is not None:
             stats["event_time"] = float(event_time)
-        traj = make_trajectory(model, scene, np.array(out_t)[:n], y_arr[:n], status=status, reason=reason,
+        traj = ode_trajectory(model, scene, np.array(out_t)[:n], y_arr[:n], status=status, reason=reason,
                                stats=stats, integrator=self.name, settings=settings)
         return stamp_wall_time(traj, started)
 
