@@ -16,20 +16,10 @@ SAVE_EVERY = 0.02  # s; every dt below divides it
 
 # step sizes (s) and relative tolerances (atol = rtol * ATOL_FACTOR)
 FULL_DTS = (0.02, 0.01, 0.005, 0.0025, 0.00125)
+# A method whose accuracy range or stability limit these do not suit declares its own
+# full-sweep step sizes (`Integrator.sweep_dts`, e.g. the symmetric LGVIs).
 FULL_RTOLS = (1e-4, 1e-6, 1e-8, 1e-10)
 QUICK_DTS = (0.01, 0.005, 0.0025)
-#: Full-sweep step sizes of the symmetric LGVIs, where FULL_DTS would not reach a body-position
-#: error of 1e-6 m on the reel scenes (lgvi_sym: second order) or would waste the largest steps
-#: beyond the compositions' stability (Yoshida's substeps reach 1.7 h): each method's list goes
-#: down to below 1e-6 m on deployment and retrieval.
-#: Measured at the full horizons (N = 10), body-position error at t_end: lgvi_sym 6.2e-6 m at
-#: 0.3125 ms on deployment (so two more halvings); lgvi_yoshida4 8.7e-8 m at 0.625 ms; lgvi_suzuki4
-#: 2.7e-7 m at 2.5 ms (it diverges at 5 ms on deployment: the stability limit applies to each substep).
-METHOD_FULL_DTS = {
-    "lgvi_sym": (0.005, 0.0025, 0.00125, 0.000625, 0.0003125, 0.00015625, 0.000078125),
-    "lgvi_yoshida4": (0.005, 0.0025, 0.00125, 0.000625, 0.0003125),
-    "lgvi_suzuki4": (0.01, 0.005, 0.0025, 0.00125, 0.000625),
-}
 QUICK_RTOLS = (1e-5, 1e-8)
 # Implicit adaptive methods cost 10-100x more per step on this non-stiff problem (measured:
 # kvaerno5 at rtol 1e-8 took 180 s for 2 s of deployment); their sweep covers the loose
@@ -114,14 +104,15 @@ def build_tasks(
     rtols = tuple(rtols) if rtols else (QUICK_RTOLS if quick else FULL_RTOLS)
     if quick and t_end is None:
         t_end = QUICK_T_END
-    check_settings(dts + tuple(v for d in METHOD_FULL_DTS.values() for v in d), rtols + implicit_rtols)
+    methods = {name: get_integrator(name) for name in names}  # raises for unknown names, before any work
+    own_dts = {name: (dts if given_dts or quick else integ.sweep_dts or dts) for name, integ in methods.items()}
+    check_settings(tuple(v for d in own_dts.values() for v in d) + dts, rtols + implicit_rtols)
     ov = tuple(sorted((overrides or {}).items()))
     tasks = []
     for scene in scenes:
-        for name in names:
-            integ = get_integrator(name)  # raises for unknown names, before any work
+        for name, integ in methods.items():
             if integ.has(Capability.FIXED_STEP):
-                own = dts if given_dts or quick else METHOD_FULL_DTS.get(name, dts)
+                own = own_dts[name]
                 tasks += [Task(scene, name, dt=dt, t_end=t_end, overrides=ov) for dt in own]
             if integ.has(Capability.ADAPTIVE):
                 tols = implicit_rtols if integ.has(Capability.IMPLICIT) else rtols

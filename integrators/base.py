@@ -222,8 +222,9 @@ class Integrator(abc.ABC):
         orders: optional per-situation orders where they differ from ``order``, keyed by
             `SITUATIONS` (e.g. the paper's LGVI: {"fixed_length": 2, "reel": 1}); see `order_for`.
         description: one line for tables and ``python -m benchmark list``.
-        horizon_settings, expensive, cost_hint: what the benchmark reads instead of method
-            names (the long-horizon study, the stability map's default run and its scheduling).
+        horizon_settings, paper_settings, expensive, cost_hint, sweep_dts: what the benchmark
+            reads instead of method names (the long-horizon study, the paper's panels, the
+            stability map's default run and its scheduling, the default sweep's step sizes).
     """
 
     name: ClassVar[str] = ""
@@ -241,6 +242,11 @@ class Integrator(abc.ABC):
     #: why the stability map's default run leaves this method out of the scenes where its cost
     #: is prohibitive, in words (e.g. a measured compile time per scene); None: it never is
     expensive: ClassVar[str | None] = None
+    #: the step sizes (s) of this method in the full default sweep (`benchmark run`), where the
+    #: shared ones (`benchmark.sweep.FULL_DTS`) would not reach the sweep's accuracy range or would
+    #: waste runs beyond the method's stability limit; each must divide the save interval. None:
+    #: the shared ones. (``--dts`` and ``--quick`` override it.)
+    sweep_dts: ClassVar[tuple[float, ...] | None] = None
     #: (compile seconds per scene, run cost per step relative to an explicit RK step): a rough
     #: scheduling hint (the stability map starts the longest jobs first), never a result
     cost_hint: ClassVar[tuple[float, float]] = (30.0, 1.0)
