@@ -244,4 +244,4 @@ def test_ci_runs_exactly_the_readme_test_command():
     assert "python3 -m benchmark check" in command
     ci = [line for line in (ROOT / ".ci" / "run").read_text().splitlines() if line and not line.startswith("#")]
     assert command.strip() in ci, (command, ci)
-    assert shlex.split(command)  # one shell line
+    assert "\n" not in command.strip() and shlex.split(command)  # one shell line, well quoted

@@ -105,18 +105,24 @@ def test_figures_refuses_a_trajectory_of_another_scene(tmp_path, capsys):
 
 
 def test_every_option_is_documented_with_its_default(capsys):
+    """Every option of every command has a help line in its --help, and each one with a default
+    to show (not None, not a flag's False) shows it as "(default: VALUE)"."""
+    import argparse
+
     from benchmark.cli import parser
 
     p = parser()
     sub = next(a for a in p._actions if a.__class__.__name__ == "_SubParsersAction")
     for name, sp in sub.choices.items():
+        assert main([name, "--help"]) == 0
+        text = " ".join(capsys.readouterr().out.split())
         for action in sp._actions:
-            if action.dest in ("help",):
+            if isinstance(action, argparse._HelpAction):
                 continue
             assert action.help, (name, action.dest)
-        assert main([name, "--help"]) == 0
-        text = capsys.readouterr().out
-        assert text.strip(), name
+            assert all(o in text for o in action.option_strings), (name, action.option_strings)
+            if action.default not in (None, False, argparse.SUPPRESS):
+                assert f"(default: {action.default})" in text, (name, action.dest, action.default)
     assert main(["run", "--help"]) == 0
     text = " ".join(capsys.readouterr().out.split())
     for expected in ("--out OUT", "(default: results)", "--repeats", "(default: 3)", "--horizon", "--fresh"):

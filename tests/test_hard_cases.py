@@ -129,15 +129,21 @@ def test_diffrax_constant_step_blow_up_keeps_only_points_within_the_bound():
 # ------------------------------------------------------------------------------------------
 def test_stiff_string_lgvi_stable_below_and_named_status_above_its_limit():
     scene = load_scene("stiff_string", elements=8)  # EA stays 100x: ω_max ~ 1.7e3 rad/s, h ω_max < 2 needs h < ~1 ms
-    ok = get_integrator("lgvi").solve(scene, t_end=0.02, dt=1e-4)
-    assert ok.ok, ok.reason
-    assert summary(finite_diagnostics(scene, ok), has_work=False)["energy_error"] < 1e-3
+    energy = []
+    for h in (1e-4, 5e-5):  # h ω_max ~ 0.17, 0.085
+        ok = get_integrator("lgvi").solve(scene, t_end=0.02, dt=h)
+        assert ok.ok, ok.reason
+        energy.append(summary(finite_diagnostics(scene, ok), has_work=False)["energy_error"])
+    # stable: the energy error is the LGVI's O(h²) one (measured 2.2e-8, 5.4e-9: ratio 4.0), not growth
+    assert 3.0 < energy[0] / energy[1] < 5.0 and energy[0] < 1e-6, energy
     bad = get_integrator("lgvi").solve(scene, t_end=0.2, dt=2e-3)
     assert bad.status in NAMED and bad.reason
     finite_diagnostics(scene, bad)
 
 
-def test_many_elements_lgvi_is_stable_at_a_small_step():
+def test_many_elements_lgvi_takes_its_steps_finitely_and_keeps_R_orthogonal():
+    """N = 320 at h = 0.1 ms for 5 ms: every step taken, finite, R on SO(3) (stability over the
+    horizon is the slow matrix's and the stability map's)."""
     scene = load_scene("many_elements")
     tr = get_integrator("lgvi").solve(scene, t_end=0.005, dt=1e-4)
     assert tr.ok, tr.reason
@@ -145,7 +151,7 @@ def test_many_elements_lgvi_is_stable_at_a_small_step():
         assert np.all(np.isfinite(a))
     R = tr.attitude[-1]
     assert np.abs(R.T @ R - np.eye(3)).max() < 1e-13
-    assert tr.stats["steps"] == 50
+    assert tr.stats["steps"] == round(0.005 / 1e-4)
 
 
 def test_retrieval_to_limit_ends_at_its_lower_limit():
@@ -154,8 +160,10 @@ def test_retrieval_to_limit_ends_at_its_lower_limit():
     assert tr.status == Status.LENGTH_LIMIT.value, tr.reason
     assert "lower limit" in tr.reason
     df = finite_diagnostics(scene, tr)
-    assert df["deployed_length"].iloc[-1] == pytest.approx(2.0, abs=0.02)
-    assert df["deployed_length"].min() > 2.0
+    # the last step kept is the one before the limit: within one step's travel |ṡ_p| h of it
+    gap = df["deployed_length"].iloc[-1] - scene.reel.min_deployed_length
+    assert 0 < gap <= 2 * abs(tr.velocity[-1, 0]) * 1e-3, gap
+    assert df["deployed_length"].min() > scene.reel.min_deployed_length
 
 
 def test_deployment_to_end_ends_when_the_string_runs_out():
@@ -164,8 +172,12 @@ def test_deployment_to_end_ends_when_the_string_runs_out():
     assert tr.status == Status.LENGTH_LIMIT.value, tr.reason
     assert "upper limit" in tr.reason and "ran out" in tr.reason
     df = finite_diagnostics(scene, tr)
-    assert 38.5 < df["deployed_length"].iloc[-1] < 39.0
+    model = build_model(scene)
     assert tr.stats["event_time"] > tr.t[-1]
+    # between the last saved point and the event the string, deploying at |ṡ_p| and accelerating
+    # by less than g (the reel's inertia holds it back), covers the gap to L - b
+    gap, dt_left, v = model.L - model.b - df["deployed_length"].iloc[-1], tr.stats["event_time"] - tr.t[-1], abs(tr.velocity[-1, 0])
+    assert v * dt_left <= gap <= (v + model.g * dt_left) * dt_left, (gap, v, dt_left)
 
 
 def test_near_slack_start_stays_bounded_with_the_lgvi():
@@ -173,8 +185,12 @@ def test_near_slack_start_stays_bounded_with_the_lgvi():
     tr = get_integrator("lgvi").solve(scene, t_end=1.0, dt=2.5e-3)
     assert tr.ok, tr.reason
     df = finite_diagnostics(scene, tr)
-    assert df["tension_min"].iloc[0] == pytest.approx(-10.0)
-    assert summary(df, has_work=False)["energy_error"] < 5e-3
+    assert df["tension_min"].iloc[0] == pytest.approx(-0.05 * scene.string.axial_stiffness)  # 5 % compressed
+    half = get_integrator("lgvi").solve(scene, t_end=1.0, dt=1.25e-3)
+    assert half.ok, half.reason
+    energy = [summary(df, has_work=False)["energy_error"], summary(evaluate(scene, half), has_work=False)["energy_error"]]
+    # bounded: the LGVI's O(h²) energy error (measured 3.1e-4, 7.7e-5: ratio 4.1), not growth
+    assert 3.0 < energy[0] / energy[1] < 5.0 and energy[0] < 1e-3, energy
 
 
 # ------------------------------------------------------------------------------------------

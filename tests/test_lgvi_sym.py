@@ -24,6 +24,9 @@ C_DAMP = 0.5
 
 
 def test_registered_with_honest_declarations():
+    """The declared orders are MODEL.md's (§6: the paper's LGVI 2 at fixed length, 1 while reeling;
+    §9: symmetric 2; §9.7: compositions 4); tests/test_orders.py and test_orders_while_reeling
+    below measure them."""
     for name, order in (("lgvi_sym", 2), ("lgvi_yoshida4", 4), ("lgvi_suzuki4", 4)):
         integ = get_integrator(name)
         assert integ.order == order
@@ -315,7 +318,7 @@ def test_reel_reversal_keeps_the_orders():
         assert np.all(orders >= low), orders
 
 
-def test_reel_reversal_full_scene_runs_ok():
+def test_reel_reversal_full_scene_reverses_the_reel_and_keeps_R_orthogonal():
     scene = load_scene("reel_reversal", elements=5)  # N = 5: the compiled loops of the test above
     for method in ("lgvi_sym", "lgvi_suzuki4"):
         tr = get_integrator(method).solve(scene, dt=0.0025, save_every=0.02)

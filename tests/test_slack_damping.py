@@ -245,7 +245,7 @@ def _tip(scene, tr):
 def test_lgvi_damped_converges_second_order_and_conserves_energy_minus_work(fixed_damped):
     ref = reference_solution(fixed_damped, 1.0, rtol=1e-12, atol=1e-12, n_save=2)
     hs = [0.002, 0.001, 0.0005]
-    errs, ew = [], []
+    errs, ew, dW = [], [], []
     for h in hs:
         tr = LGVI_.solve(fixed_damped, dt=h, save_every=0.05)
         assert tr.ok
@@ -253,14 +253,17 @@ def test_lgvi_damped_converges_second_order_and_conserves_energy_minus_work(fixe
         errs.append(np.linalg.norm(_tip(fixed_damped, tr) - ref.x[-1][build_model(fixed_damped).layout.nodes][-3:]))
         s = summary(df, has_work=True)
         ew.append(s["energy_error"])
-        assert df.work.iloc[-1] == pytest.approx(-0.1054, abs=2e-4)
+        dW.append(abs(df.work.iloc[-1] - ref.work[-1]))  # the dissipated work W(1 s) against DOP853's (-0.1054 J)
         # internal central forces: π3 is still conserved, to round-off (measured 7e-15 relative)
         assert s["pi3_error"] < 1e-12 and s["orthogonality_error"] < 1e-13
-    errs, ew = np.array(errs), np.array(ew)
-    orders, ew_orders = np.log2(errs[:-1] / errs[1:]), np.log2(ew[:-1] / ew[1:])
-    print("LGVI damped fixed length: tip errors", errs, "orders", orders, "|Δ(E−W)|/max T", ew, "orders", ew_orders)
-    # measured: tip errors 2.3e-5, 5.8e-6, 1.5e-6 (orders 2.00, 2.00); E−W 3.6e-6, 8.9e-7, 2.2e-7 (2.00, 2.00)
+    errs, ew, dW = np.array(errs), np.array(ew), np.array(dW)
+    orders, ew_orders, w_orders = (np.log2(e[:-1] / e[1:]) for e in (errs, ew, dW))
+    print("LGVI damped fixed length: tip errors", errs, "orders", orders, "|Δ(E−W)|/max T", ew, "orders", ew_orders,
+          "|W - W_ref|", dW, "orders", w_orders)
+    # measured: tip errors 2.3e-5, 5.8e-6, 1.5e-6 (orders 2.00, 2.00); E−W 3.6e-6, 8.9e-7, 2.2e-7 (2.00, 2.00);
+    # W(1 s) 3.6e-6, 8.9e-7, 2.2e-7 J (2.01, 2.00)
     assert np.all(np.abs(orders - 2.0) < 0.15) and np.all(np.abs(ew_orders - 2.0) < 0.2)
+    assert np.all(np.abs(w_orders - 2.0) < 0.2)
     assert ew[0] < 1e-5
 
 
@@ -351,7 +354,9 @@ def test_lgvi_explicit_damping_stability_limit():
         tr = LGVI_.solve(scene, t_end=1.5, dt=h, save_every=0.1)
         df = evaluate(scene, tr)
         ew = df.energy_minus_work.to_numpy()
-        drift[hg] = (tr.ok, float(np.nanmax(np.abs(ew - ew[0]))) if np.all(np.isfinite(ew)) else np.inf)
-    print("h γ_max -> (ok, max |Δ(E−W)|)", drift)  # measured: 1.8 -> 5e-4 J; 2.2 -> 1e43 J (status still "ok" today: no divergence guard yet)
-    assert drift[1.8][0] and drift[1.8][1] < 1e-2
-    assert (not drift[2.2][0]) or drift[2.2][1] > 1e3
+        drift[hg] = (tr.status, float(np.nanmax(np.abs(ew - ew[0]))) if np.all(np.isfinite(ew)) else np.inf)
+    # measured: 1.8 -> ok, 5e-4 J; 2.2 -> the energy guard stops it "diverged" (7.3 J in the kept prefix;
+    # unguarded it reached 1e43 J)
+    print("h γ_max -> (status, max |Δ(E−W)|)", drift)
+    assert drift[1.8][0] == "ok" and drift[1.8][1] < 1e-2  # 1e-2 J: 20x the measured bounded oscillation
+    assert drift[2.2][0] == "diverged"

@@ -72,7 +72,8 @@ def test_past_its_stability_limit_it_stops_diverged_and_keeps_the_trajectory(plu
     assert stable.ok, stable.reason
     assert stable.stats["steps"] == 200 and stable.stats["rhs_evals"] == 400
     assert stable.stats["wall_time"] >= 0 and stable.stats["compile_time"] >= 0
-    # the same run agrees with the LGVI's reference-quality solution to first order
+    # the same run stays within 5 % of the LGVI's at the same dt (a sanity check, not an order: its first
+    # order against the reference is measured in the last test)
     lgvi = get_integrator("lgvi").solve(scene, t_end=1.0, dt=0.005, save_every=0.02)
     np.testing.assert_allclose(stable.t, lgvi.t, atol=1e-12)
     assert np.abs(stable.x - lgvi.x).max() < 0.05 * np.abs(lgvi.x).max()
