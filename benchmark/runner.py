@@ -194,12 +194,18 @@ def worker_pool(workers: int) -> cf.ProcessPoolExecutor:
 
 def install_stop_handlers() -> None:
     """SIGTERM stops the process like Ctrl-C does (KeyboardInterrupt in the main thread), so
-    one ``except KeyboardInterrupt`` handles both and the pool's workers are terminated."""
+    one ``except KeyboardInterrupt`` handles both and the pool's workers are terminated.
+
+    SIGINT gets Python's own handler back too: a process started from a background job of a
+    script (``python -m benchmark run ... &``) inherits SIGINT *ignored*, and Python then never
+    raises KeyboardInterrupt, so Ctrl-C / ``kill -INT`` would not stop the sweep (the Ctrl-C
+    test waited out its 30 s timeout when pytest itself ran in such a job)."""
 
     def stop(signum, frame):
         raise KeyboardInterrupt(f"signal {signal.Signals(signum).name}")
 
     signal.signal(signal.SIGTERM, stop)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 # ------------------------------------------------------------------------------------------
