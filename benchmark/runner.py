@@ -480,6 +480,7 @@ def execute(
     log: Callable[[str], None] = lambda s: print(s, file=sys.stderr, flush=True),
     group: Callable[[Task], Hashable] | None = None,
     previous: Iterable[dict] | None = None,
+    cost: Callable[[Task], float] | None = None,
 ) -> pd.DataFrame:
     """Run ``tasks`` and return the runs table (task order). ``on_row`` gets the rows so far
     after each completion (used to write partial results atomically).
@@ -490,6 +491,7 @@ def execute(
     ``group`` (process executor): tasks with the same ``group(task)`` run in one worker, one
     after another, so what that worker compiled for the first (JAX solves are cached per
     model and solver) serves the others; e.g. ``lambda t: (t.scene, t.integrator)``.
+    ``cost`` (process, serial): a task's expected seconds; the groups start longest first.
     The process and serial executors are `run_jobs`; the Dask one shares its `Progress`."""
     if executor not in ("process", "serial", "dask"):
         raise ValueError(f"executor = {executor!r} is invalid (allowed: process, serial, dask)")
@@ -521,6 +523,7 @@ def execute(
             log(f"references for {len(refs)} scene(s) ...")
         rows = run_jobs(run_task, [(t, cache_dir, repeats) for t in tasks], workers=0 if executor == "serial" else jobs,
                         crash_row=crashed, group=(lambda i: group(tasks[i])) if group else None,
+                        cost=(lambda i: cost(tasks[i])) if cost else None,
                         setup=[(_reference_task, *ref, cache_dir) for ref in refs], **common)
         return to_frame(rows)
     progress = Progress(len(tasks), **{k: v for k, v in common.items() if k != "done"}, rows=kept_rows)
