@@ -29,6 +29,7 @@ longer registered; none of those fails. Run and compile times are reported, neve
 
 from __future__ import annotations
 
+import collections
 import datetime
 import io
 import math
@@ -112,12 +113,14 @@ def measure(tasks, *, executor: str = "process", jobs: int | None = None, cache_
     so no worker is left with a long compilation at the end; unknown groups go first."""
     kw = {"log": log} if log else {}
     costs = costs or {}
-    order = sorted(range(len(tasks)), key=lambda i: -costs.get((tasks[i].scene, tasks[i].integrator), np.inf))
+    per_group = collections.Counter((t.scene, t.integrator) for t in tasks)
     # One worker runs all settings of a (scene, integrator): it compiles the JAX solve once.
-    runs = runner.execute([tasks[i] for i in order], executor=executor, jobs=jobs, repeats=0, cache_dir=cache_dir,
-                          group=lambda t: (t.scene, t.integrator), **kw)
-    runs.index = order
-    return to_table(runs.sort_index())
+    # The engine sums a group's task costs: each task carries its share of the group's seconds.
+    runs = runner.execute(tasks, executor=executor, jobs=jobs, repeats=0, cache_dir=cache_dir,
+                          group=lambda t: (t.scene, t.integrator),
+                          cost=lambda t: costs.get((t.scene, t.integrator), np.inf) / per_group[(t.scene, t.integrator)],
+                          **kw)
+    return to_table(runs)
 
 
 def costs_of(baseline: pd.DataFrame | None) -> dict:

@@ -11,6 +11,9 @@ parent disappears (killed with -9), so none is left running. Every row carries a
 (scene physics hash, integrator, setting, horizon, code version); `execute(previous=...)`
 keeps the rows of earlier runs with the same key and computes only the rest. `OutputLock`
 keeps two sweeps from writing into one directory.
+
+The engine (`run_jobs`, `Progress`, `to_frame`) is not specific to runs: the stability map
+(`benchmark.stability`) runs its ladders on it too.
 """
 
 from __future__ import annotations
@@ -191,12 +194,18 @@ def worker_pool(workers: int) -> cf.ProcessPoolExecutor:
 
 def install_stop_handlers() -> None:
     """SIGTERM stops the process like Ctrl-C does (KeyboardInterrupt in the main thread), so
-    one ``except KeyboardInterrupt`` handles both and the pool's workers are terminated."""
+    one ``except KeyboardInterrupt`` handles both and the pool's workers are terminated.
+
+    SIGINT gets Python's own handler back too: a process started from a background job of a
+    script (``python -m benchmark run ... &``) inherits SIGINT *ignored*, and Python then never
+    raises KeyboardInterrupt, so Ctrl-C / ``kill -INT`` would not stop the sweep (the Ctrl-C
+    test waited out its 30 s timeout when pytest itself ran in such a job)."""
 
     def stop(signum, frame):
         raise KeyboardInterrupt(f"signal {signal.Signals(signum).name}")
 
     signal.signal(signal.SIGTERM, stop)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 # ------------------------------------------------------------------------------------------
@@ -337,6 +346,128 @@ def crash_reason(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {exc}"[:300]
 
 
+class Progress:
+    """Collects the rows of a list of jobs as they finish, in any order, and gives them back in
+    job order. Each finished row is logged (``[done/total] <describe(row)>  (elapsed, ETA)``) and
+    ``on_row`` gets the rows so far (to write partial results atomically), so a stopped run keeps
+    every finished row. ``rows`` are jobs already done (resumed); they count in the total."""
+
+    def __init__(self, total: int, *, rows: dict[int, dict] | None = None, finish: Callable | None = None,
+                 describe: Callable[[dict], str] = str, on_row: Callable[[list[dict]], None] | None = None,
+                 log: Callable[[str], None] = lambda s: print(s, file=sys.stderr, flush=True)):
+        self.total, self.rows = total, dict(rows or {})
+        self.todo = total - len(self.rows)
+        self.finish, self.describe, self.on_row, self.log = finish, describe, on_row, log
+        self.new = 0
+        self.start = time.perf_counter()
+
+    def done(self, i: int, row: dict) -> None:
+        if self.finish:
+            self.finish(i, row)
+        self.rows[i] = row
+        self.new += 1
+        elapsed = time.perf_counter() - self.start
+        left = self.todo - self.new
+        eta = f", about {elapsed / self.new * left:.0f} s left" if left > 0 else ""
+        self.log(f"[{len(self.rows)}/{self.total}] {self.describe(row)}  ({elapsed:.0f} s elapsed{eta})")
+        self.saved()
+
+    def saved(self) -> None:
+        if self.on_row:
+            self.on_row(self.ordered())
+
+    def ordered(self) -> list[dict]:
+        return [self.rows[k] for k in sorted(self.rows)]
+
+
+def run_jobs(
+    fn: Callable[..., dict],
+    jobs: list[tuple],
+    *,
+    workers: int,
+    crash_row: Callable[[int, BaseException], dict],
+    group: Callable[[int], Hashable] | None = None,
+    cost: Callable[[int], float] | None = None,
+    setup: Iterable[tuple] = (),
+    done: dict[int, dict] | None = None,
+    finish: Callable[[int, dict], None] | None = None,
+    describe: Callable[[dict], str] = str,
+    on_row: Callable[[list[dict]], None] | None = None,
+    log: Callable[[str], None] = lambda s: print(s, file=sys.stderr, flush=True),
+) -> list[dict]:
+    """The experiment engine the runs table and the stability map share: run ``fn(*jobs[i])``
+    (a row, a dict) for every job not in ``done`` and return all rows in job order.
+
+    ``workers`` = 0 runs the jobs in this process; otherwise each worker is a single-process pool
+    (`worker_pool`: spawned, one XLA thread, terminated when the run is stopped). Jobs with the
+    same ``group(i)`` go one after another to the same worker, so what it compiled for the first
+    (JAX solves are cached per model and solver) serves the others; yet each job is its own future,
+    so a row is saved (``on_row``) as soon as it is done and a stopped run keeps every finished row.
+    Groups start longest first by the sum of ``cost(i)`` (so no worker is left with a long tail);
+    without ``cost`` in the order of their first job. ``setup``: ``(function, *args)`` calls run
+    first, spread over the workers, e.g. the reference solutions the jobs read from a cache.
+    A worker that dies gives its job ``crash_row(i, exc)`` and is replaced for the next group.
+    ``finish(i, row)`` completes a row before it is logged (`Progress`)."""
+    progress = Progress(len(jobs), rows=done, finish=finish, describe=describe, on_row=on_row, log=log)
+    todo = [i for i in range(len(jobs)) if i not in progress.rows]
+    if progress.rows:
+        progress.saved()
+    batches: dict = {}
+    for i in todo:
+        batches.setdefault(group(i) if group else ("job", i), []).append(i)
+    queue = list(batches.values())
+    if cost is not None:
+        queue.sort(key=lambda b: -sum(cost(i) for i in b))  # stable: ties keep their order
+    setup = list(setup)
+    if not todo:
+        return progress.ordered()
+    if workers == 0:
+        for fn_args in setup:
+            fn_args[0](*fn_args[1:])
+        for batch in queue:
+            for i in batch:
+                progress.done(i, fn(*jobs[i]))
+        return progress.ordered()
+    queue = collections.deque(queue)
+    with contextlib.ExitStack() as stack:
+        pools = [stack.enter_context(worker_pool(1)) for _ in range(min(workers, len(queue)))]
+        for fut in [pools[k % len(pools)].submit(*fn_args) for k, fn_args in enumerate(setup)]:
+            fut.result()
+        running: dict = {}  # future -> (pool index, job index)
+        broken: set = set()
+
+        def feed(k: int) -> None:
+            if k in broken:  # its worker died: the next group gets a fresh one
+                pools[k] = stack.enter_context(worker_pool(1))
+                broken.discard(k)
+            if queue:
+                for i in queue.popleft():
+                    running[pools[k].submit(fn, *jobs[i])] = (k, i)
+
+        for k in range(len(pools)):
+            feed(k)
+        while running:
+            finished, _ = cf.wait(running, return_when=cf.FIRST_COMPLETED)
+            for fut in finished:
+                k, i = running.pop(fut)
+                try:
+                    row = fut.result()
+                except Exception as exc:  # the worker process died
+                    if isinstance(exc, cf.process.BrokenProcessPool):
+                        broken.add(k)
+                    row = crash_row(i, exc)
+                progress.done(i, row)
+                if all(kk != k for kk, _ in running.values()):
+                    feed(k)
+    return progress.ordered()
+
+
+def describe_run(row: dict) -> str:
+    """A finished run in the progress log: scene, integrator, setting, run time or status."""
+    extra = f"{row['run_time']:.3g} s" if row["status"] == "ok" else f"{row['status']}: {row['reason']}"[:120]
+    return f"{row['scene']} {row['integrator']} {row['setting']}: {extra}"
+
+
 def execute(
     tasks: list[Task],
     *,
@@ -349,6 +480,7 @@ def execute(
     log: Callable[[str], None] = lambda s: print(s, file=sys.stderr, flush=True),
     group: Callable[[Task], Hashable] | None = None,
     previous: Iterable[dict] | None = None,
+    cost: Callable[[Task], float] | None = None,
 ) -> pd.DataFrame:
     """Run ``tasks`` and return the runs table (task order). ``on_row`` gets the rows so far
     after each completion (used to write partial results atomically).
@@ -358,120 +490,75 @@ def execute(
 
     ``group`` (process executor): tasks with the same ``group(task)`` run in one worker, one
     after another, so what that worker compiled for the first (JAX solves are cached per
-    model and solver) serves the others; e.g. ``lambda t: (t.scene, t.integrator)``."""
+    model and solver) serves the others; e.g. ``lambda t: (t.scene, t.integrator)``.
+    ``cost`` (process, serial): a task's expected seconds; the groups start longest first.
+    The process and serial executors are `run_jobs`; the Dask one shares its `Progress`."""
     if executor not in ("process", "serial", "dask"):
         raise ValueError(f"executor = {executor!r} is invalid (allowed: process, serial, dask)")
     if jobs is not None and jobs < 1:
         raise ValueError(f"jobs = {jobs!r} is invalid (allowed: >= 1)")
     code = code_version()
     keys = [run_key(t, code) for t in tasks]
-    rows: dict[int, dict] = {}
+    kept_rows: dict[int, dict] = {}
     kept = {r["run_key"]: r for r in (previous or []) if r.get("run_key")}
     for i, k in enumerate(keys):
         if k in kept:
-            rows[i] = kept[k]
-    if rows:
-        log(f"resuming: {len(rows)} of {len(tasks)} runs already done (kept); computing the other {len(tasks) - len(rows)}")
-        if on_row:
-            on_row([rows[k] for k in sorted(rows)])
-    todo = [i for i in range(len(tasks)) if i not in rows]
+            kept_rows[i] = kept[k]
+    if kept_rows:
+        log(f"resuming: {len(kept_rows)} of {len(tasks)} runs already done (kept); "
+            f"computing the other {len(tasks) - len(kept_rows)}")
+    todo = [i for i in range(len(tasks)) if i not in kept_rows]
     jobs = jobs or min(len(todo), os.cpu_count() or 1) or 1
     refs = sorted({(tasks[i].scene, tasks[i].overrides, tasks[i].t_end, tasks[i].save_every) for i in todo}, key=str)
-    start = time.perf_counter()
-    n_new = [0]
 
-    def done(i: int, row: dict) -> None:
+    def finish(i: int, row: dict) -> None:
         row["run_key"] = keys[i]
-        rows[i] = row
-        n_new[0] += 1
-        status = row["status"]
-        extra = f"{row['run_time']:.3g} s" if status == "ok" else f"{status}: {row['reason']}"[:120]
-        elapsed = time.perf_counter() - start
-        left = len(todo) - n_new[0]
-        eta = f", about {elapsed / n_new[0] * left:.0f} s left" if left else ""
-        log(f"[{len(rows)}/{len(tasks)}] {row['scene']} {row['integrator']} {row['setting']}: {extra}"
-            f"  ({elapsed:.0f} s elapsed{eta})")
-        if on_row:
-            on_row([rows[k] for k in sorted(rows)])
 
-    if not todo:
-        return to_frame([rows[k] for k in sorted(rows)])
+    def crashed(i: int, exc: BaseException) -> dict:
+        return {**_empty_row(tasks[i]), "status": "crashed", "reason": crash_reason(exc)}
 
-    if executor == "serial":
-        for ref in refs:
-            log(f"reference: {ref[0]} ...")
-            _reference_task(*ref, cache_dir)
-        for i in todo:
-            done(i, run_task(tasks[i], cache_dir, repeats))
-    elif executor == "process":
-        # Tasks of one group go, one after another, to the same single-process pool (so what it
-        # compiled for the first serves the others), yet each task is its own future: a row is
-        # saved as soon as it is done, so a stopped sweep keeps every finished run.
-        batches: dict = {}
-        for i in todo:
-            batches.setdefault(group(tasks[i]) if group else i, []).append(i)
-        queue = collections.deque(batches.values())
-        with contextlib.ExitStack() as stack:
-            pools = [stack.enter_context(worker_pool(1)) for _ in range(min(jobs, len(queue)))]
+    common = dict(done=kept_rows, finish=finish, describe=describe_run, on_row=on_row, log=log)
+    if executor in ("serial", "process"):
+        if todo:
             log(f"references for {len(refs)} scene(s) ...")
-            for fut in [pools[k % len(pools)].submit(_reference_task, *ref, cache_dir) for k, ref in enumerate(refs)]:
-                fut.result()
-            running: dict = {}  # future -> (pool index, task index)
-            broken: set = set()
-
-            def feed(k: int) -> None:
-                if k in broken:  # its worker died: the next group gets a fresh one
-                    pools[k] = stack.enter_context(worker_pool(1))
-                    broken.discard(k)
-                if queue:
-                    for i in queue.popleft():
-                        running[pools[k].submit(run_task, tasks[i], cache_dir, repeats)] = (k, i)
-
-            for k in range(len(pools)):
-                feed(k)
-            while running:
-                finished, _ = cf.wait(running, return_when=cf.FIRST_COMPLETED)
-                for fut in finished:
-                    k, i = running.pop(fut)
-                    try:
-                        row = fut.result()
-                    except Exception as exc:  # the worker process died
-                        if isinstance(exc, cf.process.BrokenProcessPool):
-                            broken.add(k)
-                        row = {**_empty_row(tasks[i]), "status": "crashed", "reason": crash_reason(exc)}
-                    done(i, row)
-                    if all(kk != k for kk, _ in running.values()):
-                        feed(k)
-    else:
-        try:
-            from distributed import Client, as_completed
-        except ImportError:
-            raise ValueError("executor 'dask' needs the optional dependency: pip install 'reelbench[dask]'") from None
-        if not scheduler:
-            raise ValueError("executor 'dask' needs --scheduler ADDRESS (e.g. tcp://host:8786)")
-        client = Client(scheduler)
-        futures = {}
-        try:
-            _dask_worker_env(client)
-            for fut in [client.submit(_reference_task, *ref, cache_dir, pure=False) for ref in refs]:
-                fut.result()
-            futures = {client.submit(run_task, tasks[i], cache_dir, repeats, pure=False): i for i in todo}
-            index = {f.key: i for f, i in futures.items()}
-            for fut in as_completed(list(futures)):
-                i = index[fut.key]
-                try:
-                    row = fut.result()
-                except Exception as exc:
-                    row = _empty_row(tasks[i])
-                    row.update(status="crashed", reason=crash_reason(exc))
-                done(i, row)
-        except BaseException:
-            # a stopped sweep withdraws its tasks: the cluster's workers are not ours to kill
-            client.cancel(list(futures), force=True)
-            raise
-        finally:
-            client.close()
-    return to_frame([rows[k] for k in sorted(rows)])
+        rows = run_jobs(run_task, [(t, cache_dir, repeats) for t in tasks], workers=0 if executor == "serial" else jobs,
+                        crash_row=crashed, group=(lambda i: group(tasks[i])) if group else None,
+                        cost=(lambda i: cost(tasks[i])) if cost else None,
+                        setup=[(_reference_task, *ref, cache_dir) for ref in refs], **common)
+        return to_frame(rows)
+    progress = Progress(len(tasks), **{k: v for k, v in common.items() if k != "done"}, rows=kept_rows)
+    if kept_rows:
+        progress.saved()
+    if not todo:
+        return to_frame(progress.ordered())
+    try:
+        from distributed import Client, as_completed
+    except ImportError:
+        raise ValueError("executor 'dask' needs the optional dependency: pip install 'reelbench[dask]'") from None
+    if not scheduler:
+        raise ValueError("executor 'dask' needs --scheduler ADDRESS (e.g. tcp://host:8786)")
+    client = Client(scheduler)
+    futures = {}
+    try:
+        _dask_worker_env(client)
+        for fut in [client.submit(_reference_task, *ref, cache_dir, pure=False) for ref in refs]:
+            fut.result()
+        futures = {client.submit(run_task, tasks[i], cache_dir, repeats, pure=False): i for i in todo}
+        index = {f.key: i for f, i in futures.items()}
+        for fut in as_completed(list(futures)):
+            i = index[fut.key]
+            try:
+                row = fut.result()
+            except Exception as exc:
+                row = crashed(i, exc)
+            progress.done(i, row)
+    except BaseException:
+        # a stopped sweep withdraws its tasks: the cluster's workers are not ours to kill
+        client.cancel(list(futures), force=True)
+        raise
+    finally:
+        client.close()
+    return to_frame(progress.ordered())
 
 
 def _dask_worker_env(client) -> None:
@@ -491,12 +578,17 @@ def _dask_worker_env(client) -> None:
     client.run(_worker_env)
 
 
-def to_frame(rows: Iterable[dict]) -> pd.DataFrame:
+def to_frame(rows: Iterable[dict], columns: list[str] | None = None, *, extra: bool = True) -> pd.DataFrame:
+    """Rows -> a table with ``columns`` first, in that order (a column no row has is NaN), then
+    (``extra``) any other keys of the rows. Without ``columns``: the runs table (`COLUMNS`), in
+    which a number not backed by a finished run (status "ok") is not reported."""
+    runs = columns is None
+    columns = list(COLUMNS if runs else columns)
     df = pd.DataFrame(list(rows))
-    for c in COLUMNS:
+    for c in columns:
         if c not in df:
             df[c] = np.nan
-    df = df[COLUMNS + [c for c in df.columns if c not in COLUMNS]]
-    # a number that is not backed by a finished run is not reported
-    df.loc[df["status"] != "ok", ACCURACY] = np.nan
+    df = df[columns + ([c for c in df.columns if c not in columns] if extra else [])]
+    if runs:
+        df.loc[df["status"] != "ok", ACCURACY] = np.nan
     return df

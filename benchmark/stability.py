@@ -14,14 +14,15 @@
 Every run is a `benchmark.sweep.Task` executed by `benchmark.runner.run_task` (no reference
 solution: the map is about staying bounded, the conservation metrics come from the run itself),
 so a failing run is a row with its status and reason, and an exception is a row with status
-"error". One (scene, integrator) ladder is one job in a process pool; rows are written
-atomically after each job (``stability.csv``), then ``stability.md``, ``stability.png`` and a
-generated ``README.md`` with a written reading of the table.
+"error". One (scene, integrator, kind) row is one job on the runner's engine (`runner.run_jobs`:
+the jobs of one (scene, integrator) in one worker, so it compiles once; longest groups first by
+`_cost_hint`; a dead worker's job is a "crashed" row; Ctrl-C / SIGTERM stop it and keep the rows
+done). Rows are written atomically after each job (``stability.csv``), then ``stability.md``,
+``stability.png`` and a generated ``README.md`` with a written reading of the table.
 """
 
 from __future__ import annotations
 
-import concurrent.futures as cf
 import datetime
 import os
 import sys
@@ -226,11 +227,7 @@ COLUMNS = ["scene", "integrator", "kind", "horizon", "bounded", "largest_stable_
 
 
 def to_frame(rows: list[dict]) -> pd.DataFrame:
-    df = pd.DataFrame(rows)
-    for c in COLUMNS:
-        if c not in df:
-            df[c] = np.nan
-    return df[COLUMNS]
+    return runner.to_frame(rows, COLUMNS, extra=False)
 
 
 def jobs_for(scenes=None, integrators=None) -> list[tuple[Case, str, str, bool]]:
@@ -252,40 +249,29 @@ def jobs_for(scenes=None, integrators=None) -> list[tuple[Case, str, str, bool]]
     return out
 
 
+def describe(row: dict) -> str:
+    """A finished job in the progress log."""
+    what = (f"largest stable dt {row.get('largest_stable_dt'):.3g} s" if row.get("kind") == "fixed"
+            and np.isfinite(row.get("largest_stable_dt", np.nan)) else f"{row.get('status')}")
+    return (f"{row['scene']} {row['integrator']} ({row['kind']}): {what}, "
+            f"{row.get('steps', float('nan')):.0f} steps, job {row.get('job_time', float('nan')):.0f} s")
+
+
 def execute(jobs: list[tuple[Case, str, str, bool]], *, workers: int = 2, on_rows: Callable | None = None,
             log: Callable[[str], None] = _log) -> pd.DataFrame:
-    """Run the jobs in a process pool (``workers`` = 0: in this process); rows in job order."""
-    rows: dict[int, dict] = {}
-    start = time.perf_counter()
+    """Run the jobs on the runner's engine (`runner.run_jobs`; ``workers`` = 0: in this process);
+    rows in job order. The jobs of one (scene, integrator) run in one worker, so it compiles that
+    method on that scene once (Tsit5's ladder and adaptive run share it); the longest groups
+    start first (`_cost_hint`)."""
 
-    def done(i: int, row: dict) -> None:
-        rows[i] = row
-        what = (f"largest stable dt {row.get('largest_stable_dt'):.3g} s" if row.get("kind") == "fixed"
-                and np.isfinite(row.get("largest_stable_dt", np.nan)) else f"{row.get('status')}")
-        log(f"[{len(rows)}/{len(jobs)}] {row['scene']} {row['integrator']} ({row['kind']}): {what}, "
-            f"{row.get('steps', float('nan')):.0f} steps, job {row.get('job_time', float('nan')):.0f} s "
-            f"({time.perf_counter() - start:.0f} s elapsed)")
-        if on_rows:
-            on_rows([rows[k] for k in sorted(rows)])
+    def crashed(i: int, exc: BaseException) -> dict:
+        case, integ, kind, _ = jobs[i]
+        return {**_base_row(case, integ, kind), "status": "crashed", "reason": runner.crash_reason(exc), "bounded": False}
 
-    # the slowest jobs first, so that the pool is not left waiting on one long tail
-    order = sorted(range(len(jobs)), key=lambda i: -_cost_hint(*jobs[i]))
-    if workers == 0:
-        for i in order:
-            done(i, run_job(*jobs[i]))
-    else:
-        with runner.worker_pool(workers) as pool:
-            futures = {pool.submit(run_job, *jobs[i]): i for i in order}
-            for fut in cf.as_completed(futures):
-                i = futures[fut]
-                try:
-                    row = fut.result()
-                except Exception as exc:  # the worker process died
-                    case, integ, kind, _ = jobs[i]
-                    row = _base_row(case, integ, kind)
-                    row.update(status="crashed", reason=runner.crash_reason(exc), bounded=False)
-                done(i, row)
-    return to_frame([rows[k] for k in sorted(rows)])
+    rows = runner.run_jobs(run_job, jobs, workers=workers, crash_row=crashed,
+                           group=lambda i: (jobs[i][0].scene, jobs[i][1]), cost=lambda i: _cost_hint(*jobs[i]),
+                           describe=describe, on_row=on_rows, log=log)
+    return to_frame(rows)
 
 
 def _cost_hint(case: Case, integrator: str, kind: str, default_run: bool = True) -> float:
@@ -372,6 +358,16 @@ def _best_pair(fx: pd.DataFrame):
     return var.loc[var["largest_stable_dt"].idxmax()], other.loc[other["largest_stable_dt"].idxmax()]
 
 
+#: The scenes whose largest stable steps the summary compares with the adaptive methods' steps.
+STIFF_SCENES = ("stiff_string", "many_elements")
+
+
+def _nonfinite(df: pd.DataFrame) -> int:
+    """Bounded runs whose energy error is not finite (a run that went NaN without a status)."""
+    ok = df[df["bounded"] == True]  # noqa: E712
+    return int((~np.isfinite(ok["energy_error"].astype(float))).sum())
+
+
 def reading(df: pd.DataFrame) -> str:
     """A short written reading of the map, generated from the rows: numbers and the names in
     the rows; which methods are compared follows from their declared capabilities (VARIATIONAL
@@ -429,26 +425,39 @@ def reading(df: pd.DataFrame) -> str:
             ratios.append(v["largest_stable_dt"] / o["largest_stable_dt"])
             costs.append(_per_second(o) / _per_second(v))
     summary = []
-    stiff = df[df["scene"].isin(["stiff_string", "many_elements"])]
-    stiff_dt = float(np.nanmin(stiff["largest_stable_dt"])) if stiff["largest_stable_dt"].notna().any() else np.nan
+    stiff_scenes = [c.scene for c in CASES if c.scene in STIFF_SCENES and c.scene in set(df["scene"])]
+    stiff = df[df["scene"].isin(stiff_scenes)]
+    stable = stiff["largest_stable_dt"].astype(float)
+    stiff_dt = (float(np.nanmin(stable)), float(np.nanmax(stable))) if stable.notna().any() else None
     ad_stiff = stiff[(stiff["kind"] == "adaptive") & (stiff["status"] != "skipped")]
     typical = [r["median_step"] if np.isfinite(r["median_step"]) else r["mean_step"] for _, r in ad_stiff.iterrows()]
+    stiff_names = " and ".join(f"`{s}`" for s in stiff_scenes)
+    fixed = df[df["kind"] == "fixed"]
+    ended = fixed["unstable_status"].dropna()
+    ended = ended[ended.astype(str) != ""]
     if ratios:
-        summary.append(
-            f"**Robustness.** On each scene, the largest stable step of the best variational method is "
-            f"{_fmt(min(ratios), '.2g')}–{_fmt(max(ratios), '.2g')}x that of the best other fixed-step method "
-            f"(ladder resolution: a factor 2); the stiff and many-element scenes force steps of {_fmt(stiff_dt)} s on "
-            f"every fixed-step method. **Cost.** At its largest stable step the other method needs "
-            f"{_fmt(min(costs), '.2g')}–{_fmt(max(costs), '.2g')}x the variational one's run time per simulated second. "
-            "Past its limit each method is stopped by a guard with a status, never with NaNs.")
+        text = (f"**Robustness.** On each scene, the largest stable step of the best variational method is "
+                f"{_fmt(min(ratios), '.2g')}–{_fmt(max(ratios), '.2g')}x that of the best other fixed-step method "
+                "(ladder resolution: a factor 2)")
+        if stiff_dt:
+            text += (f"; on {stiff_names} the fixed-step methods' largest stable steps are "
+                     f"{_fmt(stiff_dt[0])}–{_fmt(stiff_dt[1])} s")
+        text += (f". **Cost.** At its largest stable step the other method needs "
+                 f"{_fmt(min(costs), '.2g')}–{_fmt(max(costs), '.2g')}x the variational one's run time per simulated second.")
+        summary.append(text)
+    if len(ended):
+        counts = ended.value_counts()
+        summary.append(f"**Past the limit.** On the rung above the largest stable step, {len(ended)} ladder(s) ended "
+                       "with a status not counted as bounded on their scene: " + ", ".join(f"`{k}` {v}x" for k, v in counts.items())
+                       + f" ({_nonfinite(df)} bounded run(s) report a non-finite energy error).")
     longh = df[(df["scene"] == "long_horizon") & (df["kind"] == "fixed")].set_index("integrator")
     pair = _best_pair(longh) if len(longh) else None
     if pair is not None:
         v, o = pair
         summary.append(f"**Long horizon.** Over {_fmt(float(v['horizon']), 'g')} s, `{v.name}` at dt = "
                        f"{_fmt(v['largest_stable_dt'])} s keeps its energy error at {_fmt(v['energy_error'])} of max T, "
-                       f"while `{o.name}` at dt = {_fmt(o['largest_stable_dt'])} s ends at {_fmt(o['energy_error'])}: "
-                       "bounded is not the same as accurate.")
+                       f"while `{o.name}` at dt = {_fmt(o['largest_stable_dt'])} s ends at {_fmt(o['energy_error'])} "
+                       f"({_fmt(o['energy_error'] / v['energy_error'], '.2g')}x), both bounded.")
     ad = df[df["kind"] == "adaptive"]
     ran = ad[ad["status"] != "skipped"]
     unbounded = ran[ran["bounded"] != True]  # noqa: E712
@@ -456,10 +465,14 @@ def reading(df: pd.DataFrame) -> str:
                    + (" (not bounded: " + ", ".join(f"{r['integrator']} on {r['scene']} ({r['status']})"
                                                     for _, r in unbounded.iterrows()) + ")" if len(unbounded) else "")
                    + f"; {len(ad) - len(ran)} were left out (reasons in the table)."
-                   + (f" On the stiff and many-element scenes their typical (median or mean) steps are "
-                      f"{_fmt(min(typical))}–{_fmt(max(typical))} s, against {_fmt(stiff_dt)} s for the fixed-step "
-                      "methods." if typical else "")
-                   + " Both length limits end every run that reaches them with `length_limit`.")
+                   + (f" On {stiff_names} their typical (median or mean) steps are "
+                      f"{_fmt(min(typical))}–{_fmt(max(typical))} s, against {_fmt(stiff_dt[0])}–{_fmt(stiff_dt[1])} s "
+                      "for the fixed-step methods." if typical and stiff_dt else ""))
+    limits = [c.scene for c in CASES if "length_limit" in c.bounded and c.scene in set(df["scene"])]
+    at_limit = df[df["scene"].isin(limits) & (df["status"] != "skipped")]
+    if len(at_limit):
+        summary[-1] += (f" On the length-limit scenes ({', '.join(f'`{s}`' for s in limits)}) "
+                        f"{int((at_limit['status'] == 'length_limit').sum())} of {len(at_limit)} runs end with `length_limit`.")
     return "\n".join(lines) + "\n\n" + "\n\n".join(summary) + "\n"
 
 
@@ -473,6 +486,7 @@ def write_readme(out_dir: Path, df: pd.DataFrame, *, command: str, wall_time: fl
                "energy_error", "run_time"]]
     reasons = df[df["status"].ne("ok") | df["unstable_reason"].notna()][["scene", "integrator", "kind", "status", "reason",
                                                                          "unstable_status", "unstable_reason", "horizon_note"]]
+    fixed_names = ", ".join(f"`{n}`" for n in dict.fromkeys(df.loc[df["kind"] == "fixed", "integrator"])) or "none here"
     text = f"""# Stability map of the hard scenes
 
 Generated by `{command}` on {now} in {wall_time:.0f} s wall time, with {WORKERS_NOTE[0]}
@@ -483,7 +497,7 @@ worker process(es); 1-minute load average {LOAD[0]:.1f} at the start and {os.get
 Do not edit: rerun the command to regenerate. `stability.csv` has one row per scene ×
 integrator × kind with every column; `stability.md` is the table below; `stability.png` the plot.
 
-**How to read it.** Fixed-step methods (kind `fixed`: the LGVI and Tsit5 at a constant step)
+**How to read it.** Fixed-step methods (kind `fixed`: {fixed_names})
 walk the ladder dt = {DT_MAX:g} s / 2^k, largest first, and stop at the first rung whose run
 stays *bounded* over the horizon; `largest_stable_dt` is that rung (resolution: a factor 2),
 `first_unstable_dt` the rung above it with the status that ended it. Adaptive methods (kind
