@@ -220,9 +220,10 @@ def run_job(case: Case, integrator: str, kind: str, default_run: bool = True) ->
     return row
 
 
+#: the map's table; its metrics are the registry's that need no reference (`metrics.CONSERVATION`)
 COLUMNS = ["scene", "integrator", "kind", "horizon", "bounded", "largest_stable_dt", "first_unstable_dt",
            "unstable_status", "setting", "status", "steps", "rejected_steps", "min_step", "median_step", "mean_step",
-           "newton_iterations", "energy_error", "orthogonality_error", "run_time", "compile_time", "job_time",
+           "newton_iterations", *CONSERVATION, "run_time", "compile_time", "job_time",
            "rungs_tried", "t_reached", "overrides", "horizon_note", "reason", "unstable_reason"]
 
 

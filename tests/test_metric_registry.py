@@ -2,7 +2,6 @@
 
 import numpy as np
 import pandas as pd
-import pytest
 
 from benchmark import check, metrics
 from integrators import get_integrator
@@ -35,9 +34,6 @@ def test_every_reader_lists_every_registry_metric():
         assert {r["metric"] for r in check.compare(base, over, registered=["i"]).regressions} == {m.name}
 
 
-@pytest.mark.xfail(strict=True, reason="benchmark/stability.py: COLUMNS (written by hand) has no 'pi3_error', so "
-                   "to_frame drops the value the job computes from metrics.CONSERVATION (results/stability/stability.csv "
-                   "has no pi3_error column); strict: passes, and so fails here, once fixed")
 def test_stability_map_table_holds_every_conservation_metric():
     """metrics.Metric: the stability map reports the metrics that need no reference."""
     from benchmark import stability
