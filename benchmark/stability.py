@@ -57,13 +57,26 @@ def implicit_baseline(integ) -> bool:
 
 
 def default_integrators() -> list[str]:
-    """The map's default methods: the sweep's shipped defaults (`benchmark.sweep.DEFAULT_INTEGRATORS`,
-    plugins are mapped when named), implicit baselines last (their jobs are the longest)."""
-    from benchmark.sweep import DEFAULT_INTEGRATORS
-    from integrators import available, get_integrator
+    """The map's default methods: those of the default sweep (`benchmark.sweep.default_names`:
+    every registered method and plugin), implicit baselines last (their jobs are the longest)."""
+    from benchmark.sweep import default_names
+    from integrators import get_integrator
 
-    names = [n for n in DEFAULT_INTEGRATORS if n in available()]
-    return sorted(names, key=lambda n: implicit_baseline(get_integrator(n)))
+    return sorted(default_names(), key=lambda n: implicit_baseline(get_integrator(n)))
+
+
+def adaptive_only(integ) -> bool:
+    """An adaptive method that cannot take a constant step (declares ADAPTIVE, not FIXED_STEP)."""
+    from integrators import Capability
+
+    return integ.has(Capability.ADAPTIVE) and not integ.has(Capability.FIXED_STEP)
+
+
+def also_fixed_step(integ) -> bool:
+    """An adaptive method that also takes a constant step (Tsit5): the map runs it both ways."""
+    from integrators import Capability
+
+    return integ.has(Capability.ADAPTIVE) and integ.has(Capability.FIXED_STEP)
 
 
 def kinds(name: str) -> list[str]:
@@ -83,8 +96,9 @@ class Case:
     horizon: float
     bounded: tuple[str, ...] = ("ok",)
     overrides: tuple = ()
-    #: shorter horizons for some integrators: key a name, (name, kind), or a selector (a function
-    #: of the integrator, true when it applies) -> (s, reason)
+    #: shorter horizons for some methods: selector -> (s, reason), or (selector, kind) for one
+    #: kind only; a selector is a function of the integrator (declared capabilities, never a
+    #: name), true when it applies. The first that applies wins.
     short: dict = field(default_factory=dict)
     #: integrators left out of this scene: selectors, functions of the integrator returning the
     #: reason written into the table (or None), see `skip_reason`
@@ -94,11 +108,12 @@ class Case:
     note: str = ""
 
 
-_SCIPY_500 = "scipy baseline: 500 s is ~1e5 Python-driven steps, minutes per run"
+_STEPS_500 = "adaptive-only baseline: 500 s at rtol 1e-6 is ~1e5 steps, minutes per run"
 #: Since the baselines run on the O(N) closed form (issue #11), the implicit ones compile in
 #: seconds and run on the hard scenes; on the 1,927-dimensional many_elements state each of
-#: their steps still factorises a dense Jacobian (O(n^3)), so radau gets a shorter horizon there,
-#: and a method declaring itself `expensive` (kvaerno5) stays out of the two stiff, large scenes.
+#: their steps still factorises a dense Jacobian (O(n^3)), so implicit baselines get a shorter
+#: horizon there, and a method declaring itself `expensive` (kvaerno5) stays out of the two
+#: stiff, large scenes.
 _DENSE_LU = "implicit baseline: a dense LU of the 1,927 x 1,927 Jacobian per step (O(n^3))"
 
 
@@ -110,18 +125,20 @@ def _expensive(integ) -> str | None:
 
 CASES = (
     Case("stiff_string", 0.2, note="EA = 20 kN, N = 40",
-         short={"radau": (0.05, "implicit baseline: a Newton solve with LU per step on a stiff string")},
+         short={implicit_baseline: (0.05, "implicit baseline: a Newton solve with LU per step on a stiff string")},
          default_skip=(_expensive,)),
-    Case("many_elements", 1.0, note="N = 320", short={"radau": (0.05, _DENSE_LU)}, default_skip=(_expensive,)),
+    Case("many_elements", 1.0, note="N = 320", short={implicit_baseline: (0.05, _DENSE_LU)},
+         default_skip=(_expensive,)),
     Case("fast_spin", 2.0, note="|Omega0| = 30 rad/s"),
     Case("retrieval_to_limit", 10.0, bounded=("length_limit",), overrides=(("deployed_length", 3.0),),
          note="started at 3 m (scene: 15 m) to reach the 2 m limit sooner; bounded = ends with length_limit"),
     Case("deployment_to_end", 10.0, bounded=("length_limit",), overrides=(("deployed_length", 36.0),),
          note="started at 36 m (scene: 3 m) to reach the 39 m limit sooner; bounded = ends with length_limit"),
-    Case("long_horizon", 500.0, note="the scene's full 500 s for the LGVI and constant-step Tsit5",
-         short={"rk45": (20.0, _SCIPY_500), "dop853": (20.0, _SCIPY_500), "radau": (20.0, _SCIPY_500),
-                "kvaerno5": (20.0, "implicit baseline: 500 s is ~1e5 steps with a Newton solve each"),
-                ("tsit5", "adaptive"): (100.0, "adaptive Tsit5 at rtol 1e-6 needs > 1e5 steps (its default step budget) for 500 s")}),
+    Case("long_horizon", 500.0, note="the scene's full 500 s for the fixed-step methods",
+         short={implicit_baseline: (20.0, "implicit baseline: 500 s is ~1e5 steps with a Newton solve each"),
+                adaptive_only: (20.0, _STEPS_500),
+                (also_fixed_step, "adaptive"): (100.0, "adaptive at rtol 1e-6 it needs > 1e5 steps (its default "
+                                                       "step budget) for 500 s")}),
     Case("near_slack", 2.0, note="string compressed by 5 % at t = 0"),
 )
 
@@ -131,19 +148,16 @@ def _log(msg: str) -> None:
 
 
 def _horizon(case: Case, integrator: str, kind: str = "adaptive") -> tuple[float, str]:
-    """(horizon, why it is shorter than the case's): `Case.short` keys are a name, (name, kind)
-    or a selector (a function of the integrator)."""
-    for key in ((integrator, kind), integrator):
-        if key in case.short:
-            return case.short[key]
-    selectors = [k for k in case.short if callable(k)]
-    if selectors:
+    """(horizon, why it is shorter than the case's): the first `Case.short` selector (or
+    (selector, kind)) that applies to the integrator's declared capabilities."""
+    if case.short:
         from integrators import get_integrator
 
         integ = get_integrator(integrator)
-        for key in selectors:
-            if key(integ):
-                return case.short[key]
+        for key, value in case.short.items():
+            select, only = key if isinstance(key, tuple) else (key, kind)
+            if only == kind and select(integ):
+                return value
     return case.horizon, ""
 
 

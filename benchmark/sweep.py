@@ -10,8 +10,11 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 
 PAPER_SCENES = ("fixed_length", "deployment", "retrieval")
-DEFAULT_INTEGRATORS = ("lgvi", "lgvi_sym", "lgvi_yoshida4", "lgvi_suzuki4", "rk45", "dop853", "radau", "tsit5",
-                       "kvaerno5")
+#: The order in which the shipped methods appear in tables and plots (an order only: every
+#: registered method runs, plugins after these; which settings a method gets follows from its
+#: declared capabilities and attributes).
+PRESENTATION_ORDER = ("lgvi", "lgvi_sym", "lgvi_yoshida4", "lgvi_suzuki4", "rk45", "dop853", "radau", "tsit5",
+                      "kvaerno5")
 SAVE_EVERY = 0.02  # s; every dt below divides it
 
 # step sizes (s) and relative tolerances (atol = rtol * ATOL_FACTOR)
@@ -75,12 +78,12 @@ def check_settings(dts=(), rtols=()) -> None:
 
 def default_names() -> list[str]:
     """The integrators a run without ``--integrators`` uses: the registered ones among
-    `DEFAULT_INTEGRATORS` in that order, then every other plugin (test-only ``test_*`` excepted)."""
+    `PRESENTATION_ORDER` in that order, then every other plugin (test-only ``test_*`` excepted)."""
     from integrators import available
 
     names = available()
-    return [n for n in DEFAULT_INTEGRATORS if n in names] + [
-        n for n in names if n not in DEFAULT_INTEGRATORS and not n.startswith("test_")]
+    return [n for n in PRESENTATION_ORDER if n in names] + [
+        n for n in names if n not in PRESENTATION_ORDER and not n.startswith("test_")]
 
 
 def build_tasks(

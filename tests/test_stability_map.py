@@ -71,7 +71,11 @@ def test_implicit_baselines_run_on_the_hard_scenes_by_default():
         assert stability.skip_reason(case, "radau") is None, case.scene
     assert sum(stability.skip_reason(c, "kvaerno5") is not None for c in stability.CASES) == 2
     many = next(c for c in stability.CASES if c.scene == "many_elements")
-    assert "Jacobian" in many.short["radau"][1]
+    horizon, why = stability._horizon(many, "radau")
+    assert horizon < many.horizon and "Jacobian" in why
+    # the horizons are chosen by declared capability, never by name: the LGVIs keep the case's
+    assert all(stability._horizon(c, "lgvi", "fixed") == (c.horizon, "") for c in stability.CASES)
+    assert all(callable(k if not isinstance(k, tuple) else k[0]) for c in stability.CASES for k in c.short)
 
 
 def test_reading_is_generated_from_the_rows():
