@@ -23,7 +23,8 @@ Failures never raise (``throw=False``); ``sol.result`` is mapped to a status:
 ``max_steps_reached`` -> "max_steps", ``dt_min_reached`` -> "step_size_collapse" (the PID
 controller gets ``dtmin = min_step``, default 1e-12 t_end, with ``force_dtmin=False``), other
 errors -> "failed" with diffrax's message. A terminating `diffrax.Event` stops the run when the
-deployed length leaves (0, L - b) ("length_limit") or the state becomes non-finite or blows up
+deployed length leaves (0, L - b) ("length_limit", at the crossing found by a root find on the dense
+output, like scipy's events) or the state becomes non-finite or blows up
 ("diverged"); the trajectory is kept up to the last saved point before that.
 
 The quaternion is not renormalised. No ``@register``: found through the entry-point group.
@@ -84,28 +85,38 @@ def _result_message(result) -> str:
 
 
 def _stop_condition(model):
-    """Event condition: deployed length out of range, non-finite / blown-up state, or the
-    energy balance error beyond the bound (checked at every step). The thresholds are the
-    solve's ``args`` = (E0, energy bound, blow-up bound) (`integrators.lifecycle.Guards`): run-time
-    values, not constants of the compiled solve."""
+    """Event conditions: a non-finite / blown-up state or an energy balance error beyond the
+    bound (a boolean, checked at the end of every step) and, with a reel, the deployed-length
+    margin (a real number: the run stops where it crosses zero, located by a root find on the
+    step's dense output, as scipy's events are). The thresholds are the solve's ``args`` =
+    (E0, energy bound, blow-up bound) (`integrators.lifecycle.Guards`): run-time values, not
+    constants of the compiled solve."""
     lay = model.layout
 
-    def cond_fn(t, y, args, **kwargs):
+    def guards(t, y, args, **kwargs):
         E0, e_bound, blowup = args
         bad = ~jnp.all(jnp.isfinite(y)) | (jnp.max(jnp.abs(y)) >= blowup)
-        bad = bad | ~(energy_error_ode(model, y, E0) <= e_bound)
-        if lay.has_reel:
-            bad = bad | ~(model.deployed_length_margin(y[lay.y_x]) > 0.0)
-        return bad
+        return bad | ~(energy_error_ode(model, y, E0) <= e_bound)
 
-    return cond_fn
+    if not lay.has_reel:
+        return guards
+
+    def length_margin(t, y, args, **kwargs):
+        return model.deployed_length_margin(y[lay.y_x])
+
+    return (guards, length_margin)
+
+
+#: tolerances of the event time's root find (s; the margin is in m and moves at ~m/s)
+EVENT_TIME_TOL = 1e-10
 
 
 def _build(model, solver_name: str, adaptive: bool, n_save: int, max_steps: int, dt0_given: bool,
            rhs: str = _rhs.DEFAULT_RHS):
     f = _rhs.ode_rhs(model, rhs)
     term = dfx.ODETerm(lambda t, y, args: f(t, y))
-    event = dfx.Event(_stop_condition(model))
+    event = dfx.Event(_stop_condition(model),
+                      root_finder=optx.Newton(rtol=EVENT_TIME_TOL, atol=EVENT_TIME_TOL) if model.layout.has_reel else None)
 
     def run(y0, t1, ts, rtol, atol, dt0, min_step, E0, e_bound, blowup):
         if solver_name == "kvaerno5":
@@ -243,7 +254,7 @@ class DiffraxODE(Integrator):
             else:
                 status = Status.LENGTH_LIMIT
                 ell = float(model.L - y_final[0])
-                reason = length_reason(model, ell, f"in the step ending at t = {t_final:.6g} s")
+                reason = length_reason(model, ell, f"at t = {t_final:.6g} s")
         else:
             status = code_status
             if status is not Status.OK:
