@@ -10,11 +10,11 @@ from models.diagnostics import evaluate, summary
 
 
 def test_every_reader_lists_every_registry_metric():
-    """The tables written by hand (runs.csv's `metrics.COLUMNS`, the drift baseline's
-    `check.COLUMNS`) hold every metric, the stability map's no reference metric, and `check`
-    compares each metric with the registry's floor: a metric added to `METRICS` but missing from
-    a reader fails here. (That `ACCURACY`, `CONSERVATION`, `FLOORS` and `DIRECTIONS` are the
-    registry's holds by their definitions in benchmark/metrics.py: not asserted.)"""
+    """The readers' tables (runs.csv's `metrics.COLUMNS`, the drift baseline's `check.COLUMNS`,
+    the stability map's `stability.COLUMNS`) hold every metric in registry order, the map no
+    reference metric, and `check` compares each metric with the registry's floor: a reader that
+    stops taking its metrics from `METRICS` fails here. (That `ACCURACY`, `CONSERVATION`,
+    `FLOORS` and `DIRECTIONS` are the registry's holds by their definitions: not asserted.)"""
     from benchmark import stability
 
     names = [m.name for m in metrics.METRICS]
