@@ -208,7 +208,9 @@ class Scene:
     initial: InitialState
     g: float
     source: str = dataclasses.field(default="<memory>", compare=False)
-    raw: str = dataclasses.field(default="{}", repr=False, compare=False)
+    # compared and hashed: an effect's own section (e.g. [tip_spring]) lives only here, and
+    # caches keyed by the scene (`build_model`) must tell two such scenes apart
+    raw: str = dataclasses.field(default="{}", repr=False)
 
     def has(self, effect: str) -> bool:
         if effect not in EFFECTS:
