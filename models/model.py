@@ -1,7 +1,10 @@
 """The string pendulum model: the single source of truth for the physics (described in models/README.md).
 
 `StringPendulum(scene)` composes the energy terms and generalized forces of the scene's
-effects, once, at construction. Everything else is derived from those terms:
+effects (each defined in `models.effects`), once, at construction. The kinetic energy of the
+string and of the end mass is structural and lives here (the one derivation the autodiff
+path, `models.closed_form` and the LGVI read); the effects add T_reel and the rigid body's
+T_body. Everything else is derived from those terms:
 
 * the continuous equations of motion (MODEL.md §5) by automatic differentiation of the
   Lagrangian (`accelerations`, `ode_rhs` on a quaternion attitude state), checked in the tests

@@ -1,7 +1,8 @@
 """Scenes: one TOML file fully determines one simulation.
 
 A scene names its physical *effects*; the model builds only the terms those effects need
-(`models.model.StringPendulum`). The file format is described in models/README.md; every
+(`models.model.StringPendulum`). The structural keys are `BASE_SCHEMA`; each effect brings
+its own keys and rules (`models.effects.Effect.keys`, `.check`), merged by `schema()`. The file format is described in models/README.md; every
 rule listed there is enforced here, before any computation, and every error names the file,
 the key and the allowed range (`SceneError`). Magnitudes far outside anything physical
 (`PLAUSIBLE`) are refused too, naming the key. No JAX is imported here.
