@@ -29,8 +29,6 @@ from models.effects import EFFECTS as EFFECT_REGISTRY
 from models.layout import StateLayout
 from models.scene import Scene
 
-E3 = np.array([0.0, 0.0, 1.0])
-
 
 def hat(v):
     """Hat map: hat(v) @ y = v × y."""
