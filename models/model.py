@@ -157,7 +157,11 @@ class StringPendulum:
         # effect contributes its own terms (models/effects.py); the structural kinetic terms of
         # the string and of a point-mass body are the model's, the reel adds T_reel and
         # `rigid_body` replaces T_body.
-        self.effects = tuple(EFFECT_REGISTRY[e] for e in scene.effects)
+        # The required effects (the string's own elasticity) are composed first, the others in
+        # canonical order: the totals then add up in the order of the closed form this replaced,
+        # so fixed-length results are bit-identical to it.
+        listed = [EFFECT_REGISTRY[e] for e in scene.effects]
+        self.effects = tuple([e for e in listed if e.required] + [e for e in listed if not e.required])
         # Elastic law: the length that stores strain energy. Two-sided (the paper's: resists
         # compression too) unless an effect (`slack`) replaces it; set before the terms that read it.
         self._taut_length, self._clip_tension = _two_sided, _two_sided_tension
