@@ -149,9 +149,11 @@ STEP_COST_10 = 12e-6
 def run_size(scene, t_end: float, save_every: float, dt: float | None = None) -> dict:
     """Saved points, bytes of the saved trajectory and (fixed step) the steps and an estimated
     wall time of one run of ``scene``; no JAX needed."""
+    from models.layout import StateLayout  # JAX-free: the sizes the listed effects give
+
     n = scene.string.elements
-    nx = 3 * n + (1 if "reel" in scene.effects else 0)
-    nw = nx + (3 if "rigid_body" in scene.effects else 0)
+    lay = StateLayout.from_scene(scene)
+    nx, nw = lay.nx, lay.nw
     per_point = 8 * (nx + nw + 9 + 1 + 1)  # x, velocity, attitude, work, t (float64)
     points = math.floor(t_end / save_every) + 2
     out = {"points": points, "bytes": points * per_point, "steps": None, "seconds": None}

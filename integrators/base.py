@@ -208,8 +208,13 @@ SITUATIONS = ("fixed_length", "reel")
 
 
 def situation(scene) -> str:
-    """"reel" when the scene's deployed length is a degree of freedom, else "fixed_length"."""
-    return "reel" if scene.has("reel") else "fixed_length"
+    """"reel" when the scene's deployed length is a degree of freedom, else "fixed_length".
+
+    Read from the state layout (the effects that add s_p, `models.effects.Effect.state`), not
+    from an effect's name."""
+    from models.layout import StateLayout
+
+    return "reel" if StateLayout.from_scene(scene).has_reel else "fixed_length"
 
 
 class Integrator(abc.ABC):

@@ -7,7 +7,9 @@ Public API::
     model = build_model(scene)        # energies, forces, Legendre transform, EOM
     from models.diagnostics import evaluate
 
-The model and the scene format are described in models/README.md.
+The model and the scene format are described in models/README.md; each physical effect
+(its scene keys, energy terms, forces) is one `Effect` in models/effects.py, and
+`register_effect` adds one at run time.
 
 The JAX-backed names (`build_model`, `StringPendulum`) are imported on first use, so that
 loading and validating a scene (`load_scene`) does not import JAX: the command line refuses
@@ -15,6 +17,7 @@ bad input in a fraction of a second. Every module that touches JAX imports `mode
 first, which switches JAX to float64 before anything else.
 """
 
+from models.effects import Effect, register_effect, unregister_effect
 from models.layout import StateLayout
 from models.scene import EFFECTS, Scene, SceneError, available_scenes, load_scene, scene_from_dict
 
@@ -33,6 +36,7 @@ def __getattr__(name):
 
 __all__ = [
     "EFFECTS",
+    "Effect",
     "Scene",
     "SceneError",
     "StateLayout",
@@ -40,5 +44,7 @@ __all__ = [
     "available_scenes",
     "build_model",
     "load_scene",
+    "register_effect",
     "scene_from_dict",
+    "unregister_effect",
 ]

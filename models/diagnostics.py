@@ -8,8 +8,9 @@ velocities or momenta (then the continuous Legendre transform recovers velocitie
 Columns: t, energy, kinetic, T_rot, V_gravity, V_elastic, V_reel, work, energy_minus_work,
 pi3, orthogonality_error, deployed_length, stretched_length, reel_rate, omega_1..3,
 body_x..z (the attachment point r_p + q_{N+1}), tension_min, tension_max.
-``energy`` holds only the terms of the scene's effects; ``V_reel`` is part of ``V_gravity``
-(both of its terms come from gravity) and is reported separately for reel scenes.
+``energy`` holds only the terms of the scene's effects; ``V_gravity`` is the sum of the terms
+the `gravity` effect contributes (`StringPendulum.terms_of`); ``V_reel`` is one of them (the
+reel-side string) and is reported separately for reel scenes.
 """
 
 from __future__ import annotations
@@ -41,7 +42,8 @@ def point_diagnostics(model: StringPendulum, x, R, w, W) -> dict:
         ang = ang + R @ p[lay.omega]
     stretch = jnp.linalg.norm(q[1:] - q[:-1], axis=1)
     tension = model.tensions(x)
-    v_gravity = pot.get("V_string_gravity", 0.0) + pot.get("V_body_gravity", 0.0) + pot.get("V_reel", 0.0)
+    # gravity's own terms (string, body and, with a reel, the reel-side string), whatever they are named
+    v_gravity = sum((pot[k] for k in model.terms_of("gravity")), 0.0)
     body = model.r_p + q[-1]
     return {
         "energy": T + V,

@@ -6,15 +6,14 @@ ODE state (baselines)    y = (x, quat if `rigid_body`, w, W if non-conservative 
 
 W is the accumulated work of the non-conservative forces (Carnot loss, reel control, axial
 damping); it is carried in the ODE state so that E - W can be checked to the integrator's own
-accuracy.
+accuracy. Each effect declares what it adds (`models.effects.Effect.state`, `.forcing`).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-#: The effects that add non-conservative generalized forces (their work is carried as W).
-FORCING_EFFECTS = ("carnot", "reel_control", "axial_damping")
+from models.effects import EFFECTS
 
 
 @dataclass(frozen=True)
@@ -26,11 +25,13 @@ class StateLayout:
 
     @classmethod
     def from_scene(cls, scene) -> "StateLayout":
+        listed = [EFFECTS[e] for e in scene.effects]
+        state = {c for e in listed for c in e.state}
         return cls(
             elements=scene.string.elements,
-            has_reel=scene.has("reel"),
-            has_attitude=scene.has("rigid_body"),
-            has_work=any(scene.has(e) for e in FORCING_EFFECTS),
+            has_reel="s_p" in state,
+            has_attitude="attitude" in state,
+            has_work=any(e.forcing for e in listed),
         )
 
     # generalized coordinates / velocities -------------------------------------------

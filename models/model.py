@@ -1,7 +1,10 @@
 """The string pendulum model: the single source of truth for the physics (described in models/README.md).
 
 `StringPendulum(scene)` composes the energy terms and generalized forces of the scene's
-effects, once, at construction. Everything else is derived from those terms:
+effects (each defined in `models.effects`), once, at construction. The kinetic energy of the
+string and of the end mass is structural and lives here (the one derivation the autodiff
+path, `models.closed_form` and the LGVI read); the effects add T_reel and the rigid body's
+T_body. Everything else is derived from those terms:
 
 * the continuous equations of motion (MODEL.md §5) by automatic differentiation of the
   Lagrangian (`accelerations`, `ode_rhs` on a quaternion attitude state), checked in the tests
@@ -22,10 +25,9 @@ from typing import Callable
 import numpy as np
 
 from models._jax import jax, jnp
+from models.effects import EFFECTS as EFFECT_REGISTRY
 from models.layout import StateLayout
 from models.scene import Scene
-
-E3 = np.array([0.0, 0.0, 1.0])
 
 
 def hat(v):
@@ -34,21 +36,13 @@ def hat(v):
 
 
 def _two_sided(stretch, l):
-    """Elastic length of the paper's law: the stretch itself (resists compression too)."""
+    """Elastic length of the paper's law: the stretch itself (resists compression too).
+    `slack` replaces it (`models.effects.Slack.elastic_law`)."""
     return stretch
-
-
-def _tension_only(stretch, l):
-    """Elastic length of a tension-only (`slack`) element: max(stretch, l), no energy when shorter."""
-    return jnp.maximum(stretch, l)
 
 
 def _two_sided_tension(tension):
     return tension
-
-
-def _clip_compression(tension):
-    return jnp.maximum(tension, 0.0)
 
 
 def vee(m):
@@ -159,35 +153,46 @@ class StringPendulum:
         #: M0 and the M31/M23 coupling above are the consistent element's axial-flow terms)
         self.string_mass = STRING_MASS[scene.string.mass_model]
 
-        # Effects -> terms, decided once here (not by branches in the integrators).
-        lay = self.layout
-        self.kinetic_terms: dict[str, Callable] = {"T_string": self._T_string, "T_body": self._T_body}
-        if lay.has_reel:
-            self.kinetic_terms["T_reel"] = self._T_reel
-        self.potential_terms: dict[str, Callable] = {"V_elastic": self._V_elastic}
-        if scene.has("gravity"):
-            self.potential_terms["V_string_gravity"] = self._V_string_gravity
-            self.potential_terms["V_body_gravity"] = self._V_body_gravity
-            if lay.has_reel:
-                self.potential_terms["V_reel"] = self._V_reel
+        # Effects -> terms, decided once here (not by branches in the integrators): every listed
+        # effect contributes its own terms (models/effects.py); the structural kinetic terms of
+        # the string and of a point-mass body are the model's, the reel adds T_reel and
+        # `rigid_body` replaces T_body.
+        # The required effects (the string's own elasticity) are composed first, the others in
+        # canonical order: the totals then add up in the order of the closed form this replaced,
+        # so fixed-length results are bit-identical to it.
+        listed = [EFFECT_REGISTRY[e] for e in scene.effects]
+        self.effects = tuple([e for e in listed if e.required] + [e for e in listed if not e.required])
         # Elastic law: the length that stores strain energy. Two-sided (the paper's: resists
-        # compression too) or, with `slack`, tension-only: max(|q_{a+1} − q_a|, l), so that
-        # V_e, its gradient and the tensions all get the factor max(|Δq| − l, 0).
-        self._taut_length = _tension_only if scene.has("slack") else _two_sided
-        self._clip_tension = _clip_compression if scene.has("slack") else _two_sided_tension
-        #: c of `axial_damping` (N s); 0 without the effect
-        self.c_damp = st.axial_damping if scene.has("axial_damping") else 0.0
+        # compression too) unless an effect (`slack`) replaces it; set before the terms that read it.
+        self._taut_length, self._clip_tension = _two_sided, _two_sided_tension
+        for effect in self.effects:
+            law = effect.elastic_law(self)
+            if law is not None:
+                self._taut_length, self._clip_tension = law
+        self.kinetic_terms: dict[str, Callable] = {"T_string": self._T_string, "T_body": self._T_point_mass}
+        self.potential_terms: dict[str, Callable] = {}
+        self.potential_gradients: dict[str, Callable] = {}
+        #: which effect contributed each term (diagnostics group the potential terms by it)
+        self.term_owner: dict[str, str] = {}
         # Non-conservative generalized forces, two kinds, composed by `generalized_force`:
         # reel forces act on s_p only and depend on w only through ṡ_p (scalar terms);
         # string forces are vectors over w's layout acting on (s_p, q) (not on Ω).
         self.reel_forces: dict[str, Callable] = {}
-        if scene.has("carnot"):
-            self.reel_forces["Q_carnot"] = self._Q_carnot
-        if scene.has("reel_control"):
-            self.reel_forces["Q_control"] = self._Q_control
         self.string_forces: dict[str, Callable] = {}
-        if scene.has("axial_damping"):
-            self.string_forces["Q_axial_damping"] = self._Q_axial_damping
+        for effect in self.effects:
+            self.kinetic_terms.update(effect.kinetic(self))
+            for name, term in effect.potentials(self).items():
+                self.potential_terms[name] = term.energy
+                self.potential_gradients[name] = term.gradient
+                self.term_owner[name] = effect.name
+            for kind, hook in ((self.reel_forces, effect.reel_forces), (self.string_forces, effect.string_forces)):
+                for name, f in hook(self).items():
+                    kind[name] = f
+                    self.term_owner[name] = effect.name
+
+    def terms_of(self, effect: str) -> tuple[str, ...]:
+        """Names of the potential terms and forces an effect contributed (empty if not listed)."""
+        return tuple(k for k, e in self.term_owner.items() if e == effect)
 
     # ------------------------------------------------------------------------------------
     # Coordinates
@@ -240,43 +245,30 @@ class StringPendulum:
             T = T + w[0] * coupling
         return T
 
-    def _T_body(self, x, R, w):
+    def _T_point_mass(self, x, R, w):
+        """T_body without `rigid_body`: a point mass m_b at node N+1."""
         v_tip = self.node_velocities(w)[-1]
-        if not self.layout.has_attitude:
-            return 0.5 * self.m_b * v_tip @ v_tip
+        return 0.5 * self.m_b * v_tip @ v_tip
+
+    def _T_rigid_body(self, x, R, w):
+        """T_body with `rigid_body`: ½ m_b |v_{N+1} + R(Ω × ρ_c)|² + ½ Ω·J_c Ω (the LGVI's
+        discrete form is pinned to it in tests/test_lgvi.py)."""
+        v_tip = self.node_velocities(w)[-1]
         om = self.omega(w)
         v_com = v_tip + R @ jnp.cross(om, self.rho_c)
         return 0.5 * self.m_b * v_com @ v_com + 0.5 * om @ (self.J_c @ om)
 
-    def _V_reel(self, x, R):
-        s = x[0]
-        return -self.mu * self.g * s * (E3 @ self.r_d) - self.mu * self.g * self.d**2 * jnp.cos((s - self.b) / self.d)
-
-    def _V_string_gravity(self, x, R):
-        q, l = self.nodes(x), self.element_length(x)
-        mid = self.r_p + 0.5 * (q[:-1] + q[1:])
-        return -self.mu * self.g * l * jnp.sum(mid[:, 2])
-
-    def _V_body_gravity(self, x, R):
-        tip = self.r_p + self.nodes(x)[-1]
-        if self.layout.has_attitude:
-            tip = tip + R @ self.rho_c
-        return -self.m_b * self.g * tip[2]
-
-    def _V_elastic(self, x, R):
-        """Σ_a (EA/2l)(|q_{a+1} − q_a| − l)², or with `slack` Σ_a (EA/2l) max(|q_{a+1} − q_a| − l, 0)²."""
-        q, l = self.nodes(x), self.element_length(x)
-        taut = self._taut_length(jnp.linalg.norm(q[1:] - q[:-1], axis=1), l)
-        return jnp.sum(self.EA / (2 * l) * (taut - l) ** 2)
-
-    def _Q_carnot(self, t, x, w):
-        """Carnot loss at the guide-way exit: Q_c ṡ = -½ μ |ṡ|³ |q_2/l - t_g|² <= 0."""
-        sd = w[0]
-        jump = self.nodes(x)[1] / self.element_length(x) - self.t_g
-        return -0.5 * self.mu * sd * jnp.abs(sd) * (jump @ jump)
-
-    def _Q_control(self, t, x, w):
-        return jnp.asarray(self.u / self.d)
+    def over_w(self, ds=None, dq=None, deta=None):
+        """A vector over w's layout from its parts (zeros for parts not given; parts for
+        coordinates the scene lacks are dropped). dq is (N, 3), nodes 2..N+1."""
+        lay = self.layout
+        parts = []
+        if lay.has_reel:
+            parts.append(jnp.atleast_1d(jnp.asarray(0.0 if ds is None else ds, dtype=float)))
+        parts.append(jnp.zeros(3 * self.N) if dq is None else jnp.reshape(dq, -1))
+        if lay.has_attitude:
+            parts.append(jnp.zeros(3) if deta is None else deta)
+        return jnp.concatenate(parts)
 
     def strain_rates(self, x, w):
         """ε̇_a = d/dt (|q_{a+1} − q_a| / l − 1) = ê_a·(q̇_{a+1} − q̇_a)/l + |q_{a+1} − q_a| ṡ_p/(N l²).
@@ -290,28 +282,6 @@ class StringPendulum:
         if self.layout.has_reel:
             rate = rate + stretch * self.reel_rate(w) / (self.N * l * l)
         return rate
-
-    def _Q_axial_damping(self, t, x, w):
-        """Kelvin–Voigt strain-rate damping: Q = −∂D/∂w, D = Σ_a (c l/2) ε̇_a² (Rayleigh).
-
-        Element a carries the damping tension τ_a = c ε̇_a along ê_a = (q_{a+1} − q_a)/|q_{a+1} − q_a|:
-        it pulls node a by +τ_a ê_a and node a+1 by −τ_a ê_a; on s_p (through l) it gives
-        −Σ_a τ_a |q_{a+1} − q_a| / (N l). Power Q·w = −Σ_a c l ε̇_a² ≤ 0. The dashpot acts in
-        compression too (also with `slack`), which keeps Q smooth in the state.
-        """
-        q, l = self.nodes(x), self.element_length(x)
-        delta = q[1:] - q[:-1]
-        stretch = jnp.linalg.norm(delta, axis=1)
-        tau = self.c_damp * self.strain_rates(x, w)
-        f = (tau / stretch)[:, None] * delta  # τ_a ê_a, a = 1..N
-        fq = jnp.concatenate([f[1:], jnp.zeros((1, 3))], axis=0) - f  # nodes 2..N+1
-        parts = []
-        if self.layout.has_reel:
-            parts.append(jnp.atleast_1d(-jnp.sum(tau * stretch) / (self.N * l)))
-        parts.append(fq.ravel())
-        if self.layout.has_attitude:
-            parts.append(jnp.zeros(3))
-        return jnp.concatenate(parts)
 
     # ------------------------------------------------------------------------------------
     # Totals
@@ -360,31 +330,11 @@ class StringPendulum:
     def potential_gradient(self, x, R):
         """Closed-form gradient of V over w's layout: (∂V/∂s_p, ∂V/∂q_2..q_{N+1}, ∂V/∂η).
 
-        ∂V/∂η is the derivative along R (I + η^) (the negative gravity moment about the
-        attachment point). These are MODEL.md §6's D_s V and D_q V; the tests check them
-        against autodiff of `potential`.
+        The sum of each potential term's own closed-form gradient (`models.effects`); ∂V/∂η
+        is the derivative along R (I + η^). These are MODEL.md §6's D_s V and D_q V; the tests
+        check every term against autodiff of its energy.
         """
-        q, l = self.nodes(x), self.element_length(x)
-        delta = q[1:] - q[:-1]
-        stretch = jnp.linalg.norm(delta, axis=1)
-        taut = self._taut_length(stretch, l)  # = stretch, or max(stretch, l) with `slack`
-        grad_e = (self.EA / l * (taut - l) / stretch)[:, None] * delta  # ∇V^e_a, a = 1..N
-        dq = jnp.concatenate([grad_e[:-1] - grad_e[1:], grad_e[-1:]], axis=0)  # nodes 2..N+1
-        e3 = jnp.asarray(E3)
-        weights = jnp.ones(self.N).at[-1].set(0.5)
-        dq = dq - (self.mu * self.g * l) * weights[:, None] * e3[None, :]
-        dq = dq.at[-1].add(-self.m_b * self.g * e3)
-        parts = []
-        if self.layout.has_reel:
-            s = x[0]
-            ds = jnp.sum(self.mu * self.g * (2 * self.r_p[2] + q[:-1, 2] + q[1:, 2]) + self.EA / l**2 * (taut**2 - l**2)) / (2 * self.N)
-            if self.g != 0.0:
-                ds = ds - self.mu * self.g * self.r_d[2] + self.mu * self.g * self.d * jnp.sin((s - self.b) / self.d)
-            parts.append(jnp.atleast_1d(ds))
-        parts.append(dq.ravel())
-        if self.layout.has_attitude:
-            parts.append(-self.m_b * self.g * jnp.cross(self.rho_c, R.T @ e3))
-        return jnp.concatenate(parts)
+        return sum((g(x, R) for g in self.potential_gradients.values()), jnp.zeros(self.layout.nw))
 
     def tensions(self, x):
         """Elastic element tensions EA (|q_{a+1} - q_a| / l - 1), a = 1..N (negative = compression;
@@ -405,22 +355,23 @@ class StringPendulum:
     def energy_scale(self) -> float:
         """The scene's energy scale in J (a fixed number, computed from the scene and its start):
 
-            T(0) + Σ_terms |V_term(0)|  +  g (m_b + μ L)(L + |ρ_c| + |r_d| + d)  +  |u| L / d
+            T(0) + Σ_terms |V_term(0)|  +  Σ_effects (what the effect can supply over the run)
 
         i.e. the initial kinetic energy, every initial potential term in absolute value (so that
-        terms of opposite sign do not cancel), the most potential energy gravity could release
-        over the whole string length, and the most work the constant reel moment can do over it.
-        The Carnot loss only dissipates what these supply. It is floored at 1e-9 J (a scene at
-        rest with nothing to move it). Every integrator's energy guard is a multiple of it
-        (`integrators.base.energy_bound`).
+        terms of opposite sign do not cancel), and each effect's `energy_scale`: for gravity the
+        most potential energy it could release over the whole string length,
+        g (m_b + μ L)(L + |ρ_c| + |r_d| + d); for the reel control the most work the constant
+        moment can do over it, |u| L / d. Dissipative forces only remove what these supply. It
+        is floored at 1e-9 J (a scene at rest with nothing to move it). Every integrator's
+        energy guard is a multiple of it (`integrators.base.energy_bound`).
         """
         x0, R0, w0 = (jnp.asarray(a) for a in self.initial_state())
         T0 = float(self.kinetic(x0, R0, w0))
         V0 = sum(abs(float(f(x0, R0))) for f in self.potential_terms.values())
-        reach = self.L + float(np.linalg.norm(self.rho_c)) + float(np.linalg.norm(self.r_d)) + self.d
-        gravity = self.g * (self.m_b + self.mu * self.L) * reach
-        control = abs(self.u) * self.L / self.d
-        return max(T0 + V0 + gravity + control, 1e-9)
+        total = T0 + V0
+        for effect in self.effects:
+            total += float(effect.energy_scale(self))
+        return max(total, 1e-9)
 
     def length_limit_name(self, ell: float) -> str:
         """Which end of (ℓ_min, L - b) a deployed length ``ell`` is at (for status reasons)."""

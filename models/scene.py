@@ -1,7 +1,8 @@
 """Scenes: one TOML file fully determines one simulation.
 
 A scene names its physical *effects*; the model builds only the terms those effects need
-(`models.model.StringPendulum`). The file format is described in models/README.md; every
+(`models.model.StringPendulum`). The structural keys are `BASE_SCHEMA`; each effect brings
+its own keys and rules (`models.effects.Effect.keys`, `.check`), merged by `schema()`. The file format is described in models/README.md; every
 rule listed there is enforced here, before any computation, and every error names the file,
 the key and the allowed range (`SceneError`). Magnitudes far outside anything physical
 (`PLAUSIBLE`) are refused too, naming the key. No JAX is imported here.
@@ -27,41 +28,28 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from models import effects as _effects
+from models.effects import Key as _Key
+
 SCENE_DIR = Path(__file__).resolve().parent / "scenes"
 
-#: Every effect a scene may list, with the effects it needs.
-EFFECTS: dict[str, tuple[str, ...]] = {
-    "gravity": (),
-    "elasticity": (),
-    "rigid_body": (),
-    "reel": (),
-    "carnot": ("reel",),
-    "reel_control": ("reel",),
-    "slack": ("elasticity",),
-    "axial_damping": ("elasticity",),
-}
-REQUIRED_EFFECTS = ("elasticity",)
+#: Every effect a scene may list (name -> `models.effects.Effect`, canonical order). The
+#: effects own their scene keys, rules and physics (models/effects.py).
+EFFECTS = _effects.EFFECTS
+
+
+def required_effects() -> tuple[str, ...]:
+    """Effects every scene must list (`Effect.required`: elasticity)."""
+    return tuple(n for n, e in EFFECTS.items() if e.required)
+
 
 _VEC3 = "vec3"
 _MAT3 = "mat3"
 
 
-@dataclass(frozen=True)
-class _Key:
-    """Schema entry: type, constraint and default of one scene key."""
-
-    kind: str  # "float", "int", "str", "vec3", "mat3", "effects"
-    rule: str = "finite"  # "finite", "positive", "nonnegative", "nonzero", ...
-    default: Any = None
-    required_by: tuple[str, ...] | None = None  # required iff all these effects are listed
-    required: bool = False
-    # A key that exists only for its effect (`required_by`): refused without it, and left out
-    # of the validated dict (hence of `Scene.key()`) when absent, so scenes without the
-    # effect keep their hash.
-    only_with_effect: bool = False
-
-
-_SCHEMA: dict[str, dict[str, _Key] | _Key] = {
+#: The structural keys (owned by no effect). The full schema is these plus every registered
+#: effect's own keys (`Effect.keys`), assembled by `schema()`.
+BASE_SCHEMA: dict[str, dict[str, _Key] | _Key] = {
     "name": _Key("str", required=True),
     "description": _Key("str", default=""),
     "t_end": _Key("float", "positive", required=True),
@@ -71,38 +59,46 @@ _SCHEMA: dict[str, dict[str, _Key] | _Key] = {
         "mass_per_length": _Key("float", "positive", required=True),
         "axial_stiffness": _Key("float", "positive", required=True),
         "elements": _Key("int", "at_least_1", required=True),
-        "axial_damping": _Key("float", "nonnegative", required_by=("axial_damping",), only_with_effect=True),
-        "mass_model": _Key("str", "mass_model", default="consistent"),
+        "mass_model": _Key("str", "mass_model", default="consistent", hashed_at_default=False),
     },
     "body": {
         "mass": _Key("float", "positive", required=True),
-        "box": _Key(_VEC3, "positive"),
-        "inertia": _Key(_MAT3, "spd"),
-        "attachment_to_com": _Key(_VEC3, default=(0.0, 0.0, 0.0)),
     },
     "reel": {
-        "radius": _Key("float", "positive", required_by=("reel",), default=1.0),
-        "center": _Key(_VEC3, required_by=("reel",), default=(0.0, 0.0, 0.0)),
-        "guide_length": _Key("float", "positive", required_by=("reel",), default=0.0),
-        "equivalent_mass": _Key("float", "positive", required_by=("reel",), default=1.0),
         "exit_point": _Key(_VEC3, default=(0.0, 0.0, 0.0)),
         "exit_direction": _Key(_VEC3, "nonzero", default=(0.0, 0.0, 1.0)),
-        "control_moment": _Key("float", default=0.0),
-        "min_deployed_length": _Key("float", "nonnegative", default=0.0),
+        "min_deployed_length": _Key("float", "nonnegative", default=0.0, hashed_at_default=False),
     },
     "initial": {
         "deployed_length": _Key("float", "deployed_length", required=True),
         "direction": _Key(_VEC3, "nonzero", required=True),
-        "reel_rate": _Key("float", default=0.0),
         "tip_velocity": _Key(_VEC3, default=(0.0, 0.0, 0.0)),
-        "attitude": _Key(_MAT3, "rotation", default=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))),
-        "angular_velocity": _Key(_VEC3, default=(0.0, 0.0, 0.0)),
-        "stretch": _Key("float", "stretch", default=1.0),
+        "stretch": _Key("float", "stretch", default=1.0, hashed_at_default=False),
     },
     "environment": {
         "g": _Key("float", "nonnegative", default=9.81),
     },
 }
+
+
+def schema() -> dict[str, dict[str, _Key] | _Key]:
+    """The whole scene schema: `BASE_SCHEMA` plus the keys of every registered effect (an
+    effect's own section, e.g. ``[tip_spring]``, comes after the structural ones)."""
+    out = {k: dict(v) if isinstance(v, dict) else v for k, v in BASE_SCHEMA.items()}
+    for section, keys in _effects.effect_keys().items():
+        if not section:
+            out.update(keys)
+        else:
+            out.setdefault(section, {}).update(keys)
+    return out
+
+
+def plausible_ranges() -> dict[str, tuple[float, float]]:
+    """`PLAUSIBLE` plus every registered effect's own ranges (`Effect.plausible`)."""
+    out = dict(PLAUSIBLE)
+    for e in EFFECTS.values():
+        out.update(e.plausible)
+    return out
 
 _RULE_TEXT = {
     "finite": "a finite number",
@@ -127,26 +123,17 @@ STRETCH_RANGE = (0.01, 100.0)
 #: Physically plausible magnitudes, (low, high) of |value| (vectors: of their length), in SI
 #: units. Far wider than any real string pendulum, but they stop typos and absurd values
 #: (mass 1e300, EA 1e308, a million elements, t_end 1e12 s) before a run overflows, takes
-#: days or fills the memory. A value of exactly 0 is judged by the key's own rule.
+#: days or fills the memory. A value of exactly 0 is judged by the key's own rule. These are the
+#: structural keys'; an effect's keys carry their own (`Effect.plausible`, `plausible_ranges()`).
 PLAUSIBLE: dict[str, tuple[float, float]] = {
     "t_end": (1e-9, 1e6),
     "string.total_length": (1e-3, 1e5),
     "string.mass_per_length": (1e-9, 1e5),
     "string.axial_stiffness": (1e-6, 1e13),
     "string.elements": (1, 10_000),
-    "string.axial_damping": (0.0, 1e12),
     "body.mass": (1e-9, 1e9),
-    "body.box": (1e-6, 1e4),
-    "body.attachment_to_com": (0.0, 1e4),
-    "reel.radius": (1e-6, 1e4),
-    "reel.center": (0.0, 1e5),
-    "reel.guide_length": (0.0, 1e5),
-    "reel.equivalent_mass": (1e-9, 1e9),
     "reel.exit_point": (0.0, 1e5),
-    "reel.control_moment": (0.0, 1e12),
-    "initial.reel_rate": (0.0, 1e4),
     "initial.tip_velocity": (0.0, 1e4),
-    "initial.angular_velocity": (0.0, 1e5),
     "environment.g": (0.0, 1e4),
 }
 
@@ -222,7 +209,9 @@ class Scene:
     initial: InitialState
     g: float
     source: str = dataclasses.field(default="<memory>", compare=False)
-    raw: str = dataclasses.field(default="{}", repr=False, compare=False)
+    # compared and hashed: an effect's own section (e.g. [tip_spring]) lives only here, and
+    # caches keyed by the scene (`build_model`) must tell two such scenes apart
+    raw: str = dataclasses.field(default="{}", repr=False)
 
     def has(self, effect: str) -> bool:
         if effect not in EFFECTS:
@@ -232,6 +221,10 @@ class Scene:
     def to_dict(self) -> dict:
         """The scene as a TOML-shaped dict (validated values, defaults filled in)."""
         return json.loads(self.raw)
+
+    def section(self, name: str) -> dict:
+        """The validated keys of one section, e.g. an effect's own ``[tip_spring]`` ({} if absent)."""
+        return self.to_dict().get(name, {})
 
     def key(self) -> str:
         """A hash of everything that determines the simulation (not name/description)."""
@@ -314,6 +307,7 @@ def _apply_overrides(data: dict, overrides: Mapping, source: str) -> set[str]:
     """Apply ``overrides`` to ``data`` in place; returns the dotted keys they set."""
     applied: set[str] = set()
     leaf_owner: dict[str, list[str]] = {}
+    _SCHEMA = schema()
     for section, spec in _SCHEMA.items():
         if isinstance(spec, dict):
             for key in spec:
@@ -426,6 +420,7 @@ class _Validator:
     # -- the whole scene ---------------------------------------------------------------
     def scene(self, data: dict) -> Scene:
         effects = self.effects(data.get("effects"))
+        _SCHEMA = schema()
         for key in data:
             if key not in _SCHEMA:
                 raise SceneError(
@@ -458,10 +453,10 @@ class _Validator:
         if len(set(value)) != len(value):
             raise self.fail("effects", value, "each effect listed once")
         for e in value:
-            for need in EFFECTS[e]:
+            for need in EFFECTS[e].needs:
                 if need not in value:
                     raise SceneError(f"{self.source}: key 'effects': effect {e!r} needs effect {need!r} in the list")
-        for need in REQUIRED_EFFECTS:
+        for need in required_effects():
             if need not in value:
                 raise SceneError(f"{self.source}: key 'effects' must include {need!r} (a string needs it)")
         # canonical order: the order of EFFECTS
@@ -490,12 +485,12 @@ class _Validator:
 
     def value(self, key: str, value: Any, spec: _Key, effects) -> Any:
         out = self._value(key, value, spec, effects)
-        if key in PLAUSIBLE and value is not None:
+        if key in plausible_ranges() and value is not None:
             self.plausible(key, value, out)
         return out
 
     def plausible(self, key: str, raw: Any, value: Any) -> None:
-        lo, hi = PLAUSIBLE[key]
+        lo, hi = plausible_ranges()[key]
         if isinstance(raw, (list, tuple)):  # a vector: its length (nonzero rules normalise `value`)
             mag = math.sqrt(sum(float(x) ** 2 for x in raw))
         else:
@@ -551,25 +546,9 @@ class _Validator:
                 f"{self.source}: key 'reel.min_deployed_length' = {r['min_deployed_length']!r} is invalid: "
                 f"allowed 0 <= min_deployed_length < initial.deployed_length = {i['deployed_length']!r}"
             )
-        if "rigid_body" in effects:
-            if b["box"] is not None and b["inertia"] is not None:
-                raise SceneError(f"{self.source}: keys 'body.box' and 'body.inertia' are alternatives: give one")
-            if b["box"] is None and b["inertia"] is None:
-                raise SceneError(f"{self.source}: missing key 'body.box' or 'body.inertia' (needed by effect rigid_body)")
-        elif any(x != 0.0 for x in i["angular_velocity"]):
-            raise self.fail("initial.angular_velocity", i["angular_velocity"],
-                            "[0, 0, 0] without effect 'rigid_body' (a point mass has no attitude)")
-        if s["mass_model"] == "lumped" and "reel" in effects:
-            # the lumped string's axial-flow terms (its M0 and M31/M23) are not derived (MODEL.md §8)
-            raise SceneError(
-                f"{self.source}: key 'string.mass_model' = 'lumped' is not available with effect 'reel': "
-                f"allowed 'consistent' with a reel (the lumped string's axial-flow terms are not derived, "
-                f"MODEL.md §8); 'lumped' needs a fixed-length scene"
-            )
-        if "reel" not in effects and i["reel_rate"] != 0.0:
-            raise self.fail("initial.reel_rate", i["reel_rate"], "0 without effect 'reel' (the length is fixed)")
-        if "reel_control" not in effects and r["control_moment"] != 0.0 and "reel" in effects:
-            raise self.fail("reel.control_moment", r["control_moment"], "0 without effect 'reel_control'")
+        # each effect's own rules (listed or not: e.g. Ω must be 0 without `rigid_body`)
+        for effect in EFFECTS.values():
+            effect.check(self, d, effects)
         if b["box"] is not None:
             a, bb, c = b["box"]
             m = b["mass"]
@@ -579,13 +558,14 @@ class _Validator:
         else:
             inertia = np.zeros((3, 3))
         raw_d = {k: v for k, v in d.items() if v is not None}
-        # keys added later are left out at their defaults, so that existing scenes keep their key()
-        if i["stretch"] == 1.0:
-            raw_d["initial"] = {k: v for k, v in i.items() if k != "stretch"}
-        if s["mass_model"] == "consistent":
-            raw_d["string"] = {k: v for k, v in s.items() if k != "mass_model"}
-        if r["min_deployed_length"] == 0.0:
-            raw_d["reel"] = {k: v for k, v in r.items() if k != "min_deployed_length"}
+        for section, spec in schema().items():
+            if not isinstance(spec, dict) or section not in raw_d:
+                continue
+            # keys added later are left out at their defaults, so that existing scenes keep their key()
+            raw_d[section] = {k: v for k, v in raw_d[section].items()
+                              if not (k in spec and not spec[k].hashed_at_default and v == spec[k].default)}
+            if not raw_d[section] and section not in BASE_SCHEMA:
+                del raw_d[section]  # an effect's own section, without its effect: not part of the physics
         raw = json.dumps(raw_d, sort_keys=True)
         return Scene(
             name=d["name"],

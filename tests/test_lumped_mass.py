@@ -11,9 +11,10 @@ from models import SceneError, build_model, load_scene
 from models._jax import jax, jnp
 from models.closed_form import ClosedFormEOM
 from models.diagnostics import evaluate, summary
-from models.model import STRING_MASS, hat
+from models.model import STRING_MASS
 
 from _helpers import reference_solution
+from test_lgvi import autodiff_momenta
 
 POINT = dict(effects=["elasticity", "gravity"], angular_velocity=[0.0, 0.0, 0.0])
 BODY = dict(effects=["elasticity", "gravity", "rigid_body"])
@@ -90,30 +91,6 @@ def test_lumped_closed_form_matches_autodiff(body, rng):
 # ------------------------------------------------------------------------------------------
 # LGVI
 # ------------------------------------------------------------------------------------------
-def _autodiff_momenta(model, h, x, R, dx, F):
-    """p_k = −D_1 L_d, p_{k+1} = D_2 L_d of MODEL.md §6's L_d at fixed length, with the string
-    kinetic term taken from the model itself: (1/h) Σ ½ Δqᵀ M_str Δq = h T_str(x, Δx/h)."""
-    lay = model.layout
-    J_d, rho, eye = jnp.asarray(model.J_d), jnp.asarray(model.rho_c), jnp.eye(3)
-
-    def Ld(x, R, dx, F):
-        w = jnp.concatenate([dx / h, jnp.zeros(lay.nw - lay.nx)])
-        K = h * model._T_string(x, R, w)
-        dq = model.nodes(dx)[-1]
-        K += model.m_b / (2 * h) * dq @ dq
-        if lay.has_attitude:
-            K += model.m_b / h * dq @ (R @ (F - eye) @ rho) + jnp.trace((eye - F) @ J_d) / h
-        return K - h / 2 * (model.potential(x, R) + model.potential(x + dx, R @ F))
-
-    Lx, Ldx = jax.grad(Ld, argnums=(0, 2))(x, R, dx, F)
-    pk, pk1 = Ldx - Lx, Ldx
-    if lay.has_attitude:
-        Pik = -jax.grad(lambda e: Ld(x, R @ (eye + hat(e)), dx, (eye - hat(e)) @ F))(jnp.zeros(3))
-        Pik1 = jax.grad(lambda e: Ld(x, R, dx, F @ (eye + hat(e))))(jnp.zeros(3))
-        pk, pk1 = jnp.concatenate([pk, Pik]), jnp.concatenate([pk1, Pik1])
-    return np.asarray(pk), np.asarray(pk1)
-
-
 @pytest.mark.parametrize("body", [False, True], ids=["point_mass", "rigid_body"])
 def test_lgvi_lumped_discrete_equations_match_autodiff(body, rng):
     model = build_model(lumped(body=body))
@@ -124,7 +101,7 @@ def test_lgvi_lumped_discrete_equations_match_autodiff(body, rng):
     dx = jnp.asarray(h * w[: lay.nx] + 1e-3 * rng.standard_normal(lay.nx))
     c = jnp.asarray(0.02 * rng.standard_normal(3)) if body else jnp.zeros(3)
     F = cayley(c) if body else jnp.eye(3)
-    auto_k, auto_k1 = _autodiff_momenta(model, h, x, R, dx, F)
+    auto_k, auto_k1 = autodiff_momenta(model, h, 0.0, x, R, dx, F)  # the model's own T_string (lumped)
     ctx = dl.context(0.3, x, R, model.potential_gradient(x, R))
     dq = dx.reshape(model.N, 3)
     cf_k = np.asarray(dl.hp_k_full(ctx, h, 0.0, dq, c)) / h

@@ -131,5 +131,5 @@ def test_bad_toml_file(tmp_path):
 
 
 def test_every_effect_is_known_and_dependencies_closed():
-    for eff, needs in EFFECTS.items():
-        assert all(n in EFFECTS for n in needs)
+    for eff, effect in EFFECTS.items():
+        assert effect.name == eff and all(n in EFFECTS for n in effect.needs)

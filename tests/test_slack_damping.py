@@ -39,7 +39,7 @@ def damped(effects, c=C_DAMP, **kw):
 # Scenes
 # ------------------------------------------------------------------------------------------
 def test_effects_declared_and_depend_on_elasticity():
-    assert EFFECTS["slack"] == ("elasticity",) and EFFECTS["axial_damping"] == ("elasticity",)
+    assert EFFECTS["slack"].needs == ("elasticity",) and EFFECTS["axial_damping"].needs == ("elasticity",)
     s = load_scene("fixed_length", effects=["axial_damping", "gravity", "slack", "elasticity", "rigid_body"],
                    axial_damping=0.25)
     assert s.effects == ("gravity", "elasticity", "rigid_body", "slack", "axial_damping")

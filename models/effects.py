@@ -1,0 +1,450 @@
+"""Physical effects as objects: each effect in one place (models/README.md, "Adding an effect").
+
+A scene lists effects by name; `EFFECTS` maps each name to an `Effect`, in canonical order.
+An effect declares everything it contributes, and nothing else needs to know its name:
+
+* scene format (`models.scene`): the keys it owns (`keys`), their plausible magnitudes
+  (`plausible`), the effects it needs (`needs`) and its own cross-checks (`check`);
+* state layout (`models.layout`): coordinates it adds (`state`) and whether it does
+  non-conservative work (`forcing`, which puts W in the ODE state);
+* physics (`models.model.StringPendulum`, assembled once per scene): potential terms with
+  their closed-form gradients (`potentials`), kinetic terms (`kinetic`), reel forces on s_p
+  (`reel_forces`), string forces over w's layout (`string_forces`), a change of the elastic
+  law (`elastic_law`), its share of the energy scale (`energy_scale`) and the power its
+  forces claim (`power`, checked by the tests).
+
+The integrators read only the model's totals (`potential_gradient`, `reel_force`,
+`string_force`, `generalized_force`, `potential`, `kinetic`), so a new potential or force
+needs no integrator edit: `register_effect` adds one at run time (tests/test_effect_plugin.py).
+
+No JAX at import: `models.scene` validates scenes before JAX is loaded (the command line
+refuses bad input fast), so the physics hooks import `models._jax` when they are called.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable, NamedTuple
+
+import numpy as np
+
+E3 = np.array([0.0, 0.0, 1.0])
+
+
+@dataclass(frozen=True)
+class Key:
+    """Schema entry of one scene key: type, constraint and default."""
+
+    kind: str  # "float", "int", "str", "vec3", "mat3", "effects"
+    rule: str = "finite"  # "finite", "positive", "nonnegative", "nonzero", ...
+    default: Any = None
+    required_by: tuple[str, ...] | None = None  # required iff all these effects are listed
+    required: bool = False
+    # A key that exists only for its effect (`required_by`): refused without it, and left out
+    # of the validated dict (hence of `Scene.key()`) when absent, so scenes without the
+    # effect keep their hash.
+    only_with_effect: bool = False
+    # A key added after results were keyed: left out of `Scene.key()` at its default, so
+    # that existing scenes keep their key.
+    hashed_at_default: bool = True
+
+
+class PotentialTerm(NamedTuple):
+    """V(x, R) and its closed-form gradient over w's layout (∂V/∂s_p, ∂V/∂q, ∂V/∂η).
+
+    ∂V/∂η is the derivative along R(I + η^). The tests check ``gradient`` against autodiff of
+    ``energy`` for every registered effect (tests/test_effects.py).
+    """
+
+    energy: Callable
+    gradient: Callable
+
+
+class Effect:
+    """One physical effect. Subclass, set the class attributes, override the hooks you need.
+
+    Every physics hook takes the `StringPendulum` being built (parameters and kinematics
+    live there: ``model.nodes``, ``model.element_length``, ``model.over_w`` …) and returns
+    functions of the state; a hook an effect does not override contributes nothing.
+    """
+
+    name: str = ""
+    needs: tuple[str, ...] = ()
+    #: a string is not a model without it (`elasticity`)
+    required: bool = False
+    #: coordinates this effect adds to the state: "s_p" (the reel), "attitude" (R, Ω)
+    state: tuple[str, ...] = ()
+    #: adds non-conservative generalized forces: their work W is carried in the ODE state
+    forcing: bool = False
+    #: its forces never add energy (power ≤ 0; checked by the tests)
+    dissipative: bool = False
+    #: scene keys it owns: {section: {key: Key}} ("" for a top-level key)
+    keys: dict[str, dict[str, Key]] = {}
+    #: plausible magnitudes of its keys, {"section.key": (low, high)} (see `models.scene.PLAUSIBLE`)
+    plausible: dict[str, tuple[float, float]] = {}
+    #: one line for the README's table and error messages
+    summary: str = ""
+
+    # -- scene rules ----------------------------------------------------------------------
+    def check(self, v, d: dict, effects: tuple[str, ...]) -> None:
+        """Cross-checks of the validated scene dict ``d``, run for every registered effect,
+        listed or not (``self.name in effects``); raise through ``v.fail`` / `SceneError`."""
+
+    # -- physics --------------------------------------------------------------------------
+    def kinetic(self, model) -> dict[str, Callable]:
+        """{name: T(x, R, w)}; a name already present (e.g. "T_body") is replaced."""
+        return {}
+
+    def potentials(self, model) -> dict[str, PotentialTerm]:
+        return {}
+
+    def reel_forces(self, model) -> dict[str, Callable]:
+        """{name: Q(t, x, w)}, scalar forces on s_p that depend on w only through ṡ_p."""
+        return {}
+
+    def string_forces(self, model) -> dict[str, Callable]:
+        """{name: Q(t, x, w)}, vectors over w's layout acting on (s_p, q), not on Ω."""
+        return {}
+
+    def elastic_law(self, model) -> tuple[Callable, Callable] | None:
+        """(taut_length(stretch, l), clip_tension(tension)) replacing the two-sided law, or None."""
+        return None
+
+    def energy_scale(self, model) -> float:
+        """The most energy this effect can supply over the run beyond T(0) + Σ|V(0)| (J)."""
+        return 0.0
+
+    def power(self, model, t, x, w):
+        """Q·w of this effect's forces in closed form (None: no forces)."""
+        return None
+
+    def __repr__(self) -> str:
+        return f"<effect {self.name!r}>"
+
+
+# --------------------------------------------------------------------------------------------
+# The built-in effects (MODEL.md §3, §8; models/README.md "Effects")
+# --------------------------------------------------------------------------------------------
+
+
+class Gravity(Effect):
+    name = "gravity"
+    summary = "potential of the string, the body and the reel-side string (g along +e3)"
+
+    def potentials(self, m):
+        from models._jax import jnp
+
+        e3 = jnp.asarray(E3)
+
+        def V_string(x, R):
+            q, l = m.nodes(x), m.element_length(x)
+            mid = m.r_p + 0.5 * (q[:-1] + q[1:])  # each element at its midpoint
+            return -m.mu * m.g * l * jnp.sum(mid[:, 2])
+
+        def dV_string(x, R):
+            q, l = m.nodes(x), m.element_length(x)
+            weights = jnp.ones(m.N).at[-1].set(0.5)  # node N+1 ends one element only
+            dq = -(m.mu * m.g * l) * weights[:, None] * e3[None, :]
+            # l = (L − s_p)/N: ∂V/∂s_p = μ g Σ mid_z / N
+            ds = jnp.sum(m.mu * m.g * (2 * m.r_p[2] + q[:-1, 2] + q[1:, 2])) / (2 * m.N)
+            return m.over_w(ds=ds, dq=dq)
+
+        def V_body(x, R):
+            tip = m.r_p + m.nodes(x)[-1]
+            if m.layout.has_attitude:
+                tip = tip + R @ m.rho_c
+            return -m.m_b * m.g * tip[2]
+
+        def dV_body(x, R):
+            dq = jnp.zeros((m.N, 3)).at[-1].set(-m.m_b * m.g * e3)
+            # the negative gravity moment about the attachment point
+            deta = -m.m_b * m.g * jnp.cross(m.rho_c, R.T @ e3) if m.layout.has_attitude else None
+            return m.over_w(dq=dq, deta=deta)
+
+        terms = {"V_string_gravity": PotentialTerm(V_string, dV_string),
+                 "V_body_gravity": PotentialTerm(V_body, dV_body)}
+        if m.layout.has_reel:
+            def V_reel(x, R):
+                """Reel-side string: the part stored on the drum and in the guide way."""
+                s = x[0]
+                return -m.mu * m.g * s * (E3 @ m.r_d) - m.mu * m.g * m.d**2 * jnp.cos((s - m.b) / m.d)
+
+            def dV_reel(x, R):
+                s = x[0]
+                return m.over_w(ds=-m.mu * m.g * m.r_d[2] + m.mu * m.g * m.d * jnp.sin((s - m.b) / m.d))
+
+            terms["V_reel"] = PotentialTerm(V_reel, dV_reel)
+        return terms
+
+    def energy_scale(self, m):
+        # the most potential energy gravity could release over the whole string length
+        reach = m.L + float(np.linalg.norm(m.rho_c)) + float(np.linalg.norm(m.r_d)) + m.d
+        return m.g * (m.m_b + m.mu * m.L) * reach
+
+
+class Elasticity(Effect):
+    name = "elasticity"
+    required = True
+    summary = "axial strain energy (EA/2l)(stretched length − l)² of every element"
+
+    def potentials(self, m):
+        from models._jax import jnp
+
+        def V(x, R):
+            """Σ_a (EA/2l)(|q_{a+1} − q_a| − l)², or with `slack` Σ_a (EA/2l) max(|q_{a+1} − q_a| − l, 0)²."""
+            q, l = m.nodes(x), m.element_length(x)
+            taut = m._taut_length(jnp.linalg.norm(q[1:] - q[:-1], axis=1), l)
+            return jnp.sum(m.EA / (2 * l) * (taut - l) ** 2)
+
+        def dV(x, R):
+            q, l = m.nodes(x), m.element_length(x)
+            delta = q[1:] - q[:-1]
+            stretch = jnp.linalg.norm(delta, axis=1)
+            taut = m._taut_length(stretch, l)  # = stretch, or max(stretch, l) with `slack`
+            grad_e = (m.EA / l * (taut - l) / stretch)[:, None] * delta  # ∇V^e_a, a = 1..N
+            dq = jnp.concatenate([grad_e[:-1] - grad_e[1:], grad_e[-1:]], axis=0)  # nodes 2..N+1
+            ds = jnp.sum(m.EA / l**2 * (taut**2 - l**2)) / (2 * m.N)
+            return m.over_w(ds=ds, dq=dq)
+
+        return {"V_elastic": PotentialTerm(V, dV)}
+
+
+class RigidBody(Effect):
+    name = "rigid_body"
+    state = ("attitude",)
+    summary = "attitude R and angular velocity Ω as state; inertia J_c and offset ρ_c"
+    keys = {
+        "body": {
+            "box": Key("vec3", "positive"),
+            "inertia": Key("mat3", "spd"),
+            "attachment_to_com": Key("vec3", default=(0.0, 0.0, 0.0)),
+        },
+        "initial": {
+            "attitude": Key("mat3", "rotation", default=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))),
+            "angular_velocity": Key("vec3", default=(0.0, 0.0, 0.0)),
+        },
+    }
+    plausible = {"body.box": (1e-6, 1e4), "body.attachment_to_com": (0.0, 1e4), "initial.angular_velocity": (0.0, 1e5)}
+
+    def check(self, v, d, effects):
+        from models.scene import SceneError
+
+        b, i = d["body"], d["initial"]
+        if self.name in effects:
+            if b["box"] is not None and b["inertia"] is not None:
+                raise SceneError(f"{v.source}: keys 'body.box' and 'body.inertia' are alternatives: give one")
+            if b["box"] is None and b["inertia"] is None:
+                raise SceneError(f"{v.source}: missing key 'body.box' or 'body.inertia' (needed by effect rigid_body)")
+        elif any(x != 0.0 for x in i["angular_velocity"]):
+            raise v.fail("initial.angular_velocity", i["angular_velocity"],
+                         "[0, 0, 0] without effect 'rigid_body' (a point mass has no attitude)")
+
+    def kinetic(self, m):
+        return {"T_body": m._T_rigid_body}  # replaces the point mass's T_body
+
+
+class Reel(Effect):
+    name = "reel"
+    state = ("s_p",)
+    summary = "s_p as a coordinate: drum and reel-side inertia, axial-flow coupling"
+    keys = {
+        "reel": {
+            "radius": Key("float", "positive", required_by=("reel",), default=1.0),
+            "center": Key("vec3", required_by=("reel",), default=(0.0, 0.0, 0.0)),
+            "guide_length": Key("float", "positive", required_by=("reel",), default=0.0),
+            "equivalent_mass": Key("float", "positive", required_by=("reel",), default=1.0),
+        },
+        "initial": {"reel_rate": Key("float", default=0.0)},
+    }
+    plausible = {"reel.radius": (1e-6, 1e4), "reel.center": (0.0, 1e5), "reel.guide_length": (0.0, 1e5),
+                 "reel.equivalent_mass": (1e-9, 1e9), "initial.reel_rate": (0.0, 1e4)}
+
+    def check(self, v, d, effects):
+        from models.scene import SceneError
+
+        if self.name in effects and d["string"]["mass_model"] == "lumped":
+            # the lumped string's axial-flow terms (its M0 and M31/M23) are not derived (MODEL.md §8)
+            raise SceneError(
+                f"{v.source}: key 'string.mass_model' = 'lumped' is not available with effect 'reel': "
+                f"allowed 'consistent' with a reel (the lumped string's axial-flow terms are not derived, "
+                f"MODEL.md §8); 'lumped' needs a fixed-length scene"
+            )
+        if self.name not in effects and d["initial"]["reel_rate"] != 0.0:
+            raise v.fail("initial.reel_rate", d["initial"]["reel_rate"], "0 without effect 'reel' (the length is fixed)")
+
+    def kinetic(self, m):
+        return {"T_reel": m._T_reel}
+
+
+class Carnot(Effect):
+    name = "carnot"
+    needs = ("reel",)
+    forcing = True
+    dissipative = True
+    summary = "Carnot loss of the velocity jump at the guide-way exit (a force on s_p)"
+
+    def reel_forces(self, m):
+        return {"Q_carnot": lambda t, x, w: self._jump_force(m, x, w)}
+
+    @staticmethod
+    def _jump_force(m, x, w):
+        """Q_c = -½ μ ṡ|ṡ| |q_2/l − t_g|², so Q_c ṡ = -½ μ |ṡ|³ |q_2/l − t_g|² ≤ 0."""
+        from models._jax import jnp
+
+        sd = w[0]
+        jump = m.nodes(x)[1] / m.element_length(x) - m.t_g
+        return -0.5 * m.mu * sd * jnp.abs(sd) * (jump @ jump)
+
+    def power(self, m, t, x, w):
+        from models._jax import jnp
+
+        jump = m.nodes(x)[1] / m.element_length(x) - m.t_g
+        return -0.5 * m.mu * jnp.abs(w[0]) ** 3 * (jump @ jump)
+
+
+class ReelControl(Effect):
+    name = "reel_control"
+    needs = ("reel",)
+    forcing = True
+    summary = "constant drum moment u (reel.control_moment) as the force u/d on s_p"
+    keys = {"reel": {"control_moment": Key("float", default=0.0)}}
+    plausible = {"reel.control_moment": (0.0, 1e12)}
+
+    def check(self, v, d, effects):
+        u = d["reel"]["control_moment"]
+        if self.name not in effects and u != 0.0 and "reel" in effects:
+            raise v.fail("reel.control_moment", u, "0 without effect 'reel_control'")
+
+    def reel_forces(self, m):
+        from models._jax import jnp
+
+        return {"Q_control": lambda t, x, w: jnp.asarray(m.u / m.d)}
+
+    def energy_scale(self, m):
+        # the most work the constant moment can do over the whole string length
+        return abs(m.u) * m.L / m.d
+
+    def power(self, m, t, x, w):
+        return m.u / m.d * w[0]
+
+
+def _tension_only(stretch, l):
+    """Elastic length of a tension-only element: max(stretch, l), no energy when shorter."""
+    from models._jax import jnp
+
+    return jnp.maximum(stretch, l)
+
+
+def _clip_compression(tension):
+    from models._jax import jnp
+
+    return jnp.maximum(tension, 0.0)
+
+
+class Slack(Effect):
+    name = "slack"
+    needs = ("elasticity",)
+    summary = "tension-only elasticity: max(stretch − l, 0) in V_elastic; tensions clipped at 0"
+
+    def elastic_law(self, m):
+        # max(|q_{a+1} − q_a|, l): V_e, its gradient and the tensions all get max(|Δq| − l, 0)
+        return _tension_only, _clip_compression
+
+
+class AxialDamping(Effect):
+    name = "axial_damping"
+    needs = ("elasticity",)
+    forcing = True
+    dissipative = True
+    summary = "Kelvin–Voigt damping c ε̇ of each element's strain rate (string.axial_damping = c)"
+    keys = {"string": {"axial_damping": Key("float", "nonnegative", required_by=("axial_damping",),
+                                            only_with_effect=True)}}
+    plausible = {"string.axial_damping": (0.0, 1e12)}
+
+    def string_forces(self, m):
+        from models._jax import jnp
+
+        c = m.scene.string.axial_damping
+
+        def Q(t, x, w):
+            """Kelvin–Voigt strain-rate damping: Q = −∂D/∂w, D = Σ_a (c l/2) ε̇_a² (Rayleigh).
+
+            Element a carries the damping tension τ_a = c ε̇_a along ê_a = (q_{a+1} − q_a)/|q_{a+1} − q_a|:
+            it pulls node a by +τ_a ê_a and node a+1 by −τ_a ê_a; on s_p (through l) it gives
+            −Σ_a τ_a |q_{a+1} − q_a| / (N l). The dashpot acts in compression too (also with
+            `slack`), which keeps Q smooth in the state.
+            """
+            q, l = m.nodes(x), m.element_length(x)
+            delta = q[1:] - q[:-1]
+            stretch = jnp.linalg.norm(delta, axis=1)
+            tau = c * m.strain_rates(x, w)
+            f = (tau / stretch)[:, None] * delta  # τ_a ê_a, a = 1..N
+            fq = jnp.concatenate([f[1:], jnp.zeros((1, 3))], axis=0) - f  # nodes 2..N+1
+            return m.over_w(ds=-jnp.sum(tau * stretch) / (m.N * l), dq=fq)
+
+        return {"Q_axial_damping": Q}
+
+    def power(self, m, t, x, w):
+        from models._jax import jnp
+
+        rate = m.strain_rates(x, w)
+        return -jnp.sum(m.scene.string.axial_damping * m.element_length(x) * rate * rate)
+
+
+# --------------------------------------------------------------------------------------------
+# Registry
+# --------------------------------------------------------------------------------------------
+
+#: Every effect a scene may list, by name, in canonical order (the order of `Scene.effects`,
+#: hence of `Scene.key()`: append new effects, never reorder).
+EFFECTS: dict[str, Effect] = {}
+
+
+def register_effect(effect: Effect) -> Effect:
+    """Add ``effect`` to the registry (at the end of the canonical order); returns it.
+
+    Its scene keys become valid at once (scenes are validated against the registry as it is
+    when they are loaded); a model built afterwards composes its terms.
+    """
+    if not isinstance(effect, Effect) or not effect.name:
+        raise TypeError(f"register_effect needs an Effect instance with a name, not {effect!r}")
+    if effect.name in EFFECTS:
+        raise ValueError(f"effect {effect.name!r} is already registered")
+    for need in effect.needs:
+        if need not in EFFECTS:
+            raise ValueError(f"effect {effect.name!r} needs {need!r}, which is not registered")
+    owned = {(s, k) for e in EFFECTS.values() for s, sec in e.keys.items() for k in sec}
+    from models.scene import BASE_SCHEMA  # the structural keys (no import cycle at call time)
+
+    for section, sec in effect.keys.items():
+        for key in sec:
+            base = BASE_SCHEMA.get(section) if section else BASE_SCHEMA.get(key)
+            if (section, key) in owned or (isinstance(base, dict) and key in base) or (not section and base):
+                raise ValueError(f"effect {effect.name!r}: scene key '{section + '.' if section else ''}{key}' "
+                                 f"is already defined")
+    EFFECTS[effect.name] = effect
+    return effect
+
+
+def unregister_effect(name: str) -> Effect:
+    """Remove an effect added by `register_effect` (built-in effects cannot be removed)."""
+    if name in _BUILTIN:
+        raise ValueError(f"effect {name!r} is built in and cannot be unregistered")
+    dependants = [e.name for e in EFFECTS.values() if name in e.needs]
+    if dependants:
+        raise ValueError(f"effect {name!r} is needed by {', '.join(dependants)}")
+    return EFFECTS.pop(name)
+
+
+def effect_keys() -> dict[str, dict[str, Key]]:
+    """{section: {key: Key}} of every registered effect's keys ("" = top level), registry order."""
+    out: dict[str, dict[str, Key]] = {}
+    for e in EFFECTS.values():
+        for section, sec in e.keys.items():
+            out.setdefault(section, {}).update(sec)
+    return out
+
+
+for _e in (Gravity(), Elasticity(), RigidBody(), Reel(), Carnot(), ReelControl(), Slack(), AxialDamping()):
+    EFFECTS[_e.name] = _e
+_BUILTIN = frozenset(EFFECTS)
