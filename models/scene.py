@@ -508,6 +508,12 @@ class _Validator:
                 allowed = "a string" if spec.kind == "str" else _RULE_TEXT.get(spec.rule, spec.kind)
                 raise SceneError(f"{self.source}: missing key '{key}'{why}: allowed {allowed}")
             return copy.deepcopy(spec.default)
+        if (spec.required_by is not None and not all(e in effects for e in spec.required_by)
+                and spec.default is not None and value == spec.default):
+            # the default of a key whose effect is not listed, as `Scene.to_dict` writes it back
+            # for a file without that key: `with_` must accept the scene it was given (a reel
+            # key's default, e.g. guide_length = 0, need not meet the rule it has with a reel)
+            return copy.deepcopy(spec.default)
         if spec.kind == "str":
             if spec.rule == "mass_model" and value not in MASS_MODELS:
                 raise self.fail(key, repr(value), _RULE_TEXT["mass_model"])

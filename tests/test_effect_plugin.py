@@ -125,7 +125,7 @@ mass = 1.0
 box = [0.6, 0.4, 0.2]
 attachment_to_com = [0.3, 0.2, 0.1]
 [reel]
-guide_length = 1.0  # (its default 0 is refused when the scene is re-validated by with_)
+guide_length = 1.0
 [initial]
 deployed_length = 10.0
 direction = [0.7071067811865476, 0.0, 0.7071067811865476]

@@ -50,6 +50,21 @@ def test_scene_round_trip_and_with():
     assert s.with_(elements=5).string.elements == 5
 
 
+def test_with_accepts_a_scene_whose_file_has_no_reel_table():
+    """A fixed-length file without [reel] gets the reel keys' defaults (guide_length = 0, which a
+    reel scene would refuse): `with_` re-validates what `to_dict` writes back, and must accept it."""
+    d = load_scene("fixed_length").to_dict()
+    del d["reel"]
+    s = scene_from_dict(d)
+    assert s.reel.guide_length == 0.0
+    assert s.with_(elements=5).string.elements == 5 and s.with_(elements=5).reel == s.reel
+    # with a reel, an explicit 0 is still refused
+    dep = load_scene("deployment").to_dict()
+    dep["reel"]["guide_length"] = 0.0
+    with pytest.raises(SceneError, match="guide_length"):
+        scene_from_dict(dep)
+
+
 @pytest.mark.parametrize(
     "mutate, fragments",
     [
