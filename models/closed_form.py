@@ -60,7 +60,7 @@ class ClosedFormEOM:
         self.model = model
         self.layout = model.layout
         m = model
-        self.N, self.mu, self.m_b, self.L, self.kappa = m.N, m.mu, m.m_b, m.L, m.kappa
+        self.N, self.mu, self.m_b, self.L = m.N, m.mu, m.m_b, m.L  # κ_d enters only through M0 (the model's)
         self.c31, self.c23 = np.asarray(m.c31), np.asarray(m.c23)
         self.rho_c, self.J_o, self.J_c = np.asarray(m.rho_c), np.asarray(m.J_o), np.asarray(m.J_c)
         self.rho_hat = np.array(hat(self.rho_c))
