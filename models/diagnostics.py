@@ -40,7 +40,7 @@ def point_diagnostics(model: StringPendulum, x, R, w, W) -> dict:
     ang = jnp.sum(jnp.cross(q, pq), axis=0)
     if lay.has_attitude:
         ang = ang + R @ p[lay.omega]
-    stretch = jnp.linalg.norm(q[1:] - q[:-1], axis=1)
+    _, stretch, _ = model.elements(x)
     tension = model.tensions(x)
     # gravity's own terms (string, body and, with a reel, the reel-side string), whatever they are named
     v_gravity = sum((pot[k] for k in model.terms_of("gravity")), 0.0)

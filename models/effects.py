@@ -192,14 +192,12 @@ class Elasticity(Effect):
 
         def V(x, R):
             """Σ_a (EA/2l)(|q_{a+1} − q_a| − l)², or with `slack` Σ_a (EA/2l) max(|q_{a+1} − q_a| − l, 0)²."""
-            q, l = m.nodes(x), m.element_length(x)
-            taut = m._taut_length(jnp.linalg.norm(q[1:] - q[:-1], axis=1), l)
+            _, stretch, l = m.elements(x)
+            taut = m._taut_length(stretch, l)
             return jnp.sum(m.EA / (2 * l) * (taut - l) ** 2)
 
         def dV(x, R):
-            q, l = m.nodes(x), m.element_length(x)
-            delta = q[1:] - q[:-1]
-            stretch = jnp.linalg.norm(delta, axis=1)
+            delta, stretch, l = m.elements(x)
             taut = m._taut_length(stretch, l)  # = stretch, or max(stretch, l) with `slack`
             grad_e = (m.EA / l * (taut - l) / stretch)[:, None] * delta  # ∇V^e_a, a = 1..N
             dq = jnp.concatenate([grad_e[:-1] - grad_e[1:], grad_e[-1:]], axis=0)  # nodes 2..N+1
@@ -374,9 +372,7 @@ class AxialDamping(Effect):
             −Σ_a τ_a |q_{a+1} − q_a| / (N l). The dashpot acts in compression too (also with
             `slack`), which keeps Q smooth in the state.
             """
-            q, l = m.nodes(x), m.element_length(x)
-            delta = q[1:] - q[:-1]
-            stretch = jnp.linalg.norm(delta, axis=1)
+            delta, stretch, l = m.elements(x)
             tau = c * m.strain_rates(x, w)
             f = (tau / stretch)[:, None] * delta  # τ_a ê_a, a = 1..N
             fq = jnp.concatenate([f[1:], jnp.zeros((1, 3))], axis=0) - f  # nodes 2..N+1

@@ -270,14 +270,20 @@ class StringPendulum:
             parts.append(jnp.zeros(3) if deta is None else deta)
         return jnp.concatenate(parts)
 
+    def elements(self, x):
+        """(Δ_a = q_{a+1} − q_a (N, 3), stretched lengths |Δ_a| (N,), unstretched length l) of the
+        elements a = 1..N: what the elastic law, the damping and the tensions are written in."""
+        q = self.nodes(x)
+        delta = q[1:] - q[:-1]
+        return delta, jnp.linalg.norm(delta, axis=1), self.element_length(x)
+
     def strain_rates(self, x, w):
         """ε̇_a = d/dt (|q_{a+1} − q_a| / l − 1) = ê_a·(q̇_{a+1} − q̇_a)/l + |q_{a+1} − q_a| ṡ_p/(N l²).
 
         (l = (L − s_p)/N, so l̇ = −ṡ_p/N; the ṡ_p term is absent for a fixed length.)
         """
-        q, v, l = self.nodes(x), self.node_velocities(w), self.element_length(x)
-        delta = q[1:] - q[:-1]
-        stretch = jnp.linalg.norm(delta, axis=1)
+        v = self.node_velocities(w)
+        delta, stretch, l = self.elements(x)
         rate = jnp.sum(delta * (v[1:] - v[:-1]), axis=1) / (stretch * l)
         if self.layout.has_reel:
             rate = rate + stretch * self.reel_rate(w) / (self.N * l * l)
@@ -339,8 +345,8 @@ class StringPendulum:
     def tensions(self, x):
         """Elastic element tensions EA (|q_{a+1} - q_a| / l - 1), a = 1..N (negative = compression;
         clipped at 0 with `slack`). The damping tension c ε̇_a is not included (it needs w)."""
-        q, l = self.nodes(x), self.element_length(x)
-        return self._clip_tension(self.EA * (jnp.linalg.norm(q[1:] - q[:-1], axis=1) / l - 1.0))
+        _, stretch, l = self.elements(x)
+        return self._clip_tension(self.EA * (stretch / l - 1.0))
 
     def deployed_length_margin(self, x):
         """Distance of the deployed length L - s_p from the ends of its range (ℓ_min, L - b).
