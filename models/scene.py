@@ -347,6 +347,7 @@ class _Validator:
     def __init__(self, source: str, overridden: set[str] = frozenset()):
         self.source = source
         self.overridden = overridden  # keys whose value came from an override, not the file
+        self.ranges = plausible_ranges()  # the registry's, as it is for this scene
 
     def _where(self, key: str) -> str:
         return f"{self.source} (overridden)" if key in self.overridden else self.source
@@ -485,12 +486,12 @@ class _Validator:
 
     def value(self, key: str, value: Any, spec: _Key, effects) -> Any:
         out = self._value(key, value, spec, effects)
-        if key in plausible_ranges() and value is not None:
+        if key in self.ranges and value is not None:
             self.plausible(key, value, out)
         return out
 
     def plausible(self, key: str, raw: Any, value: Any) -> None:
-        lo, hi = plausible_ranges()[key]
+        lo, hi = self.ranges[key]
         if isinstance(raw, (list, tuple)):  # a vector: its length (nonzero rules normalise `value`)
             mag = math.sqrt(sum(float(x) ** 2 for x in raw))
         else:
