@@ -44,10 +44,9 @@ from integrators import rhs as _rhs
 from integrators.base import (Capability, Integrator, Status, Trajectory, check_positive,
                               energy_error_ode, energy_reason, save_times, stamp_wall_time,
                               build_model_timed)
-from integrators.lifecycle import (BLOWUP, blowup_reason, check_max_steps, check_options, check_tolerances,
-                                   guards_timed, length_reason, resolve_scene)
-from integrators.lifecycle import ode_trajectory
-from integrators.scipy_ivp import energy_guard, finite_prefix
+from integrators.lifecycle import (blowup_reason, check_max_steps, check_options, check_tolerances, energy_guard,
+                                   finite_prefix, guards_timed, length_reason, ode_trajectory, resolve_scene,
+                                   state_ok)
 from models._jax import jax, jnp
 
 #: Default step budget (diffrax's own default, 4096, is too small for tight tolerances here).
@@ -244,7 +243,7 @@ class DiffraxODE(Integrator):
             ts, ys = np.zeros(1), np.asarray(y0, dtype=float)[None, :]
         reason = ""
         if code_status is None:  # the event: which guard stopped the run
-            if not (np.all(np.isfinite(y_final)) and np.max(np.abs(y_final)) < BLOWUP):
+            if not state_ok(y_final):
                 status = Status.DIVERGED
                 reason = blowup_reason(f"the step ending at t = {t_final:.6g}")
             elif not e_err(y_final) <= e_bound:

@@ -155,6 +155,31 @@ def _model_guards(model) -> Guards:
     return Guards(E0=initial_energy(model), energy_bound=energy_bound(model))
 
 
+def finite_prefix(y: np.ndarray, blowup: float = BLOWUP) -> int:
+    """Number of leading rows of y that are finite and below ``blowup`` in magnitude."""
+    good = np.all(np.isfinite(y), axis=1) & np.all(np.abs(np.nan_to_num(y, nan=np.inf)) < blowup, axis=1)
+    bad = np.flatnonzero(~good)
+    return int(bad[0]) if bad.size else len(y)
+
+
+def state_ok(y: np.ndarray, blowup: float = BLOWUP) -> bool:
+    """One state is finite and below ``blowup`` in magnitude (the blow-up guard, in numpy)."""
+    return bool(np.all(np.isfinite(y)) and np.max(np.abs(y)) < blowup)
+
+
+@functools.lru_cache(maxsize=64)
+def energy_guard(model):
+    """(error, bound): ``error(y)`` = |E − W − E0| of an ODE state (float, jitted), and the bound
+    of `integrators.base.energy_bound` beyond which the run is ``diverged`` (the model's `Guards`).
+    The adapters check it on the states they save."""
+    from integrators.base import energy_error_ode
+    from models._jax import jax
+
+    guards = Guards.for_model(model)
+    f = jax.jit(lambda y: energy_error_ode(model, y, guards.E0))
+    return (lambda y: float(f(y))), guards.energy_bound
+
+
 def blowup_reason(where: str, blowup: float = BLOWUP) -> str:
     """The `reason` of a run stopped by a non-finite or blown-up state; ``where`` says when."""
     return f"non-finite or blown-up state (|y| >= {blowup:g}) in {where}"

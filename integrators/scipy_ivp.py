@@ -26,28 +26,16 @@ from scipy import integrate as _si
 from scipy.optimize import brentq
 
 from integrators import rhs as _rhs
-from integrators.base import (Capability, Integrator, Status, Trajectory, check_positive, energy_error_ode,
-                              energy_reason, save_times, stamp_wall_time, build_model_timed)
-from integrators.lifecycle import (BLOWUP, Guards, blowup_reason, check_max_steps, check_options, check_tolerances,
-                                   length_reason, ode_trajectory, resolve_scene)
-from models._jax import jax
+from integrators.base import (Capability, Integrator, Status, Trajectory, check_positive, energy_reason, save_times,
+                              stamp_wall_time, build_model_timed)
+from integrators.lifecycle import (blowup_reason, check_max_steps, check_options, check_tolerances, energy_guard,
+                                   finite_prefix, length_reason, ode_trajectory, resolve_scene, state_ok)
 
 
 
 # ------------------------------------------------------------------------------------------
-# Helpers shared with `integrators.diffrax_ode` (validation and assembly: `integrators.lifecycle`)
+# The length-limit event in numpy (the checks of saved states are `integrators.lifecycle`'s)
 # ------------------------------------------------------------------------------------------
-def finite_prefix(y: np.ndarray) -> int:
-    """Number of leading rows of y that are finite and below `BLOWUP` in magnitude."""
-    good = np.all(np.isfinite(y), axis=1) & np.all(np.abs(np.nan_to_num(y, nan=np.inf)) < BLOWUP, axis=1)
-    bad = np.flatnonzero(~good)
-    return int(bad[0]) if bad.size else len(y)
-
-
-def state_ok(y: np.ndarray) -> bool:
-    return bool(np.all(np.isfinite(y)) and np.max(np.abs(y)) < BLOWUP)
-
-
 @functools.lru_cache(maxsize=64)
 def margin_function(model):
     """Deployed-length margin of an ODE state (None for a fixed-length scene): the same formula
@@ -62,15 +50,6 @@ def margin_function(model):
         ell = L - float(y[i_s])
         return min(ell - lo, hi - ell)
     return margin
-
-
-@functools.lru_cache(maxsize=64)
-def energy_guard(model):
-    """(error, bound): ``error(y)`` = |E − W − E0| of an ODE state (float), and the bound of
-    `integrators.base.energy_bound` beyond which the run is ``diverged`` (the lifecycle's `Guards`)."""
-    guards = Guards.for_model(model)
-    f = jax.jit(lambda y: energy_error_ode(model, y, guards.E0))
-    return (lambda y: float(f(y))), guards.energy_bound
 
 
 def normalise_quaternion(model, y: np.ndarray) -> None:
