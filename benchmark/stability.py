@@ -324,7 +324,6 @@ def plot(df: pd.DataFrame, out_dir: Path) -> Path:
     a1.set_title("fixed-step methods: largest dt that stays bounded")
     a2.set_title(f"adaptive methods at rtol {ADAPTIVE_RTOL:g}: steps per second of horizon")
     adaptive = df[df["kind"] == "adaptive"]
-    markers = {True: "o", False: "x"}
     for k, (integ, g) in enumerate(adaptive.groupby("integrator", sort=False)):
         g = g.set_index("scene").reindex(scenes)
         rate = g["steps"] / g["t_reached"].where(g["t_reached"] > 0)
