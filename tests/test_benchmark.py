@@ -1,7 +1,6 @@
 """The benchmark runner on a tiny sweep: rows, statuses, atomic writes, cached references."""
 
 import numpy as np
-import pandas as pd
 import pytest
 
 from benchmark import runner, sweep

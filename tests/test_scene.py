@@ -1,6 +1,5 @@
 """Scene loading and validation: every rule of models/README.md refuses bad input with a clear message."""
 
-import copy
 import tomllib
 
 import numpy as np
