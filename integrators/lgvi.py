@@ -37,7 +37,7 @@ import numpy as np
 from integrators._lgvi_core import DiscreteLagrangian, cayley, small_solve
 from integrators.base import (Capability, Integrator, Status, Trajectory, check_positive, energy_error,
                               energy_reason, stamp_wall_time, build_model_timed)
-from integrators.lifecycle import bucket, guards_timed, check_fixed_step, resolve_scene, step_indices  # noqa: F401
+from integrators.lifecycle import bucket, check_fixed_step, guards_timed, resolve_scene, step_indices
 from integrators.rhs import closed_form_of
 from integrators.registry import register
 from models._jax import jax, jnp
@@ -259,9 +259,6 @@ def _make_run(model, scheme: Scheme = SECTION6):
     return run
 
 
-_bucket = bucket  # the lifecycle's save-buffer length
-
-
 def _compiled_run(model, n_buf, example_args, scheme: Scheme = SECTION6):
     """AOT-compiled run for (model, buffer length, scheme); returns (compiled, compile_seconds)."""
     key = (id(model), n_buf, scheme)
@@ -345,7 +342,7 @@ class LGVI(Integrator):
         x0, R0, w0 = (jnp.asarray(a) for a in model.initial_state())
         p0 = _mass_matrix_fn(model)(x0, R0, w0)  # compiled on first use: counted as compile time
         compile_p0 = time.perf_counter() - tc
-        n_buf = _bucket(len(idx))
+        n_buf = bucket(len(idx))
         idx_buf = np.full(n_buf, idx[-1], dtype=np.int64)
         idx_buf[: len(idx)] = idx
         # numpy, not jnp: an eager int64 -> int32 conversion compiles on first use (~0.1 s each, in the run time)
