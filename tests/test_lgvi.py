@@ -128,23 +128,32 @@ def test_closed_form_residuals_match_autodiff_discrete_lagrangian(variant, rng):
         F = cayley(c) if lay.has_attitude else jnp.eye(3)
         auto_k, auto_k1 = autodiff_momenta(model, h, 0.3, x, R, dx, F)
         ctx = dl.context(0.3, x, R, model.potential_gradient(x, R))
-        ds = dx[0] if lay.has_reel else 0.0
-        dq = dx[lay.nodes].reshape(model.N, 3)
-        cf_k = np.asarray(dl.hp_k_full(ctx, h, ds, dq, c)) / h
-        cf_k1 = np.asarray(dl.hp_k1(ctx, h, ds, dq, c, model.potential_gradient(x + dx, R @ F))) / h
-        scale = np.max(np.abs(auto_k)) + np.max(np.abs(auto_k1))
-        assert np.max(np.abs(cf_k - auto_k)) < 1e-10 * scale
-        assert np.max(np.abs(cf_k1 - auto_k1)) < 1e-10 * scale
-        # the eliminated (reduced) residual used by Newton vanishes where the full one does
-        if dl.nz:
-            z = dl.pack_z(ds, c)
-            p_k = jnp.asarray(cf_k)
-            r, J, dq_red = dl.reduced_system(ctx, p_k, h, z, None if lay.has_reel else dl.string_solve(ctx, p_k[lay.nodes].reshape(-1, 3), h, 0.0))
-            assert np.max(np.abs(np.asarray(r))) < 1e-12 * scale
-            np.testing.assert_allclose(dq_red, dq, atol=1e-12)
-            # hand-assembled Jacobian = autodiff of the directly eliminated residual
-            J_ad = jax.jacfwd(lambda zz: dl.reduced_residual(ctx, p_k, h, zz)[0])(z)
-            np.testing.assert_allclose(J, J_ad, rtol=1e-9, atol=1e-12 * np.max(np.abs(J_ad)))
+        check_step_equations(model, dl, ctx, h, dx, c, F, auto_k, auto_k1)
+
+
+def check_step_equations(model, dl, ctx, h, dx, c, F, auto_k, auto_k1) -> float:
+    """At the step X = (Δx, c) from the context ``ctx``: the production closed-form sides p_k(X)
+    and p_{k+1}(X) equal the autodiff ones (``auto_k``, ``auto_k1``); the eliminated (reduced)
+    residual that Newton solves vanishes there, with the same Δq; and its hand-assembled Jacobian
+    equals autodiff of the directly eliminated residual. Returns the momenta's scale."""
+    lay = model.layout
+    ds = dx[0] if lay.has_reel else jnp.asarray(0.0)
+    dq = dx[lay.nodes].reshape(model.N, 3)
+    cf_k = np.asarray(dl.hp_k_full(ctx, h, ds, dq, c)) / h
+    cf_k1 = np.asarray(dl.hp_k1(ctx, h, ds, dq, c, model.potential_gradient(ctx.x + dx, ctx.R @ F))) / h
+    scale = np.max(np.abs(auto_k)) + np.max(np.abs(auto_k1))
+    assert np.max(np.abs(cf_k - auto_k)) < 1e-10 * scale
+    assert np.max(np.abs(cf_k1 - auto_k1)) < 1e-10 * scale
+    if dl.nz:
+        z = dl.pack_z(ds, c)
+        p_k = jnp.asarray(cf_k)
+        uv = None if lay.has_reel else dl.string_solve(ctx, p_k[lay.nodes].reshape(-1, 3), h, 0.0)
+        r, J, dq_red = dl.reduced_system(ctx, p_k, h, z, uv)
+        assert np.max(np.abs(np.asarray(r))) < 1e-12 * scale
+        np.testing.assert_allclose(dq_red, dq, atol=1e-12)
+        J_ad = jax.jacfwd(lambda zz: dl.reduced_residual(ctx, p_k, h, zz)[0])(z)
+        np.testing.assert_allclose(J, J_ad, rtol=1e-9, atol=1e-12 * np.max(np.abs(J_ad)))
+    return scale
 
 
 def test_cayley_identity():

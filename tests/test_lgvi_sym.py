@@ -12,11 +12,11 @@ from integrators import Status, get_integrator
 from integrators._lgvi_core import DiscreteLagrangian, cayley
 from integrators.lgvi_sym import SUZUKI4, YOSHIDA4
 from models import build_model, load_scene
-from models._jax import jax, jnp
+from models._jax import jnp
 from models.diagnostics import evaluate, summary
 
 from _helpers import effect_combinations, random_state, reference_solution, scene_with_effects
-from test_lgvi import autodiff_momenta
+from test_lgvi import autodiff_momenta, check_step_equations
 
 SYM = get_integrator("lgvi_sym")
 FOURTH = ("lgvi_yoshida4", "lgvi_suzuki4")
@@ -71,11 +71,7 @@ def test_symmetric_residuals_match_autodiff(effects, rng):
     dq = dx[lay.nodes].reshape(model.N, 3)
     ctx = dl.context(0.3, x, R, model.potential_gradient(x, R), jnp.asarray(auto_k))
     ctx = dl.with_forcing(ctx, h, ds, dq)  # the midpoint string force at this step
-    cf_k = np.asarray(dl.hp_k_full(ctx, h, ds, dq, c)) / h
-    cf_k1 = np.asarray(dl.hp_k1(ctx, h, ds, dq, c, model.potential_gradient(x + dx, R @ F))) / h
-    scale = np.max(np.abs(auto_k)) + np.max(np.abs(auto_k1))
-    assert np.max(np.abs(cf_k - auto_k)) < 1e-10 * scale
-    assert np.max(np.abs(cf_k1 - auto_k1)) < 1e-10 * scale
+    scale = check_step_equations(model, dl, ctx, h, dx, c, F, auto_k, auto_k1)
     if lay.has_reel:  # and it is not the §6 scheme: the ∇C terms and the midpoint forcing matter
         auto6 = autodiff_momenta(model, h, 0.3, x, R, dx, F)[0]
         assert np.max(np.abs(auto6 - auto_k)) > 1e-6 * scale
@@ -83,15 +79,6 @@ def test_symmetric_residuals_match_autodiff(effects, rng):
     wsec = jnp.zeros(lay.nw).at[: lay.nx].set(dx / h)
     expect = float(model.generalized_force(0.3 + h / 2, x + dx / 2, wsec)[: lay.nx] @ dx)
     assert float(dl.work(ctx, h, ds, dq)) == pytest.approx(expect, rel=1e-12, abs=1e-15)
-    if dl.nz:  # the reduced residual vanishes where the full one does; its Jacobian is exact
-        z = dl.pack_z(ds, c)
-        p_k = jnp.asarray(cf_k)
-        uv = None if lay.has_reel else dl.string_solve(ctx, p_k[lay.nodes].reshape(-1, 3), h, 0.0)
-        r, J, dq_red = dl.reduced_system(ctx, p_k, h, z, uv)
-        assert np.max(np.abs(np.asarray(r))) < 1e-12 * scale
-        np.testing.assert_allclose(dq_red, dq, atol=1e-12)
-        J_ad = jax.jacfwd(lambda zz: dl.reduced_residual(ctx, p_k, h, zz)[0])(z)
-        np.testing.assert_allclose(J, J_ad, rtol=1e-9, atol=1e-12 * np.max(np.abs(J_ad)))
 
 
 def test_symmetric_discrete_lagrangian_is_self_adjoint(rng):
