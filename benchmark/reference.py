@@ -1,7 +1,9 @@
 """Reference solutions: computed once per scene at tight tolerance, cached, reused.
 
 The cache key is a hash of the scene (its physics, not its name), the horizon, the save
-interval and the reference method's settings, so a changed scene never reuses a stale file.
+interval and the reference method's settings, so a changed scene never reuses a stale file;
+the file's identity also holds a hash of the model and integrator source, so a reference
+computed by other code is recomputed too.
 
 A cached file is trusted only after it proves what it is: it carries its identity (scene
 hash, horizon, save interval, solver and tolerances, and the package versions that computed
@@ -12,6 +14,7 @@ their checksum (edited, scaled) is reported by file name and recomputed, never u
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import importlib.metadata
 import json
@@ -33,13 +36,36 @@ def _log_stderr(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
+#: The source a reference is computed by: the model and the integrators (DOP853 through the
+#: scipy adapter, on the closed-form right-hand side).
+PHYSICS_DIRS = ("models", "integrators")
+
+
+@functools.lru_cache(maxsize=8)
+def source_hash(dirs: tuple = (), files: tuple = ()) -> str:
+    """A hash of the Python and TOML source under ``dirs`` and of ``files`` (paths relative to
+    the repository root), names included: it changes when any of that code does. Read once per
+    process (the code a process runs does not change under it)."""
+    root = Path(__file__).resolve().parent.parent
+    paths = sorted(p for d in dirs for p in (root / d).rglob("*") if p.suffix in (".py", ".toml"))
+    paths += [root / f for f in files]
+    h = hashlib.sha256()
+    for f in paths:
+        h.update(str(f.relative_to(root)).encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()[:12]
+
+
 def identity(scene, t_end: float, save_every: float) -> dict:
-    """What a reference is: everything that determines its numbers."""
+    """What a reference is: everything that determines its numbers, the code that computes it
+    included (``physics``), so that a changed model is never compared with a stale reference."""
     return {"format": FORMAT, "scene": scene.key(), "t_end": float(t_end), "save_every": float(save_every),
-            **REFERENCE_METHOD}
+            "physics": source_hash(PHYSICS_DIRS), **REFERENCE_METHOD}
 
 
 def reference_path(scene, t_end: float, save_every: float, cache_dir: Path = CACHE_DIR) -> Path:
+    """The file of a reference: one per problem, whatever code computed it (a reference computed
+    by other code is found there, refused by its identity and replaced)."""
     key = json.dumps({"scene": scene.key(), "t_end": t_end, "save_every": save_every, **REFERENCE_METHOD}, sort_keys=True)
     digest = hashlib.sha256(key.encode()).hexdigest()[:16]
     return Path(cache_dir) / f"reference-{scene.name}-{digest}.npz"

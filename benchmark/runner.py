@@ -38,7 +38,7 @@ import numpy as np
 import pandas as pd
 
 from benchmark.metrics import ACCURACY, COLUMNS, run_metrics, work_evals
-from benchmark.reference import CACHE_DIR, get_reference
+from benchmark.reference import CACHE_DIR, get_reference, source_hash
 from benchmark.sweep import Task
 from models._jax import append_xla_flags
 
@@ -218,14 +218,7 @@ _CODE_FILES = ("benchmark/runner.py", "benchmark/metrics.py", "benchmark/referen
 def code_version() -> str:
     """A hash of the source that determines a row (the model, the integrators, the metrics):
     rows computed by other code are recomputed on resume, never mixed in."""
-    root = Path(__file__).resolve().parent.parent
-    files = sorted(p for d in _CODE_DIRS for p in (root / d).rglob("*") if p.suffix in (".py", ".toml"))
-    files += [root / f for f in _CODE_FILES]
-    h = hashlib.sha256()
-    for f in files:
-        h.update(str(f.relative_to(root)).encode())
-        h.update(f.read_bytes())
-    return h.hexdigest()[:12]
+    return source_hash(_CODE_DIRS, _CODE_FILES)
 
 
 def run_key(task: Task, code: str | None = None) -> str:

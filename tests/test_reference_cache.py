@@ -84,6 +84,23 @@ def test_another_problems_reference_is_refused(cached, tmp_path):
     assert "different reference (differs in t_end)" in msg
 
 
+def test_a_reference_computed_by_other_model_code_is_recomputed(cached, tmp_path):
+    """Same problem, computed before the model or integrator source changed: the file's
+    identity holds the source hash, so the new code never compares with a stale reference."""
+    import json
+
+    def other_code(a):
+        head = json.loads(str(a["header"]))
+        head["identity"]["physics"] = "0" * 12
+        header = json.dumps(head, sort_keys=True)
+        arrays = {k: a[k] for k in ("t", "x", "attitude", "velocity", "work") if k in a}
+        a["header"], a["checksum"] = np.array(header), np.array(reference.checksum(arrays, header))
+
+    msg = _damaged(cached, tmp_path, lambda p: _rewrite(p, other_code))
+    assert "different reference (differs in physics)" in msg
+    assert reference.identity(cached[0], T_END, SAVE)["physics"] == reference.source_hash(reference.PHYSICS_DIRS)
+
+
 def test_an_old_format_file_without_identity_is_refused(cached, tmp_path):
     scene, traj, _ = cached
     msg = _damaged(cached, tmp_path, lambda p: traj.save(p))  # a plain Trajectory file
