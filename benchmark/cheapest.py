@@ -51,10 +51,13 @@ import pandas as pd
 #: worth a sentence in a benchmark.
 WORK_RESOLUTION = 0.10
 #: Relative resolution of a wall time: two run times within a factor 2 of each other are a tie
-#: whatever their repeats say. Measured on the shared 2-core machine (load 2.2–2.9): over 30
-#: interleaved solves of one setting, single solves spread over 2.2–2.7× (max / min), and the
-#: medians of groups of 5 consecutive repeats over up to 1.85×; between two sweeps the same
-#: few-ms runs moved by 2×.
+#: whatever their repeats say. Measured on a shared 2-core machine at 1-minute load 2.1–2.9,
+#: 30 interleaved solves each of lgvi (dt 5 ms), tsit5 and dop853 (rtol 1e-6) on fixed_length:
+#: single solves spread over 2.2–2.7× (max / min), medians of 5 consecutive solves over
+#: 1.5–1.85×, of 10 over 1.2–1.3×. A row timed once has no spread of its own, and the repeats of
+#: one row do not see the load change between rows (the same few-ms runs moved by 2× between
+#: two sweeps). At load 9–13 the spreads were 2.6–7.7×, and the dop853 / tsit5 ratio of medians
+#: moved from 25 to 67: wall-time verdicts need a machine loaded below its core count.
 WALL_RESOLUTION = 1.0
 
 #: Wall time: the central cost (the median of the timing repeats) and its interval's ends.

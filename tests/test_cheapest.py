@@ -144,7 +144,7 @@ def test_work_costs_within_the_work_resolution_are_a_tie():
     assert verdicts(1101.0) == ["winner", "slower"]
 
 
-@settings(max_examples=100, deadline=None)
+@settings(max_examples=60, deadline=None)
 @given(st.lists(st.tuples(st.floats(0.01, 100.0), st.floats(1.0, 3.0), st.floats(1.0, 3.0)), min_size=1, max_size=6),
        st.floats(0.0, 1.0))
 def test_no_winner_overlaps_another_interval_and_every_tie_overlaps_the_best(methods, resolution):
@@ -214,7 +214,7 @@ def test_two_fresh_runs_with_the_measured_noise_keep_every_winner_a_winner_or_in
         assert lost_without_resolution > 0
 
 
-@settings(max_examples=30, deadline=None)
+@settings(max_examples=20, deadline=None)
 @given(st.integers(0, 2**32 - 1), st.floats(1.0, 1.0 + WALL_RESOLUTION), st.integers(1, 5))
 def test_winners_survive_any_noise_within_the_resolution(seed, spread, repeats):
     # every timing statistic within a factor 1 + WALL_RESOLUTION of the true cost, every work
