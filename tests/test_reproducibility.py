@@ -1,0 +1,112 @@
+"""benchmark.reproducibility: what two runs tables from different CPUs must share, checked on
+the measured pair (tests/data) and on small made-up differences."""
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from benchmark.cheapest import cheapest
+from benchmark.reproducibility import DEFAULT_TOLERANCE, Tolerance, compare_runs, reproducible, statement
+
+DATA = Path(__file__).parent / "data"
+
+
+@pytest.fixture(scope="module")
+def measured():
+    return pd.read_csv(DATA / "runs_committed.csv"), pd.read_csv(DATA / "runs_epyc.csv")
+
+
+def test_the_measured_cross_cpu_differences_are_within_the_default_tolerance(measured):
+    c = compare_runs(*measured)
+    assert reproducible(c)
+    assert c["verdict"].value_counts().to_dict() == {"within tolerance": 128, "equal": 18, "stopped elsewhere": 1}
+    stopped = c[c["verdict"] == "stopped elsewhere"].iloc[0]
+    assert (stopped["integrator"], stopped["setting"], stopped["steps_a"], stopped["steps_b"]) == ("tsit5", "dt=0.01", 689, 526)
+    text = statement(c)
+    assert text.startswith("147 runs compared: 18 equal to the last digit, 128 within tolerance")
+    assert "1 stopped elsewhere: `tsit5` dt=0.01 on fixed_length (both diverged, after 689 vs 526 steps)" in text
+    assert text.endswith("every other claim holds.")
+
+
+@pytest.mark.parametrize("tighter, breaks", [
+    ({"adaptive_steps_rtol": 0.01}, "steps 475 vs 481"),  # dop853 on deployment: 1.25 % more steps
+    ({"adaptive_error_factor": 1.5}, "attitude_error_final 0.00053 vs 0.000342"),  # radau rtol 1e-3
+    ({"adaptive_error_of_rtol": 0.0}, "pi3_error 1.01e-07 vs 2.7e-06"),  # dop853 rtol 1e-4: a factor 27
+])
+def test_each_default_tolerance_is_needed_by_the_measured_differences(measured, tighter, breaks):
+    c = compare_runs(*measured, tol=Tolerance(**{**DEFAULT_TOLERANCE.__dict__, **tighter}))
+    assert not reproducible(c)
+    assert any(breaks in r for r in c.loc[c["verdict"] == "differs", "reason"])
+
+
+def test_the_work_verdicts_hold_on_both_machines(measured):
+    # a work winner on one CPU is the winner or in the tie on the other (adaptive counts moved ≤ 1.25 %)
+    targets = [("energy_error", 1e-4), ("position_error_final", 1e-6), ("energy_error", 1e-8)]
+    a, b = (cheapest(t, targets, cost_kinds=["work"]) for t in measured)
+    both = a.merge(b, on=["scene", "metric", "target", "integrator"], suffixes=("_a", "_b"))
+    assert (both["verdict_a"] == "winner").sum() >= 3
+    for x, y in (("a", "b"), ("b", "a")):
+        won = both[both[f"verdict_{x}"] == "winner"]
+        assert won[f"verdict_{y}"].isin(["winner", "tie"]).all()
+
+
+def run(integrator="m", setting="dt=0.01", status="ok", steps=100, **errors):
+    axis, value = setting.split("=")
+    return {"scene": "s", "integrator": integrator, "setting": setting, "dt": float(value) if axis == "dt" else np.nan,
+            "rtol": float(value) if axis == "rtol" else np.nan, "status": status, "steps": steps,
+            "energy_error": errors.get("energy_error", 1e-5 if status == "ok" else np.nan)}
+
+
+def verdict(a, b, tol=DEFAULT_TOLERANCE):
+    c = compare_runs(pd.DataFrame(a), pd.DataFrame(b), tol)
+    return c.set_index(["integrator", "setting"])["verdict"].to_dict()
+
+
+def test_a_status_may_change_only_at_the_stability_limit():
+    ladder = [run(setting="dt=0.02", status="diverged"), run(setting="dt=0.01"), run(setting="dt=0.005")]
+    flipped_limit = [ladder[0], run(setting="dt=0.01", status="diverged"), ladder[2]]
+    assert verdict(ladder, flipped_limit)[("m", "dt=0.01")] == "at stability limit"
+    flipped_inside = [*ladder[:2], run(setting="dt=0.005", status="newton_failed")]
+    assert verdict(ladder, flipped_inside)[("m", "dt=0.005")] == "differs"
+    adaptive = [run(setting="rtol=1e-4")]
+    assert verdict(adaptive, [run(setting="rtol=1e-4", status="max_steps")])[("m", "rtol=1e-4")] == "differs"
+
+
+def test_fixed_step_runs_keep_their_steps_and_errors_to_round_off():
+    base = [run(energy_error=1e-5)]
+    assert verdict(base, [run(energy_error=1e-5 * (1 + 5e-7))]) == {("m", "dt=0.01"): "within tolerance"}
+    assert verdict(base, [run(energy_error=1e-5 * (1 + 1e-4))]) == {("m", "dt=0.01"): "differs"}
+    assert verdict(base, [run(steps=101)]) == {("m", "dt=0.01"): "differs"}
+    # values at the floor's level (round-off, the reference's own error) differ freely
+    assert verdict([run(energy_error=3e-11)], [run(energy_error=9e-11)]) == {("m", "dt=0.01"): "within tolerance"}
+    assert verdict(base, [run(energy_error=np.nan)]) == {("m", "dt=0.01"): "differs"}
+
+
+def test_adaptive_runs_may_move_a_few_steps_and_their_errors_by_a_factor_or_far_below_their_rtol():
+    base = [run(setting="rtol=1e-6", steps=1000, energy_error=1e-7)]
+    assert verdict(base, [run(setting="rtol=1e-6", steps=1025, energy_error=1.9e-7)]) == {("m", "rtol=1e-6"): "within tolerance"}
+    assert verdict(base, [run(setting="rtol=1e-6", steps=1040, energy_error=1e-7)]) == {("m", "rtol=1e-6"): "differs"}
+    assert verdict(base, [run(setting="rtol=1e-6", steps=1000, energy_error=3e-7)]) == {("m", "rtol=1e-6"): "differs"}
+    # an error 50x smaller than its tolerance asks: its value is incidental, a factor 20 is fine
+    small = [run(setting="rtol=1e-4", energy_error=2e-8)]
+    assert verdict(small, [run(setting="rtol=1e-4", energy_error=4e-7)]) == {("m", "rtol=1e-4"): "within tolerance"}
+
+
+def test_a_missing_row_breaks_the_statement_and_is_named():
+    c = compare_runs(pd.DataFrame([run(), run("n")]), pd.DataFrame([run()]))
+    assert not reproducible(c)
+    assert statement(c).endswith("1 differ: `n` dt=0.01 on s (only in the first table).")
+
+
+def test_bad_input_is_refused():
+    with pytest.raises(ValueError, match=re.escape("the second table has no column(s) steps")):
+        compare_runs(pd.DataFrame([run()]), pd.DataFrame([run()]).drop(columns="steps"))
+    with pytest.raises(ValueError, match="the first table has two rows for s/m/dt=0.01"):
+        compare_runs(pd.DataFrame([run(), run()]), pd.DataFrame([run()]))
+    with pytest.raises(ValueError, match=re.escape("adaptive_error_factor = 1.0 is invalid (allowed: a finite number > 1)")):
+        Tolerance(adaptive_error_factor=1.0)
+    with pytest.raises(ValueError, match="fixed_error_rtol = -1"):
+        Tolerance(fixed_error_rtol=-1)
