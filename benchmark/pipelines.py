@@ -132,10 +132,12 @@ def _sweep_figures(request: SweepRequest, runs, log) -> list[str]:
         scene = request.scene(s)
         traj = get_integrator(paper.name).solve(scene, t_end=request.sweep_t_end or scene.t_end, save_every=0.02,
                                                 **paper.settings)
-        figures.append(plots.paper_panels(scene, traj, evaluate(scene, traj), request.out / f"paper_{scene.name}.png").name)
+        path = plots.paper_panels(scene, traj, evaluate(scene, traj), request.out / f"paper_{scene.name}.png")
+        figures.append(path.name)
         log(f"figure: paper_{scene.name}.png ({traj.status})")
     if request.energy_horizon > 0:
-        figures.append(run_horizon_study(request.energy_horizon, request.out, request.overrides, request.jobs, log).name)
+        path = run_horizon_study(request.energy_horizon, request.out, request.overrides, request.jobs, log)
+        figures.append(path.name)
     return figures
 
 
@@ -155,8 +157,9 @@ def _sweep_readme(request: SweepRequest, runs, orders, figures: list[str], prove
 def run_horizon_study(t_end: float, out: Path, overrides: tuple = (), jobs: int | None = None,
                       log: Callable[[str], None] = log_stderr) -> Path:
     """Energy error vs time on the fixed-length scene over a long horizon, one job per method in
-    parallel workers (serially they were the main job's longest tail): energy_horizon.csv and
-    its figure. A method whose worker dies is left out of both (its row says why)."""
+    parallel workers (one after another they would be the main job's longest tail):
+    energy_horizon.csv and its figure. A method whose worker dies is left out of both (its
+    progress line says so)."""
     import os
 
     from benchmark import horizon, plots, sweep
@@ -166,7 +169,8 @@ def run_horizon_study(t_end: float, out: Path, overrides: tuple = (), jobs: int 
     jobs_ = [horizon.Job(m, t_end, tuple(overrides)) for m in methods]
     log(f"horizon: {', '.join(m.name for m in methods)} to t = {t_end:g} s ...")
     rows = engine.run_jobs(horizon.run_job, jobs_, workers=jobs or min(len(methods), os.cpu_count() or 1),
-                           crash_row=lambda i, exc: horizon.crash_row(jobs_[i], exc), describe=horizon.describe, log=log)
+                           crash_row=lambda i, exc: horizon.crash_row(jobs_[i], exc), describe=horizon.describe,
+                           log=log)
     store.write_table(out / "energy_horizon.csv", horizon.table(rows))
     histories = {r["label"]: r["history"] for r in rows if r["history"] is not None}
     return plots.energy_horizon(histories, load_scene(horizon.SCENE, **dict(overrides)).name, out)
@@ -284,8 +288,9 @@ def run_reel_reversal(scene_name: str = "reel_reversal", elements: int = 5, t_en
     todo = [reel_reversal.Job(m, h, scene_name, elements, t_end, cache_dir)
             for m in methods for h in reel_reversal.DEFAULT_HS[m]]
     ref = reel_reversal.reference(scene, t_end, cache_dir)
-    rows = engine.run_jobs(reel_reversal.run_job, todo, workers=jobs if jobs is not None else min(len(methods), os.cpu_count() or 1),
-                           group=lambda i: todo[i].method, describe=reel_reversal.describe, log=log)
+    workers = jobs if jobs is not None else min(len(methods), os.cpu_count() or 1)
+    rows = engine.run_jobs(reel_reversal.run_job, todo, workers=workers, group=lambda i: todo[i].method,
+                           describe=reel_reversal.describe, log=log)
     echo(reel_reversal.table(scene, t_end, ref.flips, rows))
     return 0
 

@@ -95,7 +95,8 @@ def run_task(task: Task, cache_dir: str = str(CACHE_DIR), repeats: int = 3, *, r
         row.update(_run_columns(traj, build_model(scene).layout.ny))
         row.update(run_metrics(scene, traj, ref, task.save_every, finished))
         if traj.ok and repeats > 0:  # timing pass, separate from the error computation
-            row.update(_timing(row["run_time"], lambda: integ.solve(scene, **kw).stats.get("wall_time", np.nan), repeats))
+            again = lambda: integ.solve(scene, **kw).stats.get("wall_time", np.nan)  # noqa: E731
+            row.update(_timing(row["run_time"], again, repeats))
         return row
     except Exception as exc:  # a bug in one task must not lose the other rows
         row = _empty_row(task, scene)
@@ -153,7 +154,8 @@ def execute(
     keys = [run_key(t, code) for t in tasks]
     kept = kept_rows(keys, previous)
     if kept:
-        log(f"resuming: {len(kept)} of {len(tasks)} runs already done (kept); computing the other {len(tasks) - len(kept)}")
+        log(f"resuming: {len(kept)} of {len(tasks)} runs already done (kept); "
+            f"computing the other {len(tasks) - len(kept)}")
     todo = [t for i, t in enumerate(tasks) if i not in kept]
     problems = sorted({ReferenceProblem(t.scene, t.overrides, t.t_end, t.save_every) for t in todo}, key=str)
     if todo:

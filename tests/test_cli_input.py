@@ -69,6 +69,9 @@ CASES = [
     (["speed", "--elements", "0"], ["argument --elements", "integer >= 1"]),
     (["speed", "--elements", "abc"], ["argument --elements", "'abc' is not an integer"]),
     (["speed", "--elements", "1000000"], ["'string.elements'", "implausible"]),
+    (["reel-reversal", "--methods", "rk45"], ["--methods: 'rk45' has no step list", "allowed: lgvi"]),
+    (["reel-reversal", "--t-end", "0.5"], ["--t-end = 0.5 is invalid", "multiple of 0.08 s"]),
+    (["reel-reversal", "--cache-dir", "{d}/afile"], ["--cache-dir", "is a file, not a directory"]),
     (["stability", "--jobs", "-1"], ["argument --jobs", ">= 0"]),
     (["stability", "--out", "{d}/afile"], ["is a file, not a directory"]),
 ]
