@@ -1,5 +1,17 @@
-"""The benchmark runner: composes scenes, integrators and diagnostics into sweeps, tables and plots.
+"""The benchmark: composes scenes, integrators and diagnostics into studies, tables and plots.
 
     python -m benchmark run            # the default sweep of the paper's three scenes -> results/
     python -m benchmark run --quick    # a reduced sweep, a few minutes on 2 cores
+
+By concern, from the command line down:
+
+- `cli` parses and checks a command's input, then calls its pipeline in `pipelines`;
+- the studies, as jobs: `runner` (the runs table), `stability`, `check`, `horizon`, `xval`,
+  `lgvi_speed` (speed), `reel_reversal`; what a sweep runs: `sweep`; its metrics: `metrics`;
+- their writers: `runs_report`, `stability_report`, `xval_report` (and the baseline in `check`,
+  the speed tables in `lgvi_speed`), on the report layer `report` and the plot layer `plots`;
+- underneath: `engine` (jobs on worker processes, this process or Dask; stop signals,
+  progress, crash rows), `store` (output lock, resume keys, atomic tables and .npz files),
+  `reference` (the one cached reference solution every study compares with), `options`
+  (JAX-free input checks).
 """

@@ -1,12 +1,13 @@
-"""Command line: ``python -m benchmark {run,check,simulate,figures,speed,stability,xval,list}`` (also ``reelbench``).
+"""Command line: ``python -m benchmark {run,check,simulate,figures,speed,stability,xval,reel-reversal,list}``
+(also ``reelbench``).
 
 Every command checks all of its input first -- option types and ranges, conflicting options,
 the scene (and the plausibility of its values), the output place (created and test-written)
-and the size of the run -- and only then imports JAX and starts work. A mistake is answered
-in well under a second with ``error: ...`` and exit status 2, without a traceback (set
-REELBENCH_DEBUG=1 to see where a ValueError came from); any other exception is an internal
-error and keeps its traceback. Ctrl-C or SIGTERM stops a command with one
-line saying what was saved (exit status 130 or 143).
+and the size of the run -- and only then imports JAX and calls its pipeline
+(`benchmark.pipelines`). A mistake is answered in well under a second with ``error: ...`` and
+exit status 2, without a traceback (set REELBENCH_DEBUG=1 to see where a ValueError came
+from); any other exception is an internal error and keeps its traceback. Ctrl-C or SIGTERM
+stops a command with one line saying what was saved (exit status 130 or 143).
 
 The model and the scene format: models/README.md. The integrators: integrators/README.md.
 """
@@ -18,8 +19,6 @@ import json
 import os
 import shlex
 import sys
-import threading
-import time
 from pathlib import Path
 
 from benchmark import options as opt
@@ -46,204 +45,47 @@ def _overrides(items: list[str] | None) -> dict:
     return out
 
 
-def _command() -> str:
-    return "python -m benchmark " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+def _command(args) -> str:
+    """The command as the user typed it, for the headers of the files it writes."""
+    return "python -m benchmark " + " ".join(shlex.quote(a) for a in args.argv)
 
 
-def _stopped(exc: KeyboardInterrupt) -> int:
-    """Exit status of a stopped command: 143 for SIGTERM, 130 for Ctrl-C (as a shell reports)."""
-    return 143 if "SIGTERM" in str(exc) else 130
-
-
-def _how(exc: KeyboardInterrupt) -> str:
-    return "SIGTERM" if "SIGTERM" in str(exc) else "Ctrl-C"
-
-
-class _Heartbeat:
-    """Progress of one long computation that reports nothing itself: a line every ``every``
-    seconds with the time spent and what is left of the estimate (``estimate`` s)."""
-
-    def __init__(self, what: str, estimate: float | None, every: float = 30.0):
-        self.what, self.estimate, self.every = what, estimate, every
-        self._stop = threading.Event()
-        self._t0 = time.perf_counter()
-
-    def __enter__(self):
-        if self.estimate is not None and self.estimate > self.every:
-            threading.Thread(target=self._run, daemon=True).start()
-        return self
-
-    def _run(self):
-        while not self._stop.wait(self.every):
-            spent = time.perf_counter() - self._t0
-            left = max(self.estimate - spent, 0.0)
-            _log(f"{self.what}: {spent:.0f} s so far; estimated {left:.0f} s left "
-                 f"({min(spent / self.estimate, 0.99):.0%} by the estimate)")
-
-    def __exit__(self, *exc):
-        self._stop.set()
+def _csv(values) -> str:
+    return ",".join(f"{v:g}" if isinstance(v, float) else str(v) for v in values)
 
 
 # ------------------------------------------------------------------------------------------
+# Each command: check its input, then call its pipeline
+# ------------------------------------------------------------------------------------------
 def cmd_run(args) -> int:
+    from benchmark import sweep  # no JAX until the pipeline builds the tasks
     from models import load_scene
 
-    # 1. everything that needs no JAX
     if args.executor == "dask" and not args.scheduler:
         raise UsageError("--executor dask needs --scheduler ADDRESS (e.g. tcp://host:8786)")
     if args.scheduler and args.executor != "dask":
         raise UsageError(f"--scheduler is only used with --executor dask (got --executor {args.executor})")
-    from benchmark import sweep  # no JAX until build_tasks
-
     scene_names = args.scenes or list(sweep.PAPER_SCENES)
     ov = _overrides(args.set)
-    if args.t_end is not None:
-        ov = {"t_end": args.t_end, **ov}  # validated (and checked for plausibility) with the scene
-    scenes = [load_scene(s, **ov) for s in scene_names]
+    with_t_end = {"t_end": args.t_end, **ov} if args.t_end is not None else ov  # validated with the scene
+    scenes = [load_scene(s, **with_t_end) for s in scene_names]
     sweep.check_settings(args.dts, args.rtols)
     t_end = args.t_end or (sweep.QUICK_T_END if args.quick else None)
     for sc in scenes:
-        te = t_end or sc.t_end
         for dt in args.dts or (sweep.QUICK_DTS if args.quick else sweep.FULL_DTS):
-            opt.check_size(sc, te, sweep.SAVE_EVERY, dt, warn=_log, what=f"{sc.name} at dt = {dt:g} s")
+            opt.check_size(sc, t_end or sc.t_end, sweep.SAVE_EVERY, dt, warn=_log, what=f"{sc.name} at dt = {dt:g} s")
     out = opt.writable_dir(args.out)
 
-    from benchmark import runner
+    from benchmark import pipelines
 
-    saved = [0]
-    try:
-        with runner.OutputLock(out, log=_log):
-            runner.install_stop_handlers()
-            return _run(args, scene_names, ov, t_end, out, saved)
-    except KeyboardInterrupt as exc:
-        what = (f"{saved[0]} finished run(s) are saved in {out / 'runs.csv'}" if saved[0]
-                else "no run had finished, nothing saved")
-        _log(f"stopped by {_how(exc)}: {what}; run the same command again to resume "
-             f"(finished runs are kept), or add --fresh to start over")
-        return _stopped(exc)
+    return pipelines.run_sweep(pipelines.SweepRequest(
+        out=out, scenes=tuple(scene_names), integrators=tuple(args.integrators) if args.integrators else None,
+        quick=args.quick, dts=tuple(args.dts) if args.dts else None, rtols=tuple(args.rtols) if args.rtols else None,
+        t_end=args.t_end, overrides=tuple(sorted((k, v) for k, v in ov.items() if k != "t_end")), jobs=args.jobs,
+        executor=args.executor, scheduler=args.scheduler, repeats=args.repeats, horizon=args.horizon,
+        figures=not args.no_figures, fresh=args.fresh, compare_with=args.compare_with, command=_command(args)), log=_log)
 
 
-def _run(args, scene_names, ov, t_end, out: Path, saved: list) -> int:
-    from benchmark import runner, sweep
-    from benchmark.reference import CACHE_DIR
-    from models import load_scene
-    from models.io import atomic_write_text
-
-    tasks = sweep.build_tasks(scene_names, args.integrators, quick=args.quick, dts=args.dts, rtols=args.rtols,
-                              t_end=args.t_end, overrides={k: v for k, v in ov.items() if k != "t_end"})
-    previous = [] if args.fresh else runner.read_previous(out / "runs.csv", log=_log)
-    _log(f"{len(tasks)} runs: {len(scene_names)} scene(s) × {len({t.integrator for t in tasks})} integrator(s); "
-         f"results -> {out}/")
-    t0 = time.perf_counter()
-
-    def write(rows) -> None:
-        df = runner.to_frame(rows)
-        atomic_write_text(out / "runs.csv", df.drop(columns=[c for c in ("traceback",) if c in df]).to_csv(index=False))
-        saved[0] = len(rows)
-
-    runs = runner.execute(tasks, jobs=args.jobs, executor=args.executor, scheduler=args.scheduler,
-                          repeats=args.repeats, cache_dir=str(out / CACHE_DIR.name), on_row=write,
-                          previous=previous,
-                          group=lambda t: (t.scene, t.integrator))  # one worker per (scene, method): one compile
-    write(runs.to_dict("records"))
-    from benchmark import plots, report
-    from benchmark.metrics import observed_orders
-    from integrators import get_integrator
-    from models.diagnostics import evaluate
-
-    atomic_write_text(out / "runs.md", report.markdown_table(runs.drop(columns=[c for c in ("traceback", "reason", "run_key") if c in runs])))
-    orders = observed_orders(runs)
-    atomic_write_text(out / "orders.csv", orders.to_csv(index=False))
-    figures = []
-    horizon = args.horizon if args.horizon is not None else (QUICK_HORIZON if args.quick else FULL_HORIZON)
-    if not args.no_figures:
-        for s in scene_names:
-            figures.append(plots.work_precision(runs, load_scene(s, **ov).name, out).name)
-        # the paper's panels from the method that declares the paper's settings (the LGVI at its step size)
-        paper, paper_kw = paper_method()
-        for s in scene_names:
-            scene = load_scene(s, **ov)
-            te = t_end or scene.t_end
-            traj = get_integrator(paper).solve(scene, t_end=te, save_every=0.02, **paper_kw)
-            figures.append(plots.paper_panels(scene, traj, evaluate(scene, traj), out / f"paper_{scene.name}.png").name)
-            _log(f"figure: paper_{scene.name}.png ({traj.status})")
-        if horizon > 0:
-            figures.append(_horizon_study(horizon, out, {k: v for k, v in ov.items() if k != "t_end"}, args.jobs).name)
-    wall = time.perf_counter() - t0
-    compared = ""
-    if args.compare_with:
-        import pandas as pd
-
-        compared = report.changes_since(pd.read_csv(args.compare_with), runs, f"`{args.compare_with}`")
-    report.write_readme(out, runs, orders, command=_command(), wall_time=wall, figures=figures, compared=compared,
-                        horizons={"sweep": t_end, "energy study": horizon if not args.no_figures else 0.0})
-    n_bad = int((runs["status"] != "ok").sum())
-    _log(f"done in {wall:.0f} s: {len(runs)} runs, {n_bad} not ok; see {out}/README.md")
-    return 0
-
-
-#: length (s) of the long-horizon energy study (run --horizon), full and --quick
-FULL_HORIZON, QUICK_HORIZON = 100.0, 10.0
-
-
-
-def paper_method() -> tuple[str, dict]:
-    """(name, settings) of the method whose run draws the paper's panels: the first default
-    integrator declaring `Integrator.paper_settings` (the paper's LGVI at dt = 2.5 ms)."""
-    from benchmark.sweep import default_names
-    from integrators import get_integrator
-
-    return next((n, dict(s)) for n in default_names() if (s := get_integrator(n).paper_settings))
-
-
-def horizon_methods() -> tuple[tuple[str, dict], ...]:
-    """The methods of the long-horizon energy study, chosen by what they declare
-    (`Integrator.horizon_settings`), not by name: every default integrator and plugin with
-    settings for it, fixed-step first, then the loosest tolerance first (ties: the sweep's order)."""
-    from benchmark.sweep import default_names
-    from integrators import get_integrator
-
-    chosen = [(n, dict(s)) for n in default_names() if (s := get_integrator(n).horizon_settings)]
-    return tuple(sorted(chosen, key=lambda nk: ("dt" not in nk[1], -nk[1].get("rtol", 0.0))))
-
-
-def _horizon_run(name: str, kw: dict, t_end: float, ov: dict):
-    """One method of the horizon study (a worker task): (label, energy history)."""
-    from benchmark.metrics import energy_history
-    from integrators import get_integrator
-    from models import load_scene
-
-    scene = load_scene("fixed_length", **ov)
-    traj = get_integrator(name).solve(scene, t_end=t_end, save_every=0.1, **kw)
-    label = f"{name} {', '.join(f'{k}={v:g}' for k, v in kw.items())}" + ("" if traj.ok else f" [{traj.status}]")
-    return label, energy_history(scene, traj)
-
-
-def _horizon_study(t_end: float, out: Path, ov: dict, jobs: int | None = None) -> Path:
-    """Energy error vs time on the fixed-length scene over a long horizon (the methods run in
-    parallel worker processes: serially they were the main job's longest tail)."""
-    import pandas as pd
-
-    from benchmark import plots
-    from benchmark.runner import worker_pool
-    from models import load_scene
-    from models.io import atomic_write_text
-
-    scene = load_scene("fixed_length", **ov)
-    histories, frames = {}, []
-    methods = horizon_methods()
-    _log(f"horizon: {', '.join(name for name, _ in methods)} to t = {t_end:g} s ...")
-    with worker_pool(jobs or min(len(methods), os.cpu_count() or 1)) as pool:
-        futures = [pool.submit(_horizon_run, name, kw, t_end, ov) for name, kw in methods]
-        for fut in futures:
-            label, h = fut.result()
-            histories[label] = h
-            frames.append(h.assign(method=label))
-    atomic_write_text(out / "energy_horizon.csv", pd.concat(frames).to_csv(index=False))
-    return plots.energy_horizon(histories, scene.name, out)
-
-
-# ------------------------------------------------------------------------------------------
 def cmd_simulate(args) -> int:
     from models import load_scene
 
@@ -260,35 +102,19 @@ def cmd_simulate(args) -> int:
                          f"give a save interval <= t_end")
     size = opt.check_size(scene, scene.t_end, args.save_every, args.dt, warn=_log,
                           what=f"{scene.name} to t_end = {scene.t_end:g} s")
-
-    from integrators import get_integrator
-    from models.diagnostics import evaluate
-    from models.io import atomic_write_text
-
-    integ = get_integrator(args.integrator)
-    kw = {"t_end": scene.t_end, "save_every": args.save_every}
+    settings = {"save_every": args.save_every}
     if args.dt is not None:
-        kw["dt"] = args.dt
+        settings["dt"] = args.dt
     if args.rtol is not None:
-        kw.update(rtol=args.rtol, atol=args.atol if args.atol is not None else args.rtol * 1e-2)
-    try:
-        with _Heartbeat(f"{scene.name} / {integ.name}", size["seconds"]):
-            traj = integ.solve(scene, **kw)
-    except KeyboardInterrupt as exc:
-        _log(f"stopped by {_how(exc)}: nothing saved (a trajectory is written when the run ends)")
-        return _stopped(exc)
-    traj.save(out)
-    df = evaluate(scene, traj)
-    atomic_write_text(out.with_suffix(".csv"), df.to_csv(index=False))
-    import numpy as np
+        settings.update(rtol=args.rtol, atol=args.atol if args.atol is not None else args.rtol * 1e-2)
 
-    _log(f"{scene.name} / {integ.name}: status {traj.status} {traj.reason}; {len(traj.t)} saved points; "
-         f"stats {json.dumps({k: v for k, v in traj.stats.items() if np.isscalar(v)}, default=str)}")
-    _log(f"wrote {out} and {out.with_suffix('.csv')}")
-    return 0 if traj.ok else 1
+    from benchmark import pipelines
+
+    return pipelines.simulate(scene, args.integrator, settings, out, estimate=size["seconds"], log=_log)
 
 
 def cmd_figures(args) -> int:
+    from benchmark.store import UnreadableFile, read_trajectory
     from models import load_scene
     from models.layout import StateLayout
 
@@ -301,18 +127,10 @@ def cmd_figures(args) -> int:
     if args.scene:
         load_scene(args.scene, **ov)  # a bad scene is refused before the trajectory is read
     out = opt.writable_file(args.out or Path.cwd() / f"{src.stem}.png")
-
-    import zipfile
-
-    if not zipfile.is_zipfile(src):  # .npz is a zip archive; anything else is not a trajectory
-        raise UsageError(f"{src}: not a trajectory file (not an .npz archive); give a trajectory written by `simulate`")
-    from integrators import Trajectory
-
     try:
-        traj = Trajectory.load(src)
-    except Exception as exc:  # whatever the reader trips on, the file is not a trajectory
-        raise UsageError(f"{src}: not a trajectory file written by `simulate` "
-                         f"({type(exc).__name__}: {str(exc).splitlines()[0][:120] if str(exc) else ''})") from None
+        traj = read_trajectory(src)
+    except UnreadableFile as exc:
+        raise UsageError(f"{src}: not a trajectory file ({exc}); give a trajectory written by `simulate`") from None
     scene = load_scene(args.scene or traj.scene_name, **ov)
     lay = StateLayout.from_scene(scene)
     nx = traj.x.shape[1] if getattr(traj.x, "ndim", 0) == 2 else None
@@ -321,12 +139,9 @@ def cmd_figures(args) -> int:
                          f"point{' and an attitude' if traj.attitude is not None else ''}, the scene "
                          f"{lay.nx}{' and an attitude' if lay.has_attitude else ''}; give the scene the trajectory "
                          f"was computed with (recorded: {traj.scene_name!r}), with the same --set overrides")
-    from benchmark import plots
-    from models.diagnostics import evaluate
+    from benchmark import pipelines
 
-    plots.paper_panels(scene, traj, evaluate(scene, traj), out)
-    _log(f"wrote {out}")
-    return 0
+    return pipelines.draw_figures(scene, traj, out, log=_log)
 
 
 def cmd_check(args) -> int:
@@ -339,34 +154,46 @@ def cmd_check(args) -> int:
     command = check.UPDATE_COMMAND + "".join(f" --{k} {shlex.quote(v)}" for k, v in
                                              (("integrators", args.integrators), ("baseline", args.baseline)) if v)
     names = [v.strip() for v in args.integrators.split(",") if v.strip()] if args.integrators else None
-    try:
-        return check.main(update=args.update, baseline=args.baseline or check.BASELINE, integrators=names,
-                          factor=check.DEFAULT_FACTOR if args.factor is None else args.factor,
-                          order_margin=check.DEFAULT_ORDER_MARGIN if args.order_margin is None else args.order_margin,
-                          jobs=args.jobs, command=command, log=_log)
-    except KeyboardInterrupt as exc:
-        _log(f"stopped by {_how(exc)}: the baseline was not changed")
-        return _stopped(exc)
+    from benchmark import pipelines
+
+    return pipelines.run_check(update=args.update, baseline=args.baseline, integrators=names, factor=args.factor,
+                               order_margin=args.order_margin, jobs=args.jobs, command=command, log=_log)
+
+
+def cmd_speed(args) -> int:
+    from models import load_scene
+
+    from benchmark.lgvi_speed import SpeedRequest  # JAX-free until a measurement runs
+
+    default = SpeedRequest()
+    elements, scenes = tuple(args.elements or default.elements), tuple(args.scenes or default.scenes)
+    for sc in scenes:  # every scene and N is checked (names, plausibility) before any work
+        for n in elements:
+            load_scene(sc, elements=n)
+    out = opt.writable_file(args.out) if args.out else None
+    from benchmark import lgvi_speed, pipelines
+    from integrators.rhs import check_rhs
+
+    rhs = tuple(v.strip() for v in args.rhs.split(",") if v.strip())
+    for r in rhs:
+        check_rhs(r)
+    if args.methods:
+        lgvi_speed.check_methods(args.methods)
+    request = SpeedRequest(elements=elements, scenes=scenes, methods=tuple(args.methods) if args.methods else None,
+                           steps=args.steps, repeats=args.repeats, dt=args.dt, rhs=rhs, autodiff_max_n=args.autodiff_max_n)
+    return pipelines.run_speed(request, out, command=_command(args), log=_log)
 
 
 def cmd_stability(args) -> int:
     out = opt.writable_dir(args.out)
-    from benchmark import runner
+    from benchmark import pipelines
 
-    try:
-        with runner.OutputLock(out, log=_log):
-            runner.install_stop_handlers()
-            from benchmark import stability
-
-            return stability.main(args.scenes, args.integrators, workers=args.jobs, out=str(out), command=_command())
-    except KeyboardInterrupt as exc:
-        _log(f"stopped by {_how(exc)}: the rows finished so far are in {out / 'stability.csv'}; "
-             f"run the same command again to compute the map")
-        return _stopped(exc)
+    return pipelines.run_stability(args.scenes, args.integrators, workers=args.jobs, out=out, command=_command(args),
+                                   log=_log)
 
 
 def cmd_xval(args) -> int:
-    """Cross-validation against MoorDyn and MuJoCo (benchmark/xval.py); exit 2 on a scene it cannot translate."""
+    """Cross-validation against MoorDyn and MuJoCo; exit 2 on a scene it cannot translate."""
     import importlib.util
 
     ints = args.elements or None
@@ -380,10 +207,26 @@ def cmd_xval(args) -> int:
     missing = [m for m in ("moordyn", "mujoco") if importlib.util.find_spec(m) is None]
     if missing:
         raise UsageError(f"xval needs {', '.join(missing)}: pip install 'reelbench[xval]'")
-    readme = xval.main(args.scene, ints or list(xval.DEFAULT_ELEMENTS), args.t_end or xval.DEFAULT_T_END, str(out),
-                       command=_command(), log=_log)
+    from benchmark import pipelines
+
+    readme = pipelines.run_xval(args.scene, ints or list(xval.DEFAULT_ELEMENTS), args.t_end or xval.DEFAULT_T_END, out,
+                                command=_command(args), log=_log)
     _log(f"wrote {readme}")
     return 0
+
+
+def cmd_reel_reversal(args) -> int:
+    from benchmark import reel_reversal
+    from models import load_scene
+
+    reel_reversal.check_methods(args.methods or ())
+    reel_reversal.check_horizon(args.t_end)
+    load_scene(args.scene, elements=args.elements)
+    cache = opt.writable_dir(args.cache_dir, option="--cache-dir")
+    from benchmark import pipelines
+
+    return pipelines.run_reel_reversal(args.scene, args.elements, args.t_end, args.methods, jobs=args.jobs,
+                                       cache_dir=str(cache), log=_log)
 
 
 def cmd_list(args) -> int:
@@ -401,6 +244,8 @@ def cmd_list(args) -> int:
 
 
 # ------------------------------------------------------------------------------------------
+# The parser: one builder per command
+# ------------------------------------------------------------------------------------------
 class _Help(argparse.ArgumentDefaultsHelpFormatter):
     """Shows each option's default, except where there is none to show (None, a flag's False)."""
 
@@ -410,20 +255,14 @@ class _Help(argparse.ArgumentDefaultsHelpFormatter):
         return super()._get_help_string(action)
 
 
-def _csv(values) -> str:
-    return ",".join(f"{v:g}" if isinstance(v, float) else str(v) for v in values)
+def _add_set(p: argparse.ArgumentParser, help: str = "scene override, repeatable, e.g. --set elements=20") -> None:
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help=help)
 
 
-def parser() -> argparse.ArgumentParser:
+def _add_run(sub) -> None:
     from benchmark import sweep  # constants only (no JAX): the defaults shown in --help are the real ones
 
-    p = argparse.ArgumentParser(prog="python -m benchmark", description=__doc__, formatter_class=_Help)
-    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
-
-    def add(name: str, help: str, description: str | None = None) -> argparse.ArgumentParser:
-        return sub.add_parser(name, help=help, description=description or help, formatter_class=_Help)
-
-    r = add("run", "sweep scenes × integrators × settings; tables, plots and a README into --out",
+    r = sub("run", "sweep scenes × integrators × settings; tables, plots and a README into --out",
             "Sweep scenes × integrators × settings. Rows are written to OUT/runs.csv as they finish; a run "
             "into an OUT that holds rows of the same sweep (same scene physics, integrator, setting, horizon "
             "and code) keeps them and computes only the rest (--fresh recomputes all). Ctrl-C stops cleanly.")
@@ -432,7 +271,8 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument("--integrators", type=opt.names, help="comma-separated integrator names (default: every "
                                                          "registered one; see `list`)")
     r.add_argument("--quick", action="store_true", help=f"reduced sweep: {sweep.QUICK_T_END:g} s horizon, "
-                   f"{len(sweep.QUICK_DTS)} step sizes, {len(sweep.QUICK_RTOLS)} tolerances, {QUICK_HORIZON:g} s energy study")
+                   f"{len(sweep.QUICK_DTS)} step sizes, {len(sweep.QUICK_RTOLS)} tolerances, "
+                   f"{sweep.QUICK_HORIZON:g} s energy study")
     r.add_argument("--dts", type=opt.positive_floats, help="comma-separated step sizes (s) for fixed-step methods, "
                    f"each dividing the save interval {sweep.SAVE_EVERY:g} s (default: {_csv(sweep.FULL_DTS)}; "
                    f"--quick: {_csv(sweep.QUICK_DTS)})")
@@ -442,18 +282,17 @@ def parser() -> argparse.ArgumentParser:
                    f"{_csv(sweep.IMPLICIT_QUICK_RTOLS)})")
     r.add_argument("--t-end", type=opt.positive_float,
                    help=f"horizon in s (default: each scene's t_end; --quick: {sweep.QUICK_T_END:g})")
-    r.add_argument("--set", action="append", metavar="KEY=VALUE", help="scene override, repeatable, e.g. "
-                                                                         "--set elements=20")
+    _add_set(r)
     r.add_argument("--jobs", type=opt.positive_int, help="worker processes (default: CPU count, at most one per run)")
     r.add_argument("--repeats", type=opt.positive_int, default=3,
-                   help="timed repeats per run after the first solve (within a 10 s budget); run_time is their "
-                        "minimum, run_time_median their median")
-    r.add_argument("--executor", default="process", choices=["process", "serial", "dask"],
+                   help=f"timed repeats per run after the first solve (within a {sweep.TIMING_BUDGET:g} s budget); "
+                        "run_time is their minimum, run_time_median their median")
+    r.add_argument("--executor", default="process", choices=list(sweep.EXECUTORS),
                    help="where runs execute: worker processes, this process, or a Dask cluster")
     r.add_argument("--scheduler", help="Dask scheduler address, with --executor dask (e.g. tcp://host:8786)")
     r.add_argument("--horizon", type=opt.nonnegative_float,
                    help=f"length (s) of the long-horizon energy study on fixed_length; 0 = off (default: "
-                        f"{FULL_HORIZON:g}; --quick: {QUICK_HORIZON:g})")
+                        f"{sweep.FULL_HORIZON:g}; --quick: {sweep.QUICK_HORIZON:g})")
     r.add_argument("--no-figures", action="store_true", help="skip the figures and the energy study")
     r.add_argument("--fresh", action="store_true", help="recompute every run, ignoring rows already in OUT/runs.csv")
     r.add_argument("--compare-with", type=opt.runs_table, metavar="RUNS.csv",
@@ -462,7 +301,9 @@ def parser() -> argparse.ArgumentParser:
                                                     "repository's committed results/, which this overwrites")
     r.set_defaults(func=cmd_run)
 
-    c = add("check", "recompute a short sweep and compare its accuracy metrics with the committed baseline; "
+
+def _add_check(sub) -> None:
+    c = sub("check", "recompute a short sweep and compare its accuracy metrics with the committed baseline; "
                      "exit 1 on a regression (rules in benchmark/check.py)")
     c.add_argument("--update", action="store_true", help="rewrite the baseline from this run instead of failing")
     c.add_argument("--baseline", help="baseline CSV (default: results/baseline/drift.csv, run from the repository root)")
@@ -474,7 +315,9 @@ def parser() -> argparse.ArgumentParser:
     c.add_argument("--jobs", type=int, help="worker processes (default: CPU count)")
     c.set_defaults(func=cmd_check)
 
-    s = add("simulate", "one scene, one integrator, one setting -> trajectory .npz + diagnostics .csv",
+
+def _add_simulate(sub) -> None:
+    s = sub("simulate", "one scene, one integrator, one setting -> trajectory .npz + diagnostics .csv",
             "Run one scene with one integrator at one setting: a fixed step (--dt) or a tolerance (--rtol), "
             "never both. Writes the trajectory (.npz) and its diagnostics (.csv, energies, π3, orthogonality "
             "error, lengths) to --out, by default into the current directory.")
@@ -488,24 +331,45 @@ def parser() -> argparse.ArgumentParser:
     s.add_argument("--atol", type=opt.positive_float, help="absolute tolerance, with --rtol (default: rtol/100)")
     s.add_argument("--t-end", type=opt.positive_float, help="horizon in s (default: the scene's t_end)")
     s.add_argument("--save-every", type=opt.positive_float, default=0.02, help="save interval in s")
-    s.add_argument("--set", action="append", metavar="KEY=VALUE", help="scene override, repeatable, e.g. "
-                                                                         "--set elements=20")
+    _add_set(s)
     s.add_argument("--out", help="trajectory file (.npz; default: ./simulate_SCENE_INTEGRATOR.npz)")
     s.set_defaults(func=cmd_simulate)
 
-    f = add("figures", "the paper's panels (a)-(d) from a trajectory file written by `simulate`")
+
+def _add_figures(sub) -> None:
+    f = sub("figures", "the paper's panels (a)-(d) from a trajectory file written by `simulate`")
     f.add_argument("trajectory", help="a trajectory .npz written by `simulate`")
     f.add_argument("--scene", help="scene name or path (default: the one recorded in the file)")
-    f.add_argument("--set", action="append", metavar="KEY=VALUE", help="scene overrides the trajectory was "
-                                                                         "computed with, e.g. --set elements=20")
+    _add_set(f, "scene overrides the trajectory was computed with, e.g. --set elements=20")
     f.add_argument("--out", help="figure file (.png; default: ./TRAJECTORY.png in the current directory)")
     f.set_defaults(func=cmd_figures)
 
-    sp = add("speed", "time per step of every fixed-step method and per-call cost of each right-hand side vs N, "
-                      "compile time separately (options: `speed --help`)")
-    sp.add_argument("rest", nargs=argparse.REMAINDER, help="options of benchmark.lgvi_speed (see `speed --help`)")
 
-    st = add("stability", "stability map of the hard scenes: largest stable dt (fixed step), step statistics "
+def _add_speed(sub) -> None:
+    from benchmark.lgvi_speed import SpeedRequest  # JAX-free: the defaults shown in --help are the real ones
+
+    default = SpeedRequest()
+    sp = sub("speed", "time per step of every fixed-step method and per-call cost of each right-hand side vs N, "
+                      "compile time separately",
+             "Time per step of every fixed-step method (chosen by capability from the registry) and per-call cost "
+             "of each right-hand side, vs N; compile time separately (see benchmark/lgvi_speed.py).")
+    sp.add_argument("--elements", type=opt.positive_ints, help=f"comma-separated N values (default: {_csv(default.elements)})")
+    sp.add_argument("--scenes", type=opt.names, help=f"comma-separated scene names (default: {_csv(default.scenes)})")
+    sp.add_argument("--methods", type=opt.names,
+                    help="comma-separated fixed-step methods (default: every registered one with the fixed_step capability)")
+    sp.add_argument("--steps", type=opt.positive_int, default=default.steps, help="steps per timed run")
+    sp.add_argument("--repeats", type=opt.positive_int, default=default.repeats, help="timed repeats (median)")
+    sp.add_argument("--dt", type=opt.positive_float,
+                    help="step size (default: per-scene stable step at N = 10, times 10/N)")
+    sp.add_argument("--rhs", default=_csv(default.rhs), help="right-hand sides to time per call ('' = none)")
+    sp.add_argument("--autodiff-max-n", type=opt.positive_int, default=default.autodiff_max_n,
+                    help="largest N for the O(N^3) autodiff right-hand side")
+    sp.add_argument("--out", help="also write the tables (Markdown, with the command and machine) to this file")
+    sp.set_defaults(func=cmd_speed)
+
+
+def _add_stability(sub) -> None:
+    st = sub("stability", "stability map of the hard scenes: largest stable dt (fixed step), step statistics "
                           "(adaptive) -> --out")
     st.add_argument("--scenes", type=opt.names, help="comma-separated hard scenes (default: all seven)")
     st.add_argument("--integrators", type=opt.names, help="comma-separated names (default: the shipped methods "
@@ -514,7 +378,9 @@ def parser() -> argparse.ArgumentParser:
     st.add_argument("--out", default="results/stability", help="output directory (created if missing)")
     st.set_defaults(func=cmd_stability)
 
-    xv = add("xval", "cross-validation against MoorDyn and MuJoCo at equal N -> --out (needs the [xval] extra)")
+
+def _add_xval(sub) -> None:
+    xv = sub("xval", "cross-validation against MoorDyn and MuJoCo at equal N -> --out (needs the [xval] extra)")
     xv.add_argument("--scene", default="fixed_length", help="fixed-length scene name or path")
     xv.add_argument("--elements", type=opt.positive_ints, help="comma-separated N >= 2 (default 5,10,20,40,80; "
                                                                "5,10,20,40,80,160 takes about 4x longer)")
@@ -522,25 +388,45 @@ def parser() -> argparse.ArgumentParser:
     xv.add_argument("--out", default="results/xval", help="output directory (created if missing)")
     xv.set_defaults(func=cmd_xval)
 
-    ls = add("list", "registered integrators and shipped scenes")
-    ls.set_defaults(func=cmd_list)
+
+def _add_reel_reversal(sub) -> None:
+    from benchmark import reel_reversal  # constants only (no JAX)
+
+    rr = sub("reel-reversal", "orders of the fixed-step methods across a reel reversal (ṡ_p changes sign), errors "
+                              "against the reference -> a table on stdout")
+    rr.add_argument("--scene", default="reel_reversal", help="scene name or path")
+    rr.add_argument("--elements", type=opt.positive_int, default=5, help="N")
+    rr.add_argument("--t-end", type=opt.positive_float, default=0.96,
+                    help=f"horizon in s, a multiple of the compared interval {reel_reversal.COMPARE_EVERY:g} s")
+    rr.add_argument("--methods", type=opt.names, help=f"comma-separated methods (default: {_csv(reel_reversal.DEFAULT_HS)})")
+    rr.add_argument("--jobs", type=opt.nonnegative_int,
+                    help="worker processes (0: run in this process; default: one per method, at most the CPU count)")
+    rr.add_argument("--cache-dir", default="results/cache", help="where the reference is cached (created if missing)")
+    rr.set_defaults(func=cmd_reel_reversal)
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m benchmark", description=__doc__, formatter_class=_Help)
+    commands = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def sub(name: str, help: str, description: str | None = None) -> argparse.ArgumentParser:
+        return commands.add_parser(name, help=help, description=description or help, formatter_class=_Help)
+
+    for add in (_add_run, _add_check, _add_simulate, _add_figures, _add_speed, _add_stability, _add_xval,
+                _add_reel_reversal):
+        add(sub)
+    sub("list", "registered integrators and shipped scenes").set_defaults(func=cmd_list)
     return p
 
 
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     try:
-        if argv[:1] == ["speed"]:  # its own options (see `speed --help`) pass straight through
-            from benchmark import lgvi_speed
-
-            try:
-                return lgvi_speed.main(argv[1:]) or 0
-            except SystemExit as exc:  # --help (0) or a bad option (2, argparse printed "error: ...")
-                return exc.code if isinstance(exc.code, int) else 2
         try:
             args = parser().parse_args(argv)
         except SystemExit as exc:  # --help (0) or a bad option (2, argparse printed "error: ...")
             return exc.code if isinstance(exc.code, int) else 2
+        args.argv = argv
         return args.func(args)
     except ValueError as exc:  # bad input (UsageError, SceneError, an integrator's argument check)
         if os.environ.get("REELBENCH_DEBUG"):  # a developer chasing a ValueError gets its traceback
@@ -548,5 +434,7 @@ def main(argv=None) -> int:
         _log(f"error: {exc}")
         return 2
     except KeyboardInterrupt as exc:  # a command without its own stop message
-        _log(f"stopped by {_how(exc)}")
-        return _stopped(exc)
+        from benchmark.engine import stop_cause, stop_status
+
+        _log(f"stopped by {stop_cause(exc)}")
+        return stop_status(exc)

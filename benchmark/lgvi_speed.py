@@ -16,35 +16,61 @@ Two tables:
    The autodiff one is O(N³) (dense mass matrix and solve); above ``--autodiff-max-n`` it is
    skipped.
 
-Per method and scene: the ratio of time per step at the largest N ≤ 160 to N = 10 (the issue
-#11 target: ≤ 24, linear in N would be 16) and the log-log slope over all N. Pin to one core
-for the one-core figure: ``taskset -c 0 python -m benchmark speed``.
+Per method and scene: the ratio of time per step at the largest N ≤ 160 to N = 10 (linear in
+N would be 16) and the log-log slope over all N. Every measurement is one engine job, run in
+this process one after another (they are timings: they never share the cores). Pin to one
+core for the one-core figure: ``taskset -c 0 python -m benchmark speed``.
 """
 
 from __future__ import annotations
 
-import argparse
 import statistics
-import sys
 import time
-from pathlib import Path
+from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
-from benchmark import options as opt
+from benchmark.report import Provenance
 
 #: step at N = 10 per scene, scaled by 10/N: the LGVI is explicit in the elastic forces, so it
 #: needs h ω_max < 2 with ω_max ∝ N (fixed_length N = 10: h < ~9 ms; deployment: h < ~2.7 ms).
 DEFAULT_DT10 = {"fixed_length": 0.005, "deployment": 0.002, "retrieval": 0.004}
 #: a method that does not finish at the scene's step is retried at half of it, this many times at most
 MAX_HALVINGS = 3
+#: the N whose time per step the ratio compares with N = 10's (the largest measured N up to it)
+RATIO_MAX_N = 160
 
 
 def fixed_step_methods() -> list[str]:
-    """Every registered fixed-step method (test plugins aside)."""
-    from integrators import Capability, available, get_integrator
+    """Every default method (`benchmark.sweep.default_names`) that takes a constant step."""
+    from benchmark.sweep import default_names
+    from integrators import Capability, get_integrator
 
-    return [n for n in available() if not n.startswith("test_") and get_integrator(n).has(Capability.FIXED_STEP)]
+    return [n for n in default_names() if get_integrator(n).has(Capability.FIXED_STEP)]
+
+
+def check_methods(methods) -> None:
+    """ValueError naming a method that is not a fixed-step one."""
+    from integrators import Capability, get_integrator
+
+    for m in methods:
+        if not get_integrator(m).has(Capability.FIXED_STEP):
+            raise ValueError(f"--methods: {m!r} is not a fixed-step method (allowed: {', '.join(fixed_step_methods())})")
+
+
+@dataclass(frozen=True)
+class SpeedRequest:
+    """What `python -m benchmark speed` measures (its options)."""
+
+    elements: tuple = (10, 40, 160, 640)
+    scenes: tuple = ("fixed_length", "deployment")
+    methods: tuple | None = None  # None: every fixed-step method
+    steps: int = 2000
+    repeats: int = 3
+    dt: float | None = None  # None: the scene's stable step at N = 10, times 10/N
+    rhs: tuple = ("closed_form", "autodiff")
+    autodiff_max_n: int = 160
 
 
 def measure(scene_name: str, n: int, steps: int, repeats: int, dt: float | None = None, method: str = "lgvi") -> dict:
@@ -96,9 +122,58 @@ def measure_rhs(scene_name: str, n: int, rhs: str, calls: int = 200, budget_s: f
             "calls": len(times)}
 
 
+# ------------------------------------------------------------------------------------------
+# The jobs
+# ------------------------------------------------------------------------------------------
+class StepJob(NamedTuple):
+    method: str
+    scene: str
+    N: int
+    steps: int
+    repeats: int
+    dt: float | None
+
+
+class RhsJob(NamedTuple):
+    scene: str
+    N: int
+    rhs: str
+    skip: str = ""  # why it is not measured ("" = it is)
+
+
+def jobs_for(request: SpeedRequest) -> list:
+    methods = request.methods or fixed_step_methods()
+    steps = [StepJob(m, sc, n, request.steps, request.repeats, request.dt)
+             for m in methods for sc in request.scenes for n in request.elements]
+    rhs = [RhsJob(sc, n, r, f"O(N³), N > --autodiff-max-n {request.autodiff_max_n}"
+                  if r == "autodiff" and n > request.autodiff_max_n else "")
+           for sc in request.scenes for r in request.rhs for n in request.elements]
+    return steps + rhs
+
+
+def run_job(job) -> dict:
+    if isinstance(job, StepJob):
+        return {"kind": "step", **measure(job.scene, job.N, job.steps, job.repeats, job.dt, job.method)}
+    if job.skip:
+        return {"kind": "rhs", "scene": job.scene, "N": job.N, "rhs": job.rhs, "skipped": job.skip}
+    return {"kind": "rhs", **measure_rhs(job.scene, job.N, job.rhs)}
+
+
+def describe(r: dict) -> str:
+    if r["kind"] == "step":
+        return (f"{r['method']} {r['scene']} N={r['N']} dt={r['dt']:.3g}: {r['us_per_step']:.2f} us/step, "
+                f"compile {r['compile_s']:.2f} s, {r['newton_per_step']:.2f} newton/step, {r['status']}")
+    if "skipped" in r:
+        return f"rhs {r['rhs']} {r['scene']} N={r['N']}: skipped ({r['skipped']})"
+    return f"rhs {r['rhs']} {r['scene']} N={r['N']}: compile {r['compile_s']:.2f} s, {r['us_per_call']:.1f} us/call"
+
+
+# ------------------------------------------------------------------------------------------
+# The tables
+# ------------------------------------------------------------------------------------------
 def _ratio(rows, key):
     by_n = {r["N"]: r[key] for r in rows if np.isfinite(r[key])}
-    small = [m for m in by_n if m <= 160 and m > 10]
+    small = [m for m in by_n if RATIO_MAX_N >= m > 10]
     if 10 not in by_n or not small:
         return np.nan, None
     big = max(small)
@@ -112,86 +187,37 @@ def _slope(rows, key):
     return float(np.polyfit(np.log([p[0] for p in pts]), np.log([p[1] for p in pts]), 1)[0])
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m benchmark speed", description=__doc__.splitlines()[0],
-                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    ap.add_argument("--elements", type=opt.positive_ints, default=[10, 40, 160, 640], help="comma-separated N values")
-    ap.add_argument("--scenes", type=opt.names, default=["fixed_length", "deployment"], help="comma-separated scene names")
-    ap.add_argument("--methods", type=opt.names, default=None,
-                    help="comma-separated fixed-step methods (default: every registered one with the fixed_step capability)")
-    ap.add_argument("--steps", type=opt.positive_int, default=2000, help="steps per timed run")
-    ap.add_argument("--repeats", type=opt.positive_int, default=3, help="timed repeats (median)")
-    ap.add_argument("--dt", type=opt.positive_float, default=None,
-                    help="step size (default: per-scene stable step at N = 10, times 10/N)")
-    ap.add_argument("--rhs", default="closed_form,autodiff", help="right-hand sides to time per call ('' = none)")
-    ap.add_argument("--autodiff-max-n", type=opt.positive_int, default=160,
-                    help="largest N for the O(N^3) autodiff right-hand side")
-    ap.add_argument("--out", help="also write the tables (Markdown, with the command and machine) to this file")
-    args = ap.parse_args(argv)
-    ns, scenes = args.elements, args.scenes
-    rhs_kinds = [v.strip() for v in args.rhs.split(",") if v.strip()]
-    from models import load_scene
-
-    for sc in scenes:  # every scene and N is checked (names, plausibility) before any work
-        for n in ns:
-            load_scene(sc, elements=n)
-    if args.out:
-        opt.writable_file(args.out)
-    from integrators import Capability, get_integrator
-    from integrators.rhs import check_rhs
-
-    methods = args.methods or fixed_step_methods()
-    for m in methods:
-        if not get_integrator(m).has(Capability.FIXED_STEP):
-            raise ValueError(f"--methods: {m!r} is not a fixed-step method (allowed: {', '.join(fixed_step_methods())})")
-    for r in rhs_kinds:
-        check_rhs(r)
-
-    print(f"{'method':<10}{'scene':<14}{'N':>6}{'dt':>10}{'compile s':>11}{'us/step':>10}{'newton/step':>13}  status")
+def _step_tables(rows: list[dict]) -> tuple[list[str], list[str]]:
     md = ["| method | scene | N | dt (s) | compile (s) | µs/step | steps/s | Newton iterations/step | status |",
           "|---|---|---|---|---|---|---|---|---|"]
-    summary = ["| method | scene | µs/step at N = 10 | ratio N=160 / N=10 | log-log slope |", "|---|---|---|---|---|"]
-    for method in methods:
-        for sc in scenes:
-            rows = []
-            for n in ns:
-                r = measure(sc, n, args.steps, args.repeats, args.dt, method)
-                rows.append(r)
-                print(f"{method:<10}{sc:<14}{n:>6}{r['dt']:>10.3g}{r['compile_s']:>11.2f}{r['us_per_step']:>10.2f}"
-                      f"{r['newton_per_step']:>13.2f}  {r['status']}", flush=True)
-                md.append(f"| {method} | {sc} | {n} | {r['dt']:.3g} | {r['compile_s']:.2f} | {r['us_per_step']:.2f} "
-                          f"| {r['steps_per_s']:.0f} | {r['newton_per_step']:.2f} | {r['status']} |")
-            ratio, big = _ratio(rows, "us_per_step")
-            slope = _slope(rows, "us_per_step")
-            at10 = next((r["us_per_step"] for r in rows if r["N"] == 10), np.nan)
-            print(f"{method:<10}{sc:<14} ratio N={big}/N=10: {ratio:.1f}; log-log slope: {slope:.2f}")
-            summary.append(f"| {method} | {sc} | {at10:.2f} | {ratio:.1f} (N = {big}) | {slope:.2f} |")
-    rhs_md = ["| scene | N | right-hand side | compile (s) | µs/call | calls |", "|---|---|---|---|---|---|"]
-    for sc in scenes if rhs_kinds else []:
-        for rhs in rhs_kinds:
-            for n in ns:
-                if rhs == "autodiff" and n > args.autodiff_max_n:
-                    rhs_md.append(f"| {sc} | {n} | {rhs} | | skipped (O(N³), N > --autodiff-max-n {args.autodiff_max_n}) | |")
-                    continue
-                r = measure_rhs(sc, n, rhs)
-                print(f"rhs {rhs:<12}{sc:<14}{n:>6}  compile {r['compile_s']:.2f} s  {r['us_per_call']:.1f} us/call", flush=True)
-                rhs_md.append(f"| {sc} | {n} | {rhs} | {r['compile_s']:.2f} | {r['us_per_call']:.1f} | {r['calls']} |")
-    if args.out:
-        import shlex
-
-        from benchmark.report import environment, utc_now
-        from models.io import atomic_write_text
-
-        command = "python -m benchmark speed " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
-        text = (f"# Speed of the fixed-step methods and of the right-hand sides\n\nGenerated by `{command.strip()}` on "
-                f"{utc_now()}.\n{environment()}\n\n"
-                "Time per step: the whole `solve()` after compilation (output conversion included), divided by the "
-                "steps, median of repeats; compile time apart.\n\n"
-                + "\n".join(md) + "\n\n## Scaling with N\n\n" + "\n".join(summary)
-                + "\n\n## Right-hand side per call (jitted, called from numpy)\n\n" + "\n".join(rhs_md) + "\n")
-        atomic_write_text(Path(args.out), text)
-    return 0
+    md += [f"| {r['method']} | {r['scene']} | {r['N']} | {r['dt']:.3g} | {r['compile_s']:.2f} | {r['us_per_step']:.2f} "
+           f"| {r['steps_per_s']:.0f} | {r['newton_per_step']:.2f} | {r['status']} |" for r in rows]
+    summary = [f"| method | scene | µs/step at N = 10 | ratio N={RATIO_MAX_N} / N=10 | log-log slope |",
+               "|---|---|---|---|---|"]
+    for key in dict.fromkeys((r["method"], r["scene"]) for r in rows):
+        group = [r for r in rows if (r["method"], r["scene"]) == key]
+        ratio, big = _ratio(group, "us_per_step")
+        at10 = next((r["us_per_step"] for r in group if r["N"] == 10), np.nan)
+        summary.append(f"| {key[0]} | {key[1]} | {at10:.2f} | {ratio:.1f} (N = {big}) | {_slope(group, 'us_per_step'):.2f} |")
+    return md, summary
 
 
-if __name__ == "__main__":
-    raise SystemExit(main())
+def _rhs_table(rows: list[dict]) -> list[str]:
+    md = ["| scene | N | right-hand side | compile (s) | µs/call | calls |", "|---|---|---|---|---|---|"]
+    for r in rows:
+        if "skipped" in r:
+            md.append(f"| {r['scene']} | {r['N']} | {r['rhs']} | | skipped ({r['skipped']}) | |")
+        else:
+            md.append(f"| {r['scene']} | {r['N']} | {r['rhs']} | {r['compile_s']:.2f} | {r['us_per_call']:.1f} | {r['calls']} |")
+    return md
+
+
+def document(rows: list[dict], provenance: Provenance) -> str:
+    """The speed tables as one Markdown file, under the report header."""
+    md, summary = _step_tables([r for r in rows if r["kind"] == "step"])
+    rhs = _rhs_table([r for r in rows if r["kind"] == "rhs"])
+    return (f"# Speed of the fixed-step methods and of the right-hand sides\n\n{provenance.header()}\n\n"
+            "Time per step: the whole `solve()` after compilation (output conversion included), divided by the "
+            "steps, median of repeats; compile time apart.\n\n"
+            + "\n".join(md) + "\n\n## Scaling with N\n\n" + "\n".join(summary)
+            + "\n\n## Right-hand side per call (jitted, called from numpy)\n\n" + "\n".join(rhs) + "\n")

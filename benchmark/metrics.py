@@ -59,10 +59,16 @@ class Evidence:
     datt: np.ndarray | None = None
 
 
-def _pi3_error(ev: Evidence) -> float:
-    pi0 = float(ev.df["pi3"].iloc[0])
-    dpi = float(np.max(np.abs(ev.df["pi3"] - pi0)))
+def pi3_deviation(df: pd.DataFrame) -> pd.Series:
+    """|π3 − π3(0)| / |π3(0)| at every saved time of a run's diagnostics (absolute if π3(0) = 0),
+    the π3 drift of the paper's panel (d) and of the metric ``pi3_error``."""
+    pi0 = float(df["pi3"].iloc[0])
+    dpi = np.abs(df["pi3"] - pi0)
     return dpi / abs(pi0) if abs(pi0) > 1e-12 else dpi
+
+
+def _pi3_error(ev: Evidence) -> float:
+    return float(np.max(pi3_deviation(ev.df)))
 
 
 def _of(arr: str, how: str) -> Callable[[Evidence], float]:
@@ -143,13 +149,6 @@ def _distances(scene, traj, ref, save_every: float):
     Ra, Rb = attitude_matrices(traj), attitude_matrices(ref)
     datt = np.linalg.norm(Ra[i] - Rb[j], axis=(1, 2)) if Ra is not None and Rb is not None else None
     return dpos, datt
-
-
-def compare_to_reference(scene, traj, ref, save_every: float) -> dict:
-    """Final and L∞ errors of the body position (m) and attitude (Frobenius) vs ``ref``."""
-    dpos, datt = _distances(scene, traj, ref, save_every)
-    ev = Evidence(df=pd.DataFrame(), has_work=False, dpos=dpos, datt=datt)
-    return {m.name: m.function(ev) for m in METRICS if m.reference}
 
 
 def run_metrics(scene, traj, ref, save_every: float, finished=("ok",)) -> dict:

@@ -136,14 +136,15 @@ def writable_file(path: str | os.PathLike, option: str = "--out") -> Path:
 MEMORY_REFUSE = 8 * 2**30
 #: ... and warn above this.
 MEMORY_WARN = 1 * 2**30
-#: Refuse a fixed-step run with more steps than this (at ~10 µs per step on the smallest
-#: scene, 1e9 steps is more than 3 hours; below it the time estimate warns instead).
+#: Refuse a fixed-step run with more steps than this (at the estimate below, 1e9 steps is over
+#: half an hour at N = 10 and days at N = 1000; below it the time estimate warns instead).
 STEPS_REFUSE = 1e9
 #: Warn when the estimated wall time of one run exceeds this (s).
 TIME_WARN = 600.0
-#: LGVI time per step ≈ STEP_COST_10 × (N/10)^0.9 (results/lgvi_speed.md: 11 µs at N = 10 on
-#: one core, log-log slope 0.86–0.91); an estimate, not a promise.
-STEP_COST_10 = 12e-6
+#: LGVI time per step ≈ STEP_COST_10 × (N/10)^0.9 (results/lgvi_speed.md, one core: 1.07 µs on
+#: fixed_length and 1.98 µs on deployment at N = 10, log-log slope 0.81–0.87); an estimate,
+#: not a promise: the fourth-order variants cost 3–5x that per step, constant-step Tsit5 10–20x.
+STEP_COST_10 = 2e-6
 
 
 def run_size(scene, t_end: float, save_every: float, dt: float | None = None) -> dict:

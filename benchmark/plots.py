@@ -1,4 +1,7 @@
-"""Figures: work–precision, energy error over a long horizon, and the paper's panels (a)–(d)."""
+"""The plot layer every figure is drawn with (`save_figure`: atomic PNG; `style_axes`: labels,
+log-grid and legend), and the runs' figures: work–precision, energy error over a long horizon,
+and the paper's panels (a)–(d). The stability map's and the cross-validation's figures are
+drawn by their writers with the same layer."""
 
 from __future__ import annotations
 
@@ -11,6 +14,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
+from benchmark.metrics import WORK_DEFINITION, pi3_deviation  # noqa: E402
 from models import build_model  # noqa: E402
 from models.diagnostics import energy_deviation  # noqa: E402
 from models.io import atomic_path  # noqa: E402
@@ -22,11 +26,22 @@ ERROR_LABELS = {
 }
 
 
-def _save(fig, path: Path) -> Path:
+def save_figure(fig, path: Path, dpi: int = 110) -> Path:
+    """Write ``fig`` as PNG atomically (an interrupted write leaves the old figure) and close it."""
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
+        fig.savefig(tmp, dpi=dpi, bbox_inches="tight", format="png")
     plt.close(fig)
-    return path
+    return Path(path)
+
+
+def style_axes(ax, *, xlabel: str | None = None, ylabel: str | None = None, title: str | None = None,
+               grid: str | None = "both", legend: int | None = 8) -> None:
+    """Labels, a light grid (``grid``: "both", "y", or None) and a legend of ``legend`` points."""
+    ax.set(**{k: v for k, v in (("xlabel", xlabel), ("ylabel", ylabel), ("title", title)) if v is not None})
+    if grid:
+        ax.grid(True, which="both", axis="y" if grid == "y" else "both", alpha=0.3)
+    if legend:
+        ax.legend(fontsize=legend)
 
 
 #: x axes of the work-precision figure: wall time (this machine) and a machine-independent work count
@@ -38,8 +53,6 @@ def work_precision(runs: pd.DataFrame, scene: str, out_dir: Path) -> Path:
     """Error vs cost, one curve per integrator and sweep axis, log-log: one column per error kind,
     one row per cost axis (`COST_AXES`: wall time, then the work count of `benchmark.metrics.WORK_DEFINITION`,
     so a reader on another machine can check the ranking)."""
-    from benchmark.metrics import WORK_DEFINITION
-
     g = runs[(runs["scene"] == scene) & (runs["status"] == "ok")]
     fig, axes = plt.subplots(len(COST_AXES), len(ERROR_LABELS), figsize=(5.2 * len(ERROR_LABELS), 4.2 * len(COST_AXES)),
                              squeeze=False)
@@ -49,14 +62,12 @@ def work_precision(runs: pd.DataFrame, scene: str, out_dir: Path) -> Path:
                 c = c[(c[err] > 0) & (c[cost] > 0)].sort_values(cost) if cost in c else c.iloc[:0]
                 if len(c):
                     ax.loglog(c[cost], c[err], "o-" if axis == "adaptive" else "s--", label=f"{integ} ({axis})")
-            ax.set_xlabel(cost_label)
-            ax.set_ylabel(label)
-            ax.grid(True, which="both", alpha=0.3)
+            style_axes(ax, xlabel=cost_label, ylabel=label, legend=None)
         row[0].legend(fontsize=8)
     failed = runs[(runs["scene"] == scene) & (runs["status"] != "ok")]
     fig.suptitle(f"{scene}: work–precision" + (f"  ({len(failed)} runs failed, see runs.csv)" if len(failed) else "")
                  + f"\nbottom row: {WORK_DEFINITION}", fontsize=10)
-    return _save(fig, Path(out_dir) / f"work_precision_{scene}.png")
+    return save_figure(fig, Path(out_dir) / f"work_precision_{scene}.png")
 
 
 def energy_horizon(histories: dict[str, pd.DataFrame], scene: str, out_dir: Path) -> Path:
@@ -64,12 +75,8 @@ def energy_horizon(histories: dict[str, pd.DataFrame], scene: str, out_dir: Path
     fig, ax = plt.subplots(figsize=(8, 4.2))
     for label, h in histories.items():
         ax.semilogy(h["t"], np.maximum(h["energy_error"], 1e-17), label=label, lw=1)
-    ax.set_xlabel("t (s)")
-    ax.set_ylabel("|E − E0| / max T")
-    ax.set_title(f"{scene}: energy error over a long horizon")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
-    return _save(fig, Path(out_dir) / f"energy_horizon_{scene}.png")
+    style_axes(ax, xlabel="t (s)", ylabel="|E − E0| / max T", title=f"{scene}: energy error over a long horizon")
+    return save_figure(fig, Path(out_dir) / f"energy_horizon_{scene}.png")
 
 
 def paper_panels(scene, traj, df: pd.DataFrame, out_path: Path, n_snapshots: int = 20) -> Path:
@@ -108,16 +115,13 @@ def paper_panels(scene, traj, df: pd.DataFrame, out_path: Path, n_snapshots: int
     has_work = model.layout.has_work
     dev = energy_deviation(df, has_work=has_work)
     ax.semilogy(df["t"], np.maximum(dev, 1e-17), label=("|Δ(E−W)|" if has_work else "|ΔE|") + " / max T")
-    pi0 = df["pi3"].iloc[0]
-    dpi = np.abs(df["pi3"] - pi0) / (abs(pi0) if abs(pi0) > 1e-12 else 1.0)
-    ax.semilogy(df["t"], np.maximum(dpi, 1e-17), label="|Δπ3| / |π3(0)|")
+    ax.semilogy(df["t"], np.maximum(pi3_deviation(df), 1e-17), label="|Δπ3| / |π3(0)|")
     if model.layout.has_attitude:
         ax.semilogy(df["t"], np.maximum(df["orthogonality_error"], 1e-17), label="‖I − RᵀR‖")
-    ax.set_xlabel("t (s)"), ax.legend(fontsize=8), ax.grid(True, which="both", alpha=0.3)
-    ax.set_title("(d) conserved quantities and orthogonality")
+    style_axes(ax, xlabel="t (s)", title="(d) conserved quantities and orthogonality")
     status = "" if traj.ok else f"  [stopped: {traj.status}]"
     setting = ", ".join(f"{k} = {v:g}" if isinstance(v, (int, float)) else f"{k} = {v}"
                         for k, v in traj.settings.items() if v is not None)
     fig.suptitle(f"{scene.name} — {traj.integrator} ({setting}){status}")
     fig.tight_layout()
-    return _save(fig, Path(out_path))
+    return save_figure(fig, Path(out_path))

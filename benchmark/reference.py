@@ -1,4 +1,6 @@
-"""Reference solutions: computed once per scene at tight tolerance, cached, reused.
+"""Reference solutions, the one path every study compares with: DOP853 at rtol 1e-12 / atol
+1e-14 on the closed-form right-hand side (the scipy adapter's default), computed once per
+problem, cached, reused.
 
 The cache key is a hash of the scene (its physics, not its name), the horizon, the save
 interval and the reference method's settings, so a changed scene never reuses a stale file;
@@ -14,46 +16,27 @@ their checksum (edited, scaled) is reported by file name and recomputed, never u
 
 from __future__ import annotations
 
-import functools
 import hashlib
 import importlib.metadata
 import json
-import sys
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
-from integrators import Trajectory, get_integrator
+from benchmark.engine import log_stderr
+from benchmark.store import (UnreadableFile, read_npz, source_hash, trajectory_from, trajectory_parts,
+                             write_npz)
+from integrators import get_integrator
 
 REFERENCE_METHOD = {"integrator": "dop853", "rtol": 1e-12, "atol": 1e-14}
 CACHE_DIR = Path("results") / "cache"
 #: Version of the file layout below; a file of another format is recomputed.
 FORMAT = 2
-_ARRAYS = ("t", "x", "attitude", "velocity", "momentum", "work")
-
-
-def _log_stderr(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
-
 
 #: The source a reference is computed by: the model and the integrators (DOP853 through the
 #: scipy adapter, on the closed-form right-hand side).
 PHYSICS_DIRS = ("models", "integrators")
-
-
-@functools.lru_cache(maxsize=8)
-def source_hash(dirs: tuple = (), files: tuple = ()) -> str:
-    """A hash of the Python and TOML source under ``dirs`` and of ``files`` (paths relative to
-    the repository root), names included: it changes when any of that code does. Read once per
-    process (the code a process runs does not change under it)."""
-    root = Path(__file__).resolve().parent.parent
-    paths = sorted(p for d in dirs for p in (root / d).rglob("*") if p.suffix in (".py", ".toml"))
-    paths += [root / f for f in files]
-    h = hashlib.sha256()
-    for f in paths:
-        h.update(str(f.relative_to(root)).encode())
-        h.update(f.read_bytes())
-    return h.hexdigest()[:12]
 
 
 def identity(scene, t_end: float, save_every: float) -> dict:
@@ -93,15 +76,10 @@ def checksum(arrays: dict, header: str) -> str:
 
 def save_reference(traj, path: Path, ident: dict) -> None:
     """Write ``traj`` with its identity and checksum, atomically."""
-    from models.io import atomic_path
-
-    arrays = {k: np.asarray(getattr(traj, k)) for k in _ARRAYS if getattr(traj, k) is not None}
-    meta = json.dumps({k: getattr(traj, k) for k in ("attitude_kind", "status", "reason", "stats", "integrator",
-                                                      "settings", "scene_name")}, default=str, sort_keys=True)
-    header = json.dumps({"identity": ident, "versions": _versions(), "meta": meta}, sort_keys=True)
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, header=np.array(header), checksum=np.array(checksum(arrays, header)), **arrays)
+    arrays, meta = trajectory_parts(traj)
+    header = json.dumps({"identity": ident, "versions": _versions(),
+                         "meta": json.dumps(meta, default=str, sort_keys=True)}, sort_keys=True)
+    write_npz(path, {"header": np.array(header), "checksum": np.array(checksum(arrays, header)), **arrays})
 
 
 class CacheError(ValueError):
@@ -111,22 +89,13 @@ class CacheError(ValueError):
 def load_reference(path: Path, ident: dict):
     """The trajectory in ``path`` if it loads, is the reference ``ident`` describes and matches
     its checksum; CacheError saying what is wrong otherwise."""
-    import zipfile
-
-    if not zipfile.is_zipfile(path):  # an .npz is a zip archive; random bytes, a pickle or a cut file are not
-        raise CacheError("cannot be read (not an .npz archive: truncated or not written by reelbench)")
     try:
-        with np.load(path, allow_pickle=False) as data:
-            files = set(data.files)
-            if "header" not in files or "checksum" not in files:
-                raise CacheError("no identity or checksum (written by an older version or another program)")
-            header = str(data["header"])
-            stored = str(data["checksum"])
-            arrays = {k: data[k] for k in _ARRAYS if k in files}
-    except CacheError:
-        raise
-    except Exception as exc:  # truncated zip, random bytes, a pickle, a bad member: all mean "unusable"
-        raise CacheError(f"cannot be read ({type(exc).__name__}: {str(exc).splitlines()[0][:120] if str(exc) else ''})") from None
+        data = read_npz(path)
+    except UnreadableFile as exc:
+        raise CacheError(f"cannot be read ({exc})") from None
+    if "header" not in data or "checksum" not in data:
+        raise CacheError("no identity or checksum (written by an older version or another program)")
+    header, stored = str(data.pop("header")), str(data.pop("checksum"))
     try:
         head = json.loads(header)
         got = head["identity"]
@@ -136,12 +105,12 @@ def load_reference(path: Path, ident: dict):
     if got != ident:
         diff = sorted(k for k in set(got) | set(ident) if got.get(k) != ident.get(k))
         raise CacheError(f"it is a different reference (differs in {', '.join(diff)})")
-    if checksum(arrays, header) != stored:
+    if checksum(data, header) != stored:
         raise CacheError("its numbers do not match their checksum (the file was changed after it was written)")
-    return Trajectory(**{k: arrays.get(k) for k in _ARRAYS}, **meta)
+    return trajectory_from(data, meta)
 
 
-def get_reference(scene, t_end: float, save_every: float, cache_dir: Path = CACHE_DIR, log=_log_stderr):
+def get_reference(scene, t_end: float, save_every: float, cache_dir: Path = CACHE_DIR, log=log_stderr):
     """The cached reference for (scene, t_end, save_every), computing it on first use, or when
     the cached file cannot be trusted (reported through ``log`` by file name)."""
     path = reference_path(scene, t_end, save_every, cache_dir)
@@ -161,3 +130,23 @@ def get_reference(scene, t_end: float, save_every: float, cache_dir: Path = CACH
         raise RuntimeError(f"reference solution for {scene.name} failed: {traj.status}: {traj.reason}")
     save_reference(traj, path, ident)
     return traj
+
+
+class ReferenceProblem(NamedTuple):
+    """A reference some jobs share, by what a task names: the scene (name or path, with its
+    overrides), the horizon (None: the scene's t_end) and the save interval."""
+
+    scene: str
+    overrides: tuple
+    t_end: float | None
+    save_every: float
+
+
+def prepare_reference(problem: ReferenceProblem, cache_dir: str | Path = CACHE_DIR) -> None:
+    """Compute (or check) the cached reference of ``problem`` before the jobs read it, so that
+    two workers never compute the same one."""
+    from models import load_scene
+
+    scene = load_scene(problem.scene, **dict(problem.overrides))
+    get_reference(scene, problem.t_end if problem.t_end is not None else scene.t_end, problem.save_every,
+                  Path(cache_dir))

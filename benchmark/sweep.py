@@ -7,7 +7,8 @@ method saves at the same times as the reference.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
+from typing import NamedTuple
 
 PAPER_SCENES = ("fixed_length", "deployment", "retrieval")
 #: The order in which the shipped methods appear in tables and plots (an order only: every
@@ -32,6 +33,15 @@ IMPLICIT_FULL_RTOLS = (1e-3, 1e-4, 1e-6)
 IMPLICIT_QUICK_RTOLS = (1e-4, 1e-6)
 ATOL_FACTOR = 1e-2
 QUICK_T_END = 1.0
+#: s of repeated solves per run, at most (`benchmark.runner`). The first solve is always a sample;
+#: a run longer than this gets no repeat (its timing noise is small next to its length), shorter
+#: ones up to `--repeats`. A longer budget makes the default job's tight-tolerance scipy runs
+#: twice as long without changing a ranking.
+TIMING_BUDGET = 2.0
+#: Where the runs execute: worker processes, this process, or a Dask cluster.
+EXECUTORS = ("process", "serial", "dask")
+#: Length (s) of the long-horizon energy study on fixed_length (`run --horizon`), full and --quick.
+FULL_HORIZON, QUICK_HORIZON = 100.0, 10.0
 
 
 @dataclass(frozen=True)
@@ -61,9 +71,6 @@ class Task:
             kw.update(rtol=self.rtol, atol=self.atol)
         return kw
 
-    def as_dict(self) -> dict:
-        return asdict(self)
-
 
 def check_settings(dts=(), rtols=()) -> None:
     """ValueError for a step size that does not divide the save interval or a tolerance
@@ -84,6 +91,35 @@ def default_names() -> list[str]:
     names = available()
     return [n for n in PRESENTATION_ORDER if n in names] + [
         n for n in names if n not in PRESENTATION_ORDER and not n.startswith("test_")]
+
+
+class MethodSettings(NamedTuple):
+    """An integrator and the settings of one of its runs, e.g. ("lgvi", {"dt": 0.0025})."""
+
+    name: str
+    settings: dict
+
+    @property
+    def label(self) -> str:
+        return f"{self.name} {', '.join(f'{k}={v:g}' for k, v in self.settings.items())}"
+
+
+def paper_method() -> MethodSettings:
+    """The method whose run draws the paper's panels: the first default integrator declaring
+    `Integrator.paper_settings` (the paper's LGVI at dt = 2.5 ms)."""
+    from integrators import get_integrator
+
+    return next(MethodSettings(n, dict(s)) for n in default_names() if (s := get_integrator(n).paper_settings))
+
+
+def horizon_methods() -> tuple[MethodSettings, ...]:
+    """The methods of the long-horizon energy study, chosen by what they declare
+    (`Integrator.horizon_settings`), not by name: every default integrator and plugin with
+    settings for it, fixed-step first, then the loosest tolerance first (ties: the sweep's order)."""
+    from integrators import get_integrator
+
+    chosen = [MethodSettings(n, dict(s)) for n in default_names() if (s := get_integrator(n).horizon_settings)]
+    return tuple(sorted(chosen, key=lambda m: ("dt" not in m.settings, -m.settings.get("rtol", 0.0))))
 
 
 def build_tasks(

@@ -3,10 +3,10 @@
 The same fixed-length string is built in three codes from one scene:
 
 * **ours**: `models` with ``string.mass_model`` "consistent" (the paper's) and "lumped"
-  (MODEL.md §8). The study integrates it with our LGVI at the outside codes' step / `OURS_REFINE`
-  (`run_ours_lgvi`; its time error is then far below the differences studied, and the
-  lumped-vs-outside rows measure it); the tests use scipy's DOP853 on the closed-form
-  right-hand side at tight tolerances (`run_ours`);
+  (models/README.md). The study integrates it with our LGVI at the outside codes' step /
+  `OURS_REFINE` (`run_ours_lgvi`; its time error is then far below the differences studied, and
+  the lumped-vs-outside rows measure it); the tests compare with the benchmark's reference
+  solution (`benchmark.reference`: DOP853 on the closed-form right-hand side, `run_ours`);
 * **MoorDyn** (point mass only): one line from a fixed point at r_p to a free point of mass
   m_b, fluid density 0 and every hydrodynamic coefficient 0 (no buoyancy, drag or added mass),
   internal damping BA = 0, bending EI = 0, water depth 10 km (no seabed contact), RK4. MoorDyn's
@@ -23,8 +23,9 @@ The same fixed-length string is built in three codes from one scene:
 
 Both outside codes are lumped-mass discretisations, so at equal N they and our lumped model are
 the *same* discrete system (tests/test_xval.py checks that to 1e-8 m); our consistent model
-converges to the same continuum limit. Which differences, orders and limits are written where
-is described in the generated README.
+converges to the same continuum limit. `study` runs every code of every case at every N (one
+engine job per (case, N), in this process: the per-step costs are compared); its tables, plots
+and README are `benchmark.xval_report`'s.
 
 Not translated (refused with `Untranslatable`, naming it): a reel or its effects, `slack`
 (MuJoCo's tendon springs are two-sided; MoorDyn's lines are tension-only, so both codes agree
@@ -36,7 +37,6 @@ was not validated here: the body runs are against MuJoCo only).
 from __future__ import annotations
 
 import contextlib
-import json
 import math
 import os
 import struct
@@ -44,9 +44,13 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
+from benchmark import engine
+from benchmark.metrics import body_positions
+from benchmark.reference import CACHE_DIR, get_reference
 from models.scene import Scene
 
 #: Effects the translation understands (everything else is refused).
@@ -58,9 +62,6 @@ DEFAULT_T_END = 5.0
 #: the highest frequency of the lumped chain (RK4: stable up to 2.8; its error ∝ (ω dt)⁴).
 CFL = 0.05
 DT_MAX = 1e-3
-#: Our reference runs: DOP853 tolerances.
-RTOL, ATOL = 1e-11, 1e-12
-
 
 class Untranslatable(ValueError):
     """The scene has something the outside codes cannot represent; the message names it."""
@@ -99,8 +100,17 @@ def time_step(scene: Scene) -> float:
     return min(DT_MAX, CFL / omega)
 
 
-def _initial_nodes(scene: Scene):
-    """Absolute node positions (N+1, 3) and velocities of our initial state (our frame)."""
+class InitialNodes(NamedTuple):
+    """Our initial state as the outside codes take it (our frame): absolute node positions and
+    velocities (N+1, 3), the body's attitude and angular velocity."""
+
+    q: np.ndarray
+    v: np.ndarray
+    R: np.ndarray
+    omega: np.ndarray
+
+
+def _initial_nodes(scene: Scene) -> InitialNodes:
     from models import build_model
 
     model = build_model(scene)
@@ -108,7 +118,7 @@ def _initial_nodes(scene: Scene):
     N, lay = model.N, model.layout
     q = np.vstack([np.zeros(3), np.asarray(x[lay.nodes]).reshape(N, 3)]) + model.r_p
     v = np.vstack([np.zeros(3), np.asarray(w[lay.nodes]).reshape(N, 3)])
-    return q, v, np.asarray(R), np.asarray(model.omega(w))
+    return InitialNodes(q, v, np.asarray(R), np.asarray(model.omega(w)))
 
 
 # ------------------------------------------------------------------------------------------
@@ -123,7 +133,7 @@ def moordyn_input(scene: Scene, dt: float) -> str:
     """MoorDyn v2 input file of the scene (point mass, fixed length)."""
     check_translatable(scene, "moordyn")
     st = scene.string
-    q, _, _, _ = _initial_nodes(scene)
+    q = _initial_nodes(scene).q
     a, b = TO_MOORDYN @ q[0], TO_MOORDYN @ q[-1]
     f = "{:.17g}".format
     # diameter only sets MoorDyn's volume (buoyancy, drag): irrelevant with fluid density 0
@@ -228,7 +238,8 @@ def run_moordyn(scene: Scene, times, dt: float | None = None, workdir: Path | No
     dt = time_step(scene) if dt is None else dt
     times = np.asarray(times, float)
     steps_per_out = _steps_per_interval(times, dt)
-    q, v, _, _ = _initial_nodes(scene)
+    start = _initial_nodes(scene)
+    q, v = start.q, start.v
     N = scene.string.elements
     with tempfile.TemporaryDirectory(dir=workdir) as tmp:
         tmp = Path(tmp)
@@ -304,7 +315,8 @@ def mujoco_xml(scene: Scene, dt: float) -> str:
     N = st.elements
     l = scene.initial.deployed_length / N
     mu_l = st.mass_per_length * l
-    q, _, R0, _ = _initial_nodes(scene)
+    start = _initial_nodes(scene)
+    q, R0 = start.q, start.R
     f = "{:.17g}".format
     vec = lambda a: " ".join(f(x) for x in a)  # noqa: E731
     g = scene.g if scene.has("gravity") else 0.0
@@ -357,7 +369,8 @@ def run_mujoco(scene: Scene, times, dt: float | None = None) -> CodeRun:
     n_sub = _steps_per_interval(times, dt)
     model = mujoco.MjModel.from_xml_string(mujoco_xml(scene, dt))
     data = mujoco.MjData(model)
-    _, v, _, om = _initial_nodes(scene)
+    start = _initial_nodes(scene)
+    v, om = start.v, start.omega
     N = scene.string.elements
     n_slide = N - 1 if scene.has("rigid_body") else N
     data.qvel[: 3 * n_slide] = v[1:n_slide + 1].ravel()
@@ -384,31 +397,26 @@ def run_mujoco(scene: Scene, times, dt: float | None = None) -> CodeRun:
 # ------------------------------------------------------------------------------------------
 # Ours
 # ------------------------------------------------------------------------------------------
-def run_ours(scene: Scene, times, rtol: float = RTOL, atol: float = ATOL) -> CodeRun:
-    """Tip positions of our model (the scene's own mass model) by DOP853 on the closed form."""
-    from scipy.integrate import solve_ivp
+def _min_strain(model, xs) -> float:
+    """The smallest element strain over the saved states: MoorDyn's lines are tension-only, so
+    it agrees with ours only while every element stays stretched."""
+    return float((np.array([np.asarray(model.tensions(xi)).min() for xi in xs]) / model.EA).min())
 
+
+def run_ours(scene: Scene, times, cache_dir: str | Path = CACHE_DIR) -> CodeRun:
+    """Tip positions of our model (the scene's own mass model) at ``times`` (evenly spaced from
+    0): the benchmark's reference solution (`benchmark.reference.get_reference`, cached in
+    ``cache_dir``). Its cost is per right-hand side (DOP853 takes 12 per step)."""
     from models import build_model
-    from models.closed_form import build_closed_form
 
-    model = build_model(scene)
-    f = build_closed_form(scene).ode_rhs_jit
-    y0 = model.initial_ode_state()
-    f(0.0, y0).block_until_ready()  # compile outside the timing
     times = np.asarray(times, float)
-    t0 = time.perf_counter()
-    sol = solve_ivp(lambda t, y: np.asarray(f(t, y)), (0.0, times[-1]), y0, method="DOP853",
-                    rtol=rtol, atol=atol, t_eval=times)
-    wall = time.perf_counter() - t0
-    if sol.status != 0:
-        raise RuntimeError(f"DOP853 failed on {scene.name}: {sol.message}")
-    lay = model.layout
-    x = sol.y.T[:, lay.y_x]
-    tip = x[:, lay.nodes][:, -3:] + model.r_p
-    # MoorDyn's lines are tension-only: equal only while every element stays stretched
-    strain = np.array([np.asarray(model.tensions(xi)).min() for xi in x]) / model.EA
-    # DOP853 takes 12 right-hand sides per step (rejected steps included): cost is per RHS here
-    return CodeRun(f"ours_{scene.string.mass_model}", model.N, None, tip, int(sol.nfev), wall, {"rhs_evals": int(sol.nfev), "min_strain": float(strain.min()), "rtol": rtol, "atol": atol})
+    ref = get_reference(scene, float(times[-1]), float(times[1] - times[0]), Path(cache_dir))
+    if len(ref.t) != len(times) or not np.allclose(ref.t, times, atol=1e-9):
+        raise RuntimeError(f"reference saved times {ref.t[:3]}… do not match the output times")
+    model = build_model(scene)
+    nfev = int(ref.stats["rhs_evals"])
+    return CodeRun(f"ours_{scene.string.mass_model}", model.N, None, body_positions(model, ref), nfev,
+                   float(ref.stats["wall_time"]), {"rhs_evals": nfev, "min_strain": _min_strain(model, ref.x)})
 
 
 def run_ours_lgvi(scene: Scene, times, dt: float) -> CodeRun:
@@ -428,11 +436,8 @@ def run_ours_lgvi(scene: Scene, times, dt: float) -> CodeRun:
     if len(tr.t) != len(times) or not np.allclose(tr.t, times, atol=1e-9):
         raise RuntimeError(f"lgvi saved times {tr.t[:3]}… do not match the output times")
     model = build_model(scene)
-    lay = model.layout
-    tip = np.asarray(tr.x)[:, lay.nodes][:, -3:] + model.r_p
-    strain = np.array([np.asarray(model.tensions(xi)).min() for xi in tr.x]) / model.EA
-    return CodeRun(f"ours_{scene.string.mass_model}", model.N, dt, tip, int(tr.stats["steps"]),
-                   float(tr.stats["wall_time"]), {"min_strain": float(strain.min()), "method": "lgvi"})
+    return CodeRun(f"ours_{scene.string.mass_model}", model.N, dt, body_positions(model, tr), int(tr.stats["steps"]),
+                   float(tr.stats["wall_time"]), {"min_strain": _min_strain(model, tr.x), "method": "lgvi"})
 
 
 #: our LGVI runs at the outside codes' dt / OURS_REFINE
@@ -478,277 +483,53 @@ def _dt_for(scene: Scene, interval: float) -> float:
     return interval / math.ceil(interval / time_step(scene) - 1e-9)
 
 
-def _max_dist(a, b) -> float:
-    return float(np.max(np.linalg.norm(a - b, axis=1)))
+@dataclass
+class Study:
+    """The raw runs of the study: the compared times, and {(case, N): {code: CodeRun}}."""
+
+    times: np.ndarray
+    runs: dict
+
+    def cases(self) -> list[str]:
+        return sorted({c for c, _ in self.runs}, key=list(CASES).index)
+
+    def elements(self, case: str) -> list[int]:
+        return sorted(N for c, N in self.runs if c == case)
+
+
+class Job(NamedTuple):
+    """One (case, N) of the study: every code of the case on the scene at N elements."""
+
+    scene: Scene  # the case's scene at the study's horizon
+    case: str
+    N: int
+    times: np.ndarray
+
+
+def run_job(job: Job) -> dict:
+    """The row of one (case, N): the runs of our two mass models and of the case's outside codes."""
+    sc = job.scene.with_(elements=job.N, mass_model="lumped")
+    dt = _dt_for(sc, OUTPUT_INTERVAL)
+    runs = {"ours_consistent": run_ours_lgvi(job.scene.with_(elements=job.N, mass_model="consistent"), job.times,
+                                             dt / OURS_REFINE),
+            "ours_lumped": run_ours_lgvi(sc, job.times, dt / OURS_REFINE)}
+    for code in CASES[job.case]:
+        runs[code] = (run_moordyn if code == "moordyn" else run_mujoco)(sc, job.times, dt)
+    return {"case": job.case, "N": job.N, "dt": dt, "runs": runs}
+
+
+def _describe(row: dict) -> str:
+    return (f"xval {row['case']} N={row['N']}: dt={row['dt']:.3g} s; "
+            + ", ".join(f"{k} {r.wall_s:.2f} s" for k, r in row["runs"].items()))
 
 
 def study(scene: Scene, elements=DEFAULT_ELEMENTS, t_end: float = DEFAULT_T_END, cases=None,
-          log=print) -> dict:
-    """Run every code of every case at every N; returns the raw runs (tips, costs)."""
-    times = np.linspace(0.0, t_end, round(t_end / OUTPUT_INTERVAL) + 1)
-    out = {"times": times, "runs": {}}
+          log=engine.log_stderr) -> Study:
+    """Run every code of every case at every N, one engine job per (case, N) in this process
+    (their per-step costs are compared, so they never share the cores)."""
     check_scene(scene)  # refuse before any work
-    for case in cases or cases_of(scene):
-        codes = CASES[case]
-        base = case_scene(scene, case).with_(t_end=t_end)
-        for N in elements:
-            sc = base.with_(elements=N, mass_model="lumped")
-            dt = _dt_for(sc, OUTPUT_INTERVAL)
-            runs = {"ours_consistent": run_ours_lgvi(base.with_(elements=N, mass_model="consistent"), times, dt / OURS_REFINE),
-                    "ours_lumped": run_ours_lgvi(sc, times, dt / OURS_REFINE)}
-            for code in codes:
-                runs[code] = (run_moordyn if code == "moordyn" else run_mujoco)(sc, times, dt)
-            out["runs"][(case, N)] = runs
-            log(f"xval {case} N={N}: dt={dt:.3g} s; " + ", ".join(
-                f"{k} {r.wall_s:.2f} s" for k, r in runs.items()))
-    return out
-
-
-PAIRS = [("ours_lumped", "moordyn"), ("ours_lumped", "mujoco"), ("moordyn", "mujoco"),
-         ("ours_consistent", "moordyn"), ("ours_consistent", "mujoco"), ("ours_consistent", "ours_lumped")]
-TRAJ_CODES = ("ours_consistent", "ours_lumped", "moordyn", "mujoco")
-
-
-def tables(res: dict):
-    """(differences at equal N, self-convergence, Richardson limits, cost) as DataFrames."""
-    import pandas as pd
-
-    runs = res["runs"]
-    cases = sorted({c for c, _ in runs}, key=list(CASES).index)
-    diff, conv, lim, cost = [], [], [], []
-    for case in cases:
-        Ns = sorted(N for c, N in runs if c == case)
-        for N in Ns:
-            r = runs[(case, N)]
-            for a, b in PAIRS:
-                if a in r and b in r:
-                    diff.append(dict(case=case, N=N, pair=f"{a} - {b}", max_tip_distance_m=_max_dist(r[a].tip, r[b].tip),
-                                     final_tip_distance_m=float(np.linalg.norm(r[a].tip[-1] - r[b].tip[-1]))))
-            for code, run in r.items():
-                row = dict(case=case, N=N, code=code, dt_s=run.dt, steps=run.steps, wall_s=run.wall_s,
-                           us_per_step=run.us_per_step if run.dt is not None else float("nan"),
-                           us_per_rhs=(1e6 * run.wall_s / run.extra["rhs_evals"]) if "rhs_evals" in run.extra else float("nan"),
-                           min_strain=run.extra.get("min_strain", float("nan")))
-                cost.append(row)
-        for code in TRAJ_CODES:
-            have = [N for N in Ns if code in runs[(case, N)]]
-            tips = {N: runs[(case, N)][code].tip for N in have}
-            prev = None
-            for N1, N2 in zip(have[:-1], have[1:]):
-                d = _max_dist(tips[N1], tips[N2])
-                conv.append(dict(case=case, code=code, N=N1, N_next=N2, max_change_m=d,
-                                 observed_order=(math.log(prev / d) / math.log(N2 / N1)) if prev else float("nan")))
-                prev = d
-        # Richardson limits from the two finest N (order 2: x_inf = x_2N + (x_2N - x_N)/3)
-        have_all = [N for N in Ns]
-        if len(have_all) >= 2:
-            Na, Nb = have_all[-2], have_all[-1]
-            limits = {}
-            for code in TRAJ_CODES:
-                if code in runs[(case, Nb)]:
-                    xa, xb = runs[(case, Na)][code].tip, runs[(case, Nb)][code].tip
-                    limits[code] = xb + (xb - xa) / ((Nb / Na) ** 2 - 1)
-            for i, a in enumerate(limits):
-                for b in list(limits)[i + 1:]:
-                    lim.append(dict(case=case, N_pair=f"{Na},{Nb}", pair=f"{a} - {b}",
-                                    max_limit_distance_m=_max_dist(limits[a], limits[b])))
-    return pd.DataFrame(diff), pd.DataFrame(conv), pd.DataFrame(lim), pd.DataFrame(cost)
-
-
-def error_vs_limit(res: dict, case: str):
-    """Max-over-t distance of ours_consistent and ours_lumped at each N (but the two finest, which
-    define it) from the Richardson limit of ours_consistent."""
-    import pandas as pd
-
-    runs = res["runs"]
-    Ns = sorted(N for c, N in runs if c == case)
-    if len(Ns) < 3:
-        return pd.DataFrame(columns=["case", "N", "consistent_m", "lumped_m", "lumped_over_consistent"])
-    xa, xb = runs[(case, Ns[-2])]["ours_consistent"].tip, runs[(case, Ns[-1])]["ours_consistent"].tip
-    limit = xb + (xb - xa) / ((Ns[-1] / Ns[-2]) ** 2 - 1)
-    rows = []
-    for N in Ns[:-2]:
-        ec = _max_dist(runs[(case, N)]["ours_consistent"].tip, limit)
-        el = _max_dist(runs[(case, N)]["ours_lumped"].tip, limit)
-        rows.append(dict(case=case, N=N, consistent_m=ec, lumped_m=el, lumped_over_consistent=el / ec))
-    return pd.DataFrame(rows)
-
-
-def plot(res: dict, case: str, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    runs = res["runs"]
-    Ns = sorted(N for c, N in runs if c == case)
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
-    ax = axes[0]
-    # curves of the same discrete model coincide: distinct markers and dashes keep each visible
-    styles = [dict(marker=m, linestyle=ls, markersize=ms, markerfacecolor="none")
-              for m, ls, ms in zip("osx^+d", ["-", "--", ":", "-.", "-", "--"], [9, 7, 6, 5, 4, 3])]
-    for (a, b), st in zip(PAIRS, styles):
-        vals = [(N, _max_dist(runs[(case, N)][a].tip, runs[(case, N)][b].tip)) for N in Ns
-                if a in runs[(case, N)] and b in runs[(case, N)]]
-        if vals:
-            ax.loglog(*zip(*vals), label=f"{a} − {b}", **st)
-    ax.set(xlabel="N (elements)", ylabel="max over t of tip distance [m]", title=f"{case}: codes at equal N")
-    ax.legend(fontsize=7)
-    ax = axes[1]
-    for code, st in zip(TRAJ_CODES, styles):
-        have = [N for N in Ns if code in runs[(case, N)]]
-        vals = [(N2, _max_dist(runs[(case, N1)][code].tip, runs[(case, N2)][code].tip)) for N1, N2 in zip(have[:-1], have[1:])]
-        if vals:
-            ax.loglog(*zip(*vals), label=code, **st)
-    if Ns:
-        ref = np.array(Ns[1:], float)
-        ax.loglog(ref, 0.5 * (ref / ref[0]) ** -2, "k:", label="slope −2")
-    ax.set(xlabel="N", ylabel="max |tip(N) − tip(N/2)| [m]", title=f"{case}: self-convergence")
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-
-
-def _fmt(x) -> str:
-    return f"{x:.2e}"
-
-
-def write_outputs(res: dict, scene: Scene, out: Path, command: str, wall_s: float, load: str) -> Path:
-    """Tables (CSV + README), plots and the exact inputs given to MoorDyn and MuJoCo."""
-    import platform
-    from importlib.metadata import version
-
-    from models.io import atomic_write_text
-
-    out.mkdir(parents=True, exist_ok=True)
-    diff, conv, lim, cost = tables(res)
-    runs = res["runs"]
-    cases = sorted({c for c, _ in runs}, key=list(CASES).index)
-    import pandas as pd
-
-    err_all = pd.concat([error_vs_limit(res, c) for c in cases], ignore_index=True)
-    for name, df in (("differences", diff), ("self_convergence", conv), ("limits", lim), ("cost", cost),
-                     ("error_vs_limit", err_all)):
-        atomic_write_text(out / f"{name}.csv", df.to_csv(index=False))
-    runs = res["runs"]
-    cases = sorted({c for c, _ in runs}, key=list(CASES).index)
-    inputs = out / "inputs"
-    inputs.mkdir(exist_ok=True)
-    settings = {"scene": scene.name, "t_end": float(res["times"][-1]), "output_interval": OUTPUT_INTERVAL,
-                "cfl": CFL, "dt_max": DT_MAX, "ours": {"method": "lgvi", "dt": f"outside dt / {OURS_REFINE}"},
-                "runs": []}
-    for case in cases:
-        for N in sorted(N for c, N in runs if c == case):
-            r = runs[(case, N)]
-            sc = case_scene(scene, case).with_(elements=N, mass_model="lumped", t_end=settings["t_end"])
-            dt = next(v.dt for k, v in r.items() if k in ("moordyn", "mujoco"))
-            if "moordyn" in r:
-                atomic_write_text(inputs / f"moordyn_{case}_N{N}.txt", moordyn_input(sc, dt))
-            if "mujoco" in r:
-                atomic_write_text(inputs / f"mujoco_{case}_N{N}.xml", mujoco_xml(sc, dt))
-            settings["runs"].append({"case": case, "N": N, "dt": dt, "scene_key_lumped": sc.key(),
-                                     "min_strain_ours_lumped": r["ours_lumped"].extra["min_strain"]})
-    atomic_write_text(out / "settings.json", json.dumps(settings, indent=1))
-    # the raw tip trajectories, so that the tables can be recomputed without rerunning
-    np.savez_compressed(out / "tips.npz", times=res["times"],
-                        **{f"{case}_N{N}_{code}": run.tip for (case, N), r in runs.items() for code, run in r.items()})
-    for case in cases:
-        plot(res, case, out / f"convergence_{case}.png")
-
-    def row(df, **kw):
-        sel = df
-        for k, v in kw.items():
-            sel = sel[sel[k] == v]
-        return sel
-
-    lines = [
-        "# Cross-validation against MoorDyn and MuJoCo",
-        "",
-        "Generated by `benchmark/xval.py`; do not edit by hand.",
-        "",
-        f"- command: `{command}` ({wall_s:.0f} s wall, load average before the run: {load})",
-        f"- versions: moordyn {version('moordyn')}, mujoco {version('mujoco')}, numpy {version('numpy')}, "
-        f"scipy {version('scipy')}, jax {version('jax')}, Python {platform.python_version()}",
-        f"- scene: `{scene.name}` at fixed length ℓ = {scene.initial.deployed_length:g} m, μ = {scene.string.mass_per_length:g} kg/m, "
-        f"EA = {scene.string.axial_stiffness:g} N, m_b = {scene.body.mass:g} kg, straight unstretched start along "
-        f"{[round(float(x), 6) for x in scene.initial.direction]}, tip velocity {[float(x) for x in scene.initial.tip_velocity]} m/s, "
-        f"over {settings['t_end']:g} s; point_mass = the same without `rigid_body`.",
-        f"- compared quantity: the attachment point r_p + q_(N+1) (the tip) at t = 0, {OUTPUT_INTERVAL:g}, … s; "
-        "every distance below is the maximum over those times.",
-        f"- MoorDyn and MuJoCo: RK4 at dt = min({DT_MAX:g}, {CFL:g}/ω_max), ω_max = (2/l)√(EA/μ) (dt per N in "
-        "`settings.json`); their exact inputs are in `inputs/`. Ours: our LGVI at that dt / "
-        f"{OURS_REFINE} (consistent = the paper's mass matrix, lumped = MODEL.md §8).",
-        "- files: `differences.csv` (codes at equal N), `self_convergence.csv` (each code, N → next N), "
-        "`limits.csv` (Richardson limits, order 2, from the two finest N), `error_vs_limit.csv`, `cost.csv` "
-        "(wall time per step), `convergence_*.png`, `tips.npz` (every tip trajectory), `settings.json`.",
-        "",
-        "## Reading",
-        "",
-    ]
-    for case in cases:
-        Ns = sorted(N for c, N in runs if c == case)
-        outside = [c for c in ("moordyn", "mujoco") if c in runs[(case, Ns[0])]]
-        lines.append(f"### {case} (outside codes: {', '.join(outside)})")
-        lines.append("")
-        same = [float(row(diff, case=case, pair=f"ours_lumped - {c}").max_tip_distance_m.max()) for c in outside]
-        lines.append(f"- Same discrete model: our lumped model vs {' and '.join(outside)} at equal N: at most "
-                     f"{_fmt(max(same))} m over N = {Ns[0]}…{Ns[-1]} (what is left is the time-step error of the codes)"
-                     + (f"; MoorDyn vs MuJoCo: at most {_fmt(float(row(diff, case=case, pair='moordyn - mujoco').max_tip_distance_m.max()))} m."
-                        if len(outside) == 2 else "."))
-        for c in outside:
-            d = row(diff, case=case, pair=f"ours_consistent - {c}")
-            lines.append(f"- Our consistent model vs {c}: {_fmt(float(d.max_tip_distance_m.iloc[0]))} m at N = {Ns[0]}, "
-                         f"{_fmt(float(d.max_tip_distance_m.iloc[-1]))} m at N = {Ns[-1]}.")
-        for code in ("ours_consistent", "ours_lumped") + tuple(outside):
-            cv = row(conv, case=case, code=code)
-            orders = cv.observed_order.dropna()
-            lines.append(f"- Self-convergence of {code}: max |tip(N) − tip(N/2)| from {_fmt(float(cv.max_change_m.iloc[0]))} "
-                         f"(N = {int(cv.N_next.iloc[0])}) to {_fmt(float(cv.max_change_m.iloc[-1]))} m (N = {int(cv.N_next.iloc[-1])}); "
-                         f"observed orders {', '.join(f'{o:.2f}' for o in orders)}.")
-        lc = row(lim, case=case)
-        for c in outside:
-            for ours in ("ours_consistent", "ours_lumped"):
-                v = row(lc, pair=f"{ours} - {c}")
-                if len(v):
-                    lines.append(f"- Richardson limits (N = {v.N_pair.iloc[0]}): {ours} vs {c} agree to "
-                                 f"{_fmt(float(v.max_limit_distance_m.iloc[0]))} m.")
-        v = row(lc, pair="ours_consistent - ours_lumped")
-        if len(v):
-            lines.append(f"- Richardson limits: ours_consistent vs ours_lumped agree to {_fmt(float(v.max_limit_distance_m.iloc[0]))} m.")
-        err = error_vs_limit(res, case)
-        if len(err):
-            ratios = ", ".join(f"{r:.2f} (N = {n})" for n, r in zip(err.N, err.lumped_over_consistent))
-            lines.append(f"- Error against the Richardson limit of ours_consistent (max over t), lumped / consistent at "
-                         f"equal N: {ratios} (`error_vs_limit.csv`).")
-        minstrain = min(s["min_strain_ours_lumped"] for s in settings["runs"] if s["case"] == case)
-        lines.append(f"- Smallest element strain of our lumped runs: {minstrain:.2e} (MoorDyn's lines are tension-only; "
-                     "a clearly negative value would make MoorDyn differ).")
-        lines.append("")
-        lines.append("Wall time per step at equal N (µs; MoorDyn and MuJoCo: one RK4 step = 4 force evaluations, at dt, "
-                     f"median over the {len(res['times']) - 1} output intervals; ours: one LGVI step, at dt/{OURS_REFINE}, "
-                     "mean over the run, compile time excluded):")
-        lines.append("")
-        codes = [c for c in ("moordyn", "mujoco", "ours_consistent", "ours_lumped") if c in set(row(cost, case=case).code)]
-        lines.append("| N | dt [s] | " + " | ".join(codes) + " |")
-        lines.append("|---|---|" + "---|" * len(codes))
-        for N in Ns:
-            cN = row(cost, case=case, N=N).set_index("code")
-            dt = float(cN.loc[outside[0], "dt_s"])
-            lines.append(f"| {N} | {dt:.3g} | " + " | ".join(f"{float(cN.loc[c, 'us_per_step']):.1f}" for c in codes) + " |")
-        lines.append("")
-    lines += ["Timings are single runs on a shared machine (see the load average above): read them as magnitudes.", ""]
-    atomic_write_text(out / "README.md", "\n".join(lines))
-    return out / "README.md"
-
-
-def main(scene_name: str = "fixed_length", elements=DEFAULT_ELEMENTS, t_end: float = DEFAULT_T_END,
-         out: str | Path = "results/xval", command: str = "python -m benchmark xval", log=print) -> Path:
-    from models import load_scene
-
-    scene = load_scene(scene_name)
-    check_scene(scene)  # refuse an untranslatable scene before any work
-    load = ", ".join(f"{x:.2f}" for x in os.getloadavg())
-    t0 = time.perf_counter()
-    res = study(scene, elements, t_end, log=log)
-    return write_outputs(res, scene, Path(out), command, time.perf_counter() - t0, load)
+    times = np.linspace(0.0, t_end, round(t_end / OUTPUT_INTERVAL) + 1)
+    jobs = [Job(case_scene(scene, case).with_(t_end=t_end), case, N, times)
+            for case in cases or cases_of(scene) for N in elements]
+    rows = engine.run_jobs(run_job, jobs, workers=0, describe=_describe, log=log)
+    return Study(times, {(r["case"], r["N"]): r["runs"] for r in rows})

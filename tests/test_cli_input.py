@@ -1,4 +1,4 @@
-"""The command line refuses nonsense at once (issue #15): every bad input below gets exit
+"""The command line refuses nonsense at once: every bad input below gets exit
 status 2 and one `error:` message naming the input, the problem and the fix, no traceback,
 before any work -- and, where no JAX is needed, without importing it."""
 
@@ -69,6 +69,9 @@ CASES = [
     (["speed", "--elements", "0"], ["argument --elements", "integer >= 1"]),
     (["speed", "--elements", "abc"], ["argument --elements", "'abc' is not an integer"]),
     (["speed", "--elements", "1000000"], ["'string.elements'", "implausible"]),
+    (["reel-reversal", "--methods", "rk45"], ["--methods: 'rk45' has no step list", "allowed: lgvi"]),
+    (["reel-reversal", "--t-end", "0.5"], ["--t-end = 0.5 is invalid", "multiple of 0.08 s"]),
+    (["reel-reversal", "--cache-dir", "{d}/afile"], ["--cache-dir", "is a file, not a directory"]),
     (["stability", "--jobs", "-1"], ["argument --jobs", ">= 0"]),
     (["stability", "--out", "{d}/afile"], ["is a file, not a directory"]),
 ]
@@ -175,9 +178,9 @@ def test_size_estimate_warns_about_a_long_run_and_refuses_what_cannot_fit():
 
     said = []
     big = load_scene("fixed_length", elements=2000)
-    size = options.check_size(big, 10.0, 0.02, 1e-5, warn=said.append, what="big")
-    assert size["steps"] == pytest.approx(1e6) and size["seconds"] > options.TIME_WARN
-    assert len(said) == 1 and said[0].startswith("warning: big takes 1e+06 steps; estimated"), said
+    size = options.check_size(big, 100.0, 0.02, 1e-5, warn=said.append, what="big")
+    assert size["steps"] == pytest.approx(1e7) and size["seconds"] > options.TIME_WARN
+    assert len(said) == 1 and said[0].startswith("warning: big takes 1e+07 steps; estimated"), said
     said.clear()
     options.check_size(load_scene("fixed_length"), 10.0, 0.02, 0.005, warn=said.append)
     assert said == []  # the paper's scene at its step: nothing to say

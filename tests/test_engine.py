@@ -1,34 +1,35 @@
-"""The experiment engine (`benchmark.runner.run_jobs`) that the runs table and the stability map
-share: rows in job order, one worker per group, longest groups first, crash rows, progress."""
+"""The experiment engine (`benchmark.engine.run_jobs`) that every study runs on: rows in job
+order, one worker per group, longest groups first, crash rows, progress."""
 
 import os
 
 import numpy as np
 import pytest
 
-from benchmark import runner, stability
+from benchmark import engine, runner, stability, store
 
 
-def job(name: str, crash: bool = False) -> dict:
-    """A job for the spawned workers: its row says which process ran it."""
+def job(spec: tuple) -> dict:
+    """A job for the spawned workers, (name,) or (name, crash): its row says which process ran it."""
+    name, crash = spec[0], spec[1:] == (True,)
     if crash:
         os._exit(7)  # the worker dies
     return {"name": name, "pid": os.getpid()}
 
 
 def crashed(i, exc):
-    return {"name": f"crash{i}", "status": "crashed", "reason": runner.crash_reason(exc)}
+    return {"name": f"crash{i}", "status": "crashed", "reason": engine.crash_reason(exc)}
 
 
 def test_in_process_longest_group_first_rows_in_job_order_progress_and_partial_writes():
     jobs = [("a1",), ("b1",), ("a2",), ("c1",)]
     ran, logged, saved = [], [], []
 
-    def fn(name):
-        ran.append(name)
-        return {"name": name}
+    def fn(spec):
+        ran.append(spec[0])
+        return {"name": spec[0]}
 
-    rows = runner.run_jobs(fn, jobs, workers=0, crash_row=crashed, group=lambda i: jobs[i][0][0],
+    rows = engine.run_jobs(fn, jobs, workers=0, crash_row=crashed, group=lambda i: jobs[i][0][0],
                            cost=lambda i: {"a": 1.0, "b": 5.0, "c": 2.0}[jobs[i][0][0]],
                            done={3: {"name": "c1 (kept)"}}, describe=lambda r: r["name"], log=logged.append,
                            on_row=lambda rs: saved.append([r["name"] for r in rs]))
@@ -40,7 +41,7 @@ def test_in_process_longest_group_first_rows_in_job_order_progress_and_partial_w
 
 def test_workers_one_process_per_group_and_a_crash_is_a_row_then_a_fresh_worker():
     jobs = [("a1",), ("a2",), ("boom", True), ("b1",)]
-    rows = runner.run_jobs(job, jobs, workers=1, crash_row=crashed,
+    rows = engine.run_jobs(job, jobs, workers=1, crash_row=crashed,
                            group=lambda i: "b" if jobs[i][0] == "b1" else "a", log=lambda s: None)
     assert [r["name"] for r in rows] == ["a1", "a2", "crash2", "b1"]
     assert rows[0]["pid"] == rows[1]["pid"] != os.getpid()  # one worker ran the group
@@ -52,35 +53,35 @@ def test_stability_runs_on_the_engine_grouped_by_scene_and_method(monkeypatch):
     jobs = stability.jobs_for(scenes=["near_slack", "fast_spin"], integrators=["tsit5", "lgvi"])
     calls = []
 
-    def fake_run_job(case, integrator, kind, default_run=True):
-        calls.append((case.scene, integrator, kind))
-        if integrator == "lgvi" and case.scene == "fast_spin":
+    def fake_run_job(job):
+        calls.append((job.case.scene, job.integrator, job.kind))
+        if job.integrator == "lgvi" and job.case.scene == "fast_spin":
             raise AssertionError("unreachable")  # replaced by a crash row below
-        return {**stability._base_row(case, integrator, kind), "status": "ok", "bounded": True, "steps": 10.0,
-                "job_time": 0.0, "largest_stable_dt": 0.01 if kind == "fixed" else np.nan}
+        return {**stability._base_row(job.case, job.integrator, job.kind), "status": "ok", "bounded": True,
+                "steps": 10.0, "job_time": 0.0, "largest_stable_dt": 0.01 if job.kind == "fixed" else np.nan}
 
     def fake_run_jobs(fn, jobs_, **kw):
-        assert kw["group"](0) == (jobs_[0][0].scene, jobs_[0][1])
+        assert kw["group"](0) == (jobs_[0].case.scene, jobs_[0].integrator)
         kw.pop("workers")
         rows = []
         for i, j in enumerate(jobs_):
             try:
-                rows.append(fn(*j))
+                rows.append(fn(j))
             except AssertionError as exc:
                 rows.append(kw["crash_row"](i, exc))
         return rows
 
     monkeypatch.setattr(stability, "run_job", fake_run_job)
-    real = runner.run_jobs
-    monkeypatch.setattr(runner, "run_jobs", fake_run_jobs)
+    real = engine.run_jobs
+    monkeypatch.setattr(engine, "run_jobs", fake_run_jobs)
     df = stability.execute(jobs, workers=2, log=lambda s: None)
     assert list(df.columns) == stability.COLUMNS and len(df) == len(jobs)
     crash = df[df["status"] == "crashed"]
     assert len(crash) == 1 and not crash.iloc[0]["bounded"] and crash.iloc[0]["integrator"] == "lgvi"
-    monkeypatch.setattr(runner, "run_jobs", real)
+    monkeypatch.setattr(engine, "run_jobs", real)
     calls.clear()
     logged = []
-    ok_jobs = [j for j in jobs if not (j[1] == "lgvi" and j[0].scene == "fast_spin")]
+    ok_jobs = [j for j in jobs if not (j.integrator == "lgvi" and j.case.scene == "fast_spin")]
     df = stability.execute(ok_jobs, workers=0, log=logged.append)
     # tsit5's ladder and adaptive run on a scene are one group: they run one after the other
     for scene in ("near_slack", "fast_spin"):
@@ -89,12 +90,26 @@ def test_stability_runs_on_the_engine_grouped_by_scene_and_method(monkeypatch):
     assert len(logged) == len(ok_jobs) and "largest stable dt 0.01 s" in " ".join(logged)
 
 
-def test_to_frame_one_helper_for_both_tables():
-    df = runner.to_frame([{"scene": "s", "status": "diverged", "position_error_final": 1.0, "extra": 1}])
+def test_frame_one_helper_for_both_tables():
+    df = runner.runs_frame([{"scene": "s", "status": "diverged", "position_error_final": 1.0, "extra": 1}])
     assert np.isnan(df["position_error_final"].iloc[0]) and "extra" in df  # runs table: unfinished -> NaN
-    df = runner.to_frame([{"b": 1, "z": 2}], ["a", "b"], extra=False)
+    df = store.frame([{"b": 1, "z": 2}], ["a", "b"], extra=False)
     assert list(df.columns) == ["a", "b"] and np.isnan(df["a"].iloc[0])
-    assert list(runner.to_frame([], ["a"]).columns) == ["a"]
+    assert list(store.frame([], ["a"]).columns) == ["a"]
+
+
+def test_a_horizon_method_whose_worker_died_is_a_row_left_out_of_the_table():
+    import pandas as pd
+
+    from benchmark import horizon
+    from benchmark.sweep import MethodSettings
+
+    job = horizon.Job(MethodSettings("lgvi", {"dt": 0.005}), 1.0, ())
+    dead = horizon.crash_row(job, RuntimeError("worker died"))
+    assert dead["label"] == "lgvi dt=0.005 [crashed]" and dead["history"] is None and "worker died" in dead["reason"]
+    alive = {"label": "rk45 rtol=1e-06", "status": "ok", "history": pd.DataFrame({"t": [0.0, 0.1], "energy_error": [0.0, 1e-9]})}
+    table = horizon.table([dead, alive])
+    assert list(table["method"]) == ["rk45 rtol=1e-06"] * 2 and list(table.columns) == ["t", "energy_error", "method"]
 
 
 if __name__ == "__main__":

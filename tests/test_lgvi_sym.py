@@ -280,17 +280,17 @@ def test_bad_arguments_name_the_method():
 # ------------------------------------------------------------------------------------------
 # Hard case: the reel reverses (ṡ_p changes sign, ṡ|ṡ| only C¹ there)
 # ------------------------------------------------------------------------------------------
-def test_reel_reversal_keeps_the_orders():
+def test_reel_reversal_keeps_the_orders(tmp_path):
     """reel_reversal (N = 5, to 0.96 s; ṡ_p changes sign at t = 0.517 s): lgvi_sym stays second
     order and Suzuki fourth. Expected: ṡ|ṡ| has a jump in its second time derivative, so the
     solution is C³ with a bounded fourth derivative and the one step across the kink commits an
     O(h⁴) error, harmless up to order 4, and its coefficient carries μ |q_2/l − t_g|² (small
-    here). Measured with ``python -m benchmark.reel_reversal`` (h = 4 → 0.5 ms, Suzuki 8 → 1 ms:
+    here). Measured with ``python -m benchmark reel-reversal`` (h = 4 → 0.5 ms, Suzuki 8 → 1 ms:
     lgvi_sym 1.99-2.00, Yoshida 4.00-4.02, Suzuki 3.98-4.01; even constant-step Tsit5 (order 5)
     shows 5.1-6.6 on body and s_p, 4.2-4.9 on E − W)."""
     from benchmark.reel_reversal import errors, reference
     scene = load_scene("reel_reversal", elements=5)
-    ref, flips = reference(scene, 0.96, 13)
+    ref, flips = reference(scene, 0.96, tmp_path)
     assert len(flips) == 1 and 0.4 < flips[0] < 0.6
     assert ref.velocity[0, 0] < 0 < ref.velocity[-1, 0]  # deploys, then retrieves
     e0 = float(evaluate(scene, ref).energy_minus_work.iloc[0])

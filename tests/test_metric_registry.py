@@ -1,4 +1,4 @@
-"""One metric registry (issue #14): runs.csv, `check` and the stability map read `metrics.METRICS`."""
+"""One metric registry: runs.csv, `check` and the stability map read `metrics.METRICS`."""
 
 import numpy as np
 import pandas as pd

@@ -1,4 +1,4 @@
-"""A cached reference is used only when it proves what it is (issue #15): truncated files,
+"""A cached reference is used only when it proves what it is: truncated files,
 random bytes, another problem's reference and numbers changed after writing are each
 reported by file name and recomputed, never used."""
 

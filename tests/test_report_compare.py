@@ -2,7 +2,7 @@
 
 import pandas as pd
 
-from benchmark import report
+from benchmark import runs_report
 from benchmark.cli import main
 
 
@@ -15,7 +15,7 @@ def _rows(times: dict) -> pd.DataFrame:
 def test_changes_name_the_winners_then_and_now_and_each_speed_up():
     before = _rows({"a": 1.0, "b": 7.0})
     now = pd.concat([_rows({"a": 0.5, "b": 0.7}), _rows({"c": 0.1})])
-    text = report.changes_since(before, now, "the old table")
+    text = runs_report.changes_since(before, now, "the old table")
     assert "## Compared with the old table" in text
     row = next(line for line in text.splitlines() if line.startswith("| s |"))
     # then: a was 7x cheaper than b; now c wins, and b / a has shrunk to 1.4x

@@ -157,7 +157,7 @@ def test_killed_sweep_leaves_no_worker_and_a_rerun_resumes(tmp_path, plugin_env)
 
 
 def test_fresh_ignores_the_rows_already_there(tmp_path, monkeypatch):
-    from benchmark import cli, runner
+    from benchmark import cli, runner, store
 
     class Stop(Exception):
         pass
@@ -168,7 +168,7 @@ def test_fresh_ignores_the_rows_already_there(tmp_path, monkeypatch):
         seen["previous"] = kw["previous"]
         raise Stop
 
-    monkeypatch.setattr(runner, "read_previous", lambda *a, **k: [{"run_key": "x"}])
+    monkeypatch.setattr(store, "read_previous", lambda *a, **k: [{"run_key": "x"}])
     monkeypatch.setattr(runner, "execute", execute)
     args = ["run", "--scenes", "fixed_length", "--integrators", "lgvi", "--dts", "0.01", "--t-end", "0.02",
             "--no-figures", "--out", str(tmp_path)]
@@ -183,7 +183,7 @@ def test_fresh_ignores_the_rows_already_there(tmp_path, monkeypatch):
 
 def test_a_second_run_into_a_locked_out_is_refused_naming_the_lock_and_holder(tmp_path, capsys):
     from benchmark.cli import main
-    from benchmark.runner import OutputLock
+    from benchmark.store import OutputLock
 
     with OutputLock(tmp_path) as lock:
         rc = main(["run", "--scenes", "fixed_length", "--integrators", "lgvi", "--dts", "0.01", "--t-end", "0.02",
@@ -196,7 +196,7 @@ def test_a_second_run_into_a_locked_out_is_refused_naming_the_lock_and_holder(tm
 
 
 def test_a_stale_lock_of_a_dead_process_is_taken_over(tmp_path):
-    from benchmark.runner import OutputLock
+    from benchmark.store import OutputLock
 
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()
@@ -211,7 +211,7 @@ def test_a_stale_lock_of_a_dead_process_is_taken_over(tmp_path):
 
 def test_resume_keeps_only_rows_of_the_same_sweep():
     """The run key changes with the scene's physics, the setting, the horizon and the code."""
-    from benchmark.runner import run_key
+    from benchmark.store import run_key
     from benchmark.sweep import Task
 
     base = Task("fixed_length", "lgvi", dt=0.01, t_end=0.1, overrides=(("elements", 2),))
@@ -232,7 +232,7 @@ def test_worker_pool_workers_exit_when_their_parent_dies(tmp_path):
     script = textwrap.dedent(f"""
         import os, sys, time
         sys.path.insert(0, {str(ROOT)!r})
-        from benchmark.runner import worker_pool
+        from benchmark.engine import worker_pool
         pool = worker_pool(2)
         futs = [pool.submit(time.sleep, 60) for _ in range(2)]
         time.sleep(0.5)

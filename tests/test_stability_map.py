@@ -4,7 +4,7 @@ skips, failure rows, and the generated reading. The map itself is results/stabil
 import numpy as np
 import pytest
 
-from benchmark import runner, stability
+from benchmark import runner, stability, stability_report
 from models import load_scene
 
 
@@ -12,8 +12,8 @@ def test_every_case_is_a_shipped_hard_scene_and_jobs_validate_names():
     for case in stability.CASES:
         load_scene(case.scene, **dict(case.overrides))
     jobs = stability.jobs_for()
-    assert {j[0].scene for j in jobs} == {c.scene for c in stability.CASES}
-    assert {(j[1], j[2]) for j in jobs} >= {("lgvi", "fixed"), ("tsit5", "fixed"), ("tsit5", "adaptive")}
+    assert {j.case.scene for j in jobs} == {c.scene for c in stability.CASES}
+    assert {(j.integrator, j.kind) for j in jobs} >= {("lgvi", "fixed"), ("tsit5", "fixed"), ("tsit5", "adaptive")}
     with pytest.raises(ValueError):
         stability.jobs_for(integrators=["no_such_method"])
     with pytest.raises(ValueError, match="no stability case"):
@@ -40,7 +40,7 @@ def test_ladder_stops_at_the_first_bounded_rung_and_failures_are_rows(monkeypatc
                 "t_reached": 2.0, "setting": task.setting, "run_time": 0.1}
 
     monkeypatch.setattr(runner, "run_task", fake_run_task)
-    row = stability.run_job(case, "lgvi", "fixed")
+    row = stability.run_job(stability.Job(case, "lgvi", "fixed"))
     assert calls == [0.04, 0.02, 0.01, 0.005]
     assert row["largest_stable_dt"] == 0.005 and row["first_unstable_dt"] == 0.01
     assert row["unstable_status"] == "diverged" and row["bounded"] is True
@@ -49,18 +49,18 @@ def test_ladder_stops_at_the_first_bounded_rung_and_failures_are_rows(monkeypatc
         raise RuntimeError("boom")
 
     monkeypatch.setattr(runner, "run_task", broken)
-    row = stability.run_job(case, "rk45", "adaptive")
+    row = stability.run_job(stability.Job(case, "rk45", "adaptive"))
     assert row["status"] == "error" and "boom" in row["reason"] and row["bounded"] is False
 
 
 def test_skips_are_rows_with_reasons_and_explicit_requests_run_them():
     case = stability.Case("fixed_length", 0.1, skip=(lambda i: "too costly here" if i.name == "radau" else None,),
                           default_skip=(lambda i: "default run only" if i.name == "kvaerno5" else None,))
-    row = stability.run_job(case, "radau", "adaptive")
+    row = stability.run_job(stability.Job(case, "radau", "adaptive"))
     assert row["status"] == "skipped" and row["reason"] == "too costly here" and row["bounded"] is False
-    assert stability.run_job(case, "kvaerno5", "adaptive")["status"] == "skipped"
+    assert stability.run_job(stability.Job(case, "kvaerno5", "adaptive"))["status"] == "skipped"
     # naming a method on the command line is not the default run: default_skip does not apply
-    assert all(j[3] is False for j in stability.jobs_for(integrators=["kvaerno5"]))
+    assert all(j.default_run is False for j in stability.jobs_for(integrators=["kvaerno5"]))
 
 
 def test_implicit_baselines_run_on_the_hard_scenes_by_default():
@@ -90,7 +90,7 @@ def test_reading_is_generated_from_the_rows():
         {"scene": "stiff_string", "integrator": "radau", "kind": "adaptive", "horizon": 0.2, "bounded": False,
          "status": "skipped", "reason": "cost"},
     ])
-    text = stability.reading(df)
+    text = stability_report.reading(df)
     assert "dt = 0.00125 s" in text and "`diverged`" in text and "step ratio 2" in text
     # the compared pair follows from the declared capabilities (VARIATIONAL or not), not from names in code
     assert "(`lgvi` vs `tsit5`" in text and "is 2–2x" in text.split("**Robustness.**")[1]

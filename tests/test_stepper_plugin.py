@@ -136,7 +136,7 @@ def test_it_runs_in_the_benchmark_into_tables_and_the_work_precision_plot(site, 
     from benchmark import plots
 
     labels = []
-    monkeypatch.setattr(plots, "_save", lambda fig, path: labels.append(
+    monkeypatch.setattr(plots, "save_figure", lambda fig, path: labels.append(
         [[t.get_text() for t in ax.get_legend().get_texts()] for ax in fig.axes if ax.get_legend()]) or path)
     plots.work_precision(runs, "fixed_length", tmp_path)
     assert len(labels[0]) == len(plots.COST_AXES)

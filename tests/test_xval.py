@@ -7,7 +7,8 @@ import mujoco
 import numpy as np
 import pytest
 
-from benchmark import xval
+from benchmark import xval, xval_report
+from benchmark.report import Provenance
 from benchmark.cli import main as cli_main
 from models import build_model, load_scene
 
@@ -28,8 +29,13 @@ def point_scene(body_scene):
 # ------------------------------------------------------------------------------------------
 # Same discrete model in three codes
 # ------------------------------------------------------------------------------------------
-def test_lumped_point_mass_equals_moordyn_and_mujoco(point_scene, tmp_path):
-    ours = xval.run_ours(point_scene, TIMES, rtol=1e-12, atol=1e-13)
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    return tmp_path_factory.mktemp("cache")  # the references of the module
+
+
+def test_lumped_point_mass_equals_moordyn_and_mujoco(point_scene, tmp_path, cache):
+    ours = xval.run_ours(point_scene, TIMES, cache)
     md = xval.run_moordyn(point_scene, TIMES, DT, workdir=tmp_path)
     mj = xval.run_mujoco(point_scene, TIMES, DT)
     # the tip moves by metres over 0.5 s: equal positions are not a trivial agreement
@@ -38,17 +44,17 @@ def test_lumped_point_mass_equals_moordyn_and_mujoco(point_scene, tmp_path):
     assert np.max(np.linalg.norm(ours.tip - md.tip, axis=1)) <= 1e-8  # measured 1.2e-13
     assert np.max(np.linalg.norm(ours.tip - mj.tip, axis=1)) <= 1e-8  # measured 1.1e-13
     # the consistent model is a different discrete model: far from the lumped one at N = 5
-    cons = xval.run_ours(point_scene.with_(mass_model="consistent"), TIMES)
+    cons = xval.run_ours(point_scene.with_(mass_model="consistent"), TIMES, cache)
     assert np.max(np.linalg.norm(cons.tip - md.tip, axis=1)) > 1e-4
 
 
-def test_lumped_rigid_body_equals_mujoco(body_scene):
-    ours = xval.run_ours(body_scene, TIMES, rtol=1e-12, atol=1e-13)
+def test_lumped_rigid_body_equals_mujoco(body_scene, cache):
+    ours = xval.run_ours(body_scene, TIMES, cache)
     mj = xval.run_mujoco(body_scene, TIMES, DT)
     print("rigid body: |ours - mujoco|", np.abs(ours.tip - mj.tip).max())
     assert np.max(np.linalg.norm(ours.tip - mj.tip, axis=1)) <= 1e-8  # measured 4.3e-13
     # without the body's inertia (a point mass) the tip goes elsewhere: the body is really there
-    pm = xval.run_ours(xval.case_scene(body_scene, "point_mass"), TIMES)
+    pm = xval.run_ours(xval.case_scene(body_scene, "point_mass"), TIMES, cache)
     assert np.max(np.linalg.norm(pm.tip - mj.tip, axis=1)) > 1e-3
 
 
@@ -155,8 +161,8 @@ def test_tables_and_readme_from_synthetic_runs(tmp_path, body_scene):
                 r[code] = xval.CodeRun(code, N, 1e-4, X + shape[None, :], 1000, 0.01 * N,
                                        {"min_strain": 1e-3} if code.startswith("ours") else {})
             runs[(case, N)] = r
-    res = {"times": times, "runs": runs}
-    readme = xval.write_outputs(res, body_scene, tmp_path, "python -m benchmark xval --test", 1.0, "0.1, 0.1, 0.1")
+    study = xval.Study(times, runs)
+    readme = xval_report.write_outputs(study, body_scene, tmp_path, Provenance("python -m benchmark xval --test"))
     import pandas as pd
 
     lim = pd.read_csv(tmp_path / "limits.csv")

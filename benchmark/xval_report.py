@@ -1,0 +1,281 @@
+"""results/xval/: the cross-validation's tables, plots, exact inputs, raw tips and README, from the
+runs of `benchmark.xval.study` (never edited by hand).
+
+Every distance is the maximum over the compared times of the tip distance |Δ(r_p + q_{N+1})|.
+Richardson limits assume order 2 in N: x_∞ = x_2N + (x_2N − x_N)/3 for N → 2N.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import pandas as pd
+
+from benchmark.plots import plt, save_figure, style_axes
+from benchmark.report import Provenance, fmt
+from benchmark.store import write_npz, write_table
+from benchmark.xval import CFL, DT_MAX, OURS_REFINE, OUTPUT_INTERVAL, Study, case_scene, moordyn_input, mujoco_xml
+from models.io import atomic_write_text
+from models.scene import Scene
+
+PAIRS = [("ours_lumped", "moordyn"), ("ours_lumped", "mujoco"), ("moordyn", "mujoco"),
+         ("ours_consistent", "moordyn"), ("ours_consistent", "mujoco"), ("ours_consistent", "ours_lumped")]
+TRAJ_CODES = ("ours_consistent", "ours_lumped", "moordyn", "mujoco")
+OUTSIDE = ("moordyn", "mujoco")
+
+
+def _max_dist(a, b) -> float:
+    return float(np.max(np.linalg.norm(a - b, axis=1)))
+
+
+def _richardson(xa, xb, Na: int, Nb: int):
+    """The order-2 Richardson limit of tips ``xa`` (N = Na) and ``xb`` (N = Nb > Na)."""
+    return xb + (xb - xa) / ((Nb / Na) ** 2 - 1)
+
+
+def _e(x) -> str:
+    return fmt(x, ".2e", missing="nan")
+
+
+class Tables(NamedTuple):
+    differences: pd.DataFrame  # codes at equal N
+    self_convergence: pd.DataFrame  # each code, N -> next N
+    limits: pd.DataFrame  # Richardson limits from the two finest N
+    cost: pd.DataFrame  # wall time per step (per RHS for a reference run)
+
+
+def _at_equal_n(case: str, N: int, r: dict) -> tuple[list[dict], list[dict]]:
+    diff = [dict(case=case, N=N, pair=f"{a} - {b}", max_tip_distance_m=_max_dist(r[a].tip, r[b].tip),
+                 final_tip_distance_m=float(np.linalg.norm(r[a].tip[-1] - r[b].tip[-1])))
+            for a, b in PAIRS if a in r and b in r]
+    cost = [dict(case=case, N=N, code=code, dt_s=run.dt, steps=run.steps, wall_s=run.wall_s,
+                 us_per_step=run.us_per_step if run.dt is not None else float("nan"),
+                 us_per_rhs=(1e6 * run.wall_s / run.extra["rhs_evals"]) if "rhs_evals" in run.extra else float("nan"),
+                 min_strain=run.extra.get("min_strain", float("nan")))
+            for code, run in r.items()]
+    return diff, cost
+
+
+def _self_convergence(study: Study, case: str) -> list[dict]:
+    rows = []
+    Ns = study.elements(case)
+    for code in TRAJ_CODES:
+        have = [N for N in Ns if code in study.runs[(case, N)]]
+        prev = None
+        for N1, N2 in zip(have[:-1], have[1:]):
+            d = _max_dist(study.runs[(case, N1)][code].tip, study.runs[(case, N2)][code].tip)
+            rows.append(dict(case=case, code=code, N=N1, N_next=N2, max_change_m=d,
+                             observed_order=(math.log(prev / d) / math.log(N2 / N1)) if prev else float("nan")))
+            prev = d
+    return rows
+
+
+def _limits(study: Study, case: str) -> list[dict]:
+    Ns = study.elements(case)
+    if len(Ns) < 2:
+        return []
+    Na, Nb = Ns[-2], Ns[-1]
+    limits = {code: _richardson(study.runs[(case, Na)][code].tip, study.runs[(case, Nb)][code].tip, Na, Nb)
+              for code in TRAJ_CODES if code in study.runs[(case, Nb)]}
+    names = list(limits)
+    return [dict(case=case, N_pair=f"{Na},{Nb}", pair=f"{a} - {b}", max_limit_distance_m=_max_dist(limits[a], limits[b]))
+            for i, a in enumerate(names) for b in names[i + 1:]]
+
+
+def tables(study: Study) -> Tables:
+    diff, conv, lim, cost = [], [], [], []
+    for case in study.cases():
+        for N in study.elements(case):
+            d, c = _at_equal_n(case, N, study.runs[(case, N)])
+            diff += d
+            cost += c
+        conv += _self_convergence(study, case)
+        lim += _limits(study, case)
+    return Tables(pd.DataFrame(diff), pd.DataFrame(conv), pd.DataFrame(lim), pd.DataFrame(cost))
+
+
+def error_vs_limit(study: Study, case: str) -> pd.DataFrame:
+    """Max-over-t distance of ours_consistent and ours_lumped at each N (but the two finest, which
+    define it) from the Richardson limit of ours_consistent."""
+    runs, Ns = study.runs, study.elements(case)
+    if len(Ns) < 3:
+        return pd.DataFrame(columns=["case", "N", "consistent_m", "lumped_m", "lumped_over_consistent"])
+    limit = _richardson(runs[(case, Ns[-2])]["ours_consistent"].tip, runs[(case, Ns[-1])]["ours_consistent"].tip,
+                        Ns[-2], Ns[-1])
+    rows = []
+    for N in Ns[:-2]:
+        ec = _max_dist(runs[(case, N)]["ours_consistent"].tip, limit)
+        el = _max_dist(runs[(case, N)]["ours_lumped"].tip, limit)
+        rows.append(dict(case=case, N=N, consistent_m=ec, lumped_m=el, lumped_over_consistent=el / ec))
+    return pd.DataFrame(rows)
+
+
+def plot(study: Study, case: str, path: Path) -> Path:
+    runs, Ns = study.runs, study.elements(case)
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11, 4.2))
+    # curves of the same discrete model coincide: distinct markers and dashes keep each visible
+    styles = [dict(marker=m, linestyle=ls, markersize=ms, markerfacecolor="none")
+              for m, ls, ms in zip("osx^+d", ["-", "--", ":", "-.", "-", "--"], [9, 7, 6, 5, 4, 3])]
+    for (a, b), st in zip(PAIRS, styles):
+        vals = [(N, _max_dist(runs[(case, N)][a].tip, runs[(case, N)][b].tip)) for N in Ns
+                if a in runs[(case, N)] and b in runs[(case, N)]]
+        if vals:
+            ax.loglog(*zip(*vals), label=f"{a} − {b}", **st)
+    style_axes(ax, xlabel="N (elements)", ylabel="max over t of tip distance [m]", title=f"{case}: codes at equal N",
+               grid=None, legend=7)
+    for code, st in zip(TRAJ_CODES, styles):
+        have = [N for N in Ns if code in runs[(case, N)]]
+        vals = [(N2, _max_dist(runs[(case, N1)][code].tip, runs[(case, N2)][code].tip)) for N1, N2 in zip(have[:-1], have[1:])]
+        if vals:
+            ax2.loglog(*zip(*vals), label=code, **st)
+    if Ns:
+        ref = np.array(Ns[1:], float)
+        ax2.loglog(ref, 0.5 * (ref / ref[0]) ** -2, "k:", label="slope −2")
+    style_axes(ax2, xlabel="N", ylabel="max |tip(N) − tip(N/2)| [m]", title=f"{case}: self-convergence", grid=None,
+               legend=7)
+    fig.tight_layout()
+    return save_figure(fig, path, dpi=120)
+
+
+# ------------------------------------------------------------------------------------------
+# Files
+# ------------------------------------------------------------------------------------------
+def _write_inputs(study: Study, scene: Scene, out: Path) -> dict:
+    """The exact inputs given to MoorDyn and MuJoCo (``inputs/``) and ``settings.json``; returns
+    the settings."""
+    inputs = out / "inputs"
+    inputs.mkdir(exist_ok=True)
+    settings = {"scene": scene.name, "t_end": float(study.times[-1]), "output_interval": OUTPUT_INTERVAL,
+                "cfl": CFL, "dt_max": DT_MAX, "ours": {"method": "lgvi", "dt": f"outside dt / {OURS_REFINE}"},
+                "runs": []}
+    for case in study.cases():
+        for N in study.elements(case):
+            r = study.runs[(case, N)]
+            sc = case_scene(scene, case).with_(elements=N, mass_model="lumped", t_end=settings["t_end"])
+            dt = next(v.dt for k, v in r.items() if k in OUTSIDE)
+            if "moordyn" in r:
+                atomic_write_text(inputs / f"moordyn_{case}_N{N}.txt", moordyn_input(sc, dt))
+            if "mujoco" in r:
+                atomic_write_text(inputs / f"mujoco_{case}_N{N}.xml", mujoco_xml(sc, dt))
+            settings["runs"].append({"case": case, "N": N, "dt": dt, "scene_key_lumped": sc.key(),
+                                     "min_strain_ours_lumped": r["ours_lumped"].extra["min_strain"]})
+    atomic_write_text(out / "settings.json", json.dumps(settings, indent=1))
+    return settings
+
+
+def write_outputs(study: Study, scene: Scene, out: Path, provenance: Provenance) -> Path:
+    """Tables (CSV + README), plots, the exact inputs given to MoorDyn and MuJoCo and the raw tip
+    trajectories (so that the tables can be recomputed without rerunning)."""
+    out.mkdir(parents=True, exist_ok=True)
+    tabs = tables(study)
+    err = pd.concat([error_vs_limit(study, c) for c in study.cases()], ignore_index=True)
+    for name, df in (*tabs._asdict().items(), ("error_vs_limit", err)):
+        write_table(out / f"{name}.csv", df)
+    settings = _write_inputs(study, scene, out)
+    write_npz(out / "tips.npz", {"times": study.times, **{f"{case}_N{N}_{code}": run.tip
+                                                          for (case, N), r in study.runs.items() for code, run in r.items()}},
+              compressed=True)
+    for case in study.cases():
+        plot(study, case, out / f"convergence_{case}.png")
+    atomic_write_text(out / "README.md", readme(study, scene, tabs, settings, provenance))
+    return out / "README.md"
+
+
+# ------------------------------------------------------------------------------------------
+# The README
+# ------------------------------------------------------------------------------------------
+def _rows(df: pd.DataFrame, **kw) -> pd.DataFrame:
+    for k, v in kw.items():
+        df = df[df[k] == v]
+    return df
+
+
+def _agreement(study: Study, case: str, tabs: Tables, outside: list[str]) -> list[str]:
+    """What the same discrete model in several codes, and our consistent model, give at equal N."""
+    Ns, diff = study.elements(case), tabs.differences
+    same = [float(_rows(diff, case=case, pair=f"ours_lumped - {c}").max_tip_distance_m.max()) for c in outside]
+    lines = [f"- Same discrete model: our lumped model vs {' and '.join(outside)} at equal N: at most "
+             f"{_e(max(same))} m over N = {Ns[0]}…{Ns[-1]} (what is left is the time-step error of the codes)"
+             + (f"; MoorDyn vs MuJoCo: at most {_e(float(_rows(diff, case=case, pair='moordyn - mujoco').max_tip_distance_m.max()))} m."
+                if len(outside) == 2 else ".")]
+    for c in outside:
+        d = _rows(diff, case=case, pair=f"ours_consistent - {c}")
+        lines.append(f"- Our consistent model vs {c}: {_e(float(d.max_tip_distance_m.iloc[0]))} m at N = {Ns[0]}, "
+                     f"{_e(float(d.max_tip_distance_m.iloc[-1]))} m at N = {Ns[-1]}.")
+    return lines
+
+
+def _convergence(study: Study, case: str, tabs: Tables, outside: list[str]) -> list[str]:
+    """Each code's self-convergence, the agreement of the Richardson limits, the error against
+    the consistent model's limit."""
+    lines = []
+    for code in ("ours_consistent", "ours_lumped") + tuple(outside):
+        cv = _rows(tabs.self_convergence, case=case, code=code)
+        orders = cv.observed_order.dropna()
+        lines.append(f"- Self-convergence of {code}: max |tip(N) − tip(N/2)| from {_e(float(cv.max_change_m.iloc[0]))} "
+                     f"(N = {int(cv.N_next.iloc[0])}) to {_e(float(cv.max_change_m.iloc[-1]))} m (N = {int(cv.N_next.iloc[-1])}); "
+                     f"observed orders {', '.join(f'{o:.2f}' for o in orders)}.")
+    lc = _rows(tabs.limits, case=case)
+    for c in outside:
+        for ours in ("ours_consistent", "ours_lumped"):
+            v = _rows(lc, pair=f"{ours} - {c}")
+            if len(v):
+                lines.append(f"- Richardson limits (N = {v.N_pair.iloc[0]}): {ours} vs {c} agree to "
+                             f"{_e(float(v.max_limit_distance_m.iloc[0]))} m.")
+    v = _rows(lc, pair="ours_consistent - ours_lumped")
+    if len(v):
+        lines.append(f"- Richardson limits: ours_consistent vs ours_lumped agree to {_e(float(v.max_limit_distance_m.iloc[0]))} m.")
+    err = error_vs_limit(study, case)
+    if len(err):
+        ratios = ", ".join(f"{r:.2f} (N = {n})" for n, r in zip(err.N, err.lumped_over_consistent))
+        lines.append(f"- Error against the Richardson limit of ours_consistent (max over t), lumped / consistent at "
+                     f"equal N: {ratios} (`error_vs_limit.csv`).")
+    return lines
+
+
+def _cost_table(study: Study, case: str, tabs: Tables, outside: list[str]) -> list[str]:
+    cost = _rows(tabs.cost, case=case)
+    codes = [c for c in (*OUTSIDE, "ours_consistent", "ours_lumped") if c in set(cost.code)]
+    lines = ["Wall time per step at equal N (µs; MoorDyn and MuJoCo: one RK4 step = 4 force evaluations, at dt, "
+             f"median over the {len(study.times) - 1} output intervals; ours: one LGVI step, at dt/{OURS_REFINE}, "
+             "mean over the run, compile time excluded):", "",
+             "| N | dt [s] | " + " | ".join(codes) + " |", "|---|---|" + "---|" * len(codes)]
+    for N in study.elements(case):
+        cN = _rows(cost, N=N).set_index("code")
+        lines.append(f"| {N} | {float(cN.loc[outside[0], 'dt_s']):.3g} | "
+                     + " | ".join(f"{float(cN.loc[c, 'us_per_step']):.1f}" for c in codes) + " |")
+    return lines
+
+
+def readme(study: Study, scene: Scene, tabs: Tables, settings: dict, provenance: Provenance) -> str:
+    lines = [
+        "# Cross-validation against MoorDyn and MuJoCo", "",
+        provenance.header(extra_packages=OUTSIDE), "",
+        f"- scene: `{scene.name}` at fixed length ℓ = {scene.initial.deployed_length:g} m, μ = {scene.string.mass_per_length:g} kg/m, "
+        f"EA = {scene.string.axial_stiffness:g} N, m_b = {scene.body.mass:g} kg, straight unstretched start along "
+        f"{[round(float(x), 6) for x in scene.initial.direction]}, tip velocity {[float(x) for x in scene.initial.tip_velocity]} m/s, "
+        f"over {settings['t_end']:g} s; point_mass = the same without `rigid_body`.",
+        f"- compared quantity: the attachment point r_p + q_(N+1) (the tip) at t = 0, {OUTPUT_INTERVAL:g}, … s; "
+        "every distance below is the maximum over those times.",
+        f"- MoorDyn and MuJoCo: RK4 at dt = min({DT_MAX:g}, {CFL:g}/ω_max), ω_max = (2/l)√(EA/μ) (dt per N in "
+        "`settings.json`); their exact inputs are in `inputs/`. Ours: our LGVI at that dt / "
+        f"{OURS_REFINE} (consistent = the paper's mass matrix, lumped = `mass_model = \"lumped\"`, models/README.md).",
+        "- files: `differences.csv` (codes at equal N), `self_convergence.csv` (each code, N → next N), "
+        "`limits.csv` (Richardson limits, order 2, from the two finest N), `error_vs_limit.csv`, `cost.csv` "
+        "(wall time per step), `convergence_*.png`, `tips.npz` (every tip trajectory), `settings.json`.",
+        "", "## Reading", "",
+    ]
+    for case in study.cases():
+        outside = [c for c in OUTSIDE if c in study.runs[(case, study.elements(case)[0])]]
+        minstrain = min(s["min_strain_ours_lumped"] for s in settings["runs"] if s["case"] == case)
+        lines += [f"### {case} (outside codes: {', '.join(outside)})", "",
+                  *_agreement(study, case, tabs, outside), *_convergence(study, case, tabs, outside),
+                  f"- Smallest element strain of our lumped runs: {minstrain:.2e} (MoorDyn's lines are tension-only; "
+                  "a clearly negative value would make MoorDyn differ).", "",
+                  *_cost_table(study, case, tabs, outside), ""]
+    lines += ["Timings are single runs on a shared machine (see the load average above): read them as magnitudes.", ""]
+    return "\n".join(lines)
