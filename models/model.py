@@ -25,7 +25,7 @@ from typing import Callable
 import numpy as np
 
 from models._jax import jax, jnp
-from models.effects import EFFECTS as EFFECT_REGISTRY
+from models.effects import get_effect
 from models.layout import StateLayout
 from models.scene import Scene
 
@@ -160,7 +160,7 @@ class StringPendulum:
         # The required effects (the string's own elasticity) are composed first, the others in
         # canonical order: the totals then add up in the order of the closed form this replaced,
         # so fixed-length results are bit-identical to it.
-        listed = [EFFECT_REGISTRY[e] for e in scene.effects]
+        listed = [get_effect(e) for e in scene.effects]
         self.effects = tuple([e for e in listed if e.required] + [e for e in listed if not e.required])
         # Elastic law: the length that stores strain energy. Two-sided (the paper's: resists
         # compression too) unless an effect (`slack`) replaces it; set before the terms that read it.
