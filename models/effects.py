@@ -468,10 +468,15 @@ def _check_keys(effect: Effect) -> None:
             raise ValueError(f"effect {effect.name!r}: a plausible range for '{dotted}', a key it does not own")
 
 
-def unregister_effect(name: str) -> Effect:
-    """Remove an effect added by `register_effect` (built-in effects cannot be removed)."""
+def unregister_effect(name: str) -> Effect | None:
+    """Remove an effect added by `register_effect` or a plugin (built-in effects cannot be
+    removed); for a plugin that failed to load, forget the failure (returns None), so that
+    the next scan tries it again."""
     if name in _BUILTIN:
         raise ValueError(f"effect {name!r} is built in and cannot be unregistered")
+    if name not in EFFECTS and name in _PLUGIN_ERRORS:
+        del _PLUGIN_ERRORS[name]
+        return None
     dependants = [e.name for e in EFFECTS.values() if name in e.needs]
     if dependants:
         raise ValueError(f"effect {name!r} is needed by {', '.join(dependants)}")
