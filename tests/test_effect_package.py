@@ -26,6 +26,7 @@ from models import effects as effect_registry
 from models.effects import ENTRY_POINT_GROUP, unregister_effect
 
 from test_effects import check_effect
+from test_scene_input import scene_text
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -75,27 +76,9 @@ heavier_body = reelbench_tip_force:HeavierBody
 broken_effect = reelbench_tip_force:NoSuchClass
 """
 
-SCENE = """
-name = "tip_force_scene"
-description = "fixed-length pendulum pushed sideways by a constant force on the body"
-t_end = 1.0
-effects = ["gravity", "elasticity", "rigid_body", "tip_force"]
-[string]
-total_length = 40.0
-mass_per_length = 0.05
-axial_stiffness = 200.0
-elements = 3
-[body]
-mass = 1.0
-box = [0.6, 0.4, 0.2]
-attachment_to_com = [0.3, 0.2, 0.1]
-[reel]
-guide_length = 1.0
-[initial]
-deployed_length = 10.0
-direction = [0.7071067811865476, 0.0, 0.7071067811865476]
-tip_velocity = [0.0, 2.0, 0.0]
-angular_velocity = [1.0, 0.5, 0.0]
+#: fixed_length with 3 elements and the force on its body
+SCENE = scene_text("fixed_length", name='name = "tip_force_scene"', elements="elements = 3",
+                   effects='effects = ["gravity", "elasticity", "rigid_body", "tip_force"]') + """
 [tip_force]
 force = [3.0, -2.0, 0.0]
 """
