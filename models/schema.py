@@ -371,11 +371,12 @@ class Validator(SceneChecks):
         """One key's validated value; refused when it belongs to an effect not listed."""
         owner = self.owners.get(key)
         if spec.only_with_effect:
-            if not all(e in effects for e in spec.required_by):
+            needs = spec.required_by or ((owner,) if owner else ())
+            if not all(e in effects for e in needs):
                 if given is not None:
                     raise self.refuse(
                         f"key '{key}' = {shown(given)} is only allowed with effect "
-                        f"{', '.join(repr(e) for e in spec.required_by)} in the list 'effects': "
+                        f"{', '.join(repr(e) for e in needs)} in the list 'effects': "
                         f"add it there, or remove the key", key)
                 return _SKIP
         value = self.value(key, given, spec, effects)

@@ -197,7 +197,8 @@ class Capped(Effect):
     """Refuses through the protocol it is given (a `models.schema.SceneChecks`)."""
 
     name = "capped"
-    keys = {"capped": {"limit": Key("float", "positive", required_by=("capped",), only_with_effect=True)}}
+    # only_with_effect without required_by: the owner is the effect that declares the key
+    keys = {"capped": {"limit": Key("float", "positive", only_with_effect=True)}}
 
     def check(self, checks, d, effects):
         if self.name in effects and d["capped"]["limit"] > d["string"]["total_length"]:
@@ -215,6 +216,7 @@ def test_an_effect_refuses_through_the_public_checks_with_the_standard_wording()
         refused(d, "bad.toml: key 'capped.limit' = 50.0 is invalid: allowed a limit <= string.total_length")
         d["capped"] = {"limit": 5.0}
         assert scene_from_dict(d).section("capped") == {"limit": 5.0}
+        refused(dict(d, effects=d["effects"][:-1]), "key 'capped.limit' = 5.0 is only allowed with effect 'capped'")
         refused(d, "bad.toml (overridden): the cap needs a body of at most 5 kg", mass=6.0)
     finally:
         unregister_effect("capped")
