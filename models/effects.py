@@ -37,7 +37,7 @@ from typing import Callable, NamedTuple
 
 import numpy as np
 
-from models.schema import BASE_SCHEMA, GYRATION_RADIUS, Key, SceneChecks, SceneError
+from models.schema import BASE_SCHEMA, GYRATION_RADIUS, Key, SceneChecks
 
 E3 = np.array([0.0, 0.0, 1.0])
 
@@ -573,7 +573,8 @@ def unusable() -> dict[str, str]:
     """{effect name: why a scene may not list it}: failed plugins, and registry entries added
     without `register_effect` that override `Effect.kinetic`."""
     out = {name: f"the plugin failed to load ({err})" for name, err in _PLUGIN_ERRORS.items()}
-    out.update({name: _KINETIC_REFUSED for name, e in EFFECTS.items() if name not in _BUILTIN and _overrides_kinetic(e)})
+    out.update({name: _KINETIC_REFUSED for name, e in EFFECTS.items()
+                if name not in _BUILTIN and _overrides_kinetic(e)})
     return out
 
 

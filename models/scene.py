@@ -33,8 +33,8 @@ import numpy as np
 from models import effects as _effects
 from models import io as _io
 from models.effects import EFFECTS, body_inertia
-from models.schema import (BASE_SCHEMA, MASS_MODELS, MAX_DEPTH, PLAUSIBLE, STRETCH_RANGE, SceneError, Validator,
-                           full_schema, is_safe_name, nesting_depth, suggest)
+from models.schema import (BASE_SCHEMA, MASS_MODELS, MAX_DEPTH, NESTED_TOO_DEEPLY, PLAUSIBLE, STRETCH_RANGE,
+                           SceneError, Validator, full_schema, is_safe_name, nesting_depth, suggest)
 from models.schema import plausible_ranges as _plausible_ranges
 
 __all__ = ["BASE_SCHEMA", "EFFECTS", "MASS_MODELS", "MAX_SCENE_BYTES", "PLAUSIBLE", "SCENE_DIR", "STRETCH_RANGE",
@@ -223,8 +223,7 @@ def _read(path: Path) -> dict:
     except tomllib.TOMLDecodeError as exc:
         raise SceneError(f"{path}: not valid TOML: {exc}") from None
     except RecursionError:  # arrays or inline tables nested hundreds deep
-        raise SceneError(f"{path}: nested too deeply: a scene has at most {MAX_DEPTH} levels of tables and "
-                         f"arrays (see models/README.md for the format)") from None
+        raise SceneError(f"{path}: {NESTED_TOO_DEEPLY}") from None
 
 
 def _apply_overrides(data: dict, overrides: Mapping, source: str) -> set[str]:
@@ -288,8 +287,7 @@ def _build(data: Mapping, source: str, overrides: Mapping) -> Scene:
         raise SceneError(f"{source}: a scene is a table of keys, not {type(data).__name__}")
     for part in (data, *overrides.values()):
         if nesting_depth(part) > MAX_DEPTH:  # before anything walks it recursively (deepcopy, json)
-            raise SceneError(f"{source}: nested too deeply: a scene has at most {MAX_DEPTH} levels of tables "
-                             f"and arrays (see models/README.md for the format)")
+            raise SceneError(f"{source}: {NESTED_TOO_DEEPLY}")
     data = copy.deepcopy(dict(data))
     listed = [e for part in (data.get("effects"), overrides.get("effects")) if isinstance(part, (list, tuple))
               for e in part]

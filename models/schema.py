@@ -150,6 +150,8 @@ PLAUSIBLE: dict[str, tuple[float, float]] = {
 #: Deepest nesting of tables and arrays a scene has (top level, section, matrix, row); a file
 #: nested deeper is refused before anything walks it.
 MAX_DEPTH = 4
+NESTED_TOO_DEEPLY = (f"nested too deeply: a scene has at most {MAX_DEPTH} levels of tables and arrays "
+                     f"(top level, section, matrix, row); see models/README.md for the format")
 
 
 def full_schema(registry: Mapping) -> dict[str, dict[str, Key] | Key]:
@@ -294,10 +296,10 @@ class Validator(SceneChecks):
     to load, an effect the physics paths cannot honour); they are refused with it.
     """
 
-    def __init__(self, source: str, overridden: set[str], registry: Mapping, unusable: Mapping[str, str] = {}):
+    def __init__(self, source: str, overridden: set[str], registry: Mapping, unusable: Mapping[str, str] | None = None):
         super().__init__(source, overridden)
         self.registry = registry
-        self.unusable = dict(unusable)
+        self.unusable = dict(unusable or {})
         self.schema = full_schema(registry)
         self.ranges = plausible_ranges(registry)
         self.owners = key_owners(registry)
@@ -307,8 +309,7 @@ class Validator(SceneChecks):
         if not isinstance(data, Mapping):
             raise self.refuse(f"a scene is a table of keys, not {type(data).__name__}")
         if nesting_depth(data) > MAX_DEPTH:
-            raise self.refuse(f"nested too deeply: a scene has at most {MAX_DEPTH} levels of tables and arrays "
-                              f"(top level, section, matrix, row); see models/README.md for the format")
+            raise self.refuse(NESTED_TOO_DEEPLY)
         effects = self.effects(data.get("effects"))
         for key in data:
             if key not in self.schema:
@@ -518,7 +519,8 @@ class Validator(SceneChecks):
                             f"0 < deployed_length < total_length - guide_length = {L - guide!r}")
         if not ell >= N * MIN_ELEMENT_LENGTH:
             raise self.fail("initial.deployed_length", ell,
-                            f"deployed_length >= string.elements x {MIN_ELEMENT_LENGTH:g} m = {N * MIN_ELEMENT_LENGTH:g} m "
+                            f"deployed_length >= string.elements x {MIN_ELEMENT_LENGTH:g} m "
+                            f"= {N * MIN_ELEMENT_LENGTH:g} m "
                             f"(every element at least {MIN_ELEMENT_LENGTH * 1e3:g} mm long at the start: a shorter "
                             f"one has an axial period l sqrt(mu/EA) too short to integrate)")
         if not r["min_deployed_length"] < ell:

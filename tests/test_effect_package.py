@@ -118,7 +118,8 @@ def test_the_plugin_is_loaded_when_a_scene_lists_it_and_broken_ones_are_reported
     d = scene.to_dict()
     for name, reason in (("heavier_body", "the closed form"), ("broken_effect", "failed to load")):
         bad = dict(d, effects=d["effects"] + [name])
-        with pytest.raises(SceneError, match=rf"x\.toml: key 'effects' lists '{name}', which cannot be used: .*{reason}"):
+        refusal = rf"x\.toml: key 'effects' lists '{name}', which cannot be used: .*{reason}"
+        with pytest.raises(SceneError, match=refusal):
             scene_from_dict(bad, source="x.toml")
 
 

@@ -165,14 +165,14 @@ def assert_stored_as_written(scene, parsed):
     stored, full = scene.to_dict(), schema()
     for top, value in parsed.items():
         entries = value.items() if isinstance(full[top], dict) else [(None, value)]
-        for key, given in entries:
+        for key, written in entries:
             spec = full[top][key] if key is not None else full[top]
             got = stored.get(top, {}).get(key, MISSING) if key is not None else stored.get(top, MISSING)
-            want = expected(given, spec)
+            want = expected(written, spec)
             if got is MISSING:  # left out of the stored scene at its default (`Key.hashed_at_default`)
-                assert not spec.hashed_at_default and want == spec.default, (top, key, given)
+                assert not spec.hashed_at_default and want == spec.default, (top, key, written)
             else:
-                assert got == want and type(got) is type(want), (top, key, given, got)
+                assert got == want and type(got) is type(want), (top, key, written, got)
 
 
 @pytest.fixture(scope="module")

@@ -17,7 +17,8 @@ from pathlib import Path
 import pytest
 
 from benchmark.cli import main
-from models import EFFECTS, SceneError, available_scenes, load_scene, register_effect, scene_from_dict, unregister_effect
+from models import (EFFECTS, SceneError, available_scenes, load_scene, register_effect, scene_from_dict,
+                    unregister_effect)
 from models import io as model_io
 from models.effects import Effect, Key
 from models.io import UnsafePath, inside
