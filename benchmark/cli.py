@@ -240,6 +240,13 @@ def cmd_list(args) -> int:
         print(f"  {name:10s} order {integ.order}  [{caps}]  {integ.description}")
     for name, err in plugin_errors().items():
         print(f"  {name:10s} FAILED TO LOAD: {err}")
+    from models import EFFECTS
+    from models.effects import plugin_errors as effect_plugin_errors
+
+    failed = effect_plugin_errors()  # loads the reelbench.effects plugins first
+    print("effects:", ", ".join(EFFECTS))
+    for name, err in failed.items():
+        print(f"  {name:10s} FAILED TO LOAD: {err}")
     return 0
 
 

@@ -7,9 +7,10 @@ Public API::
     model = build_model(scene)        # energies, forces, Legendre transform, EOM
     from models.diagnostics import evaluate
 
-The model and the scene format are described in models/README.md; each physical effect
-(its scene keys, energy terms, forces) is one `Effect` in models/effects.py, and
-`register_effect` adds one at run time.
+The model and the scene format are described in models/README.md; the scene schema (keys,
+rules, ranges, errors) is `models.schema`; each physical effect (its scene keys, energy terms,
+forces) is one `Effect` in models/effects.py, and `register_effect` or an installed package's
+``reelbench.effects`` entry point adds one.
 
 The JAX-backed names (`build_model`, `StringPendulum`) are imported on first use, so that
 loading and validating a scene (`load_scene`) does not import JAX: the command line refuses
@@ -18,6 +19,7 @@ first, which switches JAX to float64 before anything else.
 """
 
 from models.effects import Effect, register_effect, unregister_effect
+from models.schema import SceneChecks
 from models.layout import StateLayout
 from models.scene import EFFECTS, Scene, SceneError, available_scenes, load_scene, scene_from_dict
 
@@ -38,6 +40,7 @@ __all__ = [
     "EFFECTS",
     "Effect",
     "Scene",
+    "SceneChecks",
     "SceneError",
     "StateLayout",
     "StringPendulum",

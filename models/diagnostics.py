@@ -125,7 +125,7 @@ def energy_deviation(df: pd.DataFrame, *, has_work: bool) -> pd.Series:
 
 
 def summary(df: pd.DataFrame, *, has_work: bool) -> dict:
-    """The paper's conservation metrics of one run (MODEL.md §4).
+    """The paper's conservation metrics of one run (models/README.md, "What is reported").
 
     energy_error: max |E - E0| / max T   (or max |(E - W) - (E0 - W0)| / max T with forcing)
     pi3_error: max |π3 - π3(0)| / |π3(0)|  (absolute if π3(0) = 0)

@@ -3,50 +3,52 @@
 A scene lists effects by name; `EFFECTS` maps each name to an `Effect`, in canonical order.
 An effect declares everything it contributes, and nothing else needs to know its name:
 
-* scene format (`models.scene`): the keys it owns (`keys`), their plausible magnitudes
-  (`plausible`), the effects it needs (`needs`) and its own cross-checks (`check`);
+* scene format (`models.schema`): the keys it owns (`keys`), their plausible magnitudes
+  (`plausible`), the effects it needs (`needs`) and its own cross-checks (`check`, which
+  receives the public `models.schema.SceneChecks`);
 * state layout (`models.layout`): coordinates it adds (`state`) and whether it does
   non-conservative work (`forcing`, which puts W in the ODE state);
 * physics (`models.model.StringPendulum`, assembled once per scene): potential terms with
-  their closed-form gradients (`potentials`), kinetic terms (`kinetic`), reel forces on s_p
-  (`reel_forces`), string forces over w's layout (`string_forces`), a change of the elastic
-  law (`elastic_law`), its share of the energy scale (`energy_scale`) and the power its
-  forces claim (`power`, checked by the tests).
+  their closed-form gradients (`potentials`), reel forces on s_p (`reel_forces`), string
+  forces over w's layout (`string_forces`), a change of the elastic law (`elastic_law`), its
+  share of the energy scale (`energy_scale`) and the power its forces claim (`power`, checked
+  by the tests).
 
 The integrators read only the model's totals (`potential_gradient`, `reel_force`,
 `string_force`, `generalized_force`, `potential`, `kinetic`), so a new potential or force
-needs no integrator edit: `register_effect` adds one at run time (tests/test_effect_plugin.py).
+needs no integrator edit. An effect is added at run time by `register_effect`, or by an
+installed package through the entry-point group `reelbench.effects` (`ENTRY_POINT_GROUP`),
+loaded the first time a scene is validated, in every process (the benchmark's workers too).
 
-No JAX at import: `models.scene` validates scenes before JAX is loaded (the command line
-refuses bad input fast), so the physics hooks import `models._jax` when they are called.
+The kinetic energy is not an effect's to change: the closed form (`models.closed_form`) and
+the LGVI derive the string's, the body's and the reel's kinetic energy themselves, so an
+added effect that overrides `kinetic` would be honoured by the autodiff path only. Such an
+effect is refused when it is registered, with that reason.
+
+No JAX at import: scenes are validated before JAX is loaded (the command line refuses bad
+input fast), so the physics hooks import `models._jax` when they are called.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any, Callable, NamedTuple
+import re
+from importlib.metadata import entry_points
+from typing import Callable, NamedTuple
 
 import numpy as np
 
+from models.schema import BASE_SCHEMA, GYRATION_RADIUS, Key, SceneChecks
+
 E3 = np.array([0.0, 0.0, 1.0])
 
+#: Entry-point group of effect plugins: ``name = "package.module:EffectClass"`` (or an instance).
+ENTRY_POINT_GROUP = "reelbench.effects"
 
-@dataclass(frozen=True)
-class Key:
-    """Schema entry of one scene key: type, constraint and default."""
+#: An effect's name is a TOML section name and a keyword of `load_scene`.
+EFFECT_NAME = re.compile(r"[a-z][a-z0-9_]{0,63}")
 
-    kind: str  # "float", "int", "str", "vec3", "mat3", "effects"
-    rule: str = "finite"  # "finite", "positive", "nonnegative", "nonzero", ...
-    default: Any = None
-    required_by: tuple[str, ...] | None = None  # required iff all these effects are listed
-    required: bool = False
-    # A key that exists only for its effect (`required_by`): refused without it, and left out
-    # of the validated dict (hence of `Scene.key()`) when absent, so scenes without the
-    # effect keep their hash.
-    only_with_effect: bool = False
-    # A key added after results were keyed: left out of `Scene.key()` at its default, so
-    # that existing scenes keep their key.
-    hashed_at_default: bool = True
+__all__ = ["EFFECTS", "ENTRY_POINT_GROUP", "Effect", "Key", "PotentialTerm", "SceneChecks", "effect_keys",
+           "get_effect", "load_plugins", "plugin_errors", "register_effect", "unregister_effect", "unusable"]
 
 
 class PotentialTerm(NamedTuple):
@@ -86,13 +88,20 @@ class Effect:
     summary: str = ""
 
     # -- scene rules ----------------------------------------------------------------------
-    def check(self, v, d: dict, effects: tuple[str, ...]) -> None:
-        """Cross-checks of the validated scene dict ``d``, run for every registered effect,
-        listed or not (``self.name in effects``); raise through ``v.fail`` / `SceneError`."""
+    def check(self, checks: SceneChecks, d: dict, effects: tuple[str, ...]) -> None:
+        """Cross-checks of the validated scene dict ``d`` ({section: {key: value}}, defaults
+        filled in), run for every registered effect, listed or not (``self.name in effects``).
+        Refuse with ``raise checks.fail(key, value, allowed)`` or ``raise checks.refuse(message)``
+        (`models.schema.SceneChecks`). A key of this effect given with a value other than its
+        default while the effect is not listed is refused before this runs."""
 
     # -- physics --------------------------------------------------------------------------
     def kinetic(self, model) -> dict[str, Callable]:
-        """{name: T(x, R, w)}; a name already present (e.g. "T_body") is replaced."""
+        """{name: T(x, R, w)}; a name already present (e.g. "T_body") is replaced.
+
+        Built-in effects only (`reel`, `rigid_body`): the closed form and the LGVI have these
+        terms written out, so `register_effect` refuses an effect that overrides this hook.
+        """
         return {}
 
     def potentials(self, model) -> dict[str, PotentialTerm]:
@@ -123,7 +132,7 @@ class Effect:
 
 
 # --------------------------------------------------------------------------------------------
-# The built-in effects (MODEL.md §3, §8; models/README.md "Effects")
+# The built-in effects (models/README.md, "Effects")
 # --------------------------------------------------------------------------------------------
 
 
@@ -224,18 +233,29 @@ class RigidBody(Effect):
     }
     plausible = {"body.box": (1e-6, 1e4), "body.attachment_to_com": (0.0, 1e4), "initial.angular_velocity": (0.0, 1e5)}
 
-    def check(self, v, d, effects):
-        from models.scene import SceneError
-
-        b, i = d["body"], d["initial"]
-        if self.name in effects:
-            if b["box"] is not None and b["inertia"] is not None:
-                raise SceneError(f"{v.source}: keys 'body.box' and 'body.inertia' are alternatives: give one")
-            if b["box"] is None and b["inertia"] is None:
-                raise SceneError(f"{v.source}: missing key 'body.box' or 'body.inertia' (needed by effect rigid_body)")
-        elif any(x != 0.0 for x in i["angular_velocity"]):
-            raise v.fail("initial.angular_velocity", i["angular_velocity"],
-                         "[0, 0, 0] without effect 'rigid_body' (a point mass has no attitude)")
+    def check(self, checks, d, effects):
+        b = d["body"]
+        if self.name not in effects:
+            return
+        if b["box"] is not None and b["inertia"] is not None:
+            raise checks.refuse("keys 'body.box' and 'body.inertia' are alternatives: give one")
+        if b["box"] is None and b["inertia"] is None:
+            raise checks.refuse("missing key 'body.box' or 'body.inertia' (needed by effect rigid_body)")
+        key = "body.box" if b["box"] is not None else "body.inertia"
+        moments = np.linalg.eigvalsh(body_inertia(b))
+        radius = np.sqrt(np.maximum(moments, 0.0) / b["mass"])
+        lo, hi = GYRATION_RADIUS
+        if not (lo <= radius.min() and radius.max() <= hi):
+            raise checks.refuse(
+                f"key '{key}' = {b[key.split('.')[1]]} is implausible: allowed principal moments of inertia "
+                f"whose radius of gyration sqrt(J/m_b) is in [{lo:g}, {hi:g}] m (m_b = body.mass = {b['mass']:g} kg; "
+                f"these give {radius.min():.3g} ... {radius.max():.3g} m). Check the units and the exponent", key)
+        # every real body's principal moments satisfy J1 <= J2 + J3 (and the LGVI's J_d is
+        # positive definite only then)
+        if 2.0 * moments.max() > moments.sum() * (1.0 + 1e-12):
+            raise checks.fail(key, b[key.split(".")[1]],
+                              f"an inertia whose principal moments satisfy J1 <= J2 + J3, as every real body's do "
+                              f"(these are {', '.join(f'{x:.6g}' for x in moments)} kg m^2)")
 
     def kinetic(self, m):
         return {"T_body": m._T_rigid_body}  # replaces the point mass's T_body
@@ -247,28 +267,23 @@ class Reel(Effect):
     summary = "s_p as a coordinate: drum and reel-side inertia, axial-flow coupling"
     keys = {
         "reel": {
-            "radius": Key("float", "positive", required_by=("reel",), default=1.0),
-            "center": Key("vec3", required_by=("reel",), default=(0.0, 0.0, 0.0)),
-            "guide_length": Key("float", "positive", required_by=("reel",), default=0.0),
-            "equivalent_mass": Key("float", "positive", required_by=("reel",), default=1.0),
+            "radius": Key("float", "positive", required_by=("reel",), default=1.0, kept_without_effect=True),
+            "center": Key("vec3", required_by=("reel",), default=(0.0, 0.0, 0.0), kept_without_effect=True),
+            "guide_length": Key("float", "positive", required_by=("reel",), default=0.0, kept_without_effect=True),
+            "equivalent_mass": Key("float", "positive", required_by=("reel",), default=1.0, kept_without_effect=True),
         },
         "initial": {"reel_rate": Key("float", default=0.0)},
     }
     plausible = {"reel.radius": (1e-6, 1e4), "reel.center": (0.0, 1e5), "reel.guide_length": (0.0, 1e5),
                  "reel.equivalent_mass": (1e-9, 1e9), "initial.reel_rate": (0.0, 1e4)}
 
-    def check(self, v, d, effects):
-        from models.scene import SceneError
-
+    def check(self, checks, d, effects):
         if self.name in effects and d["string"]["mass_model"] == "lumped":
-            # the lumped string's axial-flow terms (its M0 and M31/M23) are not derived (MODEL.md §8)
-            raise SceneError(
-                f"{v.source}: key 'string.mass_model' = 'lumped' is not available with effect 'reel': "
-                f"allowed 'consistent' with a reel (the lumped string's axial-flow terms are not derived, "
-                f"MODEL.md §8); 'lumped' needs a fixed-length scene"
-            )
-        if self.name not in effects and d["initial"]["reel_rate"] != 0.0:
-            raise v.fail("initial.reel_rate", d["initial"]["reel_rate"], "0 without effect 'reel' (the length is fixed)")
+            # the lumped string's axial-flow terms (its M0 and M31/M23) are not derived
+            raise checks.refuse(
+                "key 'string.mass_model' = 'lumped' is not available with effect 'reel': allowed 'consistent' "
+                "with a reel (the lumped string's axial-flow terms are not derived); 'lumped' needs a "
+                "fixed-length scene", "string.mass_model")
 
     def kinetic(self, m):
         return {"T_reel": m._T_reel}
@@ -307,11 +322,6 @@ class ReelControl(Effect):
     summary = "constant drum moment u (reel.control_moment) as the force u/d on s_p"
     keys = {"reel": {"control_moment": Key("float", default=0.0)}}
     plausible = {"reel.control_moment": (0.0, 1e12)}
-
-    def check(self, v, d, effects):
-        u = d["reel"]["control_moment"]
-        if self.name not in effects and u != 0.0 and "reel" in effects:
-            raise v.fail("reel.control_moment", u, "0 without effect 'reel_control'")
 
     def reel_forces(self, m):
         from models._jax import jnp
@@ -396,40 +406,92 @@ class AxialDamping(Effect):
 EFFECTS: dict[str, Effect] = {}
 
 
+#: The hooks' key kinds, and the rules each kind knows (`models.schema.Validator`).
+_KEY_RULES = {"float": {"finite", "positive", "nonnegative", "stretch"}, "int": {"finite", "at_least_1"},
+              "str": {"finite", "line", "name"}, "vec3": {"finite", "positive", "nonzero"}, "mat3": {"spd", "rotation"}}
+
+_KINETIC_REFUSED = ("it overrides Effect.kinetic, which an added effect may not: the closed form "
+                    "(models.closed_form) and the LGVI write the kinetic energy of the string, the body and the "
+                    "reel out themselves and would ignore the change, so only the autodiff path would see it; "
+                    "an added effect contributes potentials (with their gradients) and forces")
+
+
+def _overrides_kinetic(effect: Effect) -> bool:
+    return type(effect).kinetic is not Effect.kinetic
+
+
 def register_effect(effect: Effect) -> Effect:
     """Add ``effect`` to the registry (at the end of the canonical order); returns it.
 
     Its scene keys become valid at once (scenes are validated against the registry as it is
-    when they are loaded); a model built afterwards composes its terms.
+    when they are loaded); a model built afterwards composes its terms. Refused (ValueError,
+    with the reason): a name that is not a lower-case identifier, a name or scene key already
+    taken, a need not registered, a key kind or rule the schema does not know, a plausible
+    range for a key the effect does not own, and an override of `Effect.kinetic`.
     """
     if not isinstance(effect, Effect) or not effect.name:
         raise TypeError(f"register_effect needs an Effect instance with a name, not {effect!r}")
+    if not isinstance(effect.name, str) or not EFFECT_NAME.fullmatch(effect.name):
+        raise ValueError(f"effect name {effect.name!r} is invalid: allowed a lower-case identifier "
+                         f"({EFFECT_NAME.pattern}; it names a TOML section and a keyword)")
     if effect.name in EFFECTS:
         raise ValueError(f"effect {effect.name!r} is already registered")
     for need in effect.needs:
         if need not in EFFECTS:
             raise ValueError(f"effect {effect.name!r} needs {need!r}, which is not registered")
-    owned = {(s, k) for e in EFFECTS.values() for s, sec in e.keys.items() for k in sec}
-    from models.scene import BASE_SCHEMA  # the structural keys (no import cycle at call time)
-
-    for section, sec in effect.keys.items():
-        for key in sec:
-            base = BASE_SCHEMA.get(section) if section else BASE_SCHEMA.get(key)
-            if (section, key) in owned or (isinstance(base, dict) and key in base) or (not section and base):
-                raise ValueError(f"effect {effect.name!r}: scene key '{section + '.' if section else ''}{key}' "
-                                 f"is already defined")
+    if _overrides_kinetic(effect):
+        raise ValueError(f"effect {effect.name!r} is refused: {_KINETIC_REFUSED}")
+    _check_keys(effect)
     EFFECTS[effect.name] = effect
     return effect
 
 
-def unregister_effect(name: str) -> Effect:
-    """Remove an effect added by `register_effect` (built-in effects cannot be removed)."""
+def _check_keys(effect: Effect) -> None:
+    owned = {(s, k) for e in EFFECTS.values() for s, sec in e.keys.items() for k in sec}
+    mine = set()
+    for section, sec in effect.keys.items():
+        base_section = BASE_SCHEMA.get(section)
+        if section and base_section is not None and not isinstance(base_section, dict):
+            raise ValueError(f"effect {effect.name!r}: section [{section}] is a top-level scene key")
+        for key, spec in sec.items():
+            dotted = f"{section}.{key}" if section else key
+            base = base_section if section else BASE_SCHEMA.get(key)
+            if (section, key) in owned or (isinstance(base, dict) and key in base) or (not section and base):
+                raise ValueError(f"effect {effect.name!r}: scene key '{dotted}' is already defined")
+            if not isinstance(spec, Key) or spec.rule not in _KEY_RULES.get(spec.kind, ()):
+                raise ValueError(f"effect {effect.name!r}: scene key '{dotted}' has kind/rule "
+                                 f"{getattr(spec, 'kind', spec)!r}/{getattr(spec, 'rule', None)!r}; allowed: "
+                                 + "; ".join(f"{k}: {', '.join(sorted(r))}" for k, r in _KEY_RULES.items()))
+            mine.add(dotted)
+    for dotted in effect.plausible:
+        if dotted not in mine:
+            raise ValueError(f"effect {effect.name!r}: a plausible range for '{dotted}', a key it does not own")
+
+
+def unregister_effect(name: str) -> Effect | None:
+    """Remove an effect added by `register_effect` or a plugin (built-in effects cannot be
+    removed); for a plugin that failed to load, forget the failure (returns None), so that
+    the next scan tries it again."""
     if name in _BUILTIN:
         raise ValueError(f"effect {name!r} is built in and cannot be unregistered")
+    if name not in EFFECTS and name in _PLUGIN_ERRORS:
+        del _PLUGIN_ERRORS[name]
+        return None
     dependants = [e.name for e in EFFECTS.values() if name in e.needs]
     if dependants:
         raise ValueError(f"effect {name!r} is needed by {', '.join(dependants)}")
     return EFFECTS.pop(name)
+
+
+def body_inertia(body: dict) -> np.ndarray:
+    """J_c of a validated ``[body]`` table: from `box` (a homogeneous box), from `inertia`, or 0."""
+    if body.get("box") is not None:
+        a, bb, c = body["box"]
+        m = body["mass"]
+        return np.diag([m / 12 * (bb * bb + c * c), m / 12 * (a * a + c * c), m / 12 * (a * a + bb * bb)])
+    if body.get("inertia") is not None:
+        return np.array(body["inertia"])
+    return np.zeros((3, 3))
 
 
 def effect_keys() -> dict[str, dict[str, Key]]:
@@ -444,3 +506,83 @@ def effect_keys() -> dict[str, dict[str, Key]]:
 for _e in (Gravity(), Elasticity(), RigidBody(), Reel(), Carnot(), ReelControl(), Slack(), AxialDamping()):
     EFFECTS[_e.name] = _e
 _BUILTIN = frozenset(EFFECTS)
+
+
+# --------------------------------------------------------------------------------------------
+# Plugins (entry-point group `reelbench.effects`)
+# --------------------------------------------------------------------------------------------
+
+_PLUGIN_ERRORS: dict[str, str] = {}
+_scanned = False
+
+
+def load_plugins(refresh: bool = False) -> None:
+    """Register the effects installed packages declare in `ENTRY_POINT_GROUP`.
+
+    Scanned once per process (the first scene validated does it, so the benchmark's spawned
+    workers do too); ``refresh`` scans again for entry points not seen yet. A plugin that
+    fails to load or to register is recorded in `plugin_errors()`, not raised: the others
+    still load, and a scene that lists it is refused with the reason. Plugins register in
+    the order of their names, one that needs another's effect after it.
+    """
+    global _scanned
+    if _scanned and not refresh:
+        return
+    _scanned = True
+    pending = {}
+    for ep in sorted(entry_points(group=ENTRY_POINT_GROUP), key=lambda ep: ep.name):
+        if ep.name in EFFECTS or ep.name in _PLUGIN_ERRORS or ep.name in pending:
+            continue
+        try:
+            pending[ep.name] = _effect_from(ep)
+        except Exception as exc:  # a broken plugin must not take the others down
+            _PLUGIN_ERRORS[ep.name] = f"{type(exc).__name__}: {exc}"
+    while pending:
+        ready = [n for n, e in pending.items() if all(need in EFFECTS for need in e.needs)] or list(pending)[:1]
+        for name in ready:
+            try:
+                register_effect(pending.pop(name))
+            except Exception as exc:
+                _PLUGIN_ERRORS[name] = f"{type(exc).__name__}: {exc}"
+
+
+def _effect_from(ep) -> Effect:
+    obj = ep.load()
+    effect = obj() if isinstance(obj, type) and issubclass(obj, Effect) else obj
+    if not isinstance(effect, Effect):
+        raise TypeError(f"entry point {ep.name!r} = {ep.value!r} is not an Effect subclass or instance")
+    if effect.name != ep.name:
+        raise ValueError(f"entry point {ep.name!r} loads an effect named {effect.name!r}")
+    return effect
+
+
+def ensure_known(names) -> None:
+    """Load the plugins (once); scan again if ``names`` holds an effect still unknown."""
+    load_plugins()
+    if any(isinstance(n, str) and n not in EFFECTS and n not in _PLUGIN_ERRORS for n in names):
+        load_plugins(refresh=True)
+
+
+def plugin_errors() -> dict[str, str]:
+    """Effect entry points that failed to load or register, with the reason."""
+    load_plugins()
+    return dict(_PLUGIN_ERRORS)
+
+
+def unusable() -> dict[str, str]:
+    """{effect name: why a scene may not list it}: failed plugins, and registry entries added
+    without `register_effect` that override `Effect.kinetic`."""
+    out = {name: f"the plugin failed to load ({err})" for name, err in _PLUGIN_ERRORS.items()}
+    out.update({name: _KINETIC_REFUSED for name, e in EFFECTS.items()
+                if name not in _BUILTIN and _overrides_kinetic(e)})
+    return out
+
+
+def get_effect(name: str) -> Effect:
+    """The registered effect ``name``; plugins are loaded first (e.g. in a fresh worker)."""
+    if name not in EFFECTS:
+        ensure_known([name])
+    if name not in EFFECTS:
+        reason = f": {_PLUGIN_ERRORS[name]}" if name in _PLUGIN_ERRORS else ""
+        raise ValueError(f"unknown effect {name!r}{reason}; registered: {', '.join(EFFECTS)}")
+    return EFFECTS[name]

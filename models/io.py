@@ -1,8 +1,16 @@
-"""Atomic file writes: an interrupted run leaves either the old file or the new one, never half."""
+"""Files: atomic writes, paths that stay inside their directory, and reading a small input file
+without being made to hang, to read forever or to follow a link loop.
+
+An interrupted run leaves either the old file or the new one, never half (`atomic_path`).
+A name that comes from input (a scene's name, an integrator's) becomes part of a file name only
+through `inside`, which refuses a result outside the directory it was meant for.
+"""
 
 from __future__ import annotations
 
+import errno
 import os
+import stat
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
@@ -31,3 +39,119 @@ def atomic_path(path: str | os.PathLike):
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:
     with atomic_path(path) as tmp:
         tmp.write_text(text)
+
+
+# --------------------------------------------------------------------------------------------
+# Paths built from names
+# --------------------------------------------------------------------------------------------
+
+
+class UnsafePath(ValueError):
+    """A path built from a name would lie outside the directory it was meant for."""
+
+
+def inside(directory: str | os.PathLike, *parts: str | os.PathLike) -> Path:
+    """``directory / parts`` with symbolic links resolved, refused unless strictly inside ``directory``.
+
+    Every writer that puts a name from input into a file name goes through this, so that a
+    name such as ``../../elsewhere/evil`` (or a link planted inside ``directory``) can never
+    make it write elsewhere:
+
+        >>> inside("/tmp/out", "fig_fixed_length.png")
+        PosixPath('/tmp/out/fig_fixed_length.png')
+        >>> inside("/tmp/out", "../evil.png")
+        Traceback (most recent call last):
+        ...
+        models.io.UnsafePath: '../evil.png' leads outside /tmp/out (to /tmp/evil.png): ...
+    """
+    base = Path(directory).resolve()
+    if not parts:
+        raise UnsafePath(f"inside({str(directory)!r}) needs a file name below the directory")
+    for part in parts:
+        text = os.fspath(part)
+        if not text or "\x00" in text or os.path.isabs(text):
+            raise UnsafePath(f"{text!r} is not a name below {base}: names are relative, non-empty, without NUL")
+    target = base.joinpath(*parts).resolve()
+    if base not in target.parents:
+        shown = os.path.join(*map(os.fspath, parts))
+        raise UnsafePath(f"{shown!r} leads outside {base} (to {target}): a name from input must stay a "
+                         f"file name inside its output directory")
+    return target
+
+
+# --------------------------------------------------------------------------------------------
+# Reading a small input file
+# --------------------------------------------------------------------------------------------
+
+
+class FileRefused(ValueError):
+    """A file `read_regular_file` will not read; ``kind`` says why ("missing", "loop",
+    "directory", "special", "too_large", "unreadable"), the message says it in words."""
+
+    def __init__(self, kind: str, message: str):
+        super().__init__(message)
+        self.kind = kind
+
+
+_SPECIAL = ((stat.S_ISFIFO, "a named pipe (FIFO)"), (stat.S_ISCHR, "a character device"),
+            (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
+
+
+def _refuse_unless_regular(mode: int, max_bytes: int, size: int) -> None:
+    if stat.S_ISDIR(mode):
+        raise FileRefused("directory", "is a directory, not a file")
+    if not stat.S_ISREG(mode):
+        what = next((name for test, name in _SPECIAL if test(mode)), "not a regular file")
+        raise FileRefused("special", f"is {what}, not a regular file: give the path of a file on disk")
+    if size > max_bytes:
+        raise FileRefused("too_large", f"is {size:,} bytes, more than the {max_bytes:,} such a file may have")
+
+
+def _os_problem(path: str, exc: OSError) -> FileRefused:
+    if exc.errno == errno.ELOOP:
+        return FileRefused("loop", "is a symbolic link loop (following it leads back to itself): "
+                                   "point the link at a file")
+    if exc.errno in (errno.ENOENT, errno.ENOTDIR):
+        if os.path.islink(path):
+            return FileRefused("missing", f"is a symbolic link to {os.readlink(path)!r}, which does not exist")
+        return FileRefused("missing", "not found")
+    if exc.errno in (errno.EACCES, errno.EPERM):
+        return FileRefused("unreadable", "cannot be read (permission denied)")
+    if exc.errno == errno.ENAMETOOLONG:
+        return FileRefused("unreadable", "cannot be read: the path is too long")
+    return FileRefused("unreadable", f"cannot be read ({exc.strerror or exc})")
+
+
+def read_regular_file(path: str | os.PathLike, max_bytes: int) -> bytes:
+    """The bytes of ``path``, a regular file of at most ``max_bytes``; anything else is refused
+    (`FileRefused`) before it is read: a FIFO (whose open would block), a device (``/dev/zero``
+    would be read until the memory runs out), a directory, a link loop, a file too large.
+
+    The file is opened without blocking and checked again once open (it may have been
+    replaced in between), and never more than ``max_bytes + 1`` bytes are read.
+    """
+    path = os.fspath(path)
+    try:
+        st = os.stat(path)
+    except OSError as exc:
+        raise _os_problem(path, exc) from None
+    _refuse_unless_regular(st.st_mode, max_bytes, st.st_size)
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    except OSError as exc:
+        raise _os_problem(path, exc) from None
+    try:
+        st = os.fstat(fd)
+        _refuse_unless_regular(st.st_mode, max_bytes, st.st_size)
+        chunks, total = [], 0
+        while total <= max_bytes:
+            chunk = os.read(fd, max_bytes + 1 - total)
+            if not chunk:
+                break
+            chunks.append(chunk)
+            total += len(chunk)
+        if total > max_bytes:
+            raise FileRefused("too_large", f"grew beyond {max_bytes:,} bytes while being read")
+        return b"".join(chunks)
+    finally:
+        os.close(fd)

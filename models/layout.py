@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from models.effects import EFFECTS
+from models.effects import get_effect
 
 
 @dataclass(frozen=True)
@@ -25,7 +25,7 @@ class StateLayout:
 
     @classmethod
     def from_scene(cls, scene) -> "StateLayout":
-        listed = [EFFECTS[e] for e in scene.effects]
+        listed = [get_effect(e) for e in scene.effects]
         state = {c for e in listed for c in e.state}
         return cls(
             elements=scene.string.elements,

@@ -6,7 +6,7 @@ string and of the end mass is structural and lives here (the one derivation the 
 path, `models.closed_form` and the LGVI read); the effects add T_reel and the rigid body's
 T_body. Everything else is derived from those terms:
 
-* the continuous equations of motion (MODEL.md §5) by automatic differentiation of the
+* the continuous equations of motion by automatic differentiation of the
   Lagrangian (`accelerations`, `ode_rhs` on a quaternion attitude state), checked in the tests
   against the closed-form equations of `models.closed_form`;
 * the Legendre transform p = M(x, R) w and its inverse, used by every integrator;
@@ -25,7 +25,7 @@ from typing import Callable
 import numpy as np
 
 from models._jax import jax, jnp
-from models.effects import EFFECTS as EFFECT_REGISTRY
+from models.effects import get_effect
 from models.layout import StateLayout
 from models.scene import Scene
 
@@ -84,7 +84,7 @@ def rot_to_quat(R) -> np.ndarray:
 
 @dataclass(frozen=True)
 class StringMass:
-    """The string's element mass matrix (μ l / den)·[[d, o], [o, d]] (MODEL.md §3, §8).
+    """The string's element mass matrix (μ l / den)·[[d, o], [o, d]] (`string.mass_model`).
 
     The one place the string mass comes from: the autodiff kinetic energy, the closed form
     (`models.closed_form`) and the LGVI (`integrators._lgvi_core`) all read these numbers.
@@ -113,7 +113,7 @@ def quat_rate(quat, omega):
 
 
 class StringPendulum:
-    """Energy, forces and continuous-time equations of one scene (MODEL.md §3, §5).
+    """Energy, forces and continuous-time equations of one scene (models/README.md).
 
     Only the effects the scene lists exist: without `reel`, s_p is not a coordinate; without
     `rigid_body`, the end mass is a point mass and there is no attitude state.
@@ -146,7 +146,7 @@ class StringPendulum:
         #: s_p of a fixed-length scene (locked)
         self.s_fixed = self.L - ini.deployed_length
         a = np.arange(1, self.N + 1, dtype=float)
-        # M31_a = c31_a (q_a - q_{a+1}), M23_a = c23_a (q_a - q_{a+1})   (MODEL.md §3)
+        # axial-flow coupling of the deployed string: M31_a = c31_a (q_a - q_{a+1}), M23_a = c23_a (q_a - q_{a+1})
         self.c31 = self.mu / (6 * self.N) * (2 + 3 * self.N - 3 * a)
         self.c23 = self.mu / (6 * self.N) * (1 + 3 * self.N - 3 * a)
         #: element mass matrix of `string.mass_model` (the scene refuses "lumped" with a reel:
@@ -160,7 +160,7 @@ class StringPendulum:
         # The required effects (the string's own elasticity) are composed first, the others in
         # canonical order: the totals then add up in the order of the closed form this replaced,
         # so fixed-length results are bit-identical to it.
-        listed = [EFFECT_REGISTRY[e] for e in scene.effects]
+        listed = [get_effect(e) for e in scene.effects]
         self.effects = tuple([e for e in listed if e.required] + [e for e in listed if not e.required])
         # Elastic law: the length that stores strain energy. Two-sided (the paper's: resists
         # compression too) unless an effect (`slack`) replaces it; set before the terms that read it.
@@ -220,7 +220,7 @@ class StringPendulum:
         return w[self.layout.omega] if self.layout.has_attitude else jnp.zeros(3)
 
     # ------------------------------------------------------------------------------------
-    # Energy terms (MODEL.md §3), one per effect
+    # Energy terms, one per effect
     # ------------------------------------------------------------------------------------
     def reel_mass(self, s):
         """M0(s) = μ s + κ_d + μ (L − s)/3: the s_p diagonal of the mass matrix (the stored
@@ -337,7 +337,7 @@ class StringPendulum:
         """Closed-form gradient of V over w's layout: (∂V/∂s_p, ∂V/∂q_2..q_{N+1}, ∂V/∂η).
 
         The sum of each potential term's own closed-form gradient (`models.effects`); ∂V/∂η
-        is the derivative along R (I + η^). These are MODEL.md §6's D_s V and D_q V; the tests
+        is the derivative along R (I + η^). These are the D_s V and D_q V of the discrete equations; the tests
         check every term against autodiff of its energy.
         """
         return sum((g(x, R) for g in self.potential_gradients.values()), jnp.zeros(self.layout.nw))
@@ -399,7 +399,7 @@ class StringPendulum:
         return jnp.linalg.solve(self.mass_matrix(x, R), p)
 
     # ------------------------------------------------------------------------------------
-    # Continuous-time equations (MODEL.md §5), by autodiff of the Lagrangian
+    # Continuous-time equations, by autodiff of the Lagrangian
     # ------------------------------------------------------------------------------------
     def accelerations(self, t, x, R, w):
         """ẇ from M ẇ = [∂L/∂x + Q ; Π × Ω + M_R] - Ṁ w."""
@@ -445,7 +445,7 @@ class StringPendulum:
         return jnp.concatenate(parts)
 
     # ------------------------------------------------------------------------------------
-    # Initial state (SCENARIOS.md: straight string along `direction`, stretched by `initial.stretch`)
+    # Initial state: a straight string along `direction`, stretched by `initial.stretch`
     # ------------------------------------------------------------------------------------
     def initial_state(self):
         """(x0, R0, w0) as numpy arrays.

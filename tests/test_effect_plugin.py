@@ -1,4 +1,4 @@
-"""A new effect needs no integrator edit (issue #14): effects registered at run time.
+"""A new effect needs no integrator edit: effects registered at run time.
 
 * `tip_spring`, the potential of models/README.md's "Adding an effect" block (run from the
   README itself, so the documentation cannot rot): a linear spring from the body's

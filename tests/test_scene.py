@@ -99,21 +99,22 @@ def test_with_accepts_a_scene_whose_file_has_no_reel_table():
         (lambda d: d.update(t_ned=3.0), ["t_ned", "did you mean 't_end'"]),
         (lambda d: d["initial"].pop("deployed_length"), ["initial.deployed_length", "missing"]),
         (lambda d: d["reel"].pop("radius"), ["reel.radius", "missing", "reel"]),
-        (lambda d: d.update(effects=["gravity", "elasticity", "rigid_body"]), ["reel.control_moment"]),  # u != 0, no reel_control... only checked with reel
-        (lambda d: d.update(effects=["gravity", "elasticity"]), ["initial.angular_velocity", "point mass"]),
-        (lambda d: (d.update(effects=["gravity", "elasticity", "rigid_body"]), d["initial"].update(reel_rate=1.0)), ["initial.reel_rate", "fixed"]),
+        # a key of an effect not listed, with a value other than its default, would be ignored: refused
+        (lambda d: d.update(effects=["gravity", "elasticity", "rigid_body"]),
+         ["reel.control_moment", "= 11.0", "only used with effect 'reel_control'", "add 'reel_control' to 'effects'"]),
+        (lambda d: d.update(effects=["gravity", "elasticity", "rigid_body", "reel"]),
+         ["reel.control_moment", "only used with effect 'reel_control'"]),
+        (lambda d: (d.update(effects=["gravity", "elasticity"]), d["body"].pop("box"), d["body"].pop("attachment_to_com")),
+         ["initial.angular_velocity", "only used with effect 'rigid_body'", "its default, [0.0, 0.0, 0.0]"]),
+        (lambda d: d.update(effects=["gravity", "elasticity"]), ["body.box", "only used with effect 'rigid_body'"]),
+        (lambda d: (d.update(effects=["gravity", "elasticity", "rigid_body"]), d["reel"].update(control_moment=0.0),
+                    d["initial"].update(reel_rate=1.0)), ["initial.reel_rate", "only used with effect 'reel'"]),
         (lambda d: d["string"].update(elements=True), ["string.elements"]),
         (lambda d: d.update(string=3), ["string", "table"]),
     ],
 )
 def test_invalid_scene_is_refused_with_file_key_and_range(mutate, fragments, tmp_path):
-    d = base_dict("retrieval" if "angular_velocity" not in str(fragments) else "fixed_length")
-    if fragments == ["reel.control_moment"]:
-        # A fixed-length scene may carry an unused [reel] table; u is only checked with a reel.
-        d["effects"] = ["gravity", "elasticity", "rigid_body", "reel"]
-        with pytest.raises(SceneError, match="reel.control_moment"):
-            scene_from_dict(d, source="x.toml")
-        return
+    d = base_dict("retrieval" if not {"initial.angular_velocity", "body.box"} & set(fragments) else "fixed_length")
     mutate(d)
     assert_refused(d, fragments)
 

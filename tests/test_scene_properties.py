@@ -1,4 +1,4 @@
-"""Bad input beyond the shipped scenes (issue #7), property-based with hypothesis.
+"""Bad input beyond the shipped scenes, property-based with hypothesis.
 
 Every generated scene value is either refused with a `SceneError` naming the key, or accepted
 and then simulated (a short LGVI run: one compile per example, so 2 examples in the fast suite,

@@ -1,0 +1,222 @@
+"""Generated scene *files* through `load_scene`: refused with a `SceneError`, or stored as written.
+
+Hypothesis builds TOML files from the shipped scenes with perturbations: numbers scaled by
+powers of ten (many stay valid), values replaced by huge, tiny, NaN, infinite or huge-integer
+numbers, strings, booleans, lists of the wrong length and tables; keys dropped or added; odd
+names; effect lists reshuffled; values nested thousands deep; and the text itself given a BOM,
+cut short or followed by junk bytes. For every file:
+
+* `load_scene` returns or raises `SceneError`, nothing else (a RecursionError, an
+  OverflowError or a ZeroDivisionError fails the test);
+* it returns within a hang guard (10 s; the measured maximum is far below it);
+* an accepted scene holds exactly the file's values, after the documented normalisations
+  (numbers as floats, `elements` as an int, directions divided by their length, effects in
+  canonical order, defaults for keys not given).
+"""
+
+import json
+import math
+import re
+import time
+import tomllib
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from models import EFFECTS, SceneError, load_scene
+from models.scene import SCENE_DIR, schema
+
+BASES = {name: tomllib.loads((SCENE_DIR / f"{name}.toml").read_text()) for name in ("fixed_length", "deployment",
+                                                                                      "retrieval")}
+HANG_GUARD_S = 10.0
+SLOWEST = [0.0]  # the slowest call seen, printed with -s
+
+BARE_KEY = re.compile(r"[A-Za-z0-9_-]+")
+
+
+# ------------------------------------------------------------------------------------------
+# TOML text of a generated mapping
+# ------------------------------------------------------------------------------------------
+def toml_key(key: str) -> str:
+    return key if BARE_KEY.fullmatch(key) else json.dumps(key, ensure_ascii=False)
+
+
+class Deep:
+    """A value nested ``depth`` arrays deep, written out without recursion."""
+
+    def __init__(self, depth):
+        self.depth = depth
+
+
+def toml_value(value) -> str:
+    if isinstance(value, Deep):
+        return "[" * value.depth + "1.0" + "]" * value.depth
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        return repr(value)  # 'inf', '-inf', 'nan', '1e+300' are TOML floats too
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, str):
+        return json.dumps(value, ensure_ascii=False)  # JSON's escapes are TOML's
+    if isinstance(value, list):
+        return "[" + ", ".join(toml_value(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{toml_key(k)} = {toml_value(v)}" for k, v in value.items()) + "}"
+    raise TypeError(value)
+
+
+def to_toml(data: dict) -> str:
+    lines = [f"{toml_key(k)} = {toml_value(v)}" for k, v in data.items() if not isinstance(v, dict)]
+    for section, table in data.items():
+        if isinstance(table, dict):
+            lines.append(f"[{toml_key(section)}]")
+            lines += [f"{toml_key(k)} = {toml_value(v)}" for k, v in table.items()]
+    return "\n".join(lines) + "\n"
+
+
+# ------------------------------------------------------------------------------------------
+# Perturbations
+# ------------------------------------------------------------------------------------------
+text = st.text(st.characters(blacklist_categories=("Cs",)), max_size=8)
+odd_numbers = st.sampled_from([1e300, -1e300, 1e-300, 5e-324, 0.0, -0.0, 1e200, 1e-200, math.inf, -math.inf,
+                               math.nan, 2**53 + 1, 2**63 - 1, -(2**63)])
+numbers = st.one_of(st.floats(), st.integers(-(2**63), 2**63 - 1), odd_numbers)
+values = st.one_of(numbers, text, st.booleans(), st.lists(numbers, max_size=4),
+                   st.lists(st.lists(numbers, min_size=3, max_size=3), min_size=3, max_size=3),
+                   st.dictionaries(text, numbers, max_size=2))
+
+
+def paths(data):
+    out = [(k,) for k, v in data.items() if not isinstance(v, dict)]
+    out += [(s, k) for s, t in data.items() if isinstance(t, dict) for k in t]
+    return out
+
+
+@st.composite
+def scene_files(draw):
+    data = json.loads(json.dumps(BASES[draw(st.sampled_from(sorted(BASES)))]))
+    for _ in range(draw(st.integers(0, 4))):
+        where = draw(st.sampled_from(paths(data)))
+        table = data if len(where) == 1 else data[where[0]]
+        kind = draw(st.sampled_from(["scale", "scale", "scale", "set", "drop", "extra", "effects", "name", "deep"]))
+        if kind == "scale":  # often still valid: keeps the property's "accepted" branch busy
+            factor = 10.0 ** draw(st.integers(-12, 12)) * draw(st.sampled_from([1, 1, -1]))
+            old = table[where[-1]]
+            table[where[-1]] = _scaled(old, factor)
+        elif kind == "set":
+            table[where[-1]] = draw(values)
+        elif kind == "drop":
+            del table[where[-1]]
+        elif kind == "extra":
+            table[draw(text)] = draw(values)
+        elif kind == "effects":
+            data["effects"] = draw(st.lists(st.sampled_from(list(EFFECTS) + ["bogus", "Gravity"]), max_size=8))
+        elif kind == "name":
+            data["name"] = draw(st.one_of(text, st.from_regex(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,70}", fullmatch=True)))
+        else:
+            table[where[-1]] = Deep(draw(st.sampled_from([5, 50, 3000])))
+    raw = to_toml(data).encode()
+    edit = draw(st.sampled_from(["none", "none", "none", "bom", "cut", "junk"]))
+    if edit == "bom":
+        raw = b"\xef\xbb\xbf" + raw
+    elif edit == "cut":
+        raw = raw[: draw(st.integers(0, len(raw)))]
+    elif edit == "junk":
+        raw += draw(st.binary(min_size=1, max_size=16))
+    return raw
+
+
+def _scaled(value, factor):
+    if isinstance(value, (bool, Deep)) or not isinstance(value, (int, float, list)):
+        return value
+    if isinstance(value, list):
+        return [_scaled(v, factor) for v in value]
+    scaled = value * factor
+    return int(scaled) if isinstance(value, int) and abs(scaled) < 2**62 and float(scaled).is_integer() else scaled
+
+
+# ------------------------------------------------------------------------------------------
+# What an accepted scene must hold
+# ------------------------------------------------------------------------------------------
+MISSING = object()
+
+
+def expected(value, spec):
+    """The stored form of a file's ``value`` for a key of ``spec`` (the documented normalisations)."""
+    if spec.kind == "effects":
+        return [e for e in EFFECTS if e in value]
+    if spec.kind == "float":
+        return float(value)
+    if spec.kind == "int":
+        return int(value)
+    if spec.kind == "vec3" and spec.rule == "nonzero":
+        n = math.sqrt(sum(float(x) * float(x) for x in value))
+        return [float(x) / n for x in value]
+    if spec.kind == "vec3":
+        return [float(x) for x in value]
+    if spec.kind == "mat3":
+        return [[float(x) for x in row] for row in value]
+    return value
+
+
+def assert_stored_as_written(scene, parsed):
+    stored, full = scene.to_dict(), schema()
+    for top, value in parsed.items():
+        entries = value.items() if isinstance(full[top], dict) else [(None, value)]
+        for key, written in entries:
+            spec = full[top][key] if key is not None else full[top]
+            got = stored.get(top, {}).get(key, MISSING) if key is not None else stored.get(top, MISSING)
+            want = expected(written, spec)
+            if got is MISSING:  # left out of the stored scene at its default (`Key.hashed_at_default`)
+                assert not spec.hashed_at_default and want == spec.default, (top, key, written)
+            else:
+                assert got == want and type(got) is type(want), (top, key, written, got)
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory):
+    return tmp_path_factory.mktemp("generated")
+
+
+@settings(max_examples=300, derandomize=True, deadline=None,
+          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@given(raw=scene_files())
+def test_generated_scene_files_are_refused_or_stored_as_written(workdir, raw):
+    path = workdir / "generated.toml"
+    path.write_bytes(raw)
+    t0 = time.perf_counter()
+    try:
+        scene = load_scene(path)
+    except SceneError as exc:
+        scene = None
+        assert str(path) in str(exc)
+    spent = time.perf_counter() - t0
+    SLOWEST[0] = max(SLOWEST[0], spent)
+    assert spent < HANG_GUARD_S, f"load_scene took {spent:.1f} s"
+    if scene is not None:
+        parsed = tomllib.loads(raw.removeprefix(b"\xef\xbb\xbf").decode())
+        assert_stored_as_written(scene, parsed)
+
+
+def test_the_generator_produces_both_accepted_and_refused_files(workdir):
+    """The property above is only as good as its examples: both branches must be exercised."""
+    accepted = refused = 0
+
+    @settings(max_examples=150, derandomize=True, deadline=None,
+              suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+    @given(raw=scene_files())
+    def count(raw):
+        nonlocal accepted, refused
+        path = workdir / "counted.toml"
+        path.write_bytes(raw)
+        try:
+            load_scene(path)
+            accepted += 1
+        except SceneError:
+            refused += 1
+
+    count()
+    print(f"accepted {accepted}, refused {refused}; slowest call so far {SLOWEST[0] * 1e3:.1f} ms")
+    assert accepted >= 15 and refused >= 50, (accepted, refused)
