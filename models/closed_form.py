@@ -13,7 +13,7 @@ Notation (nodes a = 1 … N+1, q_1 ≡ 0, v_a = q̇_a, v_1 = 0, ṡ = ṡ_p, l =
     S(v)_b = (μl/6)(v_{b−1} + 4 v_b + v_{b+1}),  S(v)_{N+1} = (μl/6)(v_N + 2 v_{N+1})
     (`string.mass_model = "lumped"`, fixed length only: S(v)_b = μl v_b, S(v)_{N+1} = (μl/2) v_{N+1};
     the coefficients come from `models.model.STRING_MASS`)
-    u = Rᵀ v_{N+1},  c = Ω × ρ_c,  W = R ρ_c^  (so R(Ω × ρ_c) = R c and ρ_c^ P ρ_c^ = −WᵀW)
+    u = Rᵀ v_{N+1},  c = Ω × ρ_c,  W = R ρ_c^  (so ρ_c^ P ρ_c^ = −WᵀW)
 
 Mass matrix, w = (ṡ, v_2 … v_{N+1}, Ω):
 
@@ -34,22 +34,30 @@ R(quat) is not renormalised and `StringPendulum` (whose T_body is ½ m_b|v + R(�
 + ½ Ω·J_c Ω) then differs from the J_o form at O(‖RᵀR − I‖). Keeping them makes the two
 ODE right-hand sides agree for any quaternion, not only unit ones.
 
-Solve (O(N)): the interior nodes 2 … N form a scalar tridiagonal block h·T, h = μl/6,
-T = tri(1, 4, 1), whose pattern does not depend on the state, so it is factored once (at
-construction). The "border" unknowns (s̈, q̈_{N+1}, Ω̇) — at most 7 — are found from their
-Schur complement by block elimination (`_border_solve`), then the interior accelerations by
-back substitution.
+Solve (O(N)): the interior nodes 2 … N form the block h·T ⊗ I3, h = μl/den, T = tri(o, 2d, o)
+(tri(1, 4, 1) for the consistent mass), whose pattern does not depend on the state, so its
+factors are computed once (`ToeplitzTridiagonal`). The "border" unknowns (s̈, q̈_{N+1}, Ω̇) — at
+most 7 — are found from their Schur complement by block elimination (`_border_solve`), then
+the interior accelerations by back substitution.
 
-Why it is written this way (speed): XLA on CPU compiles a small loop (an integrator's step
-loop with this right-hand side inside) into one native function only when the loop contains
-no library call (`models._jax`; XLA's small-while-loop hoisting skips loops with custom
-calls), and a LAPACK solve is one. So nothing here calls LAPACK: the ≤ 7 border unknowns are
-eliminated by hand on their 3×3 blocks (the node-(N+1) block is a multiple of the identity,
-which leaves one 3×3 SPD system for Ω̇, solved by its adjugate), 3×3 algebra is written as
-broadcast products (no tiny dots), and the interior solve is either a product with the
-precomputed inverse of T (`tri_solve="dense"`) or a Thomas sweep with the constant factors
-precomputed (`"thomas"`, two `lax.scan`s). "auto" picks dense up to `DENSE_MAX_INTERIOR`
-interior nodes and Thomas above.
+How it is written, and why (speed). XLA on CPU compiles an integrator's step loop with this
+right-hand side inside into one native function only when the loop holds no library call
+(`models._jax`; XLA's small-while-loop hoisting skips loops with custom calls), and it
+compiles a fused `concatenate` (or `pad`) into a branch per element, which costs more than
+the arithmetic. So, measured in a compiled loop:
+
+* no LAPACK: the ≤ 7 border unknowns are eliminated by hand on their 3×3 blocks (node N+1's
+  block is a multiple of I3, which leaves one 3×3 SPD system for Ω̇, solved by its adjugate);
+* node quantities are flat node-major vectors (3N,) (rows b = 2 … N+1 of three components):
+  a neighbour is a shift by 3 elements, written with `dynamic_update_slice` (an in-place
+  update of a contiguous range) rather than concatenation; outputs are written into one
+  buffer the same way (`_assemble`);
+* the interior solve is not a sequential sweep (a Thomas loop costs ~9 ns per node per
+  sweep): T is a Toeplitz tridiagonal matrix, T = (o/r)[(I + rS)(I + rSᵀ) + r² e₁e₁ᵀ]
+  (S the down-shift, r + 1/r = 2d/o), so T⁻¹ is two constant-coefficient bidiagonal solves
+  (each a first-order linear recurrence, evaluated by recursive doubling: a few shifted
+  vector updates) and a Sherman–Morrison correction;
+* 3×3 algebra is written as broadcast products (no tiny dot ops).
 """
 
 from __future__ import annotations
@@ -61,16 +69,15 @@ import numpy as np
 from models._jax import jax, jnp
 from models.model import StringPendulum, hat, quat_rate
 
-#: Largest interior size for which `tri_solve="auto"` multiplies by the dense inverse of T
-#: (an n×n matrix–vector product, O(n²)) instead of the two O(n) Thomas sweeps (sequential
-#: loops): measured in a compiled loop on one core, dense wins up to about this size.
-DENSE_MAX_INTERIOR = 24
+TRI_SOLVERS = ("auto", "doubling", "dense")
 
-TRI_SOLVERS = ("auto", "dense", "thomas")
+#: Recursive doubling stops once the terms it would still add are below this fraction of the
+#: right-hand side's magnitude (≈ 1/200 of an ulp): the result is then exact to round-off.
+DOUBLING_TAIL = 2.0**-60
 
 
 # ----------------------------------------------------------------------------------------
-# Small vector algebra on (…, 3) arrays, written as broadcast products (no dot ops)
+# 3-vector and 3×3 algebra, written as broadcast products (no dot ops)
 # ----------------------------------------------------------------------------------------
 def _cross(a, b):
     """a × b for 3-vectors."""
@@ -112,51 +119,128 @@ def _solve_spd3(K, g):
                       a02 * g[0] + a12 * g[1] + a22 * g[2]]) / det
 
 
-def _prev(a):
-    """Rows shifted down by one: row b holds a_{b−1} (zeros in the first row)."""
-    return jnp.concatenate([jnp.zeros_like(a[:1]), a[:-1]], axis=0)
+# ----------------------------------------------------------------------------------------
+# Flat node vectors (3N,): rows b = 2 … N+1, three components each
+# ----------------------------------------------------------------------------------------
+def _put(buf, part, start: int):
+    """buf with part written at buf[start : start + len(part)] (XLA updates in place)."""
+    return jax.lax.dynamic_update_slice(buf, part, (start,))
 
 
-def _next(a):
-    """Rows shifted up by one: row b holds a_{b+1} (zeros in the last row)."""
-    return jnp.concatenate([a[1:], jnp.zeros_like(a[:1])], axis=0)
+def _assemble(size: int, *placed):
+    """A vector of `size` from (start, part) pairs (zeros elsewhere)."""
+    out = jnp.zeros(size)
+    for start, part in placed:
+        out = _put(out, part, start)
+    return out
 
 
-def thomas_factors(diag: float, off: float, n: int):
-    """Constant factors of the Thomas algorithm for tri(off, diag, off) of size n (numpy):
-    (1/pivot_i, upper_i), pivot_0 = diag, pivot_i = diag − off·upper_{i−1}, upper_i = off/pivot_i."""
-    inv_pivot, upper = np.zeros(n), np.zeros(n)
-    pivot = diag
-    for i in range(n):
-        if i:
-            pivot = diag - off * upper[i - 1]
-        inv_pivot[i] = 1.0 / pivot
-        upper[i] = off / pivot
-    return inv_pivot, upper
+def _from_prev(f, width: int = 3):
+    """Row b holds f's row b − 1 (zeros in the first row); rows are `width` long."""
+    return _put(jnp.zeros_like(f), f[:-width], width)
 
 
-def thomas_solve(off: float, inv_pivot, upper, B):
-    """tri(off, diag, off)⁻¹ B for B of shape (n, k), with the factors of `thomas_factors`:
-    forward y_i = (B_i − off·y_{i−1})/pivot_i, backward X_i = y_i − upper_i X_{i+1}."""
+def _from_next(f, width: int = 3):
+    """Row b holds f's row b + 1 (zeros in the last row)."""
+    return _put(jnp.zeros_like(f), f[width:], 0)
 
-    def forward(y_prev, row):
-        b, ip = row
-        y = (b - off * y_prev) * ip
-        return y, y
 
-    def backward(x_next, row):
-        y, u = row
-        x = y - u * x_next
-        return x, x
+def _rows_dot(weights, f, k: int = 3):
+    """Σ_i weights_i f_i over the rows of f flat (n·k,): a k-vector (weights a numpy (n,))."""
+    n = len(weights)
+    return jnp.sum(jnp.asarray(weights)[:, None] * f.reshape(n, k), axis=0)
 
-    zero = jnp.zeros(B.shape[1:], dtype=B.dtype)
-    _, Y = jax.lax.scan(forward, zero, (B, jnp.asarray(inv_pivot)))
-    _, X = jax.lax.scan(backward, zero, (Y, jnp.asarray(upper)), reverse=True)
-    return X
+
+def _per_node(values, nodes: int):
+    """A per-node constant (nodes,) spread over the three components of each row (numpy)."""
+    return np.repeat(np.asarray(values, dtype=float), 3)[: 3 * nodes]
+
+
+# ----------------------------------------------------------------------------------------
+# The interior solve: T = tri(off, diag, off), Toeplitz
+# ----------------------------------------------------------------------------------------
+class ToeplitzTridiagonal:
+    """X = c T⁻¹ B for the constant n×n matrix T = tri(off, diag, off), B flat (n·k,) in rows of k.
+
+    With S the down-shift and r + 1/r = diag/off (|r| < 1, T diagonally dominant):
+
+        T = (off/r) [A + r² e₁e₁ᵀ],   A = (I + rS)(I + rSᵀ),
+
+    so by Sherman–Morrison T⁻¹B = (r/off) A⁻¹(B − γ e₁ (gᵀB)), g = A⁻¹e₁, γ = r²/(1 + r² g₁)
+    (precomputed): the correction touches the first row of B only, before the solve. A⁻¹ is two
+    bidiagonal solves, each the recurrence u_i = b_i − r u_{i∓1}, evaluated by recursive
+    doubling: after the updates u_i ← u_i + (−r)^{2^j} u_{i∓2^j}, j = 0 … J−1, u_i holds every
+    term (−r)^m b_{i∓m} with m < 2^J; J stops when 2^J ≥ n (exact) or when the terms left,
+    ≤ |r|^{2^J}/(1 − |r|)·max|b|, are below `DOUBLING_TAIL`·max|b| (5 updates each for
+    tri(1, 4, 1)). Every update writes a contiguous range in place, and the last one is the
+    result. off = 0 is T = diag·I.
+    """
+
+    def __init__(self, diag: float, off: float, n: int):
+        self.n, self.diag, self.off = n, float(diag), float(off)
+        if off == 0.0:
+            return
+        ratio = diag / off
+        if not abs(ratio) > 2.0:
+            raise ValueError(f"tri(off, diag, off) needs |diag| > 2|off| (diagonal dominance), got diag = {diag}, off = {off}")
+        self.r = float(np.sign(ratio) * (abs(ratio) / 2.0 - np.sqrt((ratio / 2.0) ** 2 - 1.0)))
+        coefficient, shift, self.levels = -self.r, 1, []
+        while shift < n:
+            self.levels.append((shift, coefficient))
+            shift, coefficient = 2 * shift, coefficient * coefficient
+            if abs(coefficient) / (1.0 - abs(self.r)) <= DOUBLING_TAIL:
+                break
+        e1 = np.zeros(n)
+        e1[0] = 1.0
+        self.g = self._sweeps_numpy(e1)
+        self.gamma = self.r**2 / (1.0 + self.r**2 * self.g[0])
+
+    def _sweeps_numpy(self, b):
+        """(I + rSᵀ)⁻¹(I + rS)⁻¹ b, sequentially (numpy; construction time only)."""
+        u = np.array(b, dtype=float)
+        for i in range(1, len(u)):
+            u[i] -= self.r * u[i - 1]
+        for i in range(len(u) - 2, -1, -1):
+            u[i] -= self.r * u[i + 1]
+        return u
+
+    def _recurrence(self, u, k: int, forward: bool):
+        """u_i ← solution of u_i + r u_{i−1} = b_i (forward) or u_i + r u_{i+1} = b_i, rows of k."""
+        for shift, coefficient in self.levels:
+            s = k * shift
+            if forward:
+                u = _put(u, u[s:] + coefficient * u[:-s], s)
+            else:
+                u = _put(u, u[:-s] + coefficient * u[s:], 0)
+        return u
+
+    def solve(self, B, k: int = 3, scale: float | jnp.ndarray = 1.0):
+        """scale · T⁻¹ B."""
+        if self.off == 0.0:
+            return B * (scale / self.diag)
+        U = B * (scale * self.r / self.off)
+        U = _put(U, U[:k] - self.gamma * _rows_dot(self.g, U, k), 0)
+        return self._recurrence(self._recurrence(U, k, True), k, False)
+
+    def solve_numpy(self, b) -> np.ndarray:
+        """T⁻¹ b for one column b (n,), sequentially (numpy; construction time only)."""
+        if self.off == 0.0:
+            return np.asarray(b, dtype=float) / self.diag
+        V = self._sweeps_numpy(b)
+        return (self.r / self.off) * (V - self.gamma * self.g * V[0])
+
+    def dense_inverse(self) -> np.ndarray:
+        T = self.diag * np.eye(self.n) + self.off * (np.eye(self.n, k=1) + np.eye(self.n, k=-1))
+        return np.linalg.inv(T)
 
 
 class ClosedFormEOM:
-    """Hand-derived M(x, R), p = M w and ẇ of a `StringPendulum` (same layout, same physics)."""
+    """Hand-derived M(x, R), p = M w and ẇ of a `StringPendulum` (same layout, same physics).
+
+    ``tri_solve``: how the interior block is inverted, "doubling" (`ToeplitzTridiagonal`,
+    O(N)) or "dense" (a product with the precomputed T⁻¹, O(N²); a reference); "auto" is
+    "doubling".
+    """
 
     def __init__(self, model: StringPendulum, tri_solve: str = "auto"):
         if tri_solve not in TRI_SOLVERS:
@@ -165,68 +249,53 @@ class ClosedFormEOM:
         self.layout = model.layout
         m = model
         self.N, self.mu, self.m_b, self.L = m.N, m.mu, m.m_b, m.L  # κ_d enters only through M0 (the model's)
+        N = self.N
         self.c31, self.c23 = np.asarray(m.c31), np.asarray(m.c23)
-        #: c31_{b} for the rows b = 2 … N+1 of C (c31_{N+1} D_{N+1} ≡ 0)
-        self._c31_next = np.concatenate([self.c31[1:], [0.0]])
+        # per-row constants of the flat node vectors: c23_{b−1}, c31_b, c31_{b−1} for rows b = 2 … N+1
+        self._c23_rows = _per_node(self.c23, N)
+        self._c31_next_rows = _per_node(np.concatenate([self.c31[1:], [0.0]]), N)
+        self._c31_rows = _per_node(self.c31, N)
         self.rho_c, self.J_o, self.J_c = np.asarray(m.rho_c), np.asarray(m.J_o), np.asarray(m.J_c)
         self.rho_hat = np.array(hat(self.rho_c))
-        n = self.N - 1  # interior free nodes 2..N
+        n = N - 1  # interior free nodes 2..N
         self.n_int = n
-        if tri_solve == "auto":
-            tri_solve = "dense" if n <= DENSE_MAX_INTERIOR else "thomas"
-        self.tri_solve = tri_solve
+        self.tri_solve = "doubling" if tri_solve == "auto" else tri_solve
         # string mass = (μl/den)·tri(o, 2d, o), last diagonal d (models.model.StringMass);
         # consistent: tri(1, 4, 1) and 2 below, lumped: diagonal
         sm = m.string_mass
         self.mass_den, self.mass_d, self.mass_o = sm.den, sm.d, sm.o
         #: diagonal of the string mass over nodes 2 … N+1, in units of μl/den
-        self._mass_diag = np.concatenate([2.0 * sm.d * np.ones(n), [sm.d]])
+        self._mass_diag_rows = _per_node(np.concatenate([2.0 * sm.d * np.ones(n), [sm.d]]), N)
         #: node N+1's diagonal after eliminating the interior, in units of μl/den: d − o z_last
         self._tip_diag = float(sm.d)
         if n > 0:
-            self._inv_pivot, self._upper = thomas_factors(2.0 * sm.d, sm.o, n)
-            tri = 2.0 * sm.d * np.eye(n) + sm.o * (np.eye(n, k=1) + np.eye(n, k=-1))
-            self._tri_inv = np.linalg.inv(tri) if tri_solve == "dense" else None
+            self._interior = ToeplitzTridiagonal(2.0 * sm.d, sm.o, n)
+            self._tri_inv = self._interior.dense_inverse() if self.tri_solve == "dense" else None
             #: z = o T⁻¹ e_last (constant): the coupling of the interior to node N+1
-            e_last = np.zeros((n, 1))
-            e_last[-1] = 1.0
-            self._z = sm.o * np.asarray(self._thomas_numpy(e_last))[:, 0]
+            self._z = sm.o * self._interior.solve_numpy(np.eye(n)[-1])
             self._tip_diag = float(sm.d - sm.o * self._z[-1])
-
-    def _thomas_numpy(self, B):
-        off, ip, up = self.mass_o, self._inv_pivot, self._upper
-        Y = np.zeros_like(B)
-        for i in range(len(B)):
-            Y[i] = (B[i] - (off * Y[i - 1] if i else 0.0)) * ip[i]
-        for i in range(len(B) - 2, -1, -1):
-            Y[i] -= up[i] * Y[i + 1]
-        return Y
 
     # ------------------------------------------------------------------------------------
     # Pieces
     # ------------------------------------------------------------------------------------
-    def _nodes(self, x):
-        """q_2 … q_{N+1} as (N, 3)."""
-        return x[self.layout.nodes].reshape(self.N, 3)
-
-    def _velocities(self, w):
-        """v_2 … v_{N+1} as (N, 3)."""
-        return w[self.layout.nodes].reshape(self.N, 3)
-
     def _coupling(self, D):
-        """C_b = c31_b D_b + c23_{b−1} D_{b−1}, rows b = 2 … N+1, from D_a, rows a = 1 … N."""
-        return self.c23[:, None] * D + self._c31_next[:, None] * _next(D)
+        """C_b = c31_b D_b + c23_{b−1} D_{b−1}, rows b = 2 … N+1, from D_a, rows a = 1 … N (flat)."""
+        return self._c23_rows * D + self._c31_next_rows * _from_next(D)
 
-    def _string_apply(self, vn, l):
-        """S(v)_b = (μl/den)(o v_{b−1} + diag_b v_b + o v_{b+1}), rows b = 2 … N+1 (v_1 = 0)."""
+    def _elements(self, qf):
+        """D_a = q_a − q_{a+1}, rows a = 1 … N (flat), from q_2 … q_{N+1} (flat; q_1 = 0)."""
+        return _from_prev(qf) - qf
+
+    def _string_apply(self, vf, l):
+        """S(v)_b = (μl/den)(o v_{b−1} + diag_b v_b + o v_{b+1}), rows b = 2 … N+1 (flat; v_1 = 0)."""
         o = self.mass_o
-        inner = self._mass_diag[:, None] * vn
+        inner = self._mass_diag_rows * vf
         if o:
-            inner = inner + o * (_prev(vn) + _next(vn))
+            inner = inner + o * (_from_prev(vf) + _from_next(vf))
         return (self.mu * l / self.mass_den) * inner
 
     def _body_frame(self, R):
-        """W = R ρ_c^ (M_{N+1,Ω} = −m_b W; R(Ω × ρ_c) = −W Ω)."""
+        """W = R ρ_c^ (M_{N+1,Ω} = −m_b W)."""
         return _matmul(R, jnp.asarray(self.rho_hat))
 
     def J_body(self, R):
@@ -238,18 +307,36 @@ class ClosedFormEOM:
         return self.model.reel_mass(s)  # the one definition (StringPendulum.reel_mass)
 
     def _join(self, s, nodes, omega):
-        """A vector over w's layout from its parts (s: scalar or None, nodes (N, 3), omega or None)."""
-        parts = ([jnp.reshape(s, (1,))] if self.layout.has_reel else []) + [nodes.reshape(-1)]
-        if self.layout.has_attitude:
-            parts.append(omega)
-        return jnp.concatenate(parts)
+        """A vector over w's layout from its parts (s scalar or None, nodes flat (3N,), Ω or None)."""
+        lay = self.layout
+        placed = [(lay.nodes.start, nodes)]
+        if lay.has_reel:
+            placed.append((0, jnp.reshape(s, (1,))))
+        if lay.has_attitude:
+            placed.append((lay.omega.start, omega))
+        return _assemble(lay.nw, *placed)
+
+    def _join_solution(self, a_s, A, a_L, alpha, offset: int = 0, buf=None):
+        """The solution (a_s, interior accelerations A flat (3n,) or None, a_L, α) written over
+        w's layout, at `offset` into buf (a new zero vector over w when buf is None)."""
+        lay = self.layout
+        if buf is None:
+            buf = jnp.zeros(lay.nw)
+        start = offset + lay.nodes.start
+        if A is not None:
+            buf = _put(buf, A, start)
+        buf = _put(buf, a_L, start + 3 * self.n_int)
+        if lay.has_reel:
+            buf = _put(buf, jnp.reshape(a_s, (1,)), offset)
+        if lay.has_attitude:
+            buf = _put(buf, alpha, offset + lay.omega.start)
+        return buf
 
     def _parts(self, vec):
-        """(s part or None, node part (N, 3), Ω part or None) of a vector over w's layout."""
+        """(s part or None, node part flat (3N,), Ω part or None) of a vector over w's layout."""
         lay = self.layout
-        s = vec[0] if lay.has_reel else None
-        om = vec[lay.omega] if lay.has_attitude else None
-        return s, vec[lay.nodes].reshape(self.N, 3), om
+        return (vec[0] if lay.has_reel else None, vec[lay.nodes],
+                vec[lay.omega] if lay.has_attitude else None)
 
     # ------------------------------------------------------------------------------------
     # Legendre transform
@@ -258,30 +345,30 @@ class ClosedFormEOM:
         """p = M(x, R) w, structured (O(N)):
         p_s = M0 ṡ + Σ_b C_b·v_b,  p_b = S(v)_b + ṡ C_b (+ m_b (v_{N+1} + R c) on node N+1),
         p_Ω = M_ΩΩ Ω + m_b ρ_c × u."""
-        lay = self.layout
-        qn, vn, l = self._nodes(x), self._velocities(w), self.model.element_length(x)
-        pq = self._string_apply(vn, l)
-        tip = self.m_b * vn[-1]
+        lay, N = self.layout, self.N
+        qf, vf, l = x[lay.nodes], w[lay.nodes], self.model.element_length(x)
+        pq = self._string_apply(vf, l)
+        v_tip = vf[3 * N - 3:]
+        tip = self.m_b * v_tip
         p_s = p_om = None
         if lay.has_attitude:
-            om = w[lay.omega]
-            Rc = _matvec(R, _cross(om, jnp.asarray(self.rho_c)))
+            om, rho = w[lay.omega], jnp.asarray(self.rho_c)
+            Rc = _matvec(R, _cross(om, rho))
             tip = tip + self.m_b * Rc
-            rho = jnp.asarray(self.rho_c)
             p_om = (_matvec(jnp.asarray(self.J_c), om) + self.m_b * _cross(rho, _rmatvec(R, Rc))
-                    + self.m_b * _cross(rho, _rmatvec(R, vn[-1])))
+                    + self.m_b * _cross(rho, _rmatvec(R, v_tip)))
         if lay.has_reel:
             sd = w[0]
-            C = self._coupling(_prev(qn) - qn)
-            p_s = self.M0(x[0]) * sd + jnp.sum(C * vn)
+            C = self._coupling(self._elements(qf))
+            p_s = self.M0(x[0]) * sd + jnp.sum(C * vf)
             pq = pq + sd * C
-        pq = pq.at[-1].add(tip)
+        pq = _put(pq, pq[3 * N - 3:] + tip, 3 * N - 3)
         return self._join(p_s, pq, p_om)
 
     def mass_matrix(self, x, R):
         """M(x, R) assembled block-wise (dense nw × nw; a reference for the structured solve)."""
         lay, N = self.layout, self.N
-        q, l = self._nodes(x), self.model.element_length(x)
+        l = self.model.element_length(x)
         d, o = self.mass_d, self.mass_o
         tri = (2.0 * d * np.eye(N) + o * (np.eye(N, k=1) + np.eye(N, k=-1)))
         tri[-1, -1] = d
@@ -292,7 +379,7 @@ class ClosedFormEOM:
         M = jnp.zeros((lay.nw, lay.nw))
         M = M.at[lay.nodes, lay.nodes].set(Mqq)
         if lay.has_reel:
-            C = self._coupling(_prev(q) - q).ravel()
+            C = self._coupling(self._elements(x[lay.nodes]))
             M = M.at[0, 0].set(self.M0(x[0]))
             M = M.at[0, lay.nodes].set(C).at[lay.nodes, 0].set(C)
         if lay.has_attitude:
@@ -306,40 +393,38 @@ class ClosedFormEOM:
     # Force side
     # ------------------------------------------------------------------------------------
     def _force_parts(self, t, x, R, w):
-        """(F_s or None, F_q (N, 3), F_Ω or None) of F = [∂L/∂x + Q ; Π × Ω + M_R] − Ṁ w."""
-        m, lay = self.model, self.layout
-        qn, vn, l = self._nodes(x), self._velocities(w), m.element_length(x)
+        """(F_s or None, F_q flat (3N,), F_Ω or None) of F = [∂L/∂x + Q ; Π × Ω + M_R] − Ṁ w."""
+        m, lay, N = self.model, self.layout, self.N
         dV_s, dV_q, dV_om = self._parts(m.potential_gradient(x, R))
         Fq = -dV_q
         Fs = F_om = None
+        if m.string_forces:
+            Q_s, Q_q, _ = self._parts(m.string_force(t, x, w))
+            Fq = Fq + Q_q
         if lay.has_reel:
-            mu, N, sd = self.mu, self.N, w[0]
-            va = _prev(vn)
-            quad = jnp.sum(va * va + va * vn + vn * vn)
-            Cdot = self._coupling(va - vn)
-            Fs = (mu / 3.0 - 2.0 * mu / 3.0) * sd * sd - mu / (6.0 * N) * quad - jnp.sum(Cdot * vn)
+            mu, sd = self.mu, w[0]
+            vf, l = w[lay.nodes], m.element_length(x)
+            va = _from_prev(vf)  # v_{b−1}, rows b = 2 … N+1 (= v_a of element a = b − 1)
+            quad = jnp.sum(va * va + va * vf + vf * vf)
+            Cdot = self._coupling(va - vf)
+            Fs = (mu / 3.0 - 2.0 * mu / 3.0) * sd * sd - mu / (6.0 * N) * quad - jnp.sum(Cdot * vf)
             Fs = Fs - dV_s + m.reel_force(t, x, w)
-            G = self.c31[:, None] * va + self.c23[:, None] * vn  # a = 1..N
-            Fq = Fq + sd * (_next(G) - G - Cdot) + (sd / (N * l)) * self._string_apply(vn, l)
+            if m.string_forces:
+                Fs = Fs + Q_s
+            G = self._c31_rows * va + self._c23_rows * vf  # G_a, rows a = 1 … N
+            Fq = Fq + sd * (_from_next(G) - G - Cdot) + (sd / (N * l)) * self._string_apply(vf, l)
         if lay.has_attitude:
-            mb, om = self.m_b, w[lay.omega]
-            rho = jnp.asarray(self.rho_c)
+            mb, om, rho = self.m_b, w[lay.omega], jnp.asarray(self.rho_c)
             c = _cross(om, rho)
-            Rc = _matvec(R, c)
-            Pc = _rmatvec(R, Rc)
-            u = _rmatvec(R, vn[-1])
+            Pc = _rmatvec(R, _matvec(R, c))
+            u = _rmatvec(R, w[lay.nodes][3 * N - 3:])
             R_om_c = _matvec(R, _cross(om, c))
-            Fq = Fq.at[-1].add(-mb * R_om_c)
+            Fq = _put(Fq, Fq[3 * N - 3:] - mb * R_om_c, 3 * N - 3)
             Pi = _matvec(jnp.asarray(self.J_c), om) + mb * _cross(rho, Pc) + mb * _cross(rho, u)
             Pdot_c = _rmatvec(R, R_om_c) - _cross(om, Pc)
             F_om = (_cross(Pi, om) + mb * _cross(c, u) + mb * _cross(rho, _cross(om, u)) - dV_om
                     # terms that vanish for orthogonal R (P = RᵀR = I): M_R and Ṁ w of ½ m_b cᵀ P c
                     + mb * (_cross(c, Pc) - _cross(rho, Pdot_c)))
-        if m.string_forces:
-            Q_s, Q_q, _ = self._parts(m.string_force(t, x, w))
-            Fq = Fq + Q_q
-            if lay.has_reel:
-                Fs = Fs + Q_s
         return Fs, Fq, F_om
 
     def force(self, t, x, R, w):
@@ -349,11 +434,11 @@ class ClosedFormEOM:
     # ------------------------------------------------------------------------------------
     # Structured solve of M a = F
     # ------------------------------------------------------------------------------------
-    def _tri_inv_apply(self, B):
-        """T⁻¹ B for B of shape (n, k), T = tri(o, 2d, o)."""
+    def _tri_inv_apply(self, B, scale):
+        """scale · T⁻¹ B for B flat (3n,), T = tri(o, 2d, o)."""
         if self.tri_solve == "dense":
-            return jnp.sum(jnp.asarray(self._tri_inv)[:, :, None] * B[None, :, :], axis=1)
-        return thomas_solve(self.mass_o, self._inv_pivot, self._upper, B)
+            return scale * (jnp.asarray(self._tri_inv) @ B.reshape(self.n_int, 3)).reshape(-1)
+        return self._interior.solve(B, 3, scale)
 
     def _border_solve(self, R, dL, f_L, s_block, f_om):
         """(a_s, a_L, α) of the border system left after eliminating the interior,
@@ -393,47 +478,53 @@ class ClosedFormEOM:
         return a_s, inv_dL * rhs_L, alpha
 
     def _solve_parts(self, x, R, Fs, Fq, F_om):
-        """(a_s, a_q (N, 3), α) of M a = F: interior by T⁻¹, border by `_border_solve`.
+        """(a_s, A flat (3n,) or None, a_L, α) of M a = F.
 
-        Interior rows: h T A + o h e_last a_Lᵀ + C_int a_s = r_int, h = μl/den, so
-        A = Zr − z a_Lᵀ − ZC a_s with Zr = T⁻¹ r_int / h, ZC = T⁻¹ C_int / h, z = o T⁻¹ e_last."""
-        lay, n = self.layout, self.n_int
+        The interior rows h T A + o h e_last a_Lᵀ + C_int a_s = r_int (h = μl/den) give
+        A = T⁻¹(r_int − C_int a_s − o h e_last a_Lᵀ)/h. Substituted into the rows of s and of
+        node N+1 they leave the border system of `_border_solve`, whose coefficients need only
+        z = o T⁻¹ e_last (a constant) and, with a reel, ZC = T⁻¹ C_int / h (T⁻¹ is symmetric):
+
+            dL = h (d − o z_last) + m_b,  f_L = r_L − Σ_i z_i r_i,  c_L = C_L − Σ_i z_i C_i,
+            σ0 = M0 − Σ_i C_i·ZC_i,  f_s = F_s − Σ_i ZC_i·r_i   (sums over interior nodes).
+
+        So the interior is solved once, after the border, for its final right-hand side (and
+        once before it for ZC with a reel)."""
+        lay, n, N = self.layout, self.n_int, self.N
         h = self.mu * self.model.element_length(x) / self.mass_den
         o = self.mass_o
         has_s = lay.has_reel
-        C = self._coupling(_prev(self._nodes(x)) - self._nodes(x)) if has_s else None
-        r_L, s_block = Fq[-1], None
+        C = self._coupling(self._elements(x[lay.nodes])) if has_s else None
+        tip = 3 * N - 3
+        r_int, r_L = Fq[:tip], Fq[tip:]
         dL = h * self._tip_diag + self.m_b
         if n > 0:
-            cols = jnp.concatenate([Fq[:-1], C[:-1]], axis=1) if has_s else Fq[:-1]
-            Z = self._tri_inv_apply(cols) * (1.0 / h)
-            Zr = Z[:, :3]
-            f_L = r_L - (o * h) * Zr[-1]
+            f_L = r_L - _rows_dot(self._z, r_int)
             if has_s:
-                Ci, ZC = C[:-1], Z[:, 3:]
-                cL = C[-1] - (o * h) * ZC[-1]
-                s_block = (self.M0(x[0]) - jnp.sum(Ci * ZC), cL, Fs - jnp.sum(Ci * Zr))
+                C_int = C[:tip]
+                ZC = self._tri_inv_apply(C_int, 1.0 / h)
+                s_block = (self.M0(x[0]) - jnp.sum(C_int * ZC), C[tip:] - _rows_dot(self._z, C_int),
+                           Fs - jnp.sum(ZC * r_int))
         else:
             f_L = r_L
             if has_s:
-                s_block = (self.M0(x[0]), C[-1], Fs)
-        a_s, a_L, alpha = self._border_solve(R, dL, f_L, s_block, F_om)
+                s_block = (self.M0(x[0]), C[tip:], Fs)
+        a_s, a_L, alpha = self._border_solve(R, dL, f_L, s_block if has_s else None, F_om)
+        A = None
         if n > 0:
-            A = Zr - jnp.asarray(self._z)[:, None] * a_L[None, :]
-            if has_s:
-                A = A - ZC * a_s
-            a_q = jnp.concatenate([A, a_L[None, :]], axis=0)
-        else:
-            a_q = a_L[None, :]
-        return a_s, a_q, alpha
+            b = r_int - C_int * a_s if has_s else r_int
+            if o:
+                b = _put(b, b[tip - 3:] - (o * h) * a_L, tip - 3)
+            A = self._tri_inv_apply(b, 1.0 / h)
+        return a_s, A, a_L, alpha
 
     def solve(self, x, R, F):
         """a = M(x, R)⁻¹ F by a Schur complement on (s̈, q̈_{N+1}, Ω̇), O(N)."""
-        return self._join(*self._solve_parts(x, R, *self._parts(F)))
+        return self._join_solution(*self._solve_parts(x, R, *self._parts(F)))
 
     def accelerations(self, t, x, R, w):
         """ẇ from M ẇ = [∂L/∂x + Q ; Π × Ω + M_R] − Ṁ w, closed form, O(N) structured solve."""
-        return self._join(*self._solve_parts(x, R, *self._force_parts(t, x, R, w)))
+        return self._join_solution(*self._solve_parts(x, R, *self._force_parts(t, x, R, w)))
 
     def accelerations_dense(self, t, x, R, w):
         """Same, with a dense solve of the closed-form M (reference for the structured solve)."""
@@ -447,15 +538,16 @@ class ClosedFormEOM:
     # Quaternion ODE state (same layout and semantics as StringPendulum.ode_rhs)
     # ------------------------------------------------------------------------------------
     def ode_rhs(self, t, y):
+        """ẏ = (ẋ = w_x, q̇uat = ½ quat ⊗ (0, Ω), ẇ, Ẇ = Q·w), written into one buffer."""
         m, lay = self.model, self.layout
         x, R, w, _ = m.split_state(y)
-        parts = [w[: lay.nx]]
+        placed = [(lay.y_x.start, w[: lay.nx])]
         if lay.has_attitude:
-            parts.append(quat_rate(y[lay.y_quat], w[lay.omega]))
-        parts.append(self.accelerations(t, x, R, w))
+            placed.append((lay.y_quat.start, quat_rate(y[lay.y_quat], w[lay.omega])))
         if lay.has_work:
-            parts.append(jnp.atleast_1d(m.power(t, x, w)))
-        return jnp.concatenate(parts)
+            placed.append((lay.y_work.start, jnp.reshape(m.power(t, x, w), (1,))))
+        buf = _assemble(lay.ny, *placed)
+        return self._join_solution(*self._solve_parts(x, R, *self._force_parts(t, x, R, w)), lay.y_w.start, buf)
 
     @functools.cached_property
     def ode_rhs_jit(self):

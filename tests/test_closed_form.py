@@ -113,7 +113,7 @@ def test_closed_form_matches_autodiff(effects, rng):
 def test_structured_solve_sizes_and_variants(elements, rng):
     """N = 1 (no interior nodes) and 5 (N = 2 is the sweep above); both interior solvers."""
     model = build_model(scene_with_effects(FULL, elements=elements))
-    variants = [ClosedFormEOM(model, tri_solve=s) for s in ("dense", "thomas")]
+    variants = [ClosedFormEOM(model, tri_solve=s) for s in ("dense", "doubling")]
     _check(model, variants, rng, dense=True)
 
 
