@@ -35,10 +35,11 @@ R(quat) is not renormalised and `StringPendulum` (whose T_body is ½ m_b|v + R(�
 ODE right-hand sides agree for any quaternion, not only unit ones.
 
 Solve (O(N)): the interior nodes 2 … N form the block h·T ⊗ I3, h = μl/den, T = tri(o, 2d, o)
-(tri(1, 4, 1) for the consistent mass), whose pattern does not depend on the state, so its
-factors are computed once (`ToeplitzTridiagonal`). The "border" unknowns (s̈, q̈_{N+1}, Ω̇) — at
-most 7 — are found from their Schur complement by block elimination (`_border_solve`), then
-the interior accelerations by back substitution.
+(tri(1, 4, 1) for the consistent mass), which does not depend on the state, so its factors
+are computed once (`ToeplitzTridiagonal`). The "border" unknowns (s̈, q̈_{N+1}, Ω̇) — at most
+7 — are found first, from their Schur complement (whose coefficients need only the constant
+z = o T⁻¹ e_last and, with a reel, T⁻¹ C), by block elimination (`_border_solve`); then the
+interior accelerations by one solve with T (`_solve_parts`).
 
 How it is written, and why (speed). XLA on CPU compiles an integrator's step loop with this
 right-hand side inside into one native function only when the loop holds no library call
@@ -52,11 +53,14 @@ the arithmetic. So, measured in a compiled loop:
   a neighbour is a shift by 3 elements, written with `dynamic_update_slice` (an in-place
   update of a contiguous range) rather than concatenation; outputs are written into one
   buffer the same way (`_assemble`);
-* the interior solve is not a sequential sweep (a Thomas loop costs ~9 ns per node per
-  sweep): T is a Toeplitz tridiagonal matrix, T = (o/r)[(I + rS)(I + rSᵀ) + r² e₁e₁ᵀ]
-  (S the down-shift, r + 1/r = 2d/o), so T⁻¹ is two constant-coefficient bidiagonal solves
-  (each a first-order linear recurrence, evaluated by recursive doubling: a few shifted
-  vector updates) and a Sherman–Morrison correction;
+* the interior solve is not a sequential sweep (a Thomas loop in `lax.scan` costs 6–9 ns
+  per node per sweep): T is a Toeplitz tridiagonal matrix, T = (o/r)[(I + rS)(I + rSᵀ)
+  + r² e₁e₁ᵀ] (S the down-shift, r + 1/r = 2d/o), so T⁻¹ is a Sherman–Morrison correction
+  of the first row and two constant-coefficient bidiagonal solves, each a first-order linear
+  recurrence evaluated by recursive doubling (5 shifted vector updates, exact to round-off);
+* per-node values broadcast over three components (z_i a_L, …) are avoided in N-long
+  loops (XLA divides the flat index by 3 for each element there): the interior is solved for
+  its final right-hand side, so its last update is the result;
 * 3×3 algebra is written as broadcast products (no tiny dot ops).
 """
 
@@ -151,16 +155,16 @@ def _rows_dot(weights, f, k: int = 3):
     return jnp.sum(jnp.asarray(weights)[:, None] * f.reshape(n, k), axis=0)
 
 
-def _per_node(values, nodes: int):
-    """A per-node constant (nodes,) spread over the three components of each row (numpy)."""
-    return np.repeat(np.asarray(values, dtype=float), 3)[: 3 * nodes]
+def _per_node(values):
+    """A per-node constant (one value per row) spread over the row's three components (numpy)."""
+    return np.repeat(np.asarray(values, dtype=float), 3)
 
 
 # ----------------------------------------------------------------------------------------
 # The interior solve: T = tri(off, diag, off), Toeplitz
 # ----------------------------------------------------------------------------------------
 class ToeplitzTridiagonal:
-    """X = c T⁻¹ B for the constant n×n matrix T = tri(off, diag, off), B flat (n·k,) in rows of k.
+    """scale·T⁻¹B for the constant n×n matrix T = tri(off, diag, off), B flat (n·k,) in rows of k.
 
     With S the down-shift and r + 1/r = diag/off (|r| < 1, T diagonally dominant):
 
@@ -252,9 +256,9 @@ class ClosedFormEOM:
         N = self.N
         self.c31, self.c23 = np.asarray(m.c31), np.asarray(m.c23)
         # per-row constants of the flat node vectors: c23_{b−1}, c31_b, c31_{b−1} for rows b = 2 … N+1
-        self._c23_rows = _per_node(self.c23, N)
-        self._c31_next_rows = _per_node(np.concatenate([self.c31[1:], [0.0]]), N)
-        self._c31_rows = _per_node(self.c31, N)
+        self._c23_rows = _per_node(self.c23)
+        self._c31_next_rows = _per_node(np.concatenate([self.c31[1:], [0.0]]))
+        self._c31_rows = _per_node(self.c31)
         self.rho_c, self.J_o, self.J_c = np.asarray(m.rho_c), np.asarray(m.J_o), np.asarray(m.J_c)
         self.rho_hat = np.array(hat(self.rho_c))
         n = N - 1  # interior free nodes 2..N
@@ -265,7 +269,7 @@ class ClosedFormEOM:
         sm = m.string_mass
         self.mass_den, self.mass_d, self.mass_o = sm.den, sm.d, sm.o
         #: diagonal of the string mass over nodes 2 … N+1, in units of μl/den
-        self._mass_diag_rows = _per_node(np.concatenate([2.0 * sm.d * np.ones(n), [sm.d]]), N)
+        self._mass_diag_rows = _per_node(np.concatenate([2.0 * sm.d * np.ones(n), [sm.d]]))
         #: node N+1's diagonal after eliminating the interior, in units of μl/den: d − o z_last
         self._tip_diag = float(sm.d)
         if n > 0:
@@ -498,6 +502,7 @@ class ClosedFormEOM:
         tip = 3 * N - 3
         r_int, r_L = Fq[:tip], Fq[tip:]
         dL = h * self._tip_diag + self.m_b
+        s_block = None
         if n > 0:
             f_L = r_L - _rows_dot(self._z, r_int)
             if has_s:
@@ -509,7 +514,7 @@ class ClosedFormEOM:
             f_L = r_L
             if has_s:
                 s_block = (self.M0(x[0]), C[tip:], Fs)
-        a_s, a_L, alpha = self._border_solve(R, dL, f_L, s_block if has_s else None, F_om)
+        a_s, a_L, alpha = self._border_solve(R, dL, f_L, s_block, F_om)
         A = None
         if n > 0:
             b = r_int - C_int * a_s if has_s else r_int
