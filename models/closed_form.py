@@ -62,6 +62,11 @@ the arithmetic. So, measured in a compiled loop:
   loops (XLA divides the flat index by 3 for each element there): the interior is solved for
   its final right-hand side, so its last update is the result;
 * 3×3 algebra is written as broadcast products (no tiny dot ops).
+
+Measured (fixed_length, in a compiled loop, one core of the shared machine at load ~7, with
+/work/shared's numba floor of the same equations in the same run): 0.34 µs per evaluation at
+N = 10 and 3.1 µs at N = 160 (floor 0.59 and 4.4 µs); the LAPACK/concatenate version took
+3.9 and 13 µs.
 """
 
 from __future__ import annotations
