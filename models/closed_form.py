@@ -63,10 +63,10 @@ the arithmetic. So, measured in a compiled loop:
   its final right-hand side, so its last update is the result;
 * 3×3 algebra is written as broadcast products (no tiny dot ops).
 
-Measured (fixed_length, in a compiled loop, one core of the shared machine at load ~7, with
-/work/shared's numba floor of the same equations in the same run): 0.34 µs per evaluation at
-N = 10 and 3.1 µs at N = 160 (floor 0.59 and 4.4 µs); the LAPACK/concatenate version took
-3.9 and 13 µs.
+Measured (fixed_length, in a compiled loop, one core of a shared machine at load ~7, against
+a numba implementation of the same equations timed in the same run): 0.34 µs per evaluation
+at N = 10 and 3.1 µs at N = 160 (numba 0.59 and 4.4 µs); the version with LAPACK solves and
+concatenations took 3.9 and 13 µs.
 """
 
 from __future__ import annotations
