@@ -113,7 +113,7 @@ def test_closed_form_matches_autodiff(effects, rng):
 def test_structured_solve_sizes_and_variants(elements, rng):
     """N = 1 (no interior nodes) and 5 (N = 2 is the sweep above); both interior solvers."""
     model = build_model(scene_with_effects(FULL, elements=elements))
-    variants = [ClosedFormEOM(model, tri_solve=s) for s in ("dense", "lapack")]
+    variants = [ClosedFormEOM(model, tri_solve=s) for s in ("dense", "doubling")]
     _check(model, variants, rng, dense=True)
 
 
@@ -128,3 +128,57 @@ def test_bad_tri_solve_option_is_rejected():
     model = build_model(scene_with_effects(["elasticity"], elements=2))
     with pytest.raises(ValueError, match="tri_solve"):
         ClosedFormEOM(model, tri_solve="banded")
+
+
+#: compile options that only cut compile time (as in _reference)
+FAST_COMPILE = {"xla_backend_optimization_level": 0, "xla_cpu_use_fusion_emitters": False}
+
+
+@pytest.mark.parametrize("diag, off", [(4.0, 1.0), (2.0, 0.0), (3.0, -1.0)], ids=["consistent", "lumped", "negative_off"])
+def test_toeplitz_interior_solve_matches_dense_solve(diag, off, rng):
+    """scale·T⁻¹B by Sherman–Morrison and recursive doubling = numpy's dense solve, to round-off,
+    for sizes below and past the 2^J = 32 where doubling stops adding terms (tri(1, 4, 1))."""
+    for n, k in ((1, 3), (7, 6), (33, 3), (200, 3)):
+        solver = closed_form_module.ToeplitzTridiagonal(diag, off, n)
+        T = diag * np.eye(n) + off * (np.eye(n, k=1) + np.eye(n, k=-1))
+        B = rng.standard_normal((n, k))
+        solve = jax.jit(lambda b: solver.solve(b, k, 0.37), compiler_options=FAST_COMPILE)
+        X = np.asarray(solve(jnp.asarray(B.ravel()))).reshape(n, k)
+        expected = 0.37 * np.linalg.solve(T, B)
+        assert np.abs(X - expected).max() <= 1e-15 * np.abs(expected).max(), (n, k)
+        np.testing.assert_allclose(solver.solve_numpy(B[:, 0]), np.linalg.solve(T, B[:, 0]), rtol=0, atol=1e-15)
+    with pytest.raises(ValueError, match="diagonal dominance"):
+        closed_form_module.ToeplitzTridiagonal(2.0, 1.0, 5)
+
+
+@pytest.mark.parametrize("effects", [["elasticity", "gravity", "rigid_body"], FULL], ids="+".join)
+def test_structured_solve_matches_dense_solve_at_many_elements(effects, rng):
+    """At N = 80 (79 interior nodes, past the doubling's cut-off) the O(N) solve = a dense solve of
+    the closed-form M (itself equal to autodiff's, tests above), and so does the Legendre map."""
+    model = build_model(scene_with_effects(effects, elements=80))
+    cf = ClosedFormEOM(model)
+
+    def both(t, y):
+        x, R, w, _ = model.split_state(y)
+        return (cf.accelerations_dense(t, x, R, w), cf.accelerations(t, x, R, w),
+                cf.velocity_from_momentum(x, R, cf.momentum(x, R, w)))
+
+    (t, y), = _random_states(model, rng, n=1)
+    dense, structured, w_back = jax.jit(both, compiler_options=FAST_COMPILE)(t, y)
+    assert _rel_err(dense, structured) < 1e-12
+    assert _rel_err(model.split_state(y)[2], w_back) < 1e-12
+
+
+def test_right_hand_side_in_a_loop_calls_no_library():
+    """The closed form inside a compiled loop holds no custom call (LAPACK): XLA's CPU backend
+    then compiles the whole loop as one function (models._jax, this module's docstring); with
+    the project's XLA option on, the loop is hoisted so ("xla_cpu_small_call")."""
+    import os
+
+    model = build_model(scene_with_effects(FULL, elements=4))
+    f = ClosedFormEOM(model).ode_rhs
+    y0 = jnp.asarray(model.initial_ode_state())
+    hlo = jax.jit(lambda y: jax.lax.fori_loop(0, 3, lambda i, y: y + 1e-9 * f(0.0, y), y)).lower(y0).compile().as_text()
+    assert "custom-call" not in hlo
+    if os.environ.get("REELBENCH_XLA_DEFAULTS", "1") != "0":
+        assert "xla_cpu_small_call" in hlo
