@@ -150,12 +150,14 @@ class Gravity(Effect):
             mid = m.r_p + 0.5 * (q[:-1] + q[1:])  # each element at its midpoint
             return -m.mu * m.g * l * jnp.sum(mid[:, 2])
 
+        # node N+1 ends one element only: weight ½ (a constant, so it is not rebuilt per call)
+        weights_e3 = np.outer(np.r_[np.ones(m.N - 1), 0.5], E3)
+
         def dV_string(x, R):
             q, l = m.nodes(x), m.element_length(x)
-            weights = jnp.ones(m.N).at[-1].set(0.5)  # node N+1 ends one element only
-            dq = -(m.mu * m.g * l) * weights[:, None] * e3[None, :]
+            dq = -(m.mu * m.g * l) * jnp.asarray(weights_e3)
             # l = (L − s_p)/N: ∂V/∂s_p = μ g Σ mid_z / N
-            ds = jnp.sum(m.mu * m.g * (2 * m.r_p[2] + q[:-1, 2] + q[1:, 2])) / (2 * m.N)
+            ds = jnp.sum(m.mu * m.g * (2 * m.r_p[2] + q[:-1, 2] + q[1:, 2])) / (2 * m.N) if m.layout.has_reel else None
             return m.over_w(ds=ds, dq=dq)
 
         def V_body(x, R):
@@ -164,11 +166,13 @@ class Gravity(Effect):
                 tip = tip + R @ m.rho_c
             return -m.m_b * m.g * tip[2]
 
+        tip_only = np.zeros((m.N, 3))
+        tip_only[-1] = -m.m_b * m.g * E3  # a constant
+
         def dV_body(x, R):
-            dq = jnp.zeros((m.N, 3)).at[-1].set(-m.m_b * m.g * e3)
             # the negative gravity moment about the attachment point
             deta = -m.m_b * m.g * jnp.cross(m.rho_c, R.T @ e3) if m.layout.has_attitude else None
-            return m.over_w(dq=dq, deta=deta)
+            return m.over_w(dq=jnp.asarray(tip_only), deta=deta)
 
         terms = {"V_string_gravity": PotentialTerm(V_string, dV_string),
                  "V_body_gravity": PotentialTerm(V_body, dV_body)}
@@ -197,7 +201,7 @@ class Elasticity(Effect):
     summary = "axial strain energy (EA/2l)(stretched length − l)² of every element"
 
     def potentials(self, m):
-        from models._jax import jnp
+        from models._jax import jax, jnp
 
         def V(x, R):
             """Σ_a (EA/2l)(|q_{a+1} − q_a| − l)², or with `slack` Σ_a (EA/2l) max(|q_{a+1} − q_a| − l, 0)²."""
@@ -209,7 +213,7 @@ class Elasticity(Effect):
             delta, stretch, l = m.elements(x)
             taut = m._taut_length(stretch, l)  # = stretch, or max(stretch, l) with `slack`
             grad_e = (m.EA / l * (taut - l) / stretch)[:, None] * delta  # ∇V^e_a, a = 1..N
-            dq = jnp.concatenate([grad_e[:-1] - grad_e[1:], grad_e[-1:]], axis=0)  # nodes 2..N+1
+            dq = jax.lax.dynamic_update_slice(grad_e, grad_e[:-1] - grad_e[1:], (0, 0))  # nodes 2..N+1
             ds = jnp.sum(m.EA / l**2 * (taut**2 - l**2)) / (2 * m.N)
             return m.over_w(ds=ds, dq=dq)
 
