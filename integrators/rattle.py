@@ -1,0 +1,318 @@
+"""RATTLE on unit quaternions: a symplectic method that is not a Lie group method.
+
+Coordinates q = (x, Q): the model's generalised coordinates x (s_p with a reel, then q_2..q_{N+1})
+and the body's attitude as a quaternion Q = (w, x, y, z) ∈ ℝ⁴, held on the sphere
+g(Q) = (|Q|² − 1)/2 = 0 by a Lagrange multiplier. The Lagrangian is the model's, composed with
+R(Q) (`models.model.quat_to_rot`) and the body angular velocity Ω = 2 G(Q) Q̇ (= 2 vec(Q̄ ⊗ Q̇)):
+
+    L(q, q̇) = L_model(x, R(Q), (ẋ, Ω(Q, Q̇))) + 2 J₀ (Q·Q̇)²
+
+No physics is derived again: T and V are the model's (string, reel, rigid body). The last term
+is the usual extension: the body's kinetic energy in the quaternion velocity is the 4 × 4 form
+2 Q̇ᵀ E(Q)ᵀ diag(J₀, J) E(Q) Q̇ (E(Q) Q̇ = Q̄ ⊗ Q̇), whose first row, J₀, is absent from the
+physics because Q·Q̇ = 0 on the constraint's tangent space; it makes ∂²L/∂q̇² regular off that
+space, so the momenta p = ∂L/∂q̇ are canonical coordinates on all of ℝ^{nx+4}. J₀ is the mean
+principal inertia about the attachment point (`extension_inertia`); any J₀ > 0 gives the same
+continuous motion. Since G(Q) Q = 0, p_Q = 2 G(Q)ᵀ Π + 4 J₀ (Q·Q̇) Q, and the hidden
+(velocity-level) constraint Q·Q̇ = 0 is the linear condition Q·p_Q = 0.
+
+**The scheme.** The trapezoidal discrete Lagrangian
+L_d(q₀, q₁) = (h/2) [L(q₀, (q₁ − q₀)/h) + L(q₁, (q₁ − q₀)/h)], symmetric in time, gives with
+the constraint the RATTLE equations (Hairer, Lubich & Wanner, *Geometric Numerical Integration*,
+VII.1.4; Marsden & West 2001, §3.5), with forces f = (h/2) F(t_k + h/2, q_{k+½}, Δq/h) at both
+ends (discrete Lagrange–d'Alembert; the force at the midpoint with the secant velocity, as the
+symmetric LGVI does, so the forced map stays self-adjoint):
+
+    p_k + D₁L_d(q_k, q_{k+1}) + f − (h/2) λ ∇g(q_k) = 0,    g(Q_{k+1}) = 0      (implicit: Newton)
+    p_{k+1} = D₂L_d(q_k, q_{k+1}) + f − (h/2) μ ∇g(q_{k+1}),  Q_{k+1}·p_{Q,k+1} = 0  (explicit)
+
+∇g = (0, Q). The second line is a projection of the Q momentum onto the tangent space. The
+work of step k is F·Δq. Second order (symmetric and consistent); symplectic on the constraint
+manifold {g = 0, Q·p_Q = 0} without forces. The reel needs nothing special: the s_p-dependent
+masses are in L, and the Carnot loss and the control moment are forces on s_p (F over q's
+layout: the model's generalised force, with its Ω part, if any, mapped by 2 G(Q)ᵀ).
+
+**Solving and cost.** The mass matrix depends on the configuration (R in the body coupling,
+s_p with a reel), so the first line is solved by Newton in z = (q_{k+1}, λ), n_z = nx + 5
+unknowns (3N + 5 at fixed length), from the predictor q_k + h Δq_{k−1}/h (the last secant
+velocity). The Jacobian ∂r/∂z is assembled by forward-mode autodiff of the residual (n_z
+tangents through the gradient of the O(N) energies: O(N²)) and LU-factored (O(N³), dense),
+then kept while the iteration contracts fast (chord Newton; re-assembled when |dz| shrinks by
+less than `CHORD_REFRESH`), each further iteration an O(N) residual and an O(N²) LU solve. The
+velocities for the guards and the saved states come from the momenta by the model's O(N)
+closed-form Legendre map. The step's derivative is that of the exact discrete map (implicit
+function theorem, `jax.lax.custom_root`), not of the Newton iterates, so autodiff of a step
+sees the scheme itself (tests/test_rattle.py checks its symplecticity that way).
+
+Pure step function: ``rattle_step(system, state, t, h, tol, maxit) -> (state, code, iterations)``
+(code `STEP_OK` or `STEP_NEWTON_FAILED`); `Rattle` is the thin `FixedStepMethod` wiring.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, ClassVar, NamedTuple
+
+import numpy as np
+
+from integrators import rhs as _rhs
+from integrators.base import Capability
+from integrators.lifecycle import FixedStepMethod, ODEProblem, run_fixed_step
+from integrators.rhs import closed_form_of
+from models._jax import jax, jnp
+from models.model import quat_rate, quat_to_rot
+
+__all__ = ["QuaternionSystem", "Rattle", "RattleState", "body_rate", "extension_inertia", "pendulum_system",
+           "quat_matrix", "rattle_step"]
+
+#: step result codes of `rattle_step` (0 = ok, as the lifecycle's shared enum)
+STEP_OK, STEP_NEWTON_FAILED = 0, 1
+#: re-assemble the chord-Newton Jacobian when |dz| shrinks by less than this factor
+CHORD_REFRESH = 0.1
+
+
+def quat_matrix(Q):
+    """G(Q), 3 × 4: the body angular velocity is Ω = 2 G(Q) Q̇ (the vector part of 2 Q̄ ⊗ Q̇);
+    G(Q) Q = 0 and G(Q) G(Q)ᵀ = |Q|² I for every Q."""
+    w, x, y, z = Q
+    return jnp.array([[-x, w, z, -y], [-y, -z, w, x], [-z, y, -x, w]])
+
+
+def body_rate(Q, Qdot):
+    """Ω = 2 G(Q) Q̇."""
+    return 2.0 * quat_matrix(Q) @ Qdot
+
+
+def extension_inertia(model) -> float:
+    """J₀ of the quaternion kinetic energy's extension: the mean principal inertia about the
+    attachment point, tr(J_o)/3 (the scale of the body's own rows, for the Newton matrix)."""
+    return float(np.trace(model.J_o) / 3.0)
+
+
+@dataclass(frozen=True, eq=False)
+class QuaternionSystem:
+    """A Lagrangian system on q = (x ∈ ℝ^nx, Q ∈ ℝ⁴ if ``has_quaternion``), |Q| = 1.
+
+    ``lagrangian(q, v)``: L at the configuration q and the velocity v = q̇ (any v, also off the
+    constraint's tangent space); ``force(t, q, v)``: the generalised force over q's layout, or
+    None for a conservative system.
+    """
+
+    nx: int
+    has_quaternion: bool
+    lagrangian: Callable
+    force: Callable | None = None
+
+    @property
+    def nq(self) -> int:
+        return self.nx + (4 if self.has_quaternion else 0)
+
+    def constraint_normal(self, q):
+        """∇g(q) = (0, Q) of g = (|Q|² − 1)/2."""
+        return jnp.concatenate([jnp.zeros(self.nx), q[self.nx:]])
+
+
+class RattleState(NamedTuple):
+    """What a RATTLE step carries: configuration q, canonical momentum p, the last secant
+    velocity Δq/h (the predictor; q̇₀ at the start), the last multiplier λ (its first guess) and
+    the work W of the forces."""
+
+    q: jnp.ndarray
+    p: jnp.ndarray
+    velocity: jnp.ndarray
+    multiplier: jnp.ndarray
+    work: jnp.ndarray
+
+
+def _lu_solve_root(lu):
+    return lambda r: jax.scipy.linalg.lu_solve(lu, r)
+
+
+def rattle_step(system: QuaternionSystem, state: RattleState, t, h, tol, maxit):
+    """One RATTLE step (module docstring) of ``system`` from ``state`` at time t.
+
+    Newton stops when the largest update of q is at most ``tol`` (absolute, in q's units), and
+    fails after ``maxit`` iterations or on a non-finite iterate. Returns (new state, code,
+    Newton iterations); on failure the state returned is not meaningful (the caller keeps its
+    previous one).
+    """
+    nx, nq, quat = system.nx, system.nq, system.has_quaternion
+    L, F = system.lagrangian, system.force
+    q0, p0 = state.q, state.p
+
+    def Ld(qa, qb):
+        v = (qb - qa) / h
+        return 0.5 * h * (L(qa, v) + L(qb, v))
+
+    D1, D2 = jax.grad(Ld, argnums=0), jax.grad(Ld, argnums=1)
+
+    def forcing(q1):
+        if F is None:
+            return jnp.zeros(nq)
+        return 0.5 * h * F(t + 0.5 * h, 0.5 * (q0 + q1), (q1 - q0) / h)
+
+    def residual(z):
+        q1 = z[:nq]
+        r = p0 + D1(q0, q1) + forcing(q1)
+        if not quat:
+            return r
+        r = r - 0.5 * h * z[nq] * system.constraint_normal(q0)
+        Q1 = q1[nx:]
+        return jnp.concatenate([r, jnp.atleast_1d(0.5 * (Q1 @ Q1 - 1.0))])
+
+    def newton(res, z_start):
+        def cond(c):
+            _, _, _, it, conv, bad, _ = c
+            return (~conv) & (~bad) & (it < maxit)
+
+        def body(c):
+            z, lu, size_prev, it, _, _, refresh = c
+            lu = jax.lax.cond(refresh, lambda z_: jax.scipy.linalg.lu_factor(jax.jacfwd(res)(z_)),
+                              lambda _: lu, z)
+            dz = -jax.scipy.linalg.lu_solve(lu, res(z))
+            z_new = z + dz
+            bad = ~jnp.all(jnp.isfinite(z_new))
+            size = jnp.max(jnp.abs(dz[:nq]))
+            return (jnp.where(bad, z, z_new), lu, size, it + 1, size <= tol, bad,
+                    size > CHORD_REFRESH * size_prev)
+
+        nz = z_start.shape[0]
+        lu0 = (jnp.zeros((nz, nz)), jnp.zeros(nz, jnp.int32))
+        z, _, _, it, conv, bad, _ = jax.lax.while_loop(
+            cond, body, (z_start, lu0, jnp.asarray(jnp.inf), jnp.asarray(0, jnp.int32), jnp.asarray(False),
+                         jnp.asarray(False), jnp.asarray(True)))
+        return z, (it, conv & ~bad)
+
+    def tangent_solve(g, y):
+        return jnp.linalg.solve(jax.jacfwd(g)(y), y)
+
+    z_start = q0 + h * state.velocity
+    if quat:
+        z_start = jnp.concatenate([z_start, jnp.atleast_1d(state.multiplier)])
+    z, (iterations, converged) = jax.lax.custom_root(residual, z_start, newton, tangent_solve, has_aux=True)
+    q1 = z[:nq]
+    f = forcing(q1)
+    p1 = D2(q0, q1) + f
+    if quat:
+        Q1, pQ = q1[nx:], p1[nx:]
+        p1 = p1.at[nx:].set(pQ - (Q1 @ pQ) / (Q1 @ Q1) * Q1)  # onto Q·p_Q = 0 (the μ term)
+    dq = q1 - q0
+    work = state.work + (2.0 / h) * (f @ dq)
+    lam = z[nq] if quat else state.multiplier
+    new = RattleState(q=q1, p=p1, velocity=dq / h, multiplier=lam, work=work)
+    ok = converged & jnp.all(jnp.isfinite(q1)) & jnp.all(jnp.isfinite(p1)) & jnp.isfinite(work)
+    code = jnp.where(ok, STEP_OK, STEP_NEWTON_FAILED).astype(jnp.int32)
+    return new, code, iterations
+
+
+# ------------------------------------------------------------------------------------------
+# The pendulum in quaternion coordinates
+# ------------------------------------------------------------------------------------------
+def pendulum_system(model) -> QuaternionSystem:
+    """The model's Lagrangian and forces in q = (x, Q) (module docstring)."""
+    lay = model.layout
+    nx, quat = lay.nx, lay.has_attitude
+    J0 = extension_inertia(model) if quat else 0.0
+
+    def to_model(q, v):
+        """(x, R, w) of the model at (q, q̇)."""
+        if not quat:
+            return q, jnp.eye(3), v
+        Q, Qdot = q[nx:], v[nx:]
+        return q[:nx], quat_to_rot(Q), jnp.concatenate([v[:nx], body_rate(Q, Qdot)])
+
+    def lagrangian(q, v):
+        x, R, w = to_model(q, v)
+        L = model.lagrangian(x, R, w)
+        if quat:
+            L = L + 2.0 * J0 * (q[nx:] @ v[nx:]) ** 2
+        return L
+
+    force = None
+    if model.reel_forces or model.string_forces:
+        def force(t, q, v):
+            x, _, w = to_model(q, v)
+            Fw = model.generalized_force(t, x, w)
+            if not quat:
+                return Fw
+            return jnp.concatenate([Fw[:nx], 2.0 * quat_matrix(q[nx:]).T @ Fw[lay.omega]])
+
+    return QuaternionSystem(nx=nx, has_quaternion=quat, lagrangian=lagrangian, force=force)
+
+
+def initial_state(model, y0) -> RattleState:
+    """The RATTLE state of an ODE state y0 = (x, quat, w, W): p from the model's Legendre map."""
+    lay = model.layout
+    x, w = y0[lay.y_x], y0[lay.y_w]
+    W = y0[lay.y_work][0] if lay.has_work else jnp.asarray(0.0)
+    if not lay.has_attitude:
+        p = closed_form_of(model).momentum(x, jnp.eye(3), w)
+        return RattleState(q=x, p=p, velocity=w, multiplier=jnp.asarray(0.0), work=W)
+    Q = y0[lay.y_quat]
+    pm = closed_form_of(model).momentum(x, quat_to_rot(Q), w)
+    p = jnp.concatenate([pm[:lay.nx], 2.0 * quat_matrix(Q).T @ pm[lay.omega]])
+    velocity = jnp.concatenate([w[:lay.nx], quat_rate(Q, w[lay.omega])])
+    return RattleState(q=jnp.concatenate([x, Q]), p=p, velocity=velocity, multiplier=jnp.asarray(0.0), work=W)
+
+
+def ode_state(model, state: RattleState):
+    """The ODE state (x, Q, w, W) of a RATTLE state: w = M(x, R(Q))⁻¹ (p_x, Π) by the O(N)
+    closed-form Legendre map, Π = G(Q) p_Q / (2|Q|²) (p_Q = 2 G(Q)ᵀ Π on the constraint)."""
+    lay = model.layout
+    nx = lay.nx
+    x = state.q[:nx]
+    if lay.has_attitude:
+        Q = state.q[nx:]
+        Pi = quat_matrix(Q) @ state.p[nx:] / (2.0 * (Q @ Q))
+        w = closed_form_of(model).velocity_from_momentum(x, quat_to_rot(Q), jnp.concatenate([state.p[:nx], Pi]))
+        parts = [x, Q, w]
+    else:
+        parts = [x, closed_form_of(model).velocity_from_momentum(x, jnp.eye(3), state.p)]
+    if lay.has_work:
+        parts.append(jnp.atleast_1d(state.work))
+    return jnp.concatenate(parts)
+
+
+class Rattle(FixedStepMethod):
+    """RATTLE on the pendulum (module docstring), wired on today's fixed-step contract.
+
+    Today's contract has a step return only its carry: a step whose Newton solve fails returns a
+    non-finite state, which the lifecycle stops as ``diverged`` (non-finite state), and the
+    Newton iteration counts do not reach the stats. With a step result (code, iterations) they
+    are `rattle_step`'s own.
+    """
+
+    name = "rattle"
+    capabilities = frozenset({Capability.FIXED_STEP, Capability.IMPLICIT, Capability.VARIATIONAL})
+    implementation: ClassVar[str] = "jax-compiled"
+    order = 2  # at fixed length and while reeling alike (symmetric scheme, midpoint forces)
+    #: no fixed count: one Jacobian (n_z tangents) per step plus its Newton iterations
+    evals_per_step = None
+    description = ("RATTLE on unit quaternions: trapezoidal discrete Lagrangian, |Q| = 1 by a multiplier, "
+                   "Newton per step; symplectic, not a Lie group method")
+    horizon_settings = {"dt": 0.005}
+    cost_hint = (20.0, 3.0)
+    #: Newton: largest update of q (m, or quaternion units) to stop, and the iteration cap
+    newton_tol: ClassVar[float] = 1e-12
+    newton_max_iter: ClassVar[int] = 20
+
+    def init(self, ode: ODEProblem, y0):
+        return initial_state(ode.model, jnp.asarray(y0))
+
+    def step(self, ode: ODEProblem, carry, t, h):
+        new, code, _ = rattle_step(pendulum_system(ode.model), carry, t, h, self.newton_tol, self.newton_max_iter)
+        failed = code != STEP_OK
+        return new._replace(q=jnp.where(failed, jnp.nan, new.q))
+
+    def state(self, ode: ODEProblem, carry):
+        return ode_state(ode.model, carry)
+
+    def solve(self, scene, t_end=None, *, dt=None, rtol=None, atol=None, save_every=None, max_steps=None,
+              rhs=_rhs.DEFAULT_RHS, **options):
+        """Fixed step ``dt``. ``rhs``: RATTLE integrates its own discrete equations, not an ODE
+        right-hand side, so only the default ("closed_form", its Legendre map) is accepted."""
+        if rhs != _rhs.DEFAULT_RHS:
+            raise ValueError(f"rhs = {rhs!r} is invalid for {self.name} (allowed: {_rhs.DEFAULT_RHS!r}: it integrates "
+                             "its discrete Euler-Lagrange equations, not an ODE right-hand side)")
+        return run_fixed_step(self, scene, t_end, dt=dt, save_every=save_every, max_steps=max_steps, rhs=rhs,
+                              **options)
