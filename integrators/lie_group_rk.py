@@ -52,7 +52,7 @@ from typing import Callable, ClassVar
 from integrators.base import Capability
 from integrators.lifecycle import FixedStepMethod, ODEProblem
 from integrators.rhs import closed_form_of
-from models._jax import jnp
+from models._jax import jax, jnp
 from models.model import hat, quat_to_rot
 
 __all__ = ["CrouchGrossman3", "LieRK4", "crouch_grossman3_step", "pendulum_field", "rkmk4_step", "rotation_to_quat",
@@ -145,7 +145,10 @@ def equations_of(ode: ODEProblem):
     """What gives a(t, x, R, w) for the run's right-hand side (`integrators.rhs`): the autodiff
     model when ``rhs="autodiff"`` selected its ``ode_rhs``, else the closed form."""
     model = ode.model
-    return model if ode.f == model.ode_rhs else closed_form_of(model)
+    if ode.f == model.ode_rhs:
+        return model
+    with jax.ensure_compile_time_eval():  # built eagerly even if first asked for while tracing
+        return closed_form_of(model)
 
 
 def pendulum_field(model, equations):
