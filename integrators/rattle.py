@@ -38,7 +38,7 @@ unknowns, from the quadratic extrapolation of the last three positions. Its Jaco
 stiffness: the potential enters D₁L_d at q_k only, so ∂r/∂q_{k+1} = −(M(q_k) + M(q_{k+1}))/(2h)
 + O(|q̇| ∂M/∂q). Simplified Newton with the structured matrix [−M(q_k)/h, −(h/2)∇g(q_k);
 ∇g(z)ᵀ, 0] therefore contracts by O(h |q̇| |∂M/∂q| / |M|) per iteration (measured on
-fixed_length, N = 10, h = 5 ms: 0.005, about 4 iterations per step), and each iteration is one
+fixed_length, N = 10, h = 5 ms: 0.007, 4-5 iterations per step), and each iteration is one
 residual (reverse-mode autodiff of the O(N) energies) and one M⁻¹ solve, O(N) by the model's
 closed-form Legendre map (`QuaternionSystem.inverse_mass`): the normal direction needs no solve
 (M(0, Q) = (0, 4J₀Q)), λ is a scalar Schur complement. So a step costs O(N) (the Newton
@@ -248,7 +248,8 @@ def rattle_step(system: QuaternionSystem, state: RattleState, t, h, tol, maxit):
         need = (~conv) & (~bad) & (it < maxit)
         z, _, _, it_all, conv, bad = jax.lax.cond(
             need, lambda c: jax.lax.while_loop(*iterate(exact, True), c), lambda c: c, (z, size, jnp.asarray(0.0), it, conv, bad))
-        return z, (it_all, conv & ~bad, it_all - it)
+        # custom_root differentiates its aux output as floats (integer aux breaks its JVP rule)
+        return z, jnp.stack([it_all, (conv & ~bad).astype(jnp.int32), it_all - it]).astype(float)
 
     def tangent_solve(g, y):
         return jnp.linalg.solve(jax.jacfwd(g)(y), y)
@@ -257,7 +258,9 @@ def rattle_step(system: QuaternionSystem, state: RattleState, t, h, tol, maxit):
     z_start = q0 + h * (2.0 * state.velocity - state.previous_velocity)
     if quat:
         z_start = jnp.concatenate([z_start, jnp.atleast_1d(state.multiplier)])
-    z, (iterations, converged, exact) = jax.lax.custom_root(residual, z_start, newton, tangent_solve, has_aux=True)
+    z, counts = jax.lax.custom_root(residual, z_start, newton, tangent_solve, has_aux=True)
+    counts = jax.lax.stop_gradient(counts).astype(jnp.int32)
+    iterations, converged, exact = counts[0], counts[1] == 1, counts[2]
     q1 = z[:nq]
     if quat:
         Q1 = q1[nx:]
