@@ -70,8 +70,8 @@ from integrators.rhs import closed_form_of
 from models._jax import jax, jnp
 from models.model import quat_rate, quat_to_rot
 
-__all__ = ["QuaternionSystem", "Rattle", "RattleState", "body_rate", "extension_inertia", "pendulum_system",
-           "quat_matrix", "rattle_step"]
+__all__ = ["QuaternionSystem", "Rattle", "RattleState", "body_rate", "extension_inertia", "initial_state", "ode_state",
+           "pendulum_system", "quat_matrix", "rattle_step"]
 
 #: step result codes of `rattle_step` (0 = ok, as the lifecycle's shared enum)
 STEP_OK, STEP_NEWTON_FAILED = 0, 1
