@@ -29,19 +29,21 @@ CHORD_REFRESH = 0.1
 
 
 @functools.lru_cache(maxsize=32)
-def lgvi_step(model, scheme) -> "LGVIStep":
+def lgvi_step(model, scheme, cayley_code: int) -> "LGVIStep":
     """The step of ``scheme`` on ``model``, built once per pair; its constants are computed
-    eagerly even when first asked for inside a trace (no tracer may be cached)."""
+    eagerly even when first asked for inside a trace (no tracer may be cached).
+    ``cayley_code``: the `StepCode` of the Cayley guard (`integrators.lgvi` defines it)."""
     with jax.ensure_compile_time_eval():
-        return LGVIStep(model, scheme)
+        return LGVIStep(model, scheme, cayley_code)
 
 
 class LGVIStep:
     """The LGVI step of one model and `integrators.lgvi.Scheme`."""
 
-    def __init__(self, model, scheme):
+    def __init__(self, model, scheme, cayley_code: int):
         self.model = model
         self.scheme = scheme
+        self.cayley_code = cayley_code
         self.dl = DiscreteLagrangian(model, symmetric=scheme.symmetric)
         # the symmetric scheme's midpoint string force depends on the step: fixed point around
         # the structured solve (`DiscreteLagrangian.with_forcing`)
@@ -133,8 +135,6 @@ class LGVIStep:
         turn by more than 90° in one step, beyond what the Cayley step resolves), or, with
         ``check_state`` (the inner substeps of a composition, whose states the lifecycle does
         not see), a non-finite state or the deployed length out of its range."""
-        from integrators.lgvi import CAYLEY_CODE
-
         dl, model = self.dl, self.model
         tol, maxit = prm["newton_tol"], prm["newton_max_iter"]
         ctx = dl.context(t, x, R, gV, p)
@@ -159,7 +159,7 @@ class LGVIStep:
                 ~(model.deployed_length_margin(x1) > 0), StepCode.LENGTH_LIMIT, 0)))
         if dl.rigid:  # the Cayley guard overrides all but a Newton failure and the length limit
             over = (code != StepCode.NEWTON_FAILED) & (code != StepCode.LENGTH_LIMIT) & (c @ c > prm["cayley_bound"] ** 2)
-            code = jnp.where(over, CAYLEY_CODE, code)
+            code = jnp.where(over, self.cayley_code, code)
         return (x1, R1, p1, gV1, dW, jnp.stack([z[1], z_sol])), it, jnp.asarray(code, jnp.int32)
 
     def step(self, carry, t, h, prm):

@@ -130,12 +130,12 @@ class LGVI(FixedStepMethod):
     def init(self, ode: ODEProblem, y0):
         from integrators._lgvi_step import lgvi_step
 
-        return lgvi_step(ode.model, self.scheme).initial(*y0)
+        return lgvi_step(ode.model, self.scheme, CAYLEY_CODE).initial(*y0)
 
     def step(self, ode: ODEProblem, carry, t, h):
         from integrators._lgvi_step import lgvi_step
 
-        return lgvi_step(ode.model, self.scheme).step(carry, t, h, ode.params)
+        return lgvi_step(ode.model, self.scheme, CAYLEY_CODE).step(carry, t, h, ode.params)
 
     # -- what is saved and how it becomes a Trajectory ---------------------------------------
     def saved(self, ode: ODEProblem, carry):
@@ -150,7 +150,7 @@ class LGVI(FixedStepMethod):
         from integrators.base import energy_error
 
         x, R, p, W = saved
-        return energy_error(ode.model, x, R, lgvi_step(ode.model, self.scheme).dl.legendre(x, R, p), W, E0)
+        return energy_error(ode.model, x, R, lgvi_step(ode.model, self.scheme, CAYLEY_CODE).dl.legendre(x, R, p), W, E0)
 
     def trajectory(self, run: Run, ode: ODEProblem, t, saved, n: int) -> Trajectory:
         """Velocities from the saved momenta by the compiled Legendre map (over the whole

@@ -313,6 +313,7 @@ class RunStats(TypedDict, total=False):
     time_per_step: float
     wall_time: float
     compile_time: float
+    count_time: float
     event_time: float
     rhs: str
 
@@ -404,10 +405,10 @@ class Run:
 
 def start_run(method: Integrator, scene, t_end, *, dt, rtol, atol, save_every, max_steps, time_limit, rhs,
               options: dict, allowed: tuple[str, ...] = (), started: float | None = None,
-              validate: Callable[[], Any] | None = None) -> Run:
+              validate: Callable[[str], Any] | None = None) -> Run:
     """The prologue of every ``solve()``: start the clock, check every argument (ValueError
-    before any work: options, rhs, scene, step mode, horizon, budgets, and ``validate()``, the
-    method's own checks of its option values), then build the model and its guards (setup,
+    before any work: options, rhs, scene, step mode, horizon, budgets, and ``validate(mode)``,
+    the method's own checks of its option values), then build the model and its guards (setup,
     booked with ``compile_time``). ``rhs`` None: the method has its own equations."""
     started = time.perf_counter() if started is None else started
     check_options(method.name, options, allowed)
@@ -420,14 +421,20 @@ def start_run(method: Integrator, scene, t_end, *, dt, rtol, atol, save_every, m
     check_max_steps(max_steps)
     check_time_limit(time_limit)
     if validate is not None:
-        validate()
+        validate(mode)
     run = Run(method=method, scene=scene, mode=mode, t_end=float(t_end), dt=None if dt is None else float(dt),
               rtol=rtol, atol=atol, save_every=save_every, max_steps=max_steps, time_limit=time_limit, rhs=rhs,
               options=options, started=started)
+    run.setup(_import_jax)  # the first solve() of a process imports JAX: setup, not run time
     run.model, setup = build_model_timed(scene)  # a first build also starts JAX's backend: setup
     run.guards, guards_time = guards_timed(run.model)
     run.compile_time += setup + guards_time
     return run
+
+
+def _import_jax() -> None:
+    import models._jax  # noqa: F401  (float64 and the XLA options first)
+    import models.model  # noqa: F401
 
 
 def ode_trajectory(model, scene, t, y, *, status, reason, stats, integrator, settings) -> Trajectory:
@@ -501,8 +508,12 @@ class LibraryAdapter(Integrator):
         """``rhs``: "closed_form" (default, O(N)) or "autodiff" (see `integrators.rhs`)."""
         run = start_run(self, scene, t_end, dt=dt, rtol=rtol, atol=atol, save_every=save_every,
                         max_steps=max_steps, time_limit=time_limit, rhs=rhs, options=options,
-                        allowed=self.option_names, started=time.perf_counter())
+                        allowed=self.option_names, started=time.perf_counter(),
+                        validate=lambda mode: self.check_option_values(options, mode))
         return self.finish(run, self.integrate(run))
+
+    def check_option_values(self, options: dict, mode: str) -> None:
+        """Refuse a bad value of one of `option_names` (ValueError, before any work)."""
 
     @abc.abstractmethod
     def integrate(self, run: Run) -> Outcome:
