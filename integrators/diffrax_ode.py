@@ -82,6 +82,8 @@ def _stop_condition(model, timed: bool):
     real number: the run stops where it crosses zero, located by a root find on the step's dense
     output, as scipy's events are). The thresholds are the solve's ``args`` = (blow-up bound,
     deadline): run-time values, not constants of the compiled solve."""
+    from jax.experimental import io_callback
+
     from models._jax import jax, jnp
 
     lay = model.layout
@@ -90,8 +92,8 @@ def _stop_condition(model, timed: bool):
         blowup, deadline = args
         bad = ~jnp.all(jnp.isfinite(y)) | (jnp.max(jnp.abs(y)) >= blowup)
         if timed:
-            late = jax.experimental.io_callback(lambda d: np.bool_(time.perf_counter() >= d), jax.ShapeDtypeStruct(
-                (), jnp.bool_), deadline, ordered=False)
+            late = io_callback(lambda d: np.bool_(time.perf_counter() >= d), jax.ShapeDtypeStruct((), jnp.bool_),
+                               deadline, ordered=False)
             bad = bad | late
         return bad
 

@@ -325,10 +325,11 @@ class _Loop:
 
 def _compile_loop(method, ode, n_buf, y0, params, rest) -> _Loop:
     """AOT-compile the loop for these argument shapes (``rest``: j0 .. blowup, numpy)."""
-    from models._jax import jax
+    from models._jax import jax, jnp
 
     shape = jax.eval_shape(lambda y, p: _fresh(method, dataclasses.replace(ode, params=p), y), y0, params)
-    zero = jax.tree_util.tree_map(lambda a: np.zeros(a.shape, a.dtype), shape)
+    # on the device once: a first call then passes no host arrays for the state it does not read
+    zero = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shape)
     seen: dict = {}
     fn = jax.jit(_make_loop(method, ode, n_buf, seen)).lower(y0, zero, *rest, params).compile()
     return _Loop(fn, zero, bool(seen.get("result", False)))
@@ -354,17 +355,20 @@ class _Progress:
     code: int = 0
     pieces: list = dataclasses.field(default_factory=list)
     timed_out: bool = False
+    scalars: Any = None  # the final LoopState's counters on the host (carry dropped)
 
 
 def _run_chunks(run: Run, loop: _Loop, y0, n_run: int, n_save: int, rest: tuple, params) -> _Progress:
     """Call the compiled loop until the run ends, in chunks when there is a time limit."""
+    from models._jax import jax
+
     prog = _Progress(state=loop.zero_state)
     chunk = n_run if run.time_limit is None else FIRST_CHUNK
     while True:
         k_stop = min(n_run, prog.k + chunk)
         t0 = time.perf_counter()
         state, j, bufs = loop.fn(y0, prog.state, np.int32(prog.j), np.int32(k_stop), *rest, params)
-        j, k, code = int(j), int(state.k), int(state.code)
+        j, k, code = (int(v) for v in jax.device_get((j, state.k, state.code)))  # one transfer
         prog.pieces.append((bufs, j - prog.j))
         took, done = time.perf_counter() - t0, k - prog.k
         prog.state, prog.j, prog.k, prog.code = state, j, k, code
@@ -375,6 +379,12 @@ def _run_chunks(run: Run, loop: _Loop, y0, n_run: int, n_save: int, rest: tuple,
             return prog
         target = min(CHUNK_SECONDS, run.time_limit / 20.0)
         chunk = max(FIRST_CHUNK, int(target / max(took / max(done, 1), 1e-9)))
+
+
+def _device_get(tree):
+    from models._jax import jax
+
+    return jax.device_get(tree)
 
 
 def _saved_buffers(prog: _Progress, n_buf: int):
@@ -400,7 +410,7 @@ def _where(k: int, dt: float) -> str:
 
 def _ending(method, run: Run, prog: _Progress, traj: Trajectory, truncated: bool, n_run: int):
     """(status, reason, extra stats) of a finished fixed-step run."""
-    dt, k, code, state = run.dt, prog.k, prog.code, prog.state
+    dt, k, code, state = run.dt, prog.k, prog.code, prog.scalars
     kept = f"; trajectory kept up to the saved point t = {traj.t[-1]:.6g} s"
     if code == StepCode.NON_FINITE:
         return Status.DIVERGED, blowup_reason(_where(k, dt), run.guards.blowup) + kept, {}
@@ -430,11 +440,11 @@ def run_fixed_step(method: FixedStepMethod, scene, t_end=None, *, dt=None, rtol=
     rhs = _method_rhs(method, rhs)
     checked = {}
     run = start_run(method, scene, t_end, dt=dt, rtol=rtol, atol=atol, save_every=save_every, max_steps=max_steps,
-                    time_limit=time_limit, rhs=rhs if method.uses_rhs else None, options=options,
+                    time_limit=time_limit, rhs=rhs, options=options,
                     allowed=tuple(method.option_defaults), started=started,
                     validate=lambda mode: checked.update(method.check_options(options)))
     run.options = checked  # with the defaults filled in
-    guards = guards or run.guards
+    guards = run.guards = guards or run.guards
     ode = run.ode_problem()
     idx, n_run, truncated = step_indices(run.t_end, run.dt, save_every, max_steps)
     n_buf = bucket(len(idx))
@@ -448,6 +458,7 @@ def run_fixed_step(method: FixedStepMethod, scene, t_end=None, *, dt=None, rtol=
     loop = run.compiled(_LOOPS, key, lambda: _compile_loop(method, ode, n_buf, y0, params,
                                                            (np.int32(0), np.int32(0)) + rest))
     prog = _run_chunks(run, loop, y0, n_run, len(idx), rest, params)
+    prog.scalars = _device_get(prog.state._replace(carry=None))  # the counters, in one transfer
     (K, saved), n = _saved_buffers(prog, n_buf)
     traj = method.trajectory(run, ode, K[:n] * run.dt, saved, n)
     status, reason, extra = _ending(method, run, prog, traj, truncated, n_run)
@@ -455,7 +466,8 @@ def run_fixed_step(method: FixedStepMethod, scene, t_end=None, *, dt=None, rtol=
     if method.evals_per_step is not None:
         stats["rhs_evals"] = int(method.evals_per_step) * prog.k
     if loop.counts_iterations:
-        stats.update(newton_iterations=int(prog.state.iterations), max_newton_iterations=int(prog.state.max_iterations))
+        stats.update(newton_iterations=int(prog.scalars.iterations),
+                     max_newton_iterations=int(prog.scalars.max_iterations))
     traj.status, traj.reason, traj.integrator = status.value, reason, method.name
     traj.stats.update(stats)
     traj.settings = run.settings(rhs=rhs or method.rhs_label, **checked)
