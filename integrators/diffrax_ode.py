@@ -313,8 +313,8 @@ def _result_status(run: Run, result, y_final, t_final: float) -> tuple[Status, s
         return Status.LENGTH_LIMIT, length_reason(run.model, ell, f"at t = {t_final:.6g} s")
     if bool(result == dfx.RESULTS.successful):
         return Status.OK, ""
-    status = {dfx.RESULTS.max_steps_reached: Status.MAX_STEPS, dfx.RESULTS.dt_min_reached: Status.STEP_SIZE_COLLAPSE}
-    found = next((s for item, s in status.items() if bool(result == item)), Status.FAILED)
+    statuses = ((dfx.RESULTS.max_steps_reached, Status.MAX_STEPS), (dfx.RESULTS.dt_min_reached, Status.STEP_SIZE_COLLAPSE))
+    found = next((s for item, s in statuses if bool(result == item)), Status.FAILED)  # items compare, not hash
     try:
         message = dfx.RESULTS[result]
     except Exception:  # pragma: no cover - depends on the diffrax version

@@ -30,6 +30,7 @@ from __future__ import annotations
 import abc
 import functools
 import math
+import sys
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
@@ -425,7 +426,8 @@ def start_run(method: Integrator, scene, t_end, *, dt, rtol, atol, save_every, m
     run = Run(method=method, scene=scene, mode=mode, t_end=float(t_end), dt=None if dt is None else float(dt),
               rtol=rtol, atol=atol, save_every=save_every, max_steps=max_steps, time_limit=time_limit, rhs=rhs,
               options=options, started=started)
-    run.setup(_import_jax)  # the first solve() of a process imports JAX: setup, not run time
+    if "models.model" not in sys.modules:  # the first solve() of a process imports JAX: setup
+        run.setup(_import_jax)
     run.model, setup = build_model_timed(scene)  # a first build also starts JAX's backend: setup
     run.guards, guards_time = guards_timed(run.model)
     run.compile_time += setup + guards_time

@@ -147,7 +147,8 @@ def test_bad_arguments_raise_before_work(scene, name, kwargs, match):
 AGREE_TOL = 1e-9
 
 
-@pytest.mark.parametrize("name", ["rk45", "radau", "tsit5", "dopri5", "dopri8", "kvaerno5", "rk45_projected"])
+@pytest.mark.parametrize("name", ["rk45", "radau", "tsit5", "dopri5", pytest.param("dopri8", marks=pytest.mark.slow),
+                                  "kvaerno5", "rk45_projected"])
 def test_adaptive_baselines_agree_with_dop853(scene, reference, name):
     traj = get_integrator(name).solve(scene, T, rtol=1e-10, atol=1e-12, save_every=SAVE)
     assert traj.ok, traj.reason
@@ -169,7 +170,9 @@ def test_adaptive_baselines_agree_with_dop853(scene, reference, name):
         assert traj.stats["rhs_evals"] >= traj.stats.get("attempted_steps", traj.stats["steps"])
 
 
-@pytest.mark.parametrize("name", ["tsit5", "dopri5", "dopri8"])
+# dopri5/dopri8 constant steps are also run by tests/test_orders.py; here in the slow set
+@pytest.mark.parametrize("name", ["tsit5", pytest.param("dopri5", marks=pytest.mark.slow),
+                                  pytest.param("dopri8", marks=pytest.mark.slow)])
 def test_constant_step_takes_t_over_dt_steps_and_agrees_with_dop853(scene, reference, name):
     """Constant-step Tsit5, Dopri5, Dopri8: exactly T/dt steps, none rejected, and the reference
     solution. (Their orders are measured in tests/test_orders.py; here the error at dt = 1e-3 is

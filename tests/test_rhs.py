@@ -73,7 +73,9 @@ def test_rhs_option_is_validated_and_recorded():
     assert tr.settings["rhs"] == tr.stats["rhs"] == "closed_form"
 
 
-@pytest.mark.parametrize("name, stages", [("tsit5", 7), ("dopri5", 7), ("dopri8", 14)])
+# dopri5 and dopri8 compile two more solves each (~20 s): in the slow set
+@pytest.mark.parametrize("name, stages", [("tsit5", 7), pytest.param("dopri5", 7, marks=pytest.mark.slow),
+                                          pytest.param("dopri8", 14, marks=pytest.mark.slow)])
 def test_explicit_diffrax_rhs_evals_match_a_counting_rhs(name, stages, monkeypatch):
     """stats["rhs_evals"] of the explicit FSAL methods (derived from their steps) = evaluations
     actually made."""
