@@ -8,6 +8,7 @@ It has no guard code of its own, yet it stops ``diverged`` past its stability li
 runs.md and the work-precision plot.
 """
 
+import functools
 import re
 import subprocess
 import sys
@@ -146,8 +147,10 @@ def test_it_runs_in_the_benchmark_into_tables_and_the_work_precision_plot(site, 
 # ------------------------------------------------------------------------------------------
 # The second README example: a step returning a StepResult
 # ------------------------------------------------------------------------------------------
+@functools.lru_cache(maxsize=1)
 def readme_step_result_plugin():
-    """The README's example of a step that returns (carry, StepResult)."""
+    """The README's example of a step that returns (carry, StepResult) (one class object, so
+    that the tests share its compiled loops)."""
     blocks = re.findall(r"```python\n(.*?)```", README.read_text(), re.S)
     code = next(b for b in blocks if "StepResult(" in b and "(FixedStepMethod)" in b)
     namespace = {}
