@@ -3,14 +3,19 @@
     from integrators import get_integrator
     traj = get_integrator("dop853").solve(scene, t_end=1.0, rtol=1e-10, atol=1e-12)
 
-Built-in: ``lgvi`` and the symmetric ``lgvi_sym``, ``lgvi_yoshida4``, ``lgvi_suzuki4`` (registered by decorator). Baselines ``rk45``, ``radau``, ``dop853``,
-``tsit5``, ``kvaerno5`` are registered through the ``reelbench.integrators`` entry-point
-group, exactly as an outside plugin would be.
+Built-in: ``lgvi`` and the symmetric ``lgvi_sym``, ``lgvi_yoshida4``, ``lgvi_suzuki4``
+(registered by decorator). Baselines ``rk45``, ``rk45_projected``, ``radau``, ``dop853``,
+``tsit5``, ``dopri5``, ``dopri8``, ``kvaerno5`` are registered through the
+``reelbench.integrators`` entry-point group, exactly as an outside plugin would be.
+
+Importing this package, listing and describing the methods does not import JAX: the classes
+import it inside the functions that trace and compile (through `models._jax`, which switches
+JAX to float64 first).
 """
 
-from models import _jax  # noqa: F401  (float64 first)
-from integrators.base import Capability, Integrator, Status, Trajectory, save_times
-from integrators.lifecycle import FixedStepMethod, Guards, ODEProblem
+from integrators.base import IMPLEMENTATIONS, Capability, Integrator, Status, Trajectory, save_times
+from integrators.fixed_step import FixedStepMethod, StepCode, StepResult
+from integrators.lifecycle import Guards, LibraryAdapter, ODEProblem, Outcome, Run
 from integrators.registry import ENTRY_POINT_GROUP, available, get_integrator, plugin_errors, register, unregister
 
 __all__ = [
@@ -18,9 +23,15 @@ __all__ = [
     "ENTRY_POINT_GROUP",
     "FixedStepMethod",
     "Guards",
+    "IMPLEMENTATIONS",
     "Integrator",
+    "LibraryAdapter",
     "ODEProblem",
+    "Outcome",
+    "Run",
     "Status",
+    "StepCode",
+    "StepResult",
     "Trajectory",
     "available",
     "get_integrator",

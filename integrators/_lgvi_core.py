@@ -1,4 +1,4 @@
-"""Closed-form discrete equations of the LGVI (MODEL.md §6) and their structured solver.
+"""Closed-form discrete equations of the LGVI (docs/equations.md, "The LGVI step") and their structured solver.
 
 This module is the *discrete Lagrangian* piece of the LGVI, kept apart from the time loop
 (`integrators.lgvi`) so that a different discrete Lagrangian (lumped mass, symmetric reel
@@ -22,7 +22,7 @@ Forcing (discrete Lagrange–d'Alembert, forces f⁻ in the p_k equations and f�
 equations; the work of step k is (f⁻ + f⁺)·Δx / h):
 
 * reel forces (Carnot, control; s_p row only): f⁻ = f⁺ = (h/2) Q(t_k, x_k, Δs/h), implicit
-  in Δs, which is already a Newton unknown (MODEL.md §6);
+  in Δs, which is already a Newton unknown;
 * string forces (axial damping; q rows and s_p row): evaluated *explicitly*, so that the
   string rows stay a scalar tridiagonal system with a known right-hand side:
   f⁻ = (h/2) Q(t_k, x_k, w_k) with w_k = M(g_k)⁻¹ p_k (the continuous Legendre transform of
@@ -135,7 +135,7 @@ def tridiag_solve(sub, diag, sup, rhs):
 
 @dataclass
 class StepContext:
-    """Quantities of g_k used by one step (mass terms at g_k, MODEL.md §6)."""
+    """Quantities of g_k used by one step (mass terms at g_k)."""
 
     t: jnp.ndarray
     x: jnp.ndarray
@@ -163,8 +163,9 @@ jax.tree_util.register_dataclass(
 class DiscreteLagrangian:
     """Closed-form derivatives of the LGVI's L_d for one model (string mass of `string.mass_model`).
 
-    ``symmetric=False``: MODEL.md §6 (the paper's: s_p-dependent mass terms and the forcing at
-    g_k; first order while the length changes). ``symmetric=True``: MODEL.md §9, L_d^sym = L_d^§6
+    ``symmetric=False``: the paper's LGVI (s_p-dependent mass terms and the forcing at
+    g_k; first order while the length changes). ``symmetric=True``: the symmetric LGVI
+    (docs/equations.md, "The symmetric LGVI"), L_d^sym = L_d
     + C(Δx)/h (mass terms at the step midpoint) with every force evaluated once at the midpoint
     with the secant velocity, f⁻ = f⁺ = (h/2) Q(t_k + h/2, x_{k+½}, Δx/h): the forced map is
     self-adjoint, hence second order everywhere (and composable to higher order). The two
@@ -255,7 +256,7 @@ class DiscreteLagrangian:
         return jnp.concatenate([jnp.atleast_1d(ds), dq.ravel()]) if self.reel else dq.ravel()
 
     def midpoint(self, ctx: StepContext, h, ds, dq):
-        """(t_k + h/2, x_{k+½}, secant velocity) of the symmetric forcing (MODEL.md §9.3).
+        """(t_k + h/2, x_{k+½}, secant velocity) of the symmetric forcing.
 
         The Ω slot of the velocity is zero: the forces act on (s_p, q) and depend on Ω not at all.
         """
@@ -266,7 +267,7 @@ class DiscreteLagrangian:
     def end_forcing(self, ctx: StepContext, h, ds, dq):
         """(Q_s, Q_q, Q_Ω) of f⁺ = (h/2) Q⁺.
 
-        §6: Q⁺ = Q(t_k + h, x_{k+1}, 2Δx/h − ẋ_k) (Heun predictor). Symmetric: Q⁺ = Q⁻ =
+        Paper's: Q⁺ = Q(t_k + h, x_{k+1}, 2Δx/h − ẋ_k) (Heun predictor). Symmetric: Q⁺ = Q⁻ =
         Q(t_k + h/2, x_{k+½}, Δx/h), the same midpoint force on both ends.
         """
         if not self.node_forced:
@@ -285,8 +286,8 @@ class DiscreteLagrangian:
         directions it is not a scalar times I₃: solving it inside the tridiagonal system would
         cost a 3×3-block solve. The step instead lags it by one iteration (fixed point around the
         scalar solve, `integrators.lgvi`), which contracts by about h γ_max / 2 per iteration:
-        the explicit §6 forcing's stability limit h γ_max < 2, met with iterations instead of a
-        blow-up. ``ctx`` is returned unchanged without string forces or for the §6 scheme.
+        the paper's explicit forcing's stability limit h γ_max < 2, met with iterations instead of a
+        blow-up. ``ctx`` is returned unchanged without string forces or for the paper's scheme.
         """
         if not (self.symmetric and self.node_forced):
             return ctx
@@ -296,7 +297,7 @@ class DiscreteLagrangian:
     def work(self, ctx: StepContext, h, ds, dq):
         """Work of the forcing on step k: Q_k Δs (reel) + ½ (Q⁻ + Q⁺)·Δx (string forces).
 
-        Symmetric: Q_{k+½} Δs + Q_{k+½}·Δx, the same forces as in f⁻ and f⁺ (MODEL.md §9.3).
+        Symmetric: Q_{k+½} Δs + Q_{k+½}·Δx, the same forces as in f⁻ and f⁺.
         """
         dW = self.forcing(ctx, ds, h, dq) * ds
         if self.node_forced:
@@ -328,7 +329,7 @@ class DiscreteLagrangian:
 
     # -------------------------------------------------------------------------------------
     def forcing(self, ctx: StepContext, ds, h, dq=None):
-        """The reel force of the step: §6 Q_k = Q_u(t_k) + Q_c(s_k, Δs/h, q_{k,2}); symmetric
+        """The reel force of the step: paper's Q_k = Q_u(t_k) + Q_c(s_k, Δs/h, q_{k,2}); symmetric
         Q_{k+½} = Q_u(t_k + h/2) + Q_c(s_{k+½}, Δs/h, q_{k+½,2}) (needs ``dq``)."""
         if not self.reel or not self.model.reel_forces:
             return jnp.asarray(0.0)
@@ -348,7 +349,7 @@ class DiscreteLagrangian:
     def q_coeffs(self, ctx: StepContext, ds):
         """Tridiagonal (sub, diag, sup) of the q rows of the p_k equations, in h·p units.
 
-        Symmetric: the consistent-mass part at l_{k+1} = l_k − Δs/N (MODEL.md §9.4).
+        Symmetric: the consistent-mass part at l_{k+1} = l_k − Δs/N.
         """
         mul = self.model.mu * (ctx.l - ds / self.N if self.symmetric else ctx.l)
         sub = mul * self.msub + ds * self.cprev
@@ -364,7 +365,7 @@ class DiscreteLagrangian:
         return tridiag_solve(sub, diag, sup, rhs)
 
     def hp_s(self, ctx: StepContext, h, ds, dq):
-        """h p_{s,k} side of the s_p row as a function of (Δs, Δq) (MODEL.md §6, §9.4).
+        """h p_{s,k} side of the s_p row as a function of (Δs, Δq).
 
         Symmetric: −(μ/3)Δs² + (μ/6N) Σ quad_a becomes +(μ/6)Δs² (the Δq-quadratic cancels).
         """
@@ -466,7 +467,7 @@ class DiscreteLagrangian:
 
     # -------------------------------------------------------------------------------------
     def hp_k_full(self, ctx: StepContext, h, ds, dq, c):
-        """Full closed-form h·p_k as a function of X (w's layout) — MODEL.md §6, for tests."""
+        """Full closed-form h·p_k as a function of X (w's layout), for tests."""
         F = cayley(c) if self.rigid else jnp.eye(3)
         sub, diag, sup = self.q_coeffs(ctx, ds)
         dqf = jnp.concatenate([jnp.zeros((1, 3)), dq, jnp.zeros((1, 3))], axis=0)
@@ -477,7 +478,7 @@ class DiscreteLagrangian:
         return self.join(hps, rows, hPi)
 
     def hp_k1(self, ctx: StepContext, h, ds, dq, c, gradV1):
-        """h·p_{k+1} (w's layout) from the step X and ∇V(g_{k+1}) — MODEL.md §6, §9.4 (symmetric:
+        """h·p_{k+1} (w's layout) from the step X and ∇V(g_{k+1}) (symmetric:
         the consistent mass at l_{k+1}, +(μ/2)Δs² − (μ/6N) Σ quad_a in the s_p row, Q_{k+½})."""
         F = cayley(c) if self.rigid else jnp.eye(3)
         N, lay = self.N, self.model.layout
@@ -493,7 +494,7 @@ class DiscreteLagrangian:
         if self.reel:
             Q = self.forcing(ctx, ds, h, dq)
             hps = ctx.M0 * ds + jnp.sum(ctx.C * dq) - 0.5 * h * h * gradV1[0] + 0.5 * h * h * (Q + fs1)
-            if self.symmetric:  # ∂C/∂Δs (MODEL.md §9.4)
+            if self.symmetric:  # ∂C/∂Δs
                 hps = hps + mu / 2.0 * ds * ds - mu / (6 * N) * self._quad(dq)
         hPi = jnp.zeros(3)
         if self.rigid:

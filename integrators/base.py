@@ -2,12 +2,17 @@
 
 An integrator is a class with a ``name``, declared ``capabilities`` and a ``solve`` method::
 
-    traj = integrator.solve(scene, t_end, dt=..., rtol=..., atol=..., save_every=...)
+    traj = integrator.solve(scene, t_end, dt=..., rtol=..., atol=..., save_every=...,
+                            max_steps=..., time_limit=...)
 
 ``solve`` never raises for a run that fails numerically (Newton failure, divergence, step
-size collapse, the deployed length leaving its range): it returns the trajectory up to the
-last good step with ``status`` naming what happened and ``reason`` saying it in words.
-Bad *arguments* (a negative dt, a missing tolerance) raise ``ValueError`` before any work.
+size collapse, the deployed length leaving its range) or runs out of its budget (``max_steps``,
+``time_limit``): it returns the trajectory up to the last good step with ``status`` naming what
+happened and ``reason`` saying it in words. Bad *arguments* (a negative dt, a missing
+tolerance, a tolerance given to a fixed-step method) raise ``ValueError`` before any work.
+
+Nothing here imports JAX: the registry's names and each class's declarations are available
+without it (the command line refuses bad input in a fraction of a second).
 """
 
 from __future__ import annotations
@@ -38,6 +43,7 @@ class Status(str, enum.Enum):
     DIVERGED = "diverged"  # non-finite state, energy beyond `energy_bound`, or (LGVI) Cayley blow-up
     LENGTH_LIMIT = "length_limit"  # deployed length reached an end of (min_deployed_length, L - b)
     MAX_STEPS = "max_steps"
+    TIME_LIMIT = "time_limit"  # the run's wall-clock budget (``time_limit``) ran out
     STEP_SIZE_COLLAPSE = "step_size_collapse"
     FAILED = "failed"  # any other solver failure, with the solver's message as reason
 
@@ -111,11 +117,13 @@ class Trajectory:
 
 
 def stamp_wall_time(traj: Trajectory, started: float) -> Trajectory:
-    """Set ``traj.stats["wall_time"]``: one definition of run time for every integrator (issue
-    #11) — the whole ``solve()`` call, from ``started`` (`time.perf_counter()` at its entry) to
-    the finished `Trajectory` (output conversion included), minus ``stats["compile_time"]``.
-    Call it last, on the trajectory about to be returned."""
-    traj.stats["wall_time"] = time.perf_counter() - started - float(traj.stats.get("compile_time", 0.0))
+    """Set ``traj.stats["wall_time"]``: one definition of run time for every integrator — the
+    whole ``solve()`` call, from ``started`` (`time.perf_counter()` at its entry) to the finished
+    `Trajectory` (output conversion included), minus ``stats["compile_time"]`` and minus
+    ``stats["count_time"]`` (a counting replay after the run, Kvaerno5's). Call it last, on the
+    trajectory about to be returned."""
+    booked_apart = float(traj.stats.get("compile_time", 0.0)) + float(traj.stats.get("count_time", 0.0))
+    traj.stats["wall_time"] = time.perf_counter() - started - booked_apart
     return traj
 
 
@@ -145,19 +153,20 @@ def save_times(t_end: float, save_every: float | None, dt: float | None = None) 
 
 
 # --------------------------------------------------------------------------------------------
-# Divergence guard on the energy balance, shared by every integrator (issue #7)
+# Divergence guard on the energy balance, shared by every integrator
 # --------------------------------------------------------------------------------------------
 #: A run has *diverged* when its energy balance error |E − W − E0| exceeds this factor times
 #: the scene's energy scale (`energy_scale`). The scale bounds every energy the motion can
 #: legitimately exchange, so an error beyond it means the numbers are no longer a solution of
 #: the scene (a blow-up grows exponentially, so the exact factor only shifts the stop by a few
-#: steps). Every adapter checks it at its saved points (diffrax: at every step, in its event).
+#: steps). Every method checks it at its saved points only (integrators/README.md, "One guard
+#: policy"), so that every method is timed over the same work.
 ENERGY_GROWTH_FACTOR = 1.0
 
 
 def energy_scale(model) -> float:
     """The scene's energy scale in J: the model's own (`models.StringPendulum.energy_scale`,
-    which says what it covers); kept here for the callers of issue #7's API."""
+    which says what it covers)."""
     return model.energy_scale()
 
 
@@ -217,12 +226,20 @@ def situation(scene) -> str:
     return "reel" if StateLayout.from_scene(scene).has_reel else "fixed_length"
 
 
+#: The values of `Integrator.implementation` the shipped methods declare: compiled by JAX/XLA
+#: (the LGVI family, every `FixedStepMethod`, the diffrax adapters) or stepped in Python by scipy.
+IMPLEMENTATIONS = ("jax-compiled", "scipy-python")
+
+
 class Integrator(abc.ABC):
     """Base class of every integrator. Subclasses set the class attributes and `solve`.
 
     Class attributes:
         name: registry name (lower case).
         capabilities: frozenset of `Capability`, declared.
+        implementation: how the method's steps run, copied into the results: one of
+            `IMPLEMENTATIONS` for the shipped methods ("jax-compiled", "scipy-python"); a plugin
+            says what it is (e.g. "numba").
         order: the method's classical order of accuracy (for convergence tests), or None.
         orders: optional per-situation orders where they differ from ``order``, keyed by
             `SITUATIONS` (e.g. the paper's LGVI: {"fixed_length": 2, "reel": 1}); see `order_for`.
@@ -230,10 +247,14 @@ class Integrator(abc.ABC):
         horizon_settings, paper_settings, expensive, cost_hint, sweep_dts: what the benchmark
             reads instead of method names (the long-horizon study, the paper's panels, the
             stability map's default run and its scheduling, the default sweep's step sizes).
+
+    Nothing in a class definition may need JAX: the registry lists and describes methods
+    without importing it (JAX is imported inside the functions that trace and compile).
     """
 
     name: ClassVar[str] = ""
     capabilities: ClassVar[frozenset[Capability]] = frozenset()
+    implementation: ClassVar[str] = "unspecified"
     order: ClassVar[int | None] = None
     orders: ClassVar[dict[str, int] | None] = None
     description: ClassVar[str] = ""
@@ -274,14 +295,18 @@ class Integrator(abc.ABC):
         atol: float | None = None,
         save_every: float | None = None,
         max_steps: int | None = None,
+        time_limit: float | None = None,
         **options,
     ) -> Trajectory:
         """Integrate ``scene`` from 0 to ``t_end`` (default ``scene.t_end``).
 
-        Fixed-step methods need ``dt``; adaptive methods need ``rtol`` and ``atol`` (and may
-        take ``dt`` as the initial or constant step when they declare FIXED_STEP too).
-        ``save_every`` is the interval between saved times in seconds (default t_end/200;
-        rounded to a multiple of dt for fixed steps). Returns a `Trajectory`.
+        Fixed-step methods need ``dt`` and refuse tolerances; adaptive methods need ``rtol``
+        and ``atol`` (and take ``dt`` as the initial step); a method that is both takes ``dt``
+        alone (constant step) or ``rtol`` and ``atol`` (adaptive), never both. ``save_every``
+        is the interval between saved times in seconds (default t_end/200; rounded to a
+        multiple of dt for fixed steps). ``max_steps`` bounds the steps, ``time_limit`` the
+        run's wall-clock seconds (after compilation); running out of either ends the run with
+        status ``max_steps`` / ``time_limit``. Returns a `Trajectory`.
         """
 
     def __repr__(self) -> str:

@@ -1,10 +1,10 @@
-"""Symmetric LGVI (MODEL.md §9) and its fourth-order compositions.
+"""Symmetric LGVI (docs/equations.md, "The symmetric LGVI") and its fourth-order compositions.
 
-The paper's LGVI (`integrators.lgvi`, MODEL.md §6) evaluates the s_p-dependent mass terms and
+The paper's LGVI (`integrators.lgvi`) evaluates the s_p-dependent mass terms and
 the forcing at the left end of the step, which makes it first order while the string is
 reeled. ``lgvi_sym`` evaluates the mass terms at the step midpoint and every force once at the
 midpoint with the secant velocity: the forced discrete map is self-adjoint, so second order
-everywhere. It is the same time loop, structured solver and guards as ``lgvi``; only the
+everywhere. It is the same step, structured solver and lifecycle as ``lgvi``; only the
 discrete Lagrangian differs (`integrators._lgvi_core.DiscreteLagrangian(symmetric=True)`), and
 at fixed length without axial damping it is the same computation as ``lgvi``.
 
@@ -39,7 +39,7 @@ class LGVISym(LGVI):
     # retrieval (N = 10, full horizons). Measured: 6.2e-6 m at 0.3125 ms on deployment, so two
     # more halvings than the shared list.
     sweep_dts = (0.005, 0.0025, 0.00125, 0.000625, 0.0003125, 0.00015625, 0.000078125)
-    description = "symmetric LGVI (MODEL.md §9): midpoint mass terms and forcing, second order while reeling"
+    description = "symmetric LGVI: midpoint mass terms and forcing, second order while reeling"
 
 
 # The compositions differ from lgvi_sym only by their coefficients (and what follows from them).

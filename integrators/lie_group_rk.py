@@ -50,7 +50,8 @@ from __future__ import annotations
 from typing import Callable, ClassVar
 
 from integrators.base import Capability
-from integrators.lifecycle import FixedStepMethod, ODEProblem
+from integrators.fixed_step import FixedStepMethod
+from integrators.lifecycle import ODEProblem
 from integrators.rhs import closed_form_of
 from models._jax import jax, jnp
 from models.model import hat, quat_to_rot

@@ -1,47 +1,67 @@
-"""One run lifecycle, shared by every integrator (issue #14).
+"""One run lifecycle, shared by every integrator.
 
 What every ``solve()`` must do apart from taking steps lives here, once:
 
-* **validation** of the arguments, before any work (`resolve_scene`, `check_positive`,
-  `check_tolerances`, `check_max_steps`, `check_options`, `check_fixed_step`);
+* **validation** of the arguments, before any work (`start_run`: the step mode a method's
+  capabilities allow, the horizon and its plausibility, the save interval, the budgets, the
+  options a method declares);
 * the **save grid** (`integrators.base.save_times`, `step_indices` for a fixed step);
 * the **guards** (`Guards`): the energy balance bound (from the model's own energy scale,
   `StringPendulum.energy_scale`), the blow-up / non-finite state, the deployed-length limits.
   Their thresholds are run-time values (arguments of the compiled loops), not constants baked
-  into compiled code;
-* **status codes and reasons** (`Status`, `blowup_reason`, `length_reason`, `energy_reason`);
+  into compiled code. The policy, the same for every method: the cheap state guards after
+  every step, the energy balance at saved points only;
+* **status codes and reasons** (`Status`, `blowup_reason`, `length_reason`, `energy_reason`,
+  `Run.time_limit_reason`);
+* **budgets**: ``max_steps`` and the wall-clock ``time_limit`` (`Run.out_of_time`);
 * **typed stats** (`RunStats`);
-* **timing**: compile vs run (`integrators.base.stamp_wall_time`: the whole call minus compile);
+* **timing**: setup and compilation booked apart from the run (`Run.setup`, `Run.compiled`,
+  bounded compile caches `CompileCache`), run time = the whole call minus those
+  (`integrators.base.stamp_wall_time`);
 * **Trajectory assembly** from quaternion ODE states (`ode_trajectory`).
 
-And the small contract of a fixed-step method, `FixedStepMethod`: a plugin author writes how
-one step is taken (``step``; optionally ``init`` / ``state`` when the method carries more than
-the ODE state) and gets all of the above for free. See integrators/README.md.
+Two templates use them: `integrators.fixed_step.FixedStepMethod` (a method writes one step) and
+`LibraryAdapter` (an adapter writes only how it calls its library: `integrate`). See
+integrators/README.md. Nothing here imports JAX at module level.
 """
 
 from __future__ import annotations
 
 import abc
 import functools
+import math
+import sys
 import time
-from dataclasses import dataclass
-from typing import Any, ClassVar, TypedDict
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from typing import Any, Callable, ClassVar, TypedDict
 
 import numpy as np
 
 from integrators import rhs as _rhs
 from integrators.base import (Capability, Integrator, Status, Trajectory, build_model_timed, check_positive,
-                              energy_reason, initial_energy, save_times, stamp_wall_time)
+                              energy_reason, initial_energy, stamp_wall_time)
 
 __all__ = [
-    "BLOWUP", "FixedStepMethod", "Guards", "ODEProblem", "RunStats", "blowup_reason", "check_fixed_step",
-    "check_max_steps", "check_options", "check_positive", "check_tolerances", "energy_reason", "length_reason",
-    "ode_trajectory", "resolve_scene", "step_indices",
+    "BLOWUP", "CompileCache", "Guards", "LibraryAdapter", "MAX_PLANNED_STEPS", "MAX_SAVED_BYTES", "ODEProblem",
+    "Outcome", "Run", "RunStats", "T_END_MAX", "blowup_reason", "check_max_steps", "check_options",
+    "check_positive", "check_tolerances", "energy_reason", "length_reason", "ode_trajectory", "resolve_scene",
+    "library_attribute", "start_run", "step_indices",
 ]
 
 #: A state component beyond this magnitude counts as divergence (positions are tens of metres,
 #: velocities at most hundreds of m/s in every shipped scene). The default of `Guards.blowup`.
 BLOWUP = 1e8
+
+#: The longest horizon ``solve()`` accepts (s): the scene files' own plausible range for
+#: ``t_end`` (`models.scene.PLAUSIBLE`; tests/test_baselines.py checks they agree).
+T_END_MAX = 1e6
+#: A fixed-step run planned with more steps than this is refused before any work (the command
+#: line's limit: at ~10 µs per step on the smallest scene it is more than 3 hours).
+MAX_PLANNED_STEPS = 1e9
+#: A run whose saved trajectory would need more memory than this (bytes) is refused (the command
+#: line's limit).
+MAX_SAVED_BYTES = 8 * 2**30
 
 
 # ------------------------------------------------------------------------------------------
@@ -85,20 +105,73 @@ def check_options(name: str, options: dict, allowed: tuple[str, ...] = ()) -> No
         raise ValueError(f"{name}: unknown option(s) {', '.join(map(repr, unknown))} (allowed options: {allowed_txt})")
 
 
-def check_fixed_step(t_end, dt, save_every, max_steps) -> None:
-    """The arguments of a fixed-step run: t_end, dt > 0, dt <= t_end, optional save_every, max_steps."""
+def step_mode(method: Integrator, dt, rtol, atol) -> str:
+    """"fixed" or "adaptive": what the arguments ask of ``method``, by its declared capabilities.
+
+    A fixed-step-only method refuses tolerances (it would ignore them); an adaptive-only method
+    needs rtol and atol and takes dt as its first step; a method that is both takes dt alone
+    (constant step) or rtol and atol (adaptive), never both."""
+    fixed, adaptive = method.has(Capability.FIXED_STEP), method.has(Capability.ADAPTIVE)
+    tols = rtol is not None or atol is not None
+    if fixed and not adaptive:
+        if tols:
+            raise ValueError(f"{method.name} is a fixed-step method: rtol/atol do not apply "
+                             f"(got rtol = {rtol!r}, atol = {atol!r}; allowed: dt alone)")
+        check_positive("dt", dt)
+        return "fixed"
+    if fixed and dt is not None and tols:
+        raise ValueError(f"{method.name} takes dt (constant step) or rtol and atol (adaptive), not both "
+                         f"(got dt = {dt!r}, rtol = {rtol!r}, atol = {atol!r})")
+    if fixed and dt is not None:
+        check_positive("dt", dt)
+        return "fixed"
+    if fixed and not tols:
+        raise ValueError(f"{method.name} needs rtol and atol (adaptive; allowed: finite numbers, 0 < rtol < 1, "
+                         f"atol > 0) or dt alone (constant step; allowed: a finite number > 0)")
+    check_tolerances(rtol, atol)
+    check_positive("dt", dt, allow_none=True)  # the first step of an adaptive method, optional
+    return "adaptive"
+
+
+def check_horizon(scene, mode: str, t_end, dt, save_every) -> None:
+    """t_end plausible, the first (or every) step and the save interval inside it, and a run
+    small enough to plan: at most `MAX_PLANNED_STEPS` fixed steps, `MAX_SAVED_BYTES` saved."""
     check_positive("t_end", t_end)
-    check_positive("dt", dt)
+    if t_end > T_END_MAX:
+        raise ValueError(f"t_end = {t_end:g} is implausible (allowed: 0 < t_end <= {T_END_MAX:g} s, the range of "
+                         "the scene files)")
     check_positive("save_every", save_every, allow_none=True)
-    if max_steps is not None and (isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer))
-                                  or max_steps < 1):
-        raise ValueError(f"max_steps = {max_steps!r} is invalid (allowed: an integer >= 1)")
-    if dt > t_end:
-        raise ValueError(f"dt = {dt!r} is larger than t_end = {t_end!r}")
+    what = "dt" if mode == "fixed" else "the first step dt"
+    if dt is not None and dt > t_end:
+        raise ValueError(f"{what} = {dt!r} is larger than t_end = {t_end!r} (allowed: 0 < dt <= t_end)")
+    if save_every is not None and save_every > t_end:
+        raise ValueError(f"save_every = {save_every!r} is larger than t_end = {t_end!r} "
+                         "(allowed: 0 < save_every <= t_end)")
+    if mode == "fixed" and t_end / dt > MAX_PLANNED_STEPS:
+        raise ValueError(f"t_end = {t_end:g} s at dt = {dt:g} s would take {t_end / dt:.3g} steps (allowed: at most "
+                         f"{MAX_PLANNED_STEPS:.0e}): raise dt or shorten t_end")
+    interval = t_end / 200.0 if save_every is None else save_every
+    if mode == "fixed":
+        interval = max(interval, dt)
+    from models.layout import StateLayout  # JAX-free: the sizes the scene's effects give
+
+    lay = StateLayout.from_scene(scene)
+    points = math.floor(t_end / interval) + 2
+    size = points * 8 * (lay.nx + 2 * lay.nw + 9 + 2)  # x, velocity, momentum, attitude, work, t
+    if size > MAX_SAVED_BYTES:
+        raise ValueError(f"save_every = {interval:g} s over t_end = {t_end:g} s keeps {points:,} saved states "
+                         f"(~{size / 2**30:.3g} GiB; allowed: at most {MAX_SAVED_BYTES / 2**30:g} GiB): "
+                         "raise save_every or shorten t_end")
+
+
+def check_time_limit(time_limit) -> None:
+    check_positive("time_limit", time_limit, allow_none=True)
 
 
 def step_indices(t_end, dt, save_every, max_steps):
     """Step indices to save (0 first, the last step run last) and the number of steps run."""
+    from integrators.base import save_times
+
     n = int(np.floor(t_end / dt + 1e-9))
     idx = np.rint(save_times(t_end, save_every, dt) / dt).astype(np.int64)
     truncated = max_steps is not None and n > max_steps
@@ -116,11 +189,45 @@ def bucket(n: int) -> int:
 
 
 # ------------------------------------------------------------------------------------------
+# Compile caches
+# ------------------------------------------------------------------------------------------
+class CompileCache:
+    """Compiled functions by what they depend on (the key holds the objects themselves, e.g.
+    the model, never their ``id()``), the least recently used dropped beyond ``maxsize``."""
+
+    def __init__(self, maxsize: int = 32):
+        self.maxsize = int(maxsize)
+        self._entries: OrderedDict = OrderedDict()
+
+    def get(self, key, build: Callable[[], Any]) -> tuple[Any, float]:
+        """(the value for ``key``, seconds spent building it: 0.0 when it was cached)."""
+        if key in self._entries:
+            self._entries.move_to_end(key)
+            return self._entries[key], 0.0
+        t0 = time.perf_counter()
+        value = build()
+        seconds = time.perf_counter() - t0
+        self._entries[key] = value
+        while len(self._entries) > self.maxsize:
+            self._entries.popitem(last=False)
+        return value, seconds
+
+    def __contains__(self, key) -> bool:
+        return key in self._entries
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    def clear(self) -> None:
+        self._entries.clear()
+
+
+# ------------------------------------------------------------------------------------------
 # Guards and reasons
 # ------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Guards:
-    """The run-time thresholds every method stops by (issue #7), asked of the model.
+    """The run-time thresholds every method stops by, asked of the model.
 
     ``E0``: the energy of the initial state; ``energy_bound``: the largest |E − W − E0| (J)
     before a run is ``diverged`` (`integrators.base.energy_bound`: ENERGY_GROWTH_FACTOR × the
@@ -140,7 +247,7 @@ class Guards:
 
 def guards_timed(model) -> tuple[Guards, float]:
     """(the model's `Guards`, seconds spent computing them): 0.0 when cached. Computing them runs
-    eager JAX once per model (setup): the adapters book it with ``compile_time``, like
+    eager JAX once per model (setup): booked with ``compile_time``, like
     `integrators.base.build_model_timed`."""
     misses = _model_guards.cache_info().misses
     t0 = time.perf_counter()
@@ -170,8 +277,7 @@ def state_ok(y: np.ndarray, blowup: float = BLOWUP) -> bool:
 @functools.lru_cache(maxsize=64)
 def energy_guard(model):
     """(error, bound): ``error(y)`` = |E − W − E0| of an ODE state (float, jitted), and the bound
-    of `integrators.base.energy_bound` beyond which the run is ``diverged`` (the model's `Guards`).
-    The adapters check it on the states they save."""
+    of `integrators.base.energy_bound` beyond which the run is ``diverged`` (the model's `Guards`)."""
     from integrators.base import energy_error_ode
     from models._jax import jax
 
@@ -201,14 +307,136 @@ class RunStats(TypedDict, total=False):
     lu_decompositions: int
     newton_iterations: int
     max_newton_iterations: int
+    counts_unavailable: str
     min_step: float
     median_step: float
     max_step: float
     time_per_step: float
     wall_time: float
     compile_time: float
+    count_time: float
     event_time: float
     rhs: str
+
+
+# ------------------------------------------------------------------------------------------
+# One solve() call: its checked arguments, model, guards and clock
+# ------------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class ODEProblem:
+    """What a step sees: ``f(t, y)`` the right-hand side on the quaternion ODE state
+    y = (x, quat, w, W) (closed form by default, `integrators.rhs`), its ``layout``
+    (`models.layout.StateLayout`: slices ``y_x``, ``y_quat``, ``y_w``, ``y_work``), the ``model``
+    (`models.StringPendulum`) for anything else (energy, forces, mass matrix), and ``params``:
+    the run-time values of the method's options (`FixedStepMethod.run_parameters`, traced)."""
+
+    model: Any
+    f: Any
+    layout: Any
+    params: Any = None
+
+
+@dataclass
+class Run:
+    """One ``solve()`` call after its arguments were checked: what an integration reads, and
+    the clock that books setup and compilation apart from the run (``compile_time``)."""
+
+    method: Integrator
+    scene: Any
+    mode: str  # "fixed" or "adaptive"
+    t_end: float
+    dt: float | None
+    rtol: float | None
+    atol: float | None
+    save_every: float | None
+    max_steps: int | None
+    time_limit: float | None
+    rhs: str | None
+    options: dict
+    started: float
+    model: Any = None
+    guards: Guards | None = None
+    compile_time: float = 0.0
+
+    def setup(self, fn: Callable, *args):
+        """``fn(*args)``, its seconds booked as setup (with ``compile_time``, not the run)."""
+        t0 = time.perf_counter()
+        out = fn(*args)
+        self.compile_time += time.perf_counter() - t0
+        return out
+
+    def compiled(self, cache: CompileCache, key, build: Callable[[], Any]):
+        """``cache``'s value for ``key``, built (and its seconds booked as compilation) if missing."""
+        value, seconds = cache.get(key, build)
+        self.compile_time += seconds
+        return value
+
+    def run_time(self) -> float:
+        """Seconds of this call so far, setup and compilation excluded (`stamp_wall_time`'s)."""
+        return time.perf_counter() - self.started - self.compile_time
+
+    def out_of_time(self) -> bool:
+        return self.time_limit is not None and self.run_time() >= self.time_limit
+
+    def time_limit_reason(self, t: float, kept: str = "") -> str:
+        return (f"stopped by time_limit = {self.time_limit:g} s after {self.run_time():.3g} s of run time at "
+                f"t = {t:.6g} s (t_end = {self.t_end:g} s){kept}")
+
+    def settings(self, **extra) -> dict:
+        """The run's settings as recorded in `Trajectory.settings`."""
+        out = {"dt": self.dt, "rtol": self.rtol, "atol": self.atol, "t_end": self.t_end,
+               "save_every": self.save_every, "max_steps": self.max_steps, "time_limit": self.time_limit}
+        if self.rhs is not None:
+            out["rhs"] = self.rhs
+        out.update(extra)
+        return out
+
+    def ode_problem(self) -> ODEProblem:
+        return ODEProblem(model=self.model, f=_rhs.ode_rhs(self.model, self.rhs or _rhs.DEFAULT_RHS),
+                          layout=self.model.layout)
+
+    def finish(self, traj: Trajectory) -> Trajectory:
+        """The epilogue: compile time, run time (`stamp_wall_time`, last) and time per step."""
+        traj.stats["compile_time"] = self.compile_time
+        stamp_wall_time(traj, self.started)
+        if "steps" in traj.stats:
+            traj.stats["time_per_step"] = traj.stats["wall_time"] / max(int(traj.stats["steps"]), 1)
+        return traj
+
+
+def start_run(method: Integrator, scene, t_end, *, dt, rtol, atol, save_every, max_steps, time_limit, rhs,
+              options: dict, allowed: tuple[str, ...] = (), started: float | None = None,
+              validate: Callable[[str], Any] | None = None) -> Run:
+    """The prologue of every ``solve()``: start the clock, check every argument (ValueError
+    before any work: options, rhs, scene, step mode, horizon, budgets, and ``validate(mode)``,
+    the method's own checks of its option values), then build the model and its guards (setup,
+    booked with ``compile_time``). ``rhs`` None: the method has its own equations."""
+    started = time.perf_counter() if started is None else started
+    check_options(method.name, options, allowed)
+    if rhs is not None:
+        _rhs.check_rhs(rhs)
+    scene = resolve_scene(scene)
+    t_end = scene.t_end if t_end is None else t_end
+    mode = step_mode(method, dt, rtol, atol)
+    check_horizon(scene, mode, t_end, dt, save_every)
+    check_max_steps(max_steps)
+    check_time_limit(time_limit)
+    if validate is not None:
+        validate(mode)
+    run = Run(method=method, scene=scene, mode=mode, t_end=float(t_end), dt=None if dt is None else float(dt),
+              rtol=rtol, atol=atol, save_every=save_every, max_steps=max_steps, time_limit=time_limit, rhs=rhs,
+              options=options, started=started)
+    if "models.model" not in sys.modules:  # the first solve() of a process imports JAX: setup
+        run.setup(_import_jax)
+    run.model, setup = build_model_timed(scene)  # a first build also starts JAX's backend: setup
+    run.guards, guards_time = guards_timed(run.model)
+    run.compile_time += setup + guards_time
+    return run
+
+
+def _import_jax() -> None:
+    import models._jax  # noqa: F401  (float64 and the XLA options first)
+    import models.model  # noqa: F401
 
 
 def ode_trajectory(model, scene, t, y, *, status, reason, stats, integrator, settings) -> Trajectory:
@@ -233,187 +461,74 @@ def ode_trajectory(model, scene, t, y, *, status, reason, stats, integrator, set
 
 
 # ------------------------------------------------------------------------------------------
-# The fixed-step contract
+# The adapter template
 # ------------------------------------------------------------------------------------------
-@dataclass(frozen=True, eq=False)
-class ODEProblem:
-    """What a step sees: ``f(t, y)`` the right-hand side on the quaternion ODE state
-    y = (x, quat, w, W) (closed form by default, `integrators.rhs`), its ``layout``
-    (`models.layout.StateLayout`: slices ``y_x``, ``y_quat``, ``y_w``, ``y_work``) and the ``model``
-    (`models.StringPendulum`) for anything else (energy, forces, mass matrix)."""
+class library_attribute:
+    """A class attribute that is an object of a library, imported on first access: an adapter
+    declares ``solver = library_attribute("diffrax", "Tsit5")`` (reads as ``diffrax.Tsit5``) and
+    its class definition stays free of the library (and of JAX)."""
 
-    model: Any
-    f: Any
-    layout: Any
+    def __init__(self, module: str, name: str):
+        self.module, self.name = module, name
+
+    def __get__(self, obj, owner=None):
+        import importlib
+
+        return getattr(importlib.import_module(self.module), self.name)
+
+    def __repr__(self) -> str:
+        return f"{self.module}.{self.name}"
 
 
-_CODES = {1: Status.DIVERGED, 2: Status.LENGTH_LIMIT, 3: Status.DIVERGED}  # blow-up, length, energy
-_COMPILED: dict = {}
+@dataclass
+class Outcome:
+    """What an adapter's `LibraryAdapter.integrate` returns: the saved times and quaternion ODE
+    states it reached, how the run ended, the library's counters and extra settings."""
+
+    t: np.ndarray
+    y: np.ndarray
+    status: Status = Status.OK
+    reason: str = ""
+    stats: dict = field(default_factory=dict)
+    settings: dict = field(default_factory=dict)
 
 
-class FixedStepMethod(Integrator):
-    """A fixed-step method in the fewest lines: subclass, set ``name`` / ``order`` /
-    ``description``, write ``step``. The lifecycle (`run_fixed_step`) does the rest.
+class LibraryAdapter(Integrator):
+    """An adapter to a solver library in one method: `integrate` (how the library is called).
 
-    * ``init(ode, y0) -> carry``: the method's state from the initial ODE state (default: y0);
-    * ``step(ode, carry, t, h) -> carry``: one step of size h from time t (traced by JAX:
-      use ``jax.numpy``, no Python branches on values);
-    * ``state(ode, carry) -> y``: the ODE state of a carry (default: the carry itself).
+    The prologue (timer, argument checks, model and guards, compile accounting: `start_run`)
+    and the epilogue (the finite prefix of the saved states, the `Trajectory`, statuses,
+    `stamp_wall_time`) are the lifecycle's. ``integrate`` gets the checked `Run` and returns an
+    `Outcome`; it checks the energy balance at its saved points (`Run.guards`) and the budgets
+    (``run.max_steps``, `Run.out_of_time`)."""
 
-    ``ode`` is an `ODEProblem`. After every step the lifecycle checks the state (finite and
-    below the blow-up bound, deployed length inside its range, energy balance within the
-    bound) and stops with ``diverged`` / ``length_limit``, keeping the saved points before.
-    """
-
-    capabilities: ClassVar[frozenset[Capability]] = frozenset({Capability.FIXED_STEP})
-    #: right-hand-side evaluations per step, if the method has a fixed count: reported as
-    #: ``stats["rhs_evals"]`` (the work axis of the work-precision plot); None: not counted
-    evals_per_step: ClassVar[int | None] = None
-
-    def init(self, ode: ODEProblem, y0):
-        return y0
-
-    @abc.abstractmethod
-    def step(self, ode: ODEProblem, carry, t, h):
-        """One step of size ``h`` from time ``t``; returns the new carry."""
-
-    def state(self, ode: ODEProblem, carry):
-        return carry
+    #: the solve() options beyond the common ones (with their checks in ``integrate``)
+    option_names: ClassVar[tuple[str, ...]] = ()
 
     def solve(self, scene, t_end=None, *, dt=None, rtol=None, atol=None, save_every=None, max_steps=None,
-              rhs=_rhs.DEFAULT_RHS, **options) -> Trajectory:
-        """Fixed step ``dt``; ``rtol``/``atol`` do not apply and are ignored. ``rhs``: the
-        right-hand side ``ode.f`` ("closed_form" or "autodiff")."""
-        return run_fixed_step(self, scene, t_end, dt=dt, save_every=save_every, max_steps=max_steps, rhs=rhs,
-                              **options)
+              time_limit=None, rhs=_rhs.DEFAULT_RHS, **options) -> Trajectory:
+        """``rhs``: "closed_form" (default, O(N)) or "autodiff" (see `integrators.rhs`)."""
+        run = start_run(self, scene, t_end, dt=dt, rtol=rtol, atol=atol, save_every=save_every,
+                        max_steps=max_steps, time_limit=time_limit, rhs=rhs, options=options,
+                        allowed=self.option_names, started=time.perf_counter(),
+                        validate=lambda mode: self.check_option_values(options, mode))
+        return self.finish(run, self.integrate(run))
 
+    def check_option_values(self, options: dict, mode: str) -> None:
+        """Refuse a bad value of one of `option_names` (ValueError, before any work)."""
 
-def _make_loop(method: FixedStepMethod, ode: ODEProblem):
-    """The whole run as one function of (y0, h, save_idx, n_save, E0, energy_bound, blowup)."""
-    from integrators.base import energy_error_ode
-    from models._jax import jax, jnp
+    @abc.abstractmethod
+    def integrate(self, run: Run) -> Outcome:
+        """Call the library on ``run`` and return what it reached."""
 
-    model, lay = ode.model, ode.layout
-
-    def check(y, E0, e_bound, blowup):
-        code = jnp.where(~(jnp.all(jnp.isfinite(y)) & (jnp.max(jnp.abs(y)) < blowup)), 1, 0)
-        if lay.has_reel:
-            code = jnp.where((code == 0) & ~(model.deployed_length_margin(y[lay.y_x]) > 0.0), 2, code)
-        err = energy_error_ode(model, y, E0)
-        code = jnp.where((code == 0) & ~(err <= e_bound), 3, code)
-        return code.astype(jnp.int32), err
-
-    def run(y0, h, save_idx, n_save, E0, e_bound, blowup):
-        n_buf = save_idx.shape[0]
-        Y = jnp.zeros((n_buf, lay.ny)).at[0].set(y0)
-        K = jnp.zeros(n_buf, jnp.int32)
-        i0 = jnp.asarray(0, jnp.int32)
-        # (carry, k, code, failing state, its energy error)
-        s0 = (method.init(ode, y0), i0, i0, jnp.asarray(y0), jnp.asarray(0.0))
-
-        def inner_cond(c_):
-            (_, k, code, _, _), target = c_
-            return (k < target) & (code == 0)
-
-        def inner_body(c_):
-            (carry, k, _, _, _), target = c_
-            carry1 = method.step(ode, carry, k * h, h)
-            y1 = method.state(ode, carry1)
-            code, err = check(y1, E0, e_bound, blowup)
-            good = code == 0
-            carry = jax.tree_util.tree_map(lambda a, b: jnp.where(good, a, b), carry1, carry)
-            return (carry, jnp.where(good, k + 1, k), code, y1, err), target
-
-        def outer_cond(c_):
-            s, j, _, _ = c_
-            return (j < n_save) & (s[2] == 0)
-
-        def outer_body(c_):
-            s, j, Y, K = c_
-            s, _ = jax.lax.while_loop(inner_cond, inner_body, (s, save_idx[j]))
-            ok = s[2] == 0  # a failed step is not saved: the run keeps the saved points before it
-            Y = jnp.where(ok, Y.at[j].set(method.state(ode, s[0])), Y)
-            K = jnp.where(ok, K.at[j].set(s[1]), K)
-            return s, jnp.where(ok, j + 1, j), Y, K
-
-        s, j, Y, K = jax.lax.while_loop(outer_cond, outer_body, (s0, jnp.asarray(1, jnp.int32), Y, K))
-        _, k, code, y_fail, err = s
-        return Y, K, j, k, code, y_fail, err
-
-    return run
-
-
-def _compiled_loop(method, ode, n_buf, rhs, example_args):
-    """(AOT-compiled loop, compile seconds; 0 when cached) per (method class, model, rhs, buffer)."""
-    from models._jax import jax
-
-    key = (type(method), ode.model, rhs, n_buf)
-    hit = _COMPILED.get(key)
-    if hit is not None:
-        return hit, 0.0
-    t0 = time.perf_counter()
-    compiled = jax.jit(_make_loop(method, ode)).lower(*example_args).compile()
-    _COMPILED[key] = compiled
-    return compiled, time.perf_counter() - t0
-
-
-def run_fixed_step(method: FixedStepMethod, scene, t_end=None, *, dt=None, save_every=None, max_steps=None,
-                   rhs=_rhs.DEFAULT_RHS, guards: Guards | None = None, **options) -> Trajectory:
-    """The lifecycle of a fixed-step run: validate, build the model, compile the loop of
-    ``method.step`` with its guards, run, and assemble the `Trajectory` with status, reason,
-    stats and timing. ``guards`` overrides the model's thresholds (tests, studies)."""
-    started = time.perf_counter()  # run time = the whole call minus compilation (issue #11)
-    check_options(method.name, options)
-    _rhs.check_rhs(rhs)
-    scene = resolve_scene(scene)
-    t_end = scene.t_end if t_end is None else t_end
-    check_fixed_step(t_end, dt, save_every, max_steps)
-    t_end, dt = float(t_end), float(dt)
-
-    model, setup_time = build_model_timed(scene)
-    lay = model.layout
-    ode = ODEProblem(model=model, f=_rhs.ode_rhs(model, rhs), layout=lay)
-    model_guards, guards_time = guards_timed(model)  # setup, booked as compile time
-    guards = guards or model_guards
-    setup_time += guards_time
-    idx, n_run, truncated = step_indices(t_end, dt, save_every, max_steps)
-    n_buf = bucket(len(idx))
-    idx_buf = np.full(n_buf, idx[-1], dtype=np.int32)
-    idx_buf[: len(idx)] = idx
-    y0 = np.asarray(model.initial_ode_state(), dtype=float)
-    args = (y0, np.float64(dt), idx_buf, np.int32(len(idx)), np.float64(guards.E0), np.float64(guards.energy_bound),
-            np.float64(guards.blowup))
-    compiled, compile_time = _compiled_loop(method, ode, n_buf, rhs, args)
-
-    Y, K, j, k, code, y_fail, err = compiled(*args)
-    Y, K, y_fail = np.asarray(Y), np.asarray(K), np.asarray(y_fail)
-    n, k, code, err = int(j), int(k), int(code), float(err)
-    stats: RunStats = {"steps": k, "compile_time": compile_time + setup_time, "rhs": rhs}
-    if method.evals_per_step is not None:
-        stats["rhs_evals"] = int(method.evals_per_step) * k
-    status, reason = Status.OK, ""
-    if code:
-        status = _CODES[code]
-        where = f"step {k + 1} (t = {k * dt:.6g} s -> {(k + 1) * dt:.6g} s)"
-        kept = f"; trajectory kept up to the saved point t = {K[n - 1] * dt:.6g} s"
-        if code == 1:
-            reason = blowup_reason(where, guards.blowup) + kept
-        elif code == 2:
-            reason = length_reason(model, float(model.L - y_fail[lay.y_x][0]), f"in {where}") + kept
-            stats["event_time"] = (k + 1) * dt
-        else:
-            reason = energy_reason(err, guards.energy_bound, (k + 1) * dt, kept)
-    elif truncated:
-        status = Status.MAX_STEPS
-        reason = f"stopped after max_steps = {max_steps} steps at t = {n_run * dt:.6g} s (t_end = {t_end:g} s)"
-    settings = {"dt": dt, "t_end": t_end, "save_every": save_every, "max_steps": max_steps, "rhs": rhs}
-    traj = ode_trajectory(model, scene, K[:n] * dt, Y[:n], status=status, reason=reason, stats=stats,
-                          integrator=method.name, settings=settings)
-    stamp_wall_time(traj, started)
-    traj.stats["time_per_step"] = traj.stats["wall_time"] / max(k, 1)
-    return traj
-
-
-def clear_cache() -> None:
-    """Forget the compiled fixed-step loops (tests, memory)."""
-    _COMPILED.clear()
+    def finish(self, run: Run, out: Outcome) -> Trajectory:
+        """The epilogue: keep the finite prefix, assemble the `Trajectory`, stamp the run time."""
+        y = np.asarray(out.y, dtype=float).reshape(len(out.t), run.model.layout.ny)
+        n = finite_prefix(y, run.guards.blowup)
+        status, reason = out.status, out.reason
+        if n < len(y):
+            status, reason = Status.DIVERGED, reason or "non-finite saved state"
+        stats = {**out.stats, "rhs": run.rhs}
+        traj = ode_trajectory(run.model, run.scene, np.asarray(out.t)[:n], y[:n], status=status, reason=reason,
+                              stats=stats, integrator=self.name, settings=run.settings(**out.settings))
+        return run.finish(traj)

@@ -65,7 +65,8 @@ import numpy as np
 
 from integrators import rhs as _rhs
 from integrators.base import Capability
-from integrators.lifecycle import FixedStepMethod, ODEProblem, run_fixed_step
+from integrators.fixed_step import FixedStepMethod, run_fixed_step
+from integrators.lifecycle import ODEProblem
 from integrators.rhs import closed_form_of
 from models._jax import jax, jnp
 from models.model import quat_rate, quat_to_rot

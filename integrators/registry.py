@@ -6,7 +6,8 @@ A plugin package declares, in its own pyproject.toml::
     my_method = "my_package.module:MyIntegrator"
 
 where ``MyIntegrator`` subclasses `integrators.Integrator`. The baselines of this project are
-registered exactly that way (see this repository's pyproject.toml).
+registered exactly that way (see this repository's pyproject.toml). Loading an entry point
+imports its module only: the classes are JAX-free until they run.
 """
 
 from __future__ import annotations
@@ -70,8 +71,12 @@ def plugin_errors() -> dict[str, str]:
     return dict(_PLUGIN_ERRORS)
 
 
-def get_integrator(name: str, **options) -> Integrator:
-    """An instance of the integrator registered as ``name`` (options go to its constructor)."""
+def get_integrator(name: str) -> Integrator:
+    """An instance of the integrator registered as ``name``. (No method takes constructor
+    options: a run's options go to ``solve``.)"""
+    if not isinstance(name, str):
+        raise ValueError(f"integrator name = {name!r} is invalid (allowed: a string, one of: "
+                         f"{', '.join(available())})")
     _load_plugins()
     if name not in _REGISTRY:
         if name in _PLUGIN_ERRORS:
@@ -79,4 +84,4 @@ def get_integrator(name: str, **options) -> Integrator:
         close = difflib.get_close_matches(name, list(_REGISTRY), n=1)
         hint = f" (did you mean {close[0]!r}?)" if close else ""
         raise ValueError(f"unknown integrator {name!r}{hint}; available: {', '.join(sorted(_REGISTRY))}")
-    return _REGISTRY[name](**options)
+    return _REGISTRY[name]()

@@ -1,6 +1,6 @@
 """The right-hand side the ODE baselines (scipy, diffrax) integrate, and its Jacobian.
 
-Two implementations of the same equations (MODEL.md §5) on the quaternion ODE state:
+Two implementations of the same equations (models/README.md) on the quaternion ODE state:
 
 * ``"closed_form"`` (default): `models.closed_form.ClosedFormEOM.ode_rhs`, hand-derived, with
   an O(N) structured solve of M ẇ = F. It agrees with the autodiff path to ~1e-15
@@ -25,8 +25,6 @@ deployment N = 40 (ny = 250): 0.65 ms, 52 ms, 11 ms, 23 ms.
 from __future__ import annotations
 
 import functools
-
-from models._jax import jax
 
 #: The selectable right-hand sides; the first is the default.
 RHS_CHOICES = ("closed_form", "autodiff")
@@ -56,6 +54,8 @@ def ode_rhs(model, rhs: str = DEFAULT_RHS):
 @functools.lru_cache(maxsize=128)
 def rhs_jit(model, rhs: str = DEFAULT_RHS):
     """Jitted f(t, y) (compiled on first call, cached per model and rhs)."""
+    from models._jax import jax
+
     return jax.jit(ode_rhs(model, rhs))
 
 
@@ -63,4 +63,6 @@ def rhs_jit(model, rhs: str = DEFAULT_RHS):
 def jacobian_jit(model, rhs: str = DEFAULT_RHS):
     """Jitted ∂f/∂y by forward-mode autodiff of the chosen right-hand side (see the module
     docstring for why forward mode)."""
+    from models._jax import jax
+
     return jax.jit(jax.jacfwd(ode_rhs(model, rhs), argnums=1))

@@ -1,4 +1,4 @@
-"""The baseline integrators (scipy RK45 / Radau / DOP853, diffrax Tsit5 / Kvaerno5).
+"""The baseline integrators (scipy RK45 / Radau / DOP853, diffrax Tsit5 / Dopri5 / Dopri8 / Kvaerno5).
 
 Short horizons and N = 4 throughout; every compiled function is built once per module
 (model-level jit caches, and the diffrax adapter's own cache keyed by scene and settings shape).
@@ -16,7 +16,7 @@ from models import build_model, load_scene
 from models._jax import jax, jnp
 from models.model import quat_to_rot
 
-BASELINES = ["rk45", "radau", "dop853", "tsit5", "kvaerno5"]
+BASELINES = ["rk45", "radau", "dop853", "tsit5", "dopri5", "dopri8", "kvaerno5"]
 T = 0.5
 SAVE = 0.05  # 11 saved points: most diffrax runs below share one compiled solve
 
@@ -90,8 +90,25 @@ def test_baselines_are_entry_point_plugins():
         assert Capability.ADAPTIVE in integ.capabilities
     assert Capability.IMPLICIT in get_integrator("radau").capabilities
     assert Capability.IMPLICIT in get_integrator("kvaerno5").capabilities
-    assert Capability.FIXED_STEP in get_integrator("tsit5").capabilities
-    assert get_integrator("dop853").order == 8
+    for name in ("tsit5", "dopri5", "dopri8"):  # adaptive or constant step
+        assert Capability.FIXED_STEP in get_integrator(name).capabilities
+    assert get_integrator("dop853").order == get_integrator("dopri8").order == 8
+
+
+def test_dopri5_is_rk45s_tableau_and_dopri8_is_not_dop853s():
+    """dopri5 runs scipy RK45's Dormand-Prince 5(4) pair compiled; dopri8 is an eighth-order
+    Dormand-Prince pair, but another tableau than DOP853's (as its description says)."""
+    import scipy.integrate as si
+    from diffrax._solver.dopri5 import _dopri5_tableau
+    from diffrax._solver.dopri8 import _dopri8_tableau
+
+    # diffrax lists the nodes and rows of the stages after the first (its 7th is the FSAL stage)
+    np.testing.assert_allclose(_dopri5_tableau.c[:5], si.RK45.C[1:], rtol=0, atol=1e-15)
+    for i, row in enumerate(_dopri5_tableau.a_lower[:5]):
+        np.testing.assert_allclose(row, si.RK45.A[i + 1, : i + 1], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(_dopri5_tableau.b_sol[:6], si.RK45.B, rtol=0, atol=1e-15)
+    assert not np.allclose(_dopri8_tableau.c[:5], si.DOP853.C[1:6])  # other nodes (0.0556 vs 0.0526, ...)
+    assert "not its tableau" in get_integrator("dopri8").description
 
 
 @pytest.mark.parametrize(
@@ -109,6 +126,9 @@ def test_baselines_are_entry_point_plugins():
         ("tsit5", dict(dt=-1e-3), "dt"),
         ("tsit5", dict(rtol=1e-6), "atol"),
         ("tsit5", dict(rtol=1e-6, atol=1e-8, min_step=0.0), "min_step"),
+        ("tsit5", dict(dt=1e-3, min_step=1e-6), "min_step applies to adaptive steps only"),
+        ("dopri5", dict(dt=1e-3, rtol=1e-6, atol=1e-8), "not both"),
+        ("dopri8", dict(), "rtol"),
         ("kvaerno5", dict(dt=1e-3), "rtol"),
         ("kvaerno5", dict(rtol=1e-6, atol=1e-8, bogus=1), "bogus"),
     ],
@@ -127,7 +147,8 @@ def test_bad_arguments_raise_before_work(scene, name, kwargs, match):
 AGREE_TOL = 1e-9
 
 
-@pytest.mark.parametrize("name", ["rk45", "radau", "tsit5", "kvaerno5", "rk45_projected"])
+@pytest.mark.parametrize("name", ["rk45", "radau", "tsit5", "dopri5", pytest.param("dopri8", marks=pytest.mark.slow),
+                                  "kvaerno5", "rk45_projected"])
 def test_adaptive_baselines_agree_with_dop853(scene, reference, name):
     traj = get_integrator(name).solve(scene, T, rtol=1e-10, atol=1e-12, save_every=SAVE)
     assert traj.ok, traj.reason
@@ -141,19 +162,29 @@ def test_adaptive_baselines_agree_with_dop853(scene, reference, name):
     assert err_pos < AGREE_TOL
     assert err_att < AGREE_TOL
     assert traj.stats["steps"] > 0 and traj.stats["wall_time"] >= 0 and "compile_time" in traj.stats
+    # every count is there, or the stats say why not: each attempted step evaluates the right-hand side
+    if name == "kvaerno5":
+        assert "count_evaluations=True" in traj.stats["counts_unavailable"] and "rhs_evals" not in traj.stats
+    else:
+        assert "counts_unavailable" not in traj.stats
+        assert traj.stats["rhs_evals"] >= traj.stats.get("attempted_steps", traj.stats["steps"])
 
 
-def test_tsit5_constant_step_takes_t_over_dt_steps_and_agrees_with_dop853(scene, reference):
-    """Constant-step Tsit5: exactly T/dt steps, none rejected, and the reference solution. (Its
-    order is measured in tests/test_orders.py; here the error at dt = 1e-3 is already at the
-    reference's own level, measured 3e-12 m at both 2 ms and 1 ms, so no order can be seen.)"""
-    traj = get_integrator("tsit5").solve(scene, T, dt=1e-3, save_every=SAVE)
+# dopri5/dopri8 constant steps are also run by tests/test_orders.py; here in the slow set
+@pytest.mark.parametrize("name", ["tsit5", pytest.param("dopri5", marks=pytest.mark.slow),
+                                  pytest.param("dopri8", marks=pytest.mark.slow)])
+def test_constant_step_takes_t_over_dt_steps_and_agrees_with_dop853(scene, reference, name):
+    """Constant-step Tsit5, Dopri5, Dopri8: exactly T/dt steps, none rejected, and the reference
+    solution. (Their orders are measured in tests/test_orders.py; here the error at dt = 1e-3 is
+    already at the reference's own level, measured 3e-12 m for Tsit5 at both 2 ms and 1 ms, so
+    no order can be seen.)"""
+    traj = get_integrator(name).solve(scene, T, dt=1e-3, save_every=SAVE)
     assert traj.ok, traj.reason
     assert traj.stats["steps"] == round(T / 1e-3) and traj.stats["rejected_steps"] == 0
     assert traj.settings["step_size"] == "constant"
     np.testing.assert_allclose(traj.t, reference.t, atol=1e-12)
     err = np.abs(body_position(scene, traj) - body_position(scene, reference)).max()
-    print(f"tsit5 dt=1e-3: body position err {err:.2e}")
+    print(f"{name} dt=1e-3: body position err {err:.2e}")
     assert err < AGREE_TOL  # the adaptive baselines' bound (see AGREE_TOL)
 
 
@@ -184,6 +215,26 @@ def test_agreement_with_lgvi(scene, reference):
     # second order: measured 3.4e-6 m at dt = 1e-3 (1.4e-5 at 2e-3)
     assert err_pos < 2e-5
     assert err_att < 2e-5
+
+
+@pytest.mark.slow
+def test_kvaerno5_counts_its_evaluations_and_jacobians_in_a_replay():
+    """count_evaluations=True: the counts of the run, from a replay with a counting right-hand
+    side; the run itself (its steps, states and run time) is the plain one."""
+    sc = load_scene("fixed_length", elements=2)
+    kv = get_integrator("kvaerno5")
+    plain = kv.solve(sc, 0.2, rtol=1e-6, atol=1e-8, save_every=0.1)
+    counted = kv.solve(sc, 0.2, rtol=1e-6, atol=1e-8, save_every=0.1, count_evaluations=True)
+    assert plain.ok and counted.ok and "counts_unavailable" not in counted.stats
+    np.testing.assert_array_equal(counted.x, plain.x)
+    st = counted.stats
+    assert st["attempted_steps"] == plain.stats["attempted_steps"] and st["count_time"] > 0
+    # full Newton: a Jacobian (and an LU) per iteration, at least one iteration for each of 6 implicit stages
+    assert st["jac_evals"] == st["lu_decompositions"] >= 6 * st["attempted_steps"] and st["rhs_evals"] >= st["jac_evals"]
+    print(f"kvaerno5 counts: {st['attempted_steps']} attempted steps, {st['rhs_evals']} evaluations, "
+          f"{st['jac_evals']} Jacobians")
+    with pytest.raises(ValueError, match="count_evaluations"):
+        kv.solve(sc, 0.2, rtol=1e-6, atol=1e-8, count_evaluations="yes")
 
 
 # ------------------------------------------------------------------------------------------

@@ -1,4 +1,4 @@
-"""Hard cases (issue #7): the hard scenes, the divergence guards, and every run either stays
+"""Hard cases: the hard scenes, the divergence guards, and every run either stays
 bounded or stops with a named status, keeping only finite results.
 
 Fast tests use small N or short horizons where the point survives (each model compiles once,
@@ -99,11 +99,10 @@ def test_cayley_guard_stops_a_step_that_rotates_too_far(monkeypatch):
     scene = load_scene("fast_spin", elements=2)
     ok = get_integrator("lgvi").solve(scene, t_end=0.2, dt=0.01)  # compiled with the default bound
     assert ok.ok, ok.reason
-    compiled = dict(lgvi_module._COMPILED)
     # the bound is a run-time argument of the compiled loop: lowering it reuses the same compiled run
     monkeypatch.setattr(lgvi_module, "CAYLEY_BOUND", 0.1)
     tr = get_integrator("lgvi").solve(scene, t_end=0.2, dt=0.01)
-    assert lgvi_module._COMPILED == compiled
+    assert tr.stats["compile_time"] < 0.5 * ok.stats["compile_time"]
     assert tr.status == Status.DIVERGED.value and "Cayley parameter" in tr.reason
     assert tr.stats["steps"] == 0 and len(tr.t) == 1
     finite_diagnostics(scene, tr)

@@ -1,4 +1,4 @@
-"""The symmetric LGVI (MODEL.md §9) and its fourth-order compositions: discrete equations
+"""The symmetric LGVI (docs/equations.md, "The symmetric LGVI") and its fourth-order compositions: discrete equations
 against autodiff of L_d^sym, the production step, orders while reeling, conservation, and
 identity with the paper's LGVI at fixed length.
 
@@ -24,8 +24,8 @@ C_DAMP = 0.5
 
 
 def test_registered_with_honest_declarations():
-    """The declared orders are MODEL.md's (§6: the paper's LGVI 2 at fixed length, 1 while reeling;
-    §9: symmetric 2; §9.7: compositions 4); tests/test_orders.py and test_orders_while_reeling
+    """The declared orders are the derivations' (the paper's LGVI 2 at fixed length, 1 while reeling;
+    symmetric 2; its compositions 4); tests/test_orders.py and test_orders_while_reeling
     below measure them."""
     for name, order in (("lgvi_sym", 2), ("lgvi_yoshida4", 4), ("lgvi_suzuki4", 4)):
         integ = get_integrator(name)
@@ -72,17 +72,17 @@ def test_symmetric_residuals_match_autodiff(effects, rng):
     ctx = dl.context(0.3, x, R, model.potential_gradient(x, R), jnp.asarray(auto_k))
     ctx = dl.with_forcing(ctx, h, ds, dq)  # the midpoint string force at this step
     scale = check_step_equations(model, dl, ctx, h, dx, c, F, auto_k, auto_k1)
-    if lay.has_reel:  # and it is not the §6 scheme: the ∇C terms and the midpoint forcing matter
+    if lay.has_reel:  # and it is not the paper's scheme: the ∇C terms and the midpoint forcing matter
         auto6 = autodiff_momenta(model, h, 0.3, x, R, dx, F)[0]
         assert np.max(np.abs(auto6 - auto_k)) > 1e-6 * scale
-    # the step's work is the midpoint force times Δx (MODEL.md §9.3)
+    # the step's work is the midpoint force times Δx (docs/equations.md, "The symmetric LGVI")
     wsec = jnp.zeros(lay.nw).at[: lay.nx].set(dx / h)
     expect = float(model.generalized_force(0.3 + h / 2, x + dx / 2, wsec)[: lay.nx] @ dx)
     assert float(dl.work(ctx, h, ds, dq)) == pytest.approx(expect, rel=1e-12, abs=1e-15)
 
 
 def test_symmetric_discrete_lagrangian_is_self_adjoint(rng):
-    """|L_d(g0, g1, h) + L_d(g1, g0, −h)| is round-off for L_d^sym, O(h²)·L_d for §6 while reeling."""
+    """|L_d(g0, g1, h) + L_d(g1, g0, −h)| is round-off for L_d^sym, O(h²)·L_d for the paper's while reeling."""
     from test_lgvi import discrete_lagrangian
     model = build_model(load_scene("retrieval", elements=4))
     x, R, w = (jnp.asarray(a) for a in random_state(model, rng, scale=0.05))

@@ -1,4 +1,4 @@
-"""A sweep you can stop, resume and trust (issue #15), tested on real subprocesses.
+"""A sweep you can stop, resume and trust, tested on real subprocesses.
 
 The sweeps are tiny (fixed_length with one element, 0.04 s). A test-only plugin, `test_slow`
 (the LGVI, sleeping before steps smaller than 6 ms while REELBENCH_TEST_SLEEP is set), keeps

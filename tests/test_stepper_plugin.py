@@ -1,4 +1,4 @@
-"""The fixed-step contract (issue #14): the README's plugin, run as an outside package.
+"""The fixed-step contract: the README's plugin, run as an outside package.
 
 The plugin is the ```python block of integrators/README.md that defines a `FixedStepMethod`
 (symplectic Euler), written to a temporary package registered through the
@@ -8,6 +8,7 @@ It has no guard code of its own, yet it stops ``diverged`` past its stability li
 runs.md and the work-precision plot.
 """
 
+import functools
 import re
 import subprocess
 import sys
@@ -141,3 +142,46 @@ def test_it_runs_in_the_benchmark_into_tables_and_the_work_precision_plot(site, 
     plots.work_precision(runs, "fixed_length", tmp_path)
     assert len(labels[0]) == len(plots.COST_AXES)
     assert all(f"{NAME} (fixed dt)" in row for row in labels[0])
+
+
+# ------------------------------------------------------------------------------------------
+# The second README example: a step returning a StepResult
+# ------------------------------------------------------------------------------------------
+@functools.lru_cache(maxsize=1)
+def readme_step_result_plugin():
+    """The README's example of a step that returns (carry, StepResult) (one class object, so
+    that the tests share its compiled loops)."""
+    blocks = re.findall(r"```python\n(.*?)```", README.read_text(), re.S)
+    code = next(b for b in blocks if "StepResult(" in b and "(FixedStepMethod)" in b)
+    namespace = {}
+    exec(compile(code, "implicit_midpoint.py", "exec"), namespace)
+    return namespace["ImplicitMidpoint"]
+
+
+def test_a_step_returning_a_step_result_counts_its_iterations_and_fails_by_its_code():
+    method = readme_step_result_plugin()()
+    assert method.name == "implicit_midpoint" and method.implementation == "jax-compiled"
+    scene = load_scene("fixed_length", elements=3)
+    ok = method.solve(scene, t_end=0.2, dt=0.002, save_every=0.02)
+    assert ok.ok, ok.reason
+    # the iterations of every step are summed (a few fixed-point iterations per step, converged)
+    steps, its = ok.stats["steps"], ok.stats["newton_iterations"]
+    assert steps == 100 and 2 * steps <= its <= 50 * steps and 2 <= ok.stats["max_newton_iterations"] <= 50
+    # second order, like the LGVI at this step: within 1e-4 m of it
+    lgvi = get_integrator("lgvi").solve(scene, t_end=0.2, dt=0.002, save_every=0.02)
+    assert np.abs(ok.x - lgvi.x).max() < 1e-4
+    # its options reach the traced step as run-time values: a cap of 2 iterations fails at once
+    bad = method.solve(scene, t_end=0.2, dt=0.002, save_every=0.02, max_iter=2)
+    assert bad.status == "newton_failed" and bad.reason.startswith("step 1 ")
+    assert bad.stats["steps"] == 0 and len(bad.t) == 1 and bad.stats["compile_time"] < ok.stats["compile_time"] / 2
+    with pytest.raises(ValueError, match="unknown option"):
+        method.solve(scene, t_end=0.2, dt=0.002, bogus=1)
+
+
+def test_both_step_forms_run_on_the_same_lifecycle(plugin):
+    """The old-style step (a carry) reports no iteration counts; the StepResult one does."""
+    scene = load_scene("fixed_length", elements=3)
+    plain = plugin.solve(scene, t_end=0.02, dt=0.002)
+    counted = readme_step_result_plugin()().solve(scene, t_end=0.02, dt=0.002)
+    assert "newton_iterations" not in plain.stats and "newton_iterations" in counted.stats
+    assert set(plain.stats) - {"rhs_evals"} == set(counted.stats) - {"newton_iterations", "max_newton_iterations"}
