@@ -168,11 +168,12 @@ def test_fresh_ignores_the_rows_already_there(tmp_path, monkeypatch):
         seen["previous"] = kw["previous"]
         raise Stop
 
-    monkeypatch.setattr(store, "read_previous", lambda *a, **k: [{"run_key": "x"}])
+    earlier = {"run_key": "x", "status": "ok", "scene": "elsewhere", "integrator": "lgvi", "setting": "dt=0.01"}
+    monkeypatch.setattr(store, "read_runs", lambda *a, **k: store.StoredRuns([earlier], []))
     monkeypatch.setattr(runner, "execute", execute)
     args = ["run", "--scenes", "fixed_length", "--integrators", "lgvi", "--dts", "0.01", "--t-end", "0.02",
             "--no-figures", "--out", str(tmp_path)]
-    for extra, previous in (([], [{"run_key": "x"}]), (["--fresh"], [])):
+    for extra, previous in (([], [earlier]), (["--fresh"], [])):
         with pytest.raises(Stop):
             cli.main(args + extra)
         assert seen["previous"] == previous
