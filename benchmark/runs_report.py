@@ -74,6 +74,8 @@ def cheapest_table(runs: pd.DataFrame) -> pd.DataFrame:
     targets = [(m, t) for m, t, _ in TARGETS if m in runs]
     if runs.empty or not targets:
         return pd.DataFrame(columns=cheap.COLUMNS + ["among"])
+    # a table from before the timing spread: each cost is its own interval, widened to the resolution
+    runs = runs.assign(**{c: np.nan for c in cheap.WALL_COLUMNS if c not in runs})
     ranked, only_compiled = compiled_rows(runs)
     parts = []
     if not ranked.empty:

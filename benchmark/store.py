@@ -153,7 +153,7 @@ def check_row(row: dict, known_statuses=None) -> str | None:
     """Why a row read back from a runs table cannot be trusted, or None when it can: its
     identity columns present, its status one of `statuses`, its numbers numbers (counts,
     errors and costs finite and non-negative where present, settings positive), its run times
-    ordered (low <= median <= high), an error for every finished run with a reference metric,
+    ordered (low <= median <= high), accuracy values for a finished run and none for another,
     and its digest (`row_digest`) the one written with it (a row without a digest, from an
     older table, is checked by the other rules alone)."""
     for c in ("scene", "integrator", "setting", "status"):
@@ -180,6 +180,9 @@ def check_row(row: dict, known_statuses=None) -> str | None:
     if status == "ok":
         if not numbers.get("run_time", np.nan) == numbers.get("run_time", np.nan):
             return "a finished run without a run_time"
+        present = [c for c in ERROR_COLUMNS if c in row]
+        if present and not any(numbers[c] == numbers[c] for c in present):
+            return "a finished run without any accuracy value"
         lo, mid, hi = (numbers.get(c, np.nan) for c in ("run_time_low", "run_time", "run_time_high"))
         if (lo == lo and lo > mid * (1 + 1e-12)) or (hi == hi and hi < mid * (1 - 1e-12)):
             return f"run_time_low <= run_time <= run_time_high does not hold ({lo:g}, {mid:g}, {hi:g})"

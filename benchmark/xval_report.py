@@ -15,6 +15,7 @@ from typing import NamedTuple
 import numpy as np
 import pandas as pd
 
+from benchmark import styles
 from benchmark.plots import plt, save_figure, style_axes
 from benchmark.report import Provenance, fmt
 from benchmark.store import write_npz, write_table
@@ -114,30 +115,39 @@ def error_vs_limit(study: Study, case: str) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def _looks(names) -> list[dict]:
+    """One look per curve: its name's style (`benchmark.styles.style`, the same in every figure),
+    hollow, with shrinking markers, since curves of the same discrete model coincide."""
+    return [dict(styles.style(n).kwargs("rtol"), markersize=ms) for n, ms in zip(names, [9, 7, 6, 5, 4, 3])]
+
+
 def plot(study: Study, case: str, path: Path) -> Path:
     runs, Ns = study.runs, study.elements(case)
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11, 4.2))
-    # curves of the same discrete model coincide: distinct markers and dashes keep each visible
-    styles = [dict(marker=m, linestyle=ls, markersize=ms, markerfacecolor="none")
-              for m, ls, ms in zip("osx^+d", ["-", "--", ":", "-.", "-", "--"], [9, 7, 6, 5, 4, 3])]
-    for (a, b), st in zip(PAIRS, styles):
+    handles, labels = [], []
+    pair_names = [f"{a} − {b}" for a, b in PAIRS]
+    for (a, b), name, look in zip(PAIRS, pair_names, _looks(pair_names)):
         vals = [(N, _max_dist(runs[(case, N)][a].tip, runs[(case, N)][b].tip)) for N in Ns
                 if a in runs[(case, N)] and b in runs[(case, N)]]
         if vals:
-            ax.loglog(*zip(*vals), label=f"{a} − {b}", **st)
+            handles += ax.loglog(*zip(*vals), **look)
+            labels.append(f"left: {name}")
     style_axes(ax, xlabel="N (elements)", ylabel="max over t of tip distance [m]", title=f"{case}: codes at equal N",
-               grid=None, legend=7)
-    for code, st in zip(TRAJ_CODES, styles):
+               grid=None, legend=None)
+    for code, look in zip(TRAJ_CODES, _looks(TRAJ_CODES)):
         have = [N for N in Ns if code in runs[(case, N)]]
         vals = [(N2, _max_dist(runs[(case, N1)][code].tip, runs[(case, N2)][code].tip)) for N1, N2 in zip(have[:-1], have[1:])]
         if vals:
-            ax2.loglog(*zip(*vals), label=code, **st)
+            handles += ax2.loglog(*zip(*vals), **look)
+            labels.append(f"right: {code}")
     if Ns:
         ref = np.array(Ns[1:], float)
-        ax2.loglog(ref, 0.5 * (ref / ref[0]) ** -2, "k:", label="slope −2")
+        handles += ax2.loglog(ref, 0.5 * (ref / ref[0]) ** -2, "k:")
+        labels.append("right: slope −2")
     style_axes(ax2, xlabel="N", ylabel="max |tip(N) − tip(N/2)| [m]", title=f"{case}: self-convergence", grid=None,
-               legend=7)
+               legend=None)
     fig.tight_layout()
+    styles.legend_outside(fig, handles, labels)
     return save_figure(fig, path, dpi=120)
 
 
