@@ -252,7 +252,8 @@ def _sweep_figures(request: SweepRequest, merged, log) -> list[tuple[str, str]]:
         if scene not in run_scenes and (out / name).is_file():
             figures.append((name, "drawn by an earlier run (this run did not include the scene)"))
     if request.energy_horizon > 0:
-        figures += run_horizon_study(request.energy_horizon, out, request.overrides, request.jobs, log,
+        figures += run_horizon_study(request.energy_horizon, out, request.overrides,
+                                     0 if request.executor == "serial" else request.jobs, log,
                                      selected=request.integrators)
     return figures
 
@@ -301,7 +302,8 @@ def _read_horizon(path: Path):
 def run_horizon_study(t_end: float, out: Path, overrides: tuple = (), jobs: int | None = None,
                       log: Callable[[str], None] = log_stderr, selected=None) -> list[tuple[str, str]]:
     """Energy error vs time on the fixed-length scene over a long horizon, one job per method in
-    parallel workers (one after another they would be the main job's longest tail):
+    parallel workers (``jobs``; 0: in this process; one after another they would be the main
+    job's longest tail):
     energy_horizon.csv and its figure. ``selected``: the methods a run asked for (None: all);
     of those that declare horizon settings (`benchmark.sweep.horizon_methods`), a method whose
     history is already in energy_horizon.csv for the same settings, horizon, scene and code is
@@ -334,9 +336,9 @@ def run_horizon_study(t_end: float, out: Path, overrides: tuple = (), jobs: int 
         tasks = [Task(horizon.SCENE, m.name, dt=m.settings.get("dt"), rtol=m.settings.get("rtol"), t_end=t_end)
                  for m in todo]
         costs = runner.task_costs(tasks)
-        workers = jobs or min(len(todo), os.cpu_count() or 1)
+        workers = jobs if jobs is not None else min(len(todo), os.cpu_count() or 1)  # 0: this process
         log(f"horizon: {', '.join(m.name for m in todo)} to t = {t_end:g} s ...")
-        with engine.Heartbeat(f"horizon study to t = {t_end:g} s", sum(costs) / workers, log=log):
+        with engine.Heartbeat(f"horizon study to t = {t_end:g} s", sum(costs) / max(workers, 1), log=log):
             rows = engine.run_jobs(horizon.run_job, jobs_, workers=workers,
                                    crash_row=lambda i, exc: horizon.crash_row(jobs_[i], exc),
                                    describe=horizon.describe, cost=lambda i: costs[i], kind=lambda i: todo[i].name,

@@ -63,12 +63,20 @@ def _clash_caption(names) -> str:
 
 
 def _log_ticks(ax) -> None:
-    """At most six labelled decades on each log axis (the labels of more overlap in a panel this
-    narrow); a range of a decade or two keeps matplotlib's labelled minor ticks."""
-    from matplotlib.ticker import LogLocator
+    """Tick labels that do not overlap on a narrow log panel: a span of two decades or more gets
+    one label per decade (at most six), a shorter one labels 1, 2 and 5 of each decade in plain
+    numbers; minor ticks stay unlabelled (matplotlib's labelled minor ticks run into each other)."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
-    for axis in (ax.xaxis, ax.yaxis):
-        axis.set_major_locator(LogLocator(base=10.0, numticks=6))
+    for axis, (lo, hi) in ((ax.xaxis, ax.get_xlim()), (ax.yaxis, ax.get_ylim())):
+        if not (lo > 0 and hi > lo):
+            continue
+        if np.log10(hi / lo) >= 2:
+            axis.set_major_locator(LogLocator(base=10.0, numticks=6))
+        else:
+            axis.set_major_locator(LogLocator(base=10.0, subs=(1.0, 2.0, 5.0)))
+            axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+        axis.set_minor_formatter(NullFormatter())
 
 
 def work_precision(runs: pd.DataFrame, scene: str, out_dir: Path) -> Path:

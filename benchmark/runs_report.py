@@ -21,6 +21,7 @@ import pandas as pd
 from benchmark import cheapest as cheap
 from benchmark.metrics import WORK_DEFINITION
 from benchmark.reference import REFERENCE_METHOD
+from benchmark.sweep import MAX_REPEATS, MIN_REPEATS, TIMING_BUDGET
 from benchmark.report import Provenance, code_list, markdown_table
 from models.io import atomic_write_text
 
@@ -56,7 +57,8 @@ def implementations(runs: pd.DataFrame) -> pd.Series:
     """Each row's declared implementation ("" where the table or the method has none)."""
     if "implementation" not in runs:
         return pd.Series("", index=runs.index)
-    return runs["implementation"].fillna("").astype(str)
+    impl = runs["implementation"]
+    return impl.astype(object).where(impl.notna(), "").astype(str)
 
 
 def compiled_rows(runs: pd.DataFrame) -> tuple[pd.DataFrame, bool]:
@@ -329,8 +331,8 @@ def write_readme(out_dir: Path, runs: pd.DataFrame, orders: pd.DataFrame, *, pro
 `runs.md` is the same as a table; `cheapest.csv` each method's cost at each target below, with
 its interval and verdict. Run time is the whole `solve()` call (output conversion included, e.g.
 the LGVI's velocity recovery) minus its compilation, timed in a separate pass from the error
-computation: `run_time` is the median of `timing_repeats` solves (as many as fit in a 2 s budget,
-3 to 30; one when a single solve takes longer), `run_time_low` the fastest, `run_time_high` the
+computation: `run_time` is the median of `timing_repeats` solves (as many as fit in a {TIMING_BUDGET:g} s budget,
+{MIN_REPEATS} to {MAX_REPEATS}; one when a single solve takes longer), `run_time_low` the fastest, `run_time_high` the
 90th percentile (10 or more solves) or the slowest, `load_avg` the machine's 1-minute load when
 the row ran. `us_per_eval` is the run time per RHS-equivalent evaluation and `implementation`
 the method's declared kind (`jax-compiled` or `scipy-python`).

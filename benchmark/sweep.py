@@ -37,8 +37,12 @@ QUICK_T_END = 1.0
 #: clamp(floor(TIMING_BUDGET / first solve), --repeats, MAX_REPEATS) times, or once when its
 #: first solve alone exceeds the budget (its noise is small next to its length). The timing
 #: noise measured on a shared 2-core machine (`benchmark.cheapest.WALL_RESOLUTION`): medians of
-#: 10 consecutive solves spread 1.2-1.3x, of 5 1.5-1.85x, single solves 2.2-2.7x.
-TIMING_BUDGET = 2.0
+#: 10 consecutive solves spread 1.2-1.3x, of 5 1.5-1.85x, single solves 2.2-2.7x. 1 s, not 2 s:
+#: over the committed default sweep's run times the timed solves add 134 s of worker time at a
+#: 2 s budget and 58 s at 1 s (57 s before the spread was recorded), i.e. about 40 s more wall
+#: time on 2 cores at 2 s, over the ~5 min the default sweep should take; at 1 s every run
+#: under 0.1 s still gets 10 or more solves.
+TIMING_BUDGET = 1.0
 #: The most timed solves of one run (a run of a few ms gets this many within the budget).
 MAX_REPEATS = 30
 #: The least timed solves of one run whose first solve fits in the budget (`--repeats`).

@@ -20,12 +20,12 @@ from benchmark.sweep import MAX_REPEATS, TIMING_BUDGET
     (0.1, 3, 20),  # floor(2 / 0.1)
     (0.9, 3, 3),  # floor(2 / 0.9) = 2: at least 3
     (0.9, 1, 2),  # --repeats 1 lowers the least
-    (TIMING_BUDGET, 3, 1),  # a single solve takes the budget: one sample
+    (2.0, 3, 1),  # a single solve takes the budget: one sample
     (5.0, 3, 1),
     (float("nan"), 3, 1),
 ])
 def test_timing_repeats_fill_the_budget_between_the_least_and_the_most(first, least, expected):
-    assert runner.timing_repeats(first, least) == expected
+    assert runner.timing_repeats(first, least, budget=2.0) == expected
 
 
 def test_the_timing_summary_is_the_median_with_min_and_p90_or_max():
@@ -39,9 +39,10 @@ def test_the_timing_summary_is_the_median_with_min_and_p90_or_max():
 
 def test_a_run_is_timed_as_often_as_its_first_solve_allows():
     calls = []
-    cols = runner._timing(0.5, lambda: calls.append(1) or 0.4, least=3)
-    assert len(calls) == 3 and cols["timing_repeats"] == 4  # floor(2 / 0.5) = 4 solves, the first included
-    assert cols["run_time"] == pytest.approx(0.4) and cols["run_time_high"] == 0.5
+    first = TIMING_BUDGET / 4
+    cols = runner._timing(first, lambda: calls.append(1) or first * 0.8, least=3)
+    assert len(calls) == 3 and cols["timing_repeats"] == 4  # budget / first = 4 solves, the first included
+    assert cols["run_time"] == pytest.approx(first * 0.8) and cols["run_time_high"] == first
 
 
 def test_us_per_eval_is_empty_without_an_evaluation_count():
