@@ -62,7 +62,7 @@ def _clash_caption(names) -> str:
     return ("\nsame colour and marker: " + "; ".join(f"{a} and {b}" for a, b in pairs)) if pairs else ""
 
 
-def _log_ticks(ax) -> None:
+def log_ticks(ax) -> None:
     """Tick labels that do not overlap on a narrow log panel: a span of two decades or more gets
     one label per decade (at most six), a shorter one labels 1, 2 and 5 of each decade in plain
     numbers; minor ticks stay unlabelled (matplotlib's labelled minor ticks run into each other)."""
@@ -99,7 +99,7 @@ def work_precision(runs: pd.DataFrame, scene: str, out_dir: Path) -> Path:
                 if len(c):
                     ax.loglog(c[cost], c[err], **styles.style(integ).kwargs(axis))
                     drawn.add((integ, axis))
-            _log_ticks(ax)
+            log_ticks(ax)
             style_axes(ax, xlabel=cost_label, ylabel=label, legend=None)
     for integ in sorted(set(g["integrator"])):
         has_count = "work_evals" in g and g.loc[g["integrator"] == integ, "work_evals"].notna().any()

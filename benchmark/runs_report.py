@@ -252,6 +252,9 @@ def changes_since(before: pd.DataFrame, runs: pd.DataFrame, label: str) -> str:
     """What changed against an earlier run's table ``before``: the reproducibility statement,
     each target's verdicts by work then and now (work: comparable across machines and timing
     methods), and each method's median speed-up on the runs both tables finished."""
+    # an earlier table is the user's file: a number column holding text is not a number
+    numeric = [c for c in (*cheap.WALL_COLUMNS, "work_evals", "steps", "dt", "rtol", "t_end", *LABELS) if c in before]
+    before = before.assign(**{c: pd.to_numeric(before[c], errors="coerce") for c in numeric})
     out = [f"## Compared with {label}\n\n", reproducibility(before, runs, label)]
     targets = [(m, t) for m, t, _ in TARGETS if m in before and m in runs]
     count = "work_evals"

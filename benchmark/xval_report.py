@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 
 from benchmark import styles
-from benchmark.plots import plt, save_figure, style_axes
+from benchmark.plots import log_ticks, plt, save_figure, style_axes
 from benchmark.report import Provenance, fmt
 from benchmark.store import write_npz, write_table
 from benchmark.xval import CFL, DT_MAX, OURS_REFINE, OUTPUT_INTERVAL, Study, case_scene, moordyn_input, mujoco_xml
@@ -115,18 +115,27 @@ def error_vs_limit(study: Study, case: str) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def _looks(names) -> list[dict]:
-    """One look per curve: its name's style (`benchmark.styles.style`, the same in every figure),
-    hollow, with shrinking markers, since curves of the same discrete model coincide."""
-    return [dict(styles.style(n).kwargs("rtol"), markersize=ms) for n, ms in zip(names, [9, 7, 6, 5, 4, 3])]
+#: One look per code and per pair of codes, fixed (these are codes, not integrators: not the
+#: methods' styles): distinct colours and markers, hollow and shrinking so that curves of the
+#: same discrete model, which coincide, all stay visible.
+CODE_LOOKS = {"ours_consistent": ("#1f77b4", "o", "-"), "ours_lumped": ("#ff7f0e", "s", "--"),
+              "moordyn": ("#2ca02c", "^", "-."), "mujoco": ("#d62728", "D", ":")}
+PAIR_LOOKS = {("ours_lumped", "moordyn"): ("#9467bd", "o", "-"), ("ours_lumped", "mujoco"): ("#8c564b", "s", "--"),
+              ("moordyn", "mujoco"): ("#e377c2", "^", "-."), ("ours_consistent", "moordyn"): ("#17becf", "v", ":"),
+              ("ours_consistent", "mujoco"): ("#bcbd22", "D", "-"), ("ours_consistent", "ours_lumped"): ("#7f7f7f", "P", "--")}
+
+
+def _looks(keys, table) -> list[dict]:
+    return [dict(color=c, marker=m, linestyle=ls, markersize=ms, markerfacecolor="none", markeredgecolor=c)
+            for (c, m, ls), ms in zip((table[k] for k in keys), [9, 7, 6, 5, 4, 3])]
 
 
 def plot(study: Study, case: str, path: Path) -> Path:
     runs, Ns = study.runs, study.elements(case)
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11, 4.2))
     handles, labels = [], []
-    pair_names = [f"{a} − {b}" for a, b in PAIRS]
-    for (a, b), name, look in zip(PAIRS, pair_names, _looks(pair_names)):
+    for (a, b), look in zip(PAIRS, _looks(PAIRS, PAIR_LOOKS)):
+        name = f"{a} − {b}"
         vals = [(N, _max_dist(runs[(case, N)][a].tip, runs[(case, N)][b].tip)) for N in Ns
                 if a in runs[(case, N)] and b in runs[(case, N)]]
         if vals:
@@ -134,7 +143,7 @@ def plot(study: Study, case: str, path: Path) -> Path:
             labels.append(f"left: {name}")
     style_axes(ax, xlabel="N (elements)", ylabel="max over t of tip distance [m]", title=f"{case}: codes at equal N",
                grid=None, legend=None)
-    for code, look in zip(TRAJ_CODES, _looks(TRAJ_CODES)):
+    for code, look in zip(TRAJ_CODES, _looks(TRAJ_CODES, CODE_LOOKS)):
         have = [N for N in Ns if code in runs[(case, N)]]
         vals = [(N2, _max_dist(runs[(case, N1)][code].tip, runs[(case, N2)][code].tip)) for N1, N2 in zip(have[:-1], have[1:])]
         if vals:
@@ -142,10 +151,18 @@ def plot(study: Study, case: str, path: Path) -> Path:
             labels.append(f"right: {code}")
     if Ns:
         ref = np.array(Ns[1:], float)
-        handles += ax2.loglog(ref, 0.5 * (ref / ref[0]) ** -2, "k:")
+        handles += ax2.loglog(ref, 0.5 * (ref / ref[0]) ** -2, color="0.4", linestyle=(0, (1, 2)))
         labels.append("right: slope −2")
     style_axes(ax2, xlabel="N", ylabel="max |tip(N) − tip(N/2)| [m]", title=f"{case}: self-convergence", grid=None,
                legend=None)
+    from matplotlib.ticker import FixedLocator, FuncFormatter, NullLocator
+
+    for a in (ax, ax2):
+        log_ticks(a)
+        if Ns:  # N is one of few integers: label each one
+            a.xaxis.set_major_locator(FixedLocator(Ns))
+            a.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+            a.xaxis.set_minor_locator(NullLocator())
     fig.tight_layout()
     styles.legend_outside(fig, handles, labels)
     return save_figure(fig, path, dpi=120)
