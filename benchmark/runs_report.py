@@ -180,6 +180,14 @@ def _short(g: pd.DataFrame) -> str:
     return "no method reached it"
 
 
+def _power(x: float) -> str:
+    """A target in few characters: 1e-4, 2.5e-7, 0.5."""
+    if 1e-3 <= abs(x) < 1e4:
+        return f"{x:.3g}"
+    m, e = f"{x:.2e}".split("e")
+    return f"{m.rstrip('0').rstrip('.')}e{int(e)}"
+
+
 def answer_block(runs: pd.DataFrame, table: pd.DataFrame, failures: str) -> str:
     """Five lines for the project README: per target, the verdicts by wall time (compiled
     implementations) and by work; the failures; how to read it."""
@@ -193,7 +201,7 @@ def answer_block(runs: pd.DataFrame, table: pd.DataFrame, failures: str) -> str:
             k = g[g["cost_kind"] == kind]
             if len(k):
                 per.append(f"by {words}: " + "; ".join(f"{scene} {_short(s)}" for scene, s in k.groupby("scene")))
-        lines.append(f"- **{label[0].upper() + label[1:]} ≤ {target:g}** — " + " — ".join(per) + ".")
+        lines.append(f"- **{label[0].upper() + label[1:]} ≤ {_power(target)}** — " + " — ".join(per) + ".")
     wall = table[table["cost_kind"] == "wall"]
     among = wall["among"].iloc[0] if len(wall) else "compiled implementations"
     lines.append(f"- Wall time is ranked among {among}; a winner's interval lies below every other method's, "
