@@ -109,3 +109,20 @@ def test_the_answer_block_replaces_only_the_text_between_its_markers(tmp_path, t
         assert "rewritten" in said
     else:
         assert readme.read_text() == text and "was not written" in said
+
+
+def test_an_untrusted_row_outside_the_run_is_set_aside_not_lost(tmp_path, capsys):
+    out = tmp_path / "out"
+    quiet = ["--no-figures"]
+    rc, err = _run([*RK45, *quiet], out, capsys)
+    assert rc == 0, err
+    table = pd.read_csv(out / "runs.csv")
+    table["run_time"] = table["run_time"].astype(object)
+    table.loc[0, "run_time"] = "n/a"
+    table.to_csv(out / "runs.csv", index=False)
+    rc, err = _run([*LGVI, *quiet], out, capsys)
+    assert rc == 0, err
+    assert "1 untrusted row(s) of" in err and "moved to" in err and "fixed_length/rk45/rtol=0.0001" in err, err
+    assert list(_rows(out).index) == ["dt=0.01", "dt=0.005"]  # the table holds trusted rows only
+    aside = pd.read_csv(out / "runs.rejected.csv")
+    assert list(aside["setting"]) == ["rtol=0.0001"] and "is not a number" in aside["rejected_because"].iloc[0]
