@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
+from _helpers import installed_plugin
 
 ROOT = Path(__file__).resolve().parent.parent
 DOCS = (ROOT / "README.md", ROOT / "integrators" / "README.md")
@@ -42,14 +43,7 @@ def _site(tmp_path: Path) -> Path:
     """The integrators README's plugin (symplectic_euler), installed the way a package would be."""
     text = (ROOT / "integrators" / "README.md").read_text()
     code = re.search(r'```python\n("""my_stepper\.py.*?)```', text, flags=re.S).group(1)
-    site = tmp_path / "site"
-    site.mkdir()
-    (site / "my_stepper.py").write_text(code)
-    dist = site / "my_stepper-0.1.dist-info"
-    dist.mkdir()
-    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: my-stepper\nVersion: 0.1\n")
-    (dist / "entry_points.txt").write_text("[reelbench.integrators]\nsymplectic_euler = my_stepper:SymplecticEuler\n")
-    return site
+    return installed_plugin(tmp_path / "site", "my_stepper", code, "symplectic_euler = my_stepper:SymplecticEuler")
 
 
 def as_run(args: list[str], scratch: Path) -> list[str]:

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
+from _helpers import installed_plugin
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -42,13 +43,8 @@ class SlowLGVI(LGVI):
 @pytest.fixture
 def plugin_env(tmp_path):
     """Environment in which `python -m benchmark` (and its spawned workers) find `test_slow`."""
-    site = tmp_path / "site"
-    site.mkdir()
-    (site / "reelbench_slow_plugin.py").write_text(PLUGIN)
-    dist = site / "reelbench_slow_plugin-0.1.dist-info"
-    dist.mkdir()
-    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: reelbench-slow-plugin\nVersion: 0.1\n")
-    (dist / "entry_points.txt").write_text("[reelbench.integrators]\ntest_slow = reelbench_slow_plugin:SlowLGVI\n")
+    site = installed_plugin(tmp_path / "site", "reelbench_slow_plugin", PLUGIN,
+                            "test_slow = reelbench_slow_plugin:SlowLGVI")
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), str(site)]), REELBENCH_TEST_SLEEP="60")
     return env
 
