@@ -1,7 +1,7 @@
 """The benchmark: composes scenes, integrators and diagnostics into studies, tables and plots.
 
     python -m benchmark run            # the default sweep of the paper's three scenes -> results/
-    python -m benchmark run --quick    # a reduced sweep, a few minutes on 2 cores
+    python -m benchmark run --quick --out /tmp/quick   # a reduced sweep, a few minutes on 2 cores
 
 By concern, from the command line down:
 
@@ -10,8 +10,12 @@ By concern, from the command line down:
   `lgvi_speed` (speed), `reel_reversal`; what a sweep runs: `sweep`; its metrics: `metrics`;
 - their writers: `runs_report`, `stability_report`, `xval_report` (and the baseline in `check`,
   the speed tables in `lgvi_speed`), on the report layer `report` and the plot layer `plots`;
+  what they conclude from: `cheapest` (the cost at a target, with its spread, and verdicts that
+  call a tie a tie), `reproducibility` (two runs tables compared within stated tolerances),
+  `styles` (one look per method in every figure);
 - underneath: `engine` (jobs on worker processes, this process or Dask; stop signals,
-  progress, crash rows), `store` (output lock, resume keys, atomic tables and .npz files),
+  progress with a measured ETA, crash rows), `store` (output lock, resume keys, rows checked
+  before they are trusted, a run merged into the table of its --out, atomic tables and .npz files),
   `reference` (the one cached reference solution every study compares with), `options`
   (JAX-free input checks).
 """

@@ -68,7 +68,13 @@ VERDICTS = ("winner", "tie", "slower", "not reached", "not measured")
 
 #: Columns of the cheapest table, in order.
 COLUMNS = ["scene", "metric", "target", "cost_kind", "integrator", "sweep", "cost", "cost_low", "cost_high",
-           "ratio", "ratio_low", "ratio_high", "verdict", "cost_column", "bracket", "note"]
+           "ratio", "ratio_low", "ratio_high", "verdict", "cost_column", "bracket", "bound", "note"]
+
+#: What fixes a cost (column ``bound``): the target, read off the curve between two settings
+#: ("accuracy"), or the coarsest finished setting already meeting it, because coarser fixed steps
+#: did not finish ("stability"), coarser tolerances did not finish ("failures"), or nothing
+#: coarser was swept ("sweep range"): then the method may be cheaper than the cost says.
+BOUNDS = ("accuracy", "stability", "failures", "sweep range")
 
 _KEY_COLUMNS = ("scene", "integrator", "setting", "dt", "rtol", "status")
 
@@ -194,9 +200,12 @@ def _curve_cost(curve: list[dict], metric: str, target: float, columns: tuple[st
         why = ("coarser: " + ", ".join(f"{r['setting']} {r['status']}" for r in coarser) if coarser
                else "the sweep's coarsest setting")
         bracket, note = settings[i], f"reached at the coarsest finished setting ({why}): its own cost"
+        failed = [r for r in coarser if r["status"] != "ok"]
+        bound = ("sweep range" if not failed else
+                 "stability" if str(settings[i]).startswith("dt=") else "failures")
     else:
-        bracket, note = f"{settings[i]} .. {settings[j]}", "interpolated"
-    return {"cost": cost, "cost_low": lo, "cost_high": hi, "bracket": bracket, "note": note}
+        bracket, note, bound = f"{settings[i]} .. {settings[j]}", "interpolated", "accuracy"
+    return {"cost": cost, "cost_low": lo, "cost_high": hi, "bracket": bracket, "bound": bound, "note": note}
 
 
 def _verdicts(rows: list[dict]) -> None:
@@ -301,9 +310,29 @@ def _verdict_text(g: pd.DataFrame) -> str:
             parts.append(f"the next outside the tie, `{n['integrator']}`, costs {_relative(n)} as much")
     else:
         parts.append(f"by {what}, no method reached it")
+    bounded = _bounded_text(by["winner"] + by["tie"])
+    if bounded:
+        parts.append(bounded)
     if by["not measured"]:
         parts.append("no cost for " + ", ".join(f"`{r['integrator']}`" for r in by["not measured"]))
     return "; ".join(parts)
+
+
+_BOUND_WORDS = {"stability": "by the stability limit (coarser steps did not finish)",
+                "failures": "by failures (coarser tolerances did not finish)",
+                "sweep range": "by the sweep's range (its coarsest setting already meets the target)"}
+
+
+def _bounded_text(rows: list[dict]) -> str:
+    """Which of the ranked methods' costs are bounded by something other than accuracy (they may
+    be cheaper than stated), e.g. "cost of `lgvi` bounded by the sweep's range"."""
+    by_bound: dict[str, list[str]] = {}
+    for r in rows:
+        b = r.get("bound")
+        if isinstance(b, str) and b in _BOUND_WORDS:
+            by_bound.setdefault(b, []).append(f"`{r['integrator']}`")
+    return "; ".join(f"cost of {', '.join(names)} bounded {_BOUND_WORDS[b]}, not by the target"
+                     for b, names in by_bound.items())
 
 
 def summary_lines(table: pd.DataFrame, labels: dict[str, str] | None = None) -> list[str]:

@@ -74,7 +74,7 @@ def cmd_run(args) -> int:
     for sc in scenes:
         for dt in args.dts or (sweep.QUICK_DTS if args.quick else sweep.FULL_DTS):
             opt.check_size(sc, t_end or sc.t_end, sweep.SAVE_EVERY, dt, warn=_log, what=f"{sc.name} at dt = {dt:g} s")
-    out = opt.writable_dir(args.out)
+    out = opt.writable_dir(_run_out(args))
 
     from benchmark import pipelines
 
@@ -84,6 +84,24 @@ def cmd_run(args) -> int:
         t_end=args.t_end, overrides=tuple(sorted((k, v) for k, v in ov.items() if k != "t_end")), jobs=args.jobs,
         executor=args.executor, scheduler=args.scheduler, repeats=args.repeats, horizon=args.horizon,
         figures=not args.no_figures, fresh=args.fresh, compare_with=args.compare_with, command=_command(args)), log=_log)
+
+
+#: The options of `run` that make it something other than the default sweep (other rows).
+_SWEEP_OPTIONS = (("scenes", "--scenes"), ("integrators", "--integrators"), ("quick", "--quick"), ("dts", "--dts"),
+                  ("rtols", "--rtols"), ("t_end", "--t-end"), ("set", "--set"))
+
+
+def _run_out(args) -> str:
+    """`run`'s output directory: the committed results/ only for the default sweep or when named
+    (`--out results`); any other sweep must say where its results go."""
+    if args.out is not None:
+        return args.out
+    given = [flag for attr, flag in _SWEEP_OPTIONS if getattr(args, attr)]
+    if given:
+        raise UsageError(f"this run is not the default sweep ({', '.join(given)}): give --out DIR for its results "
+                         "(e.g. a scratch directory), or --out results to merge its rows into the committed results "
+                         "(the rows of other scenes, methods and settings are kept)")
+    return "results"
 
 
 def cmd_simulate(args) -> int:
@@ -270,9 +288,11 @@ def _add_run(sub) -> None:
     from benchmark import sweep  # constants only (no JAX): the defaults shown in --help are the real ones
 
     r = sub("run", "sweep scenes × integrators × settings; tables, plots and a README into --out",
-            "Sweep scenes × integrators × settings. Rows are written to OUT/runs.csv as they finish; a run "
-            "into an OUT that holds rows of the same sweep (same scene physics, integrator, setting, horizon "
-            "and code) keeps them and computes only the rest (--fresh recomputes all). Ctrl-C stops cleanly.")
+            "Sweep scenes × integrators × settings. Rows are written to OUT/runs.csv as they finish and join "
+            "the rows already there: rows of other scenes, methods or settings are kept, and the figures and "
+            "README are written from the whole table. A row of the same run (same scene physics, integrator, "
+            "setting, horizon and code) that passes its checks is kept instead of recomputed (--fresh "
+            "recomputes this run's rows). Ctrl-C stops cleanly.")
     r.add_argument("--scenes", type=opt.names, help="comma-separated scene names or .toml paths "
                                                     f"(default: {_csv(sweep.PAPER_SCENES)})")
     r.add_argument("--integrators", type=opt.names, help="comma-separated integrator names (default: every "
@@ -291,9 +311,10 @@ def _add_run(sub) -> None:
                    help=f"horizon in s (default: each scene's t_end; --quick: {sweep.QUICK_T_END:g})")
     _add_set(r)
     r.add_argument("--jobs", type=opt.positive_int, help="worker processes (default: CPU count, at most one per run)")
-    r.add_argument("--repeats", type=opt.positive_int, default=3,
-                   help=f"timed repeats per run after the first solve (within a {sweep.TIMING_BUDGET:g} s budget); "
-                        "run_time is their minimum, run_time_median their median")
+    r.add_argument("--repeats", type=opt.positive_int, default=sweep.MIN_REPEATS,
+                   help=f"the least timed solves per run: as many as fit in {sweep.TIMING_BUDGET:g} s, at least this "
+                        f"many and at most {sweep.MAX_REPEATS} (one when a single solve takes longer); run_time is "
+                        "their median, run_time_low / run_time_high the fastest / the 90th percentile or slowest")
     r.add_argument("--executor", default="process", choices=list(sweep.EXECUTORS),
                    help="where runs execute: worker processes, this process, or a Dask cluster")
     r.add_argument("--scheduler", help="Dask scheduler address, with --executor dask (e.g. tcp://host:8786)")
@@ -304,8 +325,10 @@ def _add_run(sub) -> None:
     r.add_argument("--fresh", action="store_true", help="recompute every run, ignoring rows already in OUT/runs.csv")
     r.add_argument("--compare-with", type=opt.runs_table, metavar="RUNS.csv",
                    help="an earlier run's runs.csv: the README then says which conclusions changed and by how much")
-    r.add_argument("--out", default="results", help="output directory (created if missing); the default is the "
-                                                    "repository's committed results/, which this overwrites")
+    r.add_argument("--out", help="output directory, created if missing (default: results); the run's rows join the "
+                                 "table there (rows of other scenes, methods and settings are kept). A run that is not "
+                                 "the default sweep (--quick, --scenes, ...) writes into results/ only when named: "
+                                 "--out results")
     r.set_defaults(func=cmd_run)
 
 
@@ -379,8 +402,8 @@ def _add_stability(sub) -> None:
     st = sub("stability", "stability map of the hard scenes: largest stable dt (fixed step), step statistics "
                           "(adaptive) -> --out")
     st.add_argument("--scenes", type=opt.names, help="comma-separated hard scenes (default: all seven)")
-    st.add_argument("--integrators", type=opt.names, help="comma-separated names (default: the shipped methods "
-                                                          "of the sweep, implicit baselines last)")
+    st.add_argument("--integrators", type=opt.names, help="comma-separated names (default: every method of the "
+                                                          "sweep, registered plugins included, implicit baselines last)")
     st.add_argument("--jobs", type=opt.nonnegative_int, default=2, help="worker processes (0: run in this process)")
     st.add_argument("--out", default="results/stability", help="output directory (created if missing)")
     st.set_defaults(func=cmd_stability)

@@ -14,7 +14,9 @@ check, the long-horizon energy study, the speed tables and the reel-reversal ord
 * Stopping: Ctrl-C or SIGTERM (`install_stop_handlers`) raises KeyboardInterrupt in the main
   thread; the pools terminate their workers, a Dask run withdraws its tasks, and every row
   finished so far has been handed to ``on_row`` (a stopped run keeps them).
-* Progress: one line per finished job, ``[done/total] <describe(row)>  (elapsed, ETA)``.
+* Progress: a line per finished setup call (e.g. each reference solution) and per finished
+  job, ``[done/total] <describe(row)>  (elapsed, ETA)``; the ETA comes from measured costs
+  (`Progress`).
 """
 
 from __future__ import annotations
@@ -136,35 +138,92 @@ def stopped(exc: KeyboardInterrupt, what: str, log: Callable[[str], None] = log_
 
 def crash_reason(exc: BaseException) -> str:
     """The `reason` of a row whose worker died (status "crashed")."""
-    return f"{type(exc).__name__}: {exc}"[:300]
+    from benchmark.report import shorten
+
+    return shorten(f"{type(exc).__name__}: {exc}", 300)
 
 
 # ------------------------------------------------------------------------------------------
 # Progress
 # ------------------------------------------------------------------------------------------
+def job_seconds(row: dict) -> float | None:
+    """The seconds a job took in its worker, when its row says (``task_time``: the runs table,
+    ``job_time``: the stability map)."""
+    for key in ("task_time", "job_time"):
+        v = row.get(key)
+        if isinstance(v, (int, float)) and v == v and v >= 0:
+            return float(v)
+    return None
+
+
 class Progress:
     """Collects the rows of a list of jobs as they finish, in any order, and gives them back in
     job order. Each finished row is logged (``[done/total] <describe(row)>  (elapsed, ETA)``) and
     ``on_row`` gets the rows so far (to write partial results atomically), so a stopped run keeps
-    every finished row. ``rows`` are jobs already done (resumed); they count in the total."""
+    every finished row. ``rows`` are jobs already done (resumed); they count in the total.
+
+    The ETA is measured, not guessed from the first rows' wall clock (which includes the setup
+    and the first compilations): each job has a predicted cost ``cost(i)`` (s; e.g. a method's
+    declared `cost_hint`, compilation on the first job of a group), each finished row says how
+    long it took in its worker (`job_seconds`), and the jobs left are their predicted costs
+    times the measured / predicted ratio of the finished jobs of their class (``kind(i)``, e.g.
+    the integrator; all finished jobs until one of its class has), over ``workers`` running at
+    once. Without costs, each job left counts as the mean measured time of its class."""
 
     def __init__(self, total: int, *, rows: dict[int, dict] | None = None, finish: Callable | None = None,
                  describe: Callable[[dict], str] = str, on_row: Callable[[list[dict]], None] | None = None,
-                 log: Callable[[str], None] = log_stderr):
+                 log: Callable[[str], None] = log_stderr, cost: Callable[[int], float] | None = None,
+                 kind: Callable[[int], Hashable] | None = None, workers: int = 1):
         self.total, self.rows = total, dict(rows or {})
         self.todo = total - len(self.rows)
         self.finish, self.describe, self.on_row, self.log = finish, describe, on_row, log
+        self.cost, self.kind, self.workers = cost, kind, max(1, workers)
         self.new = 0
+        self.measured: dict = {}  # class -> [seconds measured, seconds predicted, jobs]
         self.start = time.perf_counter()
+
+    def restart_clock(self) -> None:
+        """Count elapsed time from now (after the setup), so the first ETA is not the setup's."""
+        self.start = time.perf_counter()
+
+    def _class(self, i: int):
+        return self.kind(i) if self.kind else None
+
+    def _learn(self, i: int, row: dict) -> None:
+        took = job_seconds(row)
+        if took is None:
+            return
+        m = self.measured.setdefault(self._class(i), [0.0, 0.0, 0])
+        m[0] += took
+        m[1] += self.cost(i) if self.cost else 0.0
+        m[2] += 1
+
+    def seconds_left(self) -> float | None:
+        """The estimate of the wall time left (None until a finished job says how long it took)."""
+        left = [i for i in range(self.total) if i not in self.rows]
+        if not self.measured:
+            if not self.new:
+                return None
+            return (time.perf_counter() - self.start) / self.new * len(left)  # no row says: the wall clock
+        total = [sum(v) for v in zip(*self.measured.values())]
+        work = 0.0
+        for i in left:
+            seconds, predicted, jobs = self.measured.get(self._class(i), total)
+            if self.cost and predicted > 0:
+                work += self.cost(i) * seconds / predicted
+            else:
+                work += seconds / jobs
+        return work / min(self.workers, max(1, len(left)))
 
     def done(self, i: int, row: dict) -> None:
         if self.finish:
             self.finish(i, row)
         self.rows[i] = row
         self.new += 1
+        self._learn(i, row)
         elapsed = time.perf_counter() - self.start
-        left = self.todo - self.new
-        eta = f", about {elapsed / self.new * left:.0f} s left" if left > 0 else ""
+        left = self.seconds_left() if self.new < self.todo else None
+        eta = f", about {left:.0f} s left" if left is not None else ""
         self.log(f"[{len(self.rows)}/{self.total}] {self.describe(row)}  ({elapsed:.0f} s elapsed{eta})")
         self.saved()
 
@@ -215,11 +274,13 @@ def run_jobs(
     group: Callable[[int], Hashable] | None = None,
     cost: Callable[[int], float] | None = None,
     setup: Iterable[Callable[[], object]] = (),
+    setup_labels: Iterable[str] | None = None,
     done: dict[int, dict] | None = None,
     finish: Callable[[int, dict], None] | None = None,
     describe: Callable[[dict], str] = str,
     on_row: Callable[[list[dict]], None] | None = None,
     log: Callable[[str], None] = log_stderr,
+    kind: Callable[[int], Hashable] | None = None,
 ) -> list[dict]:
     """Run ``fn(jobs[i])`` (a row, a dict) for every job not in ``done`` and return all rows in
     job order. ``fn``, the jobs and the ``setup`` calls must pickle for the workers (module-level
@@ -228,22 +289,27 @@ def run_jobs(
     ``workers`` = 0 runs the jobs in this process; otherwise in that many workers (see the
     module's docstring), or, with ``scheduler`` (a Dask address), on that cluster. ``setup``:
     calls that run first (spread over the workers), e.g. the reference solutions the jobs read
-    from a cache. ``crash_row(i, exc)``: the row of a job whose worker died (without it, the
-    death is raised). ``finish(i, row)`` completes a row before it is logged (`Progress`)."""
+    from a cache; each logs a line when it is done (``setup_labels``: what each is). ``crash_row(i,
+    exc)``: the row of a job whose worker died (without it, the death is raised). ``finish(i,
+    row)`` completes a row before it is logged. ``cost(i)``: a job's predicted seconds (the
+    longest groups start first) and, with ``kind(i)`` (its class), the ETA (`Progress`)."""
     if crash_row is None:
         crash_row = _raise
-    progress = Progress(len(jobs), rows=done, finish=finish, describe=describe, on_row=on_row, log=log)
+    progress = Progress(len(jobs), rows=done, finish=finish, describe=describe, on_row=on_row, log=log, cost=cost,
+                        kind=kind if kind is not None else group, workers=workers or 1)
     todo = [i for i in range(len(jobs)) if i not in progress.rows]
     if progress.rows:
         progress.saved()
     if not todo:
         return progress.ordered()
-    setup = list(setup)
+    setup = _Setup(list(setup), setup_labels, progress, log)
     if scheduler:
         _run_on_dask(fn, jobs, todo, scheduler, setup, crash_row, progress)
     elif workers == 0:
-        for call in setup:
+        for k, call in enumerate(setup.calls):
             call()
+            setup.finished(k)
+        setup.over()
         for batch in _batches(todo, group, cost):
             for i in batch:
                 progress.done(i, fn(jobs[i]))
@@ -254,6 +320,25 @@ def run_jobs(
 
 def _raise(i: int, exc: BaseException) -> dict:
     raise exc
+
+
+class _Setup:
+    """The setup calls of a list of jobs, and a progress line as each finishes."""
+
+    def __init__(self, calls: list, labels, progress: Progress, log):
+        self.calls, self.progress, self.log = calls, progress, log
+        self.labels = list(labels) if labels is not None else [f"setup {k + 1}" for k in range(len(calls))]
+        self.done = 0
+        self.t0 = time.perf_counter()
+
+    def finished(self, k: int) -> None:
+        self.done += 1
+        self.log(f"[{self.done}/{len(self.calls)}] {self.labels[k]} ready  ({time.perf_counter() - self.t0:.0f} s)")
+
+    def over(self) -> None:
+        """The jobs start now: their elapsed time and ETA count from here."""
+        if self.calls:
+            self.progress.restart_clock()
 
 
 def _batches(todo: list[int], group, cost) -> list[list[int]]:
@@ -274,8 +359,12 @@ def _run_in_workers(fn, jobs, batches, workers: int, setup, crash_row, progress:
     queue = collections.deque(batches)
     with contextlib.ExitStack() as stack:
         pools = [stack.enter_context(worker_pool(1)) for _ in range(min(workers, len(queue)))]
-        for fut in [pools[k % len(pools)].submit(call) for k, call in enumerate(setup)]:
+        progress.workers = len(pools)
+        futures = {pools[k % len(pools)].submit(call): k for k, call in enumerate(setup.calls)}
+        for fut in cf.as_completed(futures):
             fut.result()
+            setup.finished(futures[fut])
+        setup.over()
         running: dict = {}  # future -> (pool index, job index)
         broken: set = set()
 
@@ -315,8 +404,11 @@ def _run_on_dask(fn, jobs, todo: list[int], scheduler: str, setup, crash_row, pr
     futures = {}
     try:
         _dask_worker_env(client)
-        for fut in [client.submit(call, pure=False) for call in setup]:
+        submitted = [client.submit(call, pure=False) for call in setup.calls]
+        for k, fut in enumerate(submitted):
             fut.result()
+            setup.finished(k)
+        setup.over()
         futures = {client.submit(fn, jobs[i], pure=False): i for i in todo}
         index = {f.key: i for f, i in futures.items()}
         for fut in as_completed(list(futures)):

@@ -20,14 +20,18 @@ class Job(NamedTuple):
 def run_job(job: Job) -> dict:
     """One method's row: its label (with the status when the run stopped early) and its energy
     history (`benchmark.metrics.energy_history`)."""
+    import time
+
     from benchmark.metrics import energy_history
     from integrators import get_integrator
     from models import load_scene
 
+    started = time.perf_counter()
     scene = load_scene(SCENE, **dict(job.overrides))
     traj = get_integrator(job.method.name).solve(scene, t_end=job.t_end, save_every=SAVE_EVERY, **job.method.settings)
     label = job.method.label + ("" if traj.ok else f" [{traj.status}]")
-    return {"label": label, "status": traj.status, "history": energy_history(scene, traj)}
+    return {"label": label, "status": traj.status, "history": energy_history(scene, traj),
+            "task_time": time.perf_counter() - started}
 
 
 def crash_row(job: Job, exc: BaseException) -> dict:

@@ -75,7 +75,10 @@ class SweepRequest:
 
 def run_sweep(request: SweepRequest, log: Callable[[str], None] = log_stderr) -> int:
     """The sweep into ``request.out``: runs.csv (written after every run), runs.md, orders.csv,
-    the figures, the energy study and README.md. A stopped sweep keeps its finished rows."""
+    cheapest.csv, the figures, the energy study and README.md; with the committed results/ as
+    ``out``, the answer block of the project README too. The run's rows join the table already
+    in ``out`` (`benchmark.store.merge_rows`): rows of other scenes, methods or settings are kept,
+    and every file is written from the merged table. A stopped sweep keeps its finished rows."""
     from benchmark import runner
 
     runs_csv = store.TableWriter(request.out / "runs.csv", runner.runs_frame, drop=("traceback",))
@@ -85,12 +88,66 @@ def run_sweep(request: SweepRequest, log: Callable[[str], None] = log_stderr) ->
     except KeyboardInterrupt as exc:
         what = (f"{runs_csv.saved} finished run(s) are saved in {runs_csv.path}" if runs_csv.saved
                 else "no run had finished, nothing saved")
+        earlier = getattr(runs_csv, "earlier", 0)
+        if earlier:
+            what += f" (its {earlier} earlier row(s) are kept)"
         return engine.stopped(exc, f"{what}; run the same command again to resume (finished runs are kept), "
-                                   "or add --fresh to start over", log)
+                                   "or add --fresh to recompute this run's rows", log)
+
+
+#: The committed results directory: a run into it also rewrites the project README's answer block.
+COMMITTED_RESULTS = store.ROOT / "results"
+
+
+def is_committed_results(out: Path) -> bool:
+    try:
+        return Path(out).resolve() == COMMITTED_RESULTS.resolve()
+    except OSError:
+        return False
+
+
+def _this_run(request: SweepRequest, tasks) -> tuple[dict, dict]:
+    """({task scene: scene name}, {scene name: (horizon, physics hash)}) of a sweep's tasks."""
+    from models import load_scene
+
+    names, scenes = {}, {}
+    for given in dict.fromkeys(t.scene for t in tasks):
+        scene = load_scene(given, **dict(request.overrides))
+        names[given] = scene.name
+        scenes[scene.name] = (request.sweep_t_end or scene.t_end, scene.key())
+    return names, scenes
+
+
+def _merge_plan(request: SweepRequest, tasks, stored: store.StoredRuns, path: Path, log) -> None:
+    """Refuse a run whose rows cannot join the table in its --out (before any work), set aside
+    the untrusted rows no recomputation will replace, and say in one line what the run replaces."""
+    names, scenes = _this_run(request, tasks)
+    conflicts = store.merge_conflicts(stored.rows, scenes)
+    if conflicts:
+        raise ValueError(f"{path} cannot take this run's rows: {'; '.join(conflicts)}. A table holds one horizon and "
+                         "one set of scene values per scene: give another --out (a scratch directory), or move "
+                         f"{path} away to start over")
+    mine = {(names[t.scene], t.integrator, t.setting) for t in tasks}
+    aside = [(r, why) for r, why in stored.rejected if store.identity_of(r) not in mine]
+    if aside:
+        rejected = path.with_name("runs.rejected.csv")
+        earlier = store.read_runs(rejected).rows + [r for r, _ in store.read_runs(rejected).rejected]
+        store.write_table(rejected, store.frame(store.merge_rows(earlier, [dict(r, rejected_because=why)
+                                                                          for r, why in aside]), []))
+        log(f"warning: {len(aside)} untrusted row(s) of {path} are outside this run and were moved to {rejected}: "
+            + ", ".join(store.describe_row(r) for r, _ in aside))
+    there = {store.identity_of(r) for r in stored.rows}
+    replaced = len(mine & there)
+    kept = len(stored.rows) - replaced
+    where = "the committed results" if is_committed_results(request.out) else str(path)
+    log(f"{where}: this run writes {len(mine)} row(s) of {len(scenes)} scene(s) ({replaced} replacing rows there, "
+        f"{len(mine) - replaced} new) and keeps the other {kept} row(s) as they are"
+        + (f" ({stored.unverified} of the kept rows predate row digests: checked by range only)"
+           if stored.unverified else ""))
 
 
 def _sweep(request: SweepRequest, runs_csv: store.TableWriter, log) -> int:
-    from benchmark import runner, sweep
+    from benchmark import runner, runs_report, sweep
     from benchmark.metrics import observed_orders
     from benchmark.reference import CACHE_DIR
     from benchmark.report import markdown_table
@@ -100,48 +157,109 @@ def _sweep(request: SweepRequest, runs_csv: store.TableWriter, log) -> int:
     provenance = Provenance(request.command)
     tasks = sweep.build_tasks(request.scenes, request.integrators, quick=request.quick, dts=request.dts,
                               rtols=request.rtols, t_end=request.t_end, overrides=dict(request.overrides))
-    previous = [] if request.fresh else store.read_previous(runs_csv.path, log=log)
+    stored = store.read_runs(runs_csv.path, log=log)
+    _merge_plan(request, tasks, stored, runs_csv.path, log)  # refuses a run that cannot join, before any work
+    base = stored.rows
+    runs_csv.to_table = lambda rows: runner.runs_frame(store.merge_rows(base, rows))
+    runs_csv.earlier = len(base)
     log(f"{len(tasks)} runs: {len(request.scenes)} scene(s) × {len({t.integrator for t in tasks})} integrator(s); "
         f"results -> {out}/")
     runs = runner.execute(tasks, jobs=request.jobs, executor=request.executor, scheduler=request.scheduler,
                           repeats=request.repeats, cache_dir=str(out / CACHE_DIR.name), on_row=runs_csv,
-                          previous=previous, log=log,
+                          previous=[] if request.fresh else stored.resumable, log=log,
                           group=lambda t: (t.scene, t.integrator))  # one worker per (scene, method): one compile
     runs_csv(runs.to_dict("records"))
-    atomic_write_text(out / "runs.md", markdown_table(runs.drop(columns=[c for c in ("traceback", "reason", "run_key")
-                                                                         if c in runs])))
-    orders = observed_orders(runs)
+    merged = runs_csv.to_table(runs.to_dict("records")).drop(columns=["traceback"], errors="ignore")
+    atomic_write_text(out / "runs.md", markdown_table(merged.drop(columns=[c for c in ("reason", "run_key", "row_digest",
+                                                                                      "scene_key") if c in merged])))
+    orders = observed_orders(merged)
     store.write_table(out / "orders.csv", orders)
-    figures = _sweep_figures(request, runs, log) if request.figures else []
-    _sweep_readme(request, runs, orders, figures, provenance)
-    n_bad = int((runs["status"] != "ok").sum())
-    log(f"done in {provenance.wall_time():.0f} s: {len(runs)} runs, {n_bad} not ok; see {out}/README.md")
+    table = runs_report.cheapest_table(merged)
+    runs_report.write_cheapest(out, table)
+    failures = runs_report.failure_sentence(merged, out / "stability" / "stability.csv")
+    figures = _sweep_figures(request, merged, log) if request.figures else []
+    _sweep_readme(request, merged, orders, figures, provenance, table, failures,
+                  merged_note=_merged_note(runs, merged))
+    if is_committed_results(out):
+        log(runs_report.write_answer(store.ROOT / "README.md", runs_report.answer_block(merged, table, failures)))
+    log(f"done in {provenance.wall_time():.0f} s: {len(runs)} runs in this run, {len(merged)} in {out}/runs.csv; "
+        f"{failures} See {out}/README.md")
     return 0
 
 
-def _sweep_figures(request: SweepRequest, runs, log) -> list[str]:
-    """Work–precision per scene, the paper's panels from the method that declares the paper's
-    settings (the LGVI at its step size), and the energy study; their file names."""
+def _merged_note(runs, merged) -> str:
+    other = len(merged) - len(runs)
+    if other <= 0:
+        return ""
+    return (f"This run computed or kept {len(runs)} of the {len(merged)} rows; the other {other} come from earlier runs "
+            "into the same directory (other scenes, methods or settings), as they were.")
+
+
+def _figure_code() -> str:
+    return store.source_hash((), ("benchmark/plots.py", "benchmark/styles.py"))
+
+
+def _scene_rows_key(merged, scene: str) -> str:
+    rows = merged[merged["scene"] == scene].to_dict("records")
+    return store.key_of(store.rows_key(rows, drop=("load_avg", "task_time", "traceback")), _figure_code())
+
+
+def _paper_key(request: SweepRequest, scene, paper) -> str:
+    return store.key_of(scene.key(), request.sweep_t_end or scene.t_end, paper.name, paper.settings,
+                        store.code_version(), _figure_code())
+
+
+def _sweep_figures(request: SweepRequest, merged, log) -> list[tuple[str, str]]:
+    """Work–precision per scene of the merged table, the paper's panels of this run's scenes
+    (from the method that declares the paper's settings, the LGVI at its step size), and the
+    energy study of the selected methods: (file name, note) each. A figure whose inputs did not
+    change since it was drawn (`benchmark.store.OutputKeys`) is kept, not redrawn."""
+    import time
+
     from benchmark import plots, sweep
     from integrators import get_integrator
     from models.diagnostics import evaluate
 
-    figures = [plots.work_precision(runs, request.scene(s).name, request.out).name for s in request.scenes]
+    out = request.out
+    keys = store.OutputKeys(out / "figures.json")
+    figures = []
+    for scene in dict.fromkeys(merged["scene"]):
+        name, key, t0 = f"work_precision_{scene}.png", _scene_rows_key(merged, scene), time.perf_counter()
+        if keys.fresh(name, key):
+            log(f"figure: {name} kept (its rows did not change)")
+        else:
+            plots.work_precision(merged, scene, out)
+            keys.record(name, key)
+            log(f"figure: {name} ({time.perf_counter() - t0:.0f} s)")
+        figures.append((name, ""))
     paper = sweep.paper_method()
     for s in request.scenes:
         scene = request.scene(s)
-        traj = get_integrator(paper.name).solve(scene, t_end=request.sweep_t_end or scene.t_end, save_every=0.02,
-                                                **paper.settings)
-        path = plots.paper_panels(scene, traj, evaluate(scene, traj), request.out / f"paper_{scene.name}.png")
-        figures.append(path.name)
-        log(f"figure: paper_{scene.name}.png ({traj.status})")
+        name, key, t0 = f"paper_{scene.name}.png", _paper_key(request, scene, paper), time.perf_counter()
+        if keys.fresh(name, key):
+            log(f"figure: {name} kept (same scene, method, horizon and code)")
+        else:
+            log(f"figure: {name}: solving {scene.name} with {paper.label} ...")
+            traj = get_integrator(paper.name).solve(scene, t_end=request.sweep_t_end or scene.t_end, save_every=0.02,
+                                                    **paper.settings)
+            plots.paper_panels(scene, traj, evaluate(scene, traj), out / name)
+            keys.record(name, key)
+            log(f"figure: {name} ({traj.status}, {time.perf_counter() - t0:.0f} s)")
+        figures.append((name, ""))
+    run_scenes = {request.scene(s).name for s in request.scenes}
+    for scene in dict.fromkeys(merged["scene"]):
+        name = f"paper_{scene}.png"
+        if scene not in run_scenes and (out / name).is_file():
+            figures.append((name, "drawn by an earlier run (this run did not include the scene)"))
     if request.energy_horizon > 0:
-        path = run_horizon_study(request.energy_horizon, request.out, request.overrides, request.jobs, log)
-        figures.append(path.name)
+        figures += run_horizon_study(request.energy_horizon, out, request.overrides,
+                                     0 if request.executor == "serial" else request.jobs, log,
+                                     selected=request.integrators)
     return figures
 
 
-def _sweep_readme(request: SweepRequest, runs, orders, figures: list[str], provenance: Provenance) -> Path:
+def _sweep_readme(request: SweepRequest, runs, orders, figures, provenance: Provenance, table, failures,
+                  merged_note: str = "") -> Path:
     from benchmark import runs_report
 
     compared = ""
@@ -151,29 +269,97 @@ def _sweep_readme(request: SweepRequest, runs, orders, figures: list[str], prove
         compared = runs_report.changes_since(pd.read_csv(request.compare_with), runs, f"`{request.compare_with}`")
     horizons = {"sweep": request.sweep_t_end, "energy study": request.energy_horizon if request.figures else 0.0}
     return runs_report.write_readme(request.out, runs, orders, provenance=provenance, figures=figures,
-                                    compared=compared, horizons=horizons)
+                                    compared=compared, horizons=horizons, table=table, failures=failures,
+                                    merged=merged_note)
+
+
+def _horizon_key(method, t_end: float, overrides: tuple) -> str:
+    return store.key_of(method.name, method.settings, float(t_end), list(overrides), store.code_version())
+
+
+def _read_horizon(path: Path):
+    """The energy study's earlier table, by method (integrator -> its rows), or {} when there is
+    none or it cannot be read."""
+    import pandas as pd
+
+    from benchmark.plots import method_of
+
+    if not path.is_file():
+        return {}
+    try:
+        df = pd.read_csv(path)
+    except Exception:  # unreadable: recomputed, never a crash
+        return {}
+    if not {"t", "energy_error", "method"} <= set(df.columns):
+        return {}
+    df["t"] = pd.to_numeric(df["t"], errors="coerce")
+    df["energy_error"] = pd.to_numeric(df["energy_error"], errors="coerce")
+    if "integrator" not in df:
+        df["integrator"] = df["method"].map(method_of)
+    return {name: g for name, g in df.groupby("integrator", sort=False)}
 
 
 def run_horizon_study(t_end: float, out: Path, overrides: tuple = (), jobs: int | None = None,
-                      log: Callable[[str], None] = log_stderr) -> Path:
+                      log: Callable[[str], None] = log_stderr, selected=None) -> list[tuple[str, str]]:
     """Energy error vs time on the fixed-length scene over a long horizon, one job per method in
-    parallel workers (one after another they would be the main job's longest tail):
-    energy_horizon.csv and its figure. A method whose worker dies is left out of both (its
-    progress line says so)."""
+    parallel workers (``jobs``; 0: in this process; one after another they would be the main
+    job's longest tail):
+    energy_horizon.csv and its figure. ``selected``: the methods a run asked for (None: all);
+    of those that declare horizon settings (`benchmark.sweep.horizon_methods`), a method whose
+    history is already in energy_horizon.csv for the same settings, horizon, scene and code is
+    kept, the others computed; other methods' histories stay. A method whose worker dies is left
+    out of both (its progress line says so). Returns [(figure name, note)]."""
     import os
 
-    from benchmark import horizon, plots, sweep
+    from benchmark import horizon, plots, runner, sweep
+    from benchmark.sweep import Task
     from models import load_scene
 
-    methods = sweep.horizon_methods()
-    jobs_ = [horizon.Job(m, t_end, tuple(overrides)) for m in methods]
-    log(f"horizon: {', '.join(m.name for m in methods)} to t = {t_end:g} s ...")
-    rows = engine.run_jobs(horizon.run_job, jobs_, workers=jobs or min(len(methods), os.cpu_count() or 1),
-                           crash_row=lambda i, exc: horizon.crash_row(jobs_[i], exc), describe=horizon.describe,
-                           log=log)
-    store.write_table(out / "energy_horizon.csv", horizon.table(rows))
-    histories = {r["label"]: r["history"] for r in rows if r["history"] is not None}
-    return plots.energy_horizon(histories, load_scene(horizon.SCENE, **dict(overrides)).name, out)
+    path = out / "energy_horizon.csv"
+    earlier = _read_horizon(path)
+    methods = [m for m in sweep.horizon_methods() if selected is None or m.name in selected]
+    if not methods:
+        log("horizon: none of the selected methods declares settings for the energy study; "
+            + ("energy_horizon.csv kept as it was" if earlier else "no energy study"))
+        figure = f"energy_horizon_{load_scene(horizon.SCENE, **dict(overrides)).name}.png"
+        return [(figure, "from an earlier run")] if earlier and (out / figure).is_file() else []
+    wanted = {m.name: _horizon_key(m, t_end, overrides) for m in methods}
+    kept = [m for m in methods if m.name in earlier and "job_key" in earlier[m.name]
+            and (earlier[m.name]["job_key"] == wanted[m.name]).all()]
+    todo = [m for m in methods if m not in kept]
+    figure = out / f"energy_horizon_{load_scene(horizon.SCENE, **dict(overrides)).name}.png"
+    if kept:
+        log(f"horizon: kept {', '.join(m.name for m in kept)} (same settings, horizon and code)")
+    rows = []
+    if todo:
+        jobs_ = [horizon.Job(m, t_end, tuple(overrides)) for m in todo]
+        tasks = [Task(horizon.SCENE, m.name, dt=m.settings.get("dt"), rtol=m.settings.get("rtol"), t_end=t_end)
+                 for m in todo]
+        costs = runner.task_costs(tasks)
+        workers = jobs if jobs is not None else min(len(todo), os.cpu_count() or 1)  # 0: this process
+        log(f"horizon: {', '.join(m.name for m in todo)} to t = {t_end:g} s ...")
+        with engine.Heartbeat(f"horizon study to t = {t_end:g} s", sum(costs) / max(workers, 1), log=log):
+            rows = engine.run_jobs(horizon.run_job, jobs_, workers=workers,
+                                   crash_row=lambda i, exc: horizon.crash_row(jobs_[i], exc),
+                                   describe=horizon.describe, cost=lambda i: costs[i], kind=lambda i: todo[i].name,
+                                   log=log)
+    fresh = {m.name: r["history"].assign(method=r["label"], integrator=m.name, t_end=t_end, job_key=wanted[m.name])
+             for m, r in zip(todo, rows) if r["history"] is not None}
+    if not todo and figure.is_file():
+        return [(figure.name, "")]
+    import pandas as pd
+
+    parts = {**earlier, **fresh}
+    for m in todo:  # a method recomputed without a history (its worker died) is not drawn from stale rows
+        if m.name not in fresh:
+            parts.pop(m.name, None)
+    if not parts:
+        return []
+    table = pd.concat(list(parts.values()), ignore_index=True)
+    store.write_table(path, table)
+    histories = {str(g["method"].iloc[0]): g for _, g in table.groupby("integrator", sort=False)}
+    plots.energy_horizon(histories, load_scene(horizon.SCENE, **dict(overrides)).name, out)
+    return [(figure.name, "")]
 
 
 # ------------------------------------------------------------------------------------------

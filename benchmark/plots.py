@@ -13,6 +13,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
+from matplotlib.lines import Line2D  # noqa: E402
+
+from benchmark import styles  # noqa: E402
 
 from benchmark.metrics import WORK_DEFINITION, pi3_deviation  # noqa: E402
 from models import build_model  # noqa: E402
@@ -45,37 +48,88 @@ def style_axes(ax, *, xlabel: str | None = None, ylabel: str | None = None, titl
 
 
 #: x axes of the work-precision figure: wall time (this machine) and a machine-independent work count
-COST_AXES = (("run_time", "run time (s): solve() after compilation, min of repeats"),
+COST_AXES = (("run_time", "run time (s): solve() after compilation, median of repeats"),
              ("work_evals", "work (RHS-equivalent evaluations)"))
+
+
+def _numeric(df: pd.DataFrame, columns) -> pd.DataFrame:
+    """``df`` with ``columns`` as numbers (text that is not one becomes NaN: never drawn)."""
+    return df.assign(**{c: pd.to_numeric(df[c], errors="coerce") for c in columns if c in df})
+
+
+def _clash_caption(names) -> str:
+    pairs = styles.clashes(names)
+    return ("\nsame colour and marker: " + "; ".join(f"{a} and {b}" for a, b in pairs)) if pairs else ""
+
+
+def log_ticks(ax) -> None:
+    """Tick labels that do not overlap on a narrow log panel: a span of two decades or more gets
+    one label per decade (at most six), a shorter one labels 1, 2 and 5 of each decade in plain
+    numbers; minor ticks stay unlabelled (matplotlib's labelled minor ticks run into each other)."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    for axis, (lo, hi) in ((ax.xaxis, ax.get_xlim()), (ax.yaxis, ax.get_ylim())):
+        if not (lo > 0 and hi > lo):
+            continue
+        if np.log10(hi / lo) >= 2:
+            axis.set_major_locator(LogLocator(base=10.0, numticks=6))
+        else:
+            axis.set_major_locator(LogLocator(base=10.0, subs=(1.0, 2.0, 5.0)))
+            axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+        axis.set_minor_formatter(NullFormatter())
 
 
 def work_precision(runs: pd.DataFrame, scene: str, out_dir: Path) -> Path:
     """Error vs cost, one curve per integrator and sweep axis, log-log: one column per error kind,
     one row per cost axis (`COST_AXES`: wall time, then the work count of `benchmark.metrics.WORK_DEFINITION`,
-    so a reader on another machine can check the ranking)."""
-    g = runs[(runs["scene"] == scene) & (runs["status"] == "ok")]
-    fig, axes = plt.subplots(len(COST_AXES), len(ERROR_LABELS), figsize=(5.2 * len(ERROR_LABELS), 4.2 * len(COST_AXES)),
+    so a reader on another machine can check the ranking). Every method has its own style
+    (`benchmark.styles.style`) in every panel; the legend is outside the axes and names a method
+    without a work count as such."""
+    cols = [c for c, _ in COST_AXES] + list(ERROR_LABELS) + ["dt"]
+    sel = runs[runs["scene"] == scene]
+    g = _numeric(sel[sel["status"] == "ok"], cols)
+    g = g.assign(axis=np.where(g["dt"].notna(), "dt", "rtol"))
+    fig, axes = plt.subplots(len(COST_AXES), len(ERROR_LABELS), figsize=(4.6 * len(ERROR_LABELS), 4.0 * len(COST_AXES)),
                              squeeze=False)
+    drawn, absent = set(), {}
     for row, (cost, cost_label) in zip(axes, COST_AXES):
         for ax, (err, label) in zip(row, ERROR_LABELS.items()):
-            for (integ, axis), c in g.assign(axis=np.where(g["dt"].notna(), "fixed dt", "adaptive")).groupby(["integrator", "axis"]):
+            for (integ, axis), c in g.groupby(["integrator", "axis"]):
                 c = c[(c[err] > 0) & (c[cost] > 0)].sort_values(cost) if cost in c else c.iloc[:0]
                 if len(c):
-                    ax.loglog(c[cost], c[err], "o-" if axis == "adaptive" else "s--", label=f"{integ} ({axis})")
+                    ax.loglog(c[cost], c[err], **styles.style(integ).kwargs(axis))
+                    drawn.add((integ, axis))
+            log_ticks(ax)
             style_axes(ax, xlabel=cost_label, ylabel=label, legend=None)
-        row[0].legend(fontsize=8)
-    failed = runs[(runs["scene"] == scene) & (runs["status"] != "ok")]
+    for integ in sorted(set(g["integrator"])):
+        has_count = "work_evals" in g and g.loc[g["integrator"] == integ, "work_evals"].notna().any()
+        if not has_count:
+            absent[integ] = "no work count (bottom row)"
+    fig.tight_layout(rect=(0, 0, 1, 0.93))
+    styles.legend_outside(fig, *styles.legend_entries(drawn, absent))
+    failed = sel[sel["status"] != "ok"]
     fig.suptitle(f"{scene}: work–precision" + (f"  ({len(failed)} runs failed, see runs.csv)" if len(failed) else "")
-                 + f"\nbottom row: {WORK_DEFINITION}", fontsize=10)
+                 + f"\nbottom row: {WORK_DEFINITION}" + _clash_caption(set(g["integrator"])), fontsize=10)
     return save_figure(fig, Path(out_dir) / f"work_precision_{scene}.png")
 
 
+def method_of(label: str) -> str:
+    """The method name a label of the energy study starts with ("lgvi dt=0.005" -> "lgvi")."""
+    return str(label).split(" ", 1)[0]
+
+
 def energy_horizon(histories: dict[str, pd.DataFrame], scene: str, out_dir: Path) -> Path:
-    """Energy error vs time over a long horizon, one curve per method."""
+    """Energy error vs time over a long horizon, one curve per method (its own colour and line)."""
     fig, ax = plt.subplots(figsize=(8, 4.2))
     for label, h in histories.items():
-        ax.semilogy(h["t"], np.maximum(h["energy_error"], 1e-17), label=label, lw=1)
-    style_axes(ax, xlabel="t (s)", ylabel="|E − E0| / max T", title=f"{scene}: energy error over a long horizon")
+        st = styles.style(method_of(label))
+        ax.semilogy(h["t"], np.maximum(h["energy_error"], 1e-17), color=st.color, linestyle=st.linestyle, lw=1)
+    style_axes(ax, xlabel="t (s)", ylabel="|E − E0| / max T", title=f"{scene}: energy error over a long horizon",
+               legend=None)
+    fig.tight_layout()
+    handles = [Line2D([], [], color=styles.style(method_of(lb)).color, linestyle=styles.style(method_of(lb)).linestyle)
+               for lb in histories]
+    styles.legend_outside(fig, handles, list(histories))
     return save_figure(fig, Path(out_dir) / f"energy_horizon_{scene}.png")
 
 

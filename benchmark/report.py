@@ -112,6 +112,24 @@ def fmt(value, spec: str = ".3g", missing: str = "–") -> str:
     return format(value, spec)
 
 
+#: Where a long text may be cut, the strongest boundary first: a sentence, a clause, a list item.
+_BOUNDARIES = ((". ", "; "), (": ", " (", ", "))
+
+
+def shorten(text: str, limit: int = 160) -> str:
+    """``text`` within ``limit`` characters, cut only at a sentence or clause boundary (marked
+    with " …"); in full when no boundary lies in its last two thirds, never mid-word."""
+    text = str(text)
+    if len(text) <= limit:
+        return text
+    head = text[: limit - 2]
+    for marks in _BOUNDARIES:
+        cut = max(head.rfind(m) for m in marks)
+        if cut >= limit // 3:
+            return head[:cut + (1 if head[cut] == "." else 0)].rstrip(" ,;:(") + " …"
+    return text
+
+
 def code_list(names, sep: str = ", ") -> str:
     """Names as inline code: `a`, `b`."""
     return sep.join(f"`{n}`" for n in names)

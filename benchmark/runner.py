@@ -2,15 +2,24 @@
 of status, cost and metrics, and a list of tasks -> the table, on the engine.
 
 Each task runs in a worker process (or a Dask worker, or this process): one solve for the
-errors, then a separate timing pass (minimum wall time over repeats, compilation excluded). A
-failed or diverged run becomes a row with its status; an exception inside a task becomes a row
+errors, then a separate timing pass (compilation excluded) of `timing_repeats` solves within
+`benchmark.sweep.TIMING_BUDGET`: ``run_time`` is their median, ``run_time_low`` the fastest,
+``run_time_high`` the 90th percentile (10 or more solves) or the slowest, ``timing_repeats``
+their count and ``load_avg`` the machine's 1-minute load when the row finished (timings on a
+loaded machine are inflated). ``us_per_eval`` is the run time per right-hand-side-equivalent
+evaluation (`benchmark.metrics.WORK_DEFINITION`; empty where a method reports no count), and
+``implementation`` the method's declared kind ("jax-compiled" or "scipy-python").
+
+A failed or diverged run becomes a row with its status; an exception inside a task becomes a row
 with status "error"; a crashed worker becomes a row with status "crashed". The sweep goes on.
-Rows of an earlier run with the same `run_key` are kept (`benchmark.store`), the rest computed.
+Rows of an earlier run with the same `run_key` that pass `benchmark.store.check_row` are kept,
+the rest computed.
 """
 
 from __future__ import annotations
 
 import functools
+import math
 import os
 import time
 import traceback
@@ -23,11 +32,18 @@ import pandas as pd
 from benchmark import engine
 from benchmark.metrics import ACCURACY, COLUMNS, run_metrics, work_evals
 from benchmark.reference import CACHE_DIR, ReferenceProblem, get_reference, prepare_reference
-from benchmark.store import code_version, frame, kept_rows, run_key
-from benchmark.sweep import EXECUTORS, TIMING_BUDGET, Task
+from benchmark.report import shorten
+from benchmark.store import code_version, frame, kept_rows, row_digest, run_key
+from benchmark.sweep import EXECUTORS, MAX_REPEATS, MIN_REPEATS, TIMING_BUDGET, Task
 
 #: Step statistics some integrators report (`Trajectory.stats`), copied into the row when present.
 STEP_STATS = ("rejected_steps", "min_step", "median_step", "max_step", "max_newton_iterations")
+#: Columns after `benchmark.metrics.COLUMNS`: the timing spread and the implementation ...
+TIMING_COLUMNS = ["implementation", "run_time_low", "run_time_high", "timing_repeats", "load_avg", "us_per_eval",
+                  "task_time"]
+#: ... and a row's identity: the scene's physics hash, the resume key and the row's digest.
+IDENTITY_COLUMNS = ["scene_key", "run_key", "row_digest"]
+RUN_COLUMNS = COLUMNS + TIMING_COLUMNS + IDENTITY_COLUMNS
 
 
 def _scene(task: Task):
@@ -41,8 +57,20 @@ def _empty_row(task: Task, scene=None) -> dict:
     row.update(scene=scene.name if scene is not None else task.scene, integrator=task.integrator,
                setting=task.setting, dt=task.dt, rtol=task.rtol, atol=task.atol,
                t_end=task.t_end if task.t_end is not None else (scene.t_end if scene is not None else np.nan),
-               reason="")
+               reason="", implementation=implementation(task.integrator),
+               scene_key=scene.key() if scene is not None else "")
     return row
+
+
+def implementation(name: str) -> str:
+    """The integrator's declared implementation ("jax-compiled", "scipy-python"), "" when it
+    declares none (or is not registered)."""
+    from integrators import get_integrator
+
+    try:
+        return str(getattr(get_integrator(name), "implementation", "") or "")
+    except ValueError:
+        return ""
 
 
 def _run_columns(traj, ny: int) -> dict:
@@ -60,63 +88,159 @@ def _run_columns(traj, ny: int) -> dict:
     return cols
 
 
-def _timing(first: float, repeat: Callable[[], float], repeats: int) -> dict:
+def timing_repeats(first: float, least: int = MIN_REPEATS, budget: float = TIMING_BUDGET,
+                   most: int = MAX_REPEATS) -> int:
+    """How many timed solves a run gets: clamp(floor(budget / first), least, most), and one
+    (the first) when the first solve alone takes the budget or is not a number."""
+    if not (np.isfinite(first) and first < budget):
+        return 1
+    if first <= 0:
+        return max(least, most)
+    fits = math.floor(budget / first * (1 + 1e-12))  # 2 / 0.1 is 20 solves, not 2 // 0.1 = 19
+    return int(min(max(most, least), max(least, fits)))
+
+
+def timing_summary(times) -> dict:
+    """The timing columns of a run from its timed solves (s): median, min, the 90th percentile
+    (10 or more solves) or the max, and their count."""
+    t = np.asarray([v for v in times if np.isfinite(v)], float)
+    if not len(t):
+        return {"run_time": np.nan, "run_time_low": np.nan, "run_time_high": np.nan, "timing_repeats": 0}
+    high = float(np.percentile(t, 90)) if len(t) >= 10 else float(t.max())
+    return {"run_time": float(np.median(t)), "run_time_low": float(t.min()), "run_time_high": high,
+            "timing_repeats": len(t)}
+
+
+def _timing(first: float, repeat: Callable[[], float], least: int) -> dict:
     """The timing pass: the first solve (compiled beforehand, compile time excluded) is one
-    sample; repeats are added while they fit in `TIMING_BUDGET`; the minimum is reported."""
+    sample, then solves until `timing_repeats` of them."""
     times = [first]
-    spent = first if np.isfinite(first) else 0.0
-    while len(times) <= repeats and spent < TIMING_BUDGET:
-        t0 = time.perf_counter()
+    for _ in range(timing_repeats(first, least) - 1):
         times.append(repeat())
-        spent += time.perf_counter() - t0
-    return {"run_time": float(np.nanmin(times)), "run_time_median": float(np.nanmedian(times)),
-            "timing_samples": len(times)}
+    return timing_summary(times)
 
 
-def run_task(task: Task, cache_dir: str = str(CACHE_DIR), repeats: int = 3, *, reference: bool = True,
+def us_per_eval(run_time: float, evals: float) -> float:
+    """Microseconds of run time per right-hand-side-equivalent evaluation; NaN without a count."""
+    if np.isfinite(run_time) and np.isfinite(evals) and evals > 0:
+        return 1e6 * run_time / evals
+    return np.nan
+
+
+def _one_minute_load() -> float:
+    try:
+        return os.getloadavg()[0]
+    except OSError:  # not available on this platform
+        return np.nan
+
+
+def run_task(task: Task, cache_dir: str = str(CACHE_DIR), repeats: int = MIN_REPEATS, *, reference: bool = True,
              finished=("ok",)) -> dict:
     """Run one task; always returns a row (never raises for a failed run).
 
-    ``reference=False`` skips the reference solution (no position/attitude errors);
+    ``repeats``: the least timed solves of a run (`timing_repeats`); 0 times the first solve
+    only. ``reference=False`` skips the reference solution (no position/attitude errors);
     ``finished`` are the statuses whose runs get conservation metrics (default: "ok" only).
     """
-    scene = None
+    started = time.perf_counter()
+    loaded = []  # the scene, once it loaded (an error row still names it)
     try:
-        from integrators import get_integrator
-        from models import build_model
-
-        scene = _scene(task)
-        row = _empty_row(task, scene)
-        t_end = task.t_end if task.t_end is not None else scene.t_end
-        ref = get_reference(scene, t_end, task.save_every, Path(cache_dir)) if reference else None
-        integ = get_integrator(task.integrator)
-        kw = {**task.solve_kwargs(), "t_end": t_end}
-        traj = integ.solve(scene, **kw)
-        row.update(_run_columns(traj, build_model(scene).layout.ny))
-        row.update(run_metrics(scene, traj, ref, task.save_every, finished))
-        if traj.ok and repeats > 0:  # timing pass, separate from the error computation
-            again = lambda: integ.solve(scene, **kw).stats.get("wall_time", np.nan)  # noqa: E731
-            row.update(_timing(row["run_time"], again, repeats))
-        return row
+        row = _solved_row(task, cache_dir, repeats, reference, finished, loaded)
     except Exception as exc:  # a bug in one task must not lose the other rows
-        row = _empty_row(task, scene)
-        row.update(status="error", reason=f"{type(exc).__name__}: {exc}".splitlines()[0][:300])
+        row = _empty_row(task, loaded[0] if loaded else None)
+        row.update(status="error", reason=shorten(f"{type(exc).__name__}: {exc}".splitlines()[0], 300))
         row["traceback"] = traceback.format_exc()[-2000:]
-        return row
+    row.update(load_avg=_one_minute_load(), task_time=time.perf_counter() - started)
+    return row
+
+
+def _solved_row(task: Task, cache_dir: str, repeats: int, reference: bool, finished, loaded: list) -> dict:
+    from integrators import get_integrator
+    from models import build_model
+
+    scene = _scene(task)
+    loaded.append(scene)
+    row = _empty_row(task, scene)
+    t_end = task.t_end if task.t_end is not None else scene.t_end
+    ref = get_reference(scene, t_end, task.save_every, Path(cache_dir)) if reference else None
+    integ = get_integrator(task.integrator)
+    kw = {**task.solve_kwargs(), "t_end": t_end}
+    traj = integ.solve(scene, **kw)
+    row.update(_run_columns(traj, build_model(scene).layout.ny))
+    row.update(run_metrics(scene, traj, ref, task.save_every, finished))
+    if traj.ok and repeats > 0:  # timing pass, separate from the error computation
+        again = lambda: integ.solve(scene, **kw).stats.get("wall_time", np.nan)  # noqa: E731
+        row.update(_timing(row["run_time"], again, repeats))
+    else:
+        row.update(timing_summary([row["run_time"]]))
+    row["us_per_eval"] = us_per_eval(row["run_time"], row["work_evals"])
+    return row
 
 
 def describe_run(row: dict) -> str:
-    """A finished run in the progress log: scene, integrator, setting, run time or status."""
-    extra = f"{row['run_time']:.3g} s" if row["status"] == "ok" else f"{row['status']}: {row['reason']}"[:120]
+    """A finished run in the progress log: scene, integrator, setting, run time or status (its
+    reason shortened at a clause boundary; runs.csv has it in full)."""
+    if row["status"] == "ok":
+        extra = f"{row['run_time']:.3g} s"
+        if row.get("timing_repeats", 0) and row["timing_repeats"] > 1:
+            extra += f" (median of {row['timing_repeats']}, {row['run_time_low']:.3g}–{row['run_time_high']:.3g})"
+    else:
+        extra = shorten(f"{row['status']}: {row['reason']}", 140)
     return f"{row['scene']} {row['integrator']} {row['setting']}: {extra}"
 
 
 def runs_frame(rows: Iterable[dict]) -> pd.DataFrame:
-    """Rows -> the runs table: `COLUMNS` first, then any other keys of the rows; a number not
-    backed by a finished run (status "ok") is not reported."""
-    df = frame(rows, COLUMNS)
+    """Rows -> the runs table: `RUN_COLUMNS` first, then any other keys of the rows; a number
+    not backed by a finished run (status "ok") is not reported."""
+    df = frame(rows, RUN_COLUMNS)
     df.loc[df["status"] != "ok", ACCURACY] = np.nan
     return df
+
+
+#: Seconds of one explicit Runge-Kutta step at N = 10 (the unit of `Integrator.cost_hint`'s
+#: per-step cost), and steps per simulated second of an adaptive run at rtol 1e-4 (order 5): a
+#: rough first guess the progress line's ETA corrects with the measured rows.
+STEP_SECONDS = 2e-5
+ADAPTIVE_STEPS_PER_S = 50.0
+#: A step of a "scipy-python" method costs this many compiled ones (the interpreter between the
+#: right-hand-side calls: a --quick sweep at load 2.5-3.8 measured 280-1070 µs per evaluation for
+#: scipy's DOP853 against 9-27 µs for diffrax's Tsit5).
+PYTHON_STEP_FACTOR = 20.0
+
+
+def task_costs(tasks: list[Task]) -> list[float]:
+    """Predicted seconds of each task in its worker: its method's declared compile time
+    (`Integrator.cost_hint`) on the first task of each (scene, integrator), plus its steps at
+    the declared per-step cost, times the timed solves (`timing_repeats`)."""
+    from integrators import get_integrator
+
+    seen, out = set(), []
+    for t in tasks:
+        try:
+            integ = get_integrator(t.integrator)
+            compile_s, per_step = integ.cost_hint
+            if getattr(integ, "implementation", "") == "scipy-python":
+                per_step *= PYTHON_STEP_FACTOR
+        except (ValueError, AttributeError, TypeError):
+            compile_s, per_step = 30.0, 1.0
+        horizon = t.t_end if t.t_end is not None else 10.0
+        steps = horizon / t.dt if t.dt else horizon * ADAPTIVE_STEPS_PER_S * (1e-4 / t.rtol) ** 0.2
+        solve = steps * per_step * STEP_SECONDS
+        timed = solve * timing_repeats(solve)
+        first = (t.scene, t.integrator) not in seen
+        seen.add((t.scene, t.integrator))
+        out.append((compile_s if first else 0.0) + solve + timed)
+    return out
+
+
+def finish_row(row: dict, key: str) -> dict:
+    """A row as the table keeps it: no accuracy without a finished run, its resume key and the
+    digest of its deterministic columns (`benchmark.store.row_digest`)."""
+    if row.get("status") != "ok":
+        row.update({k: np.nan for k in ACCURACY})
+    row["run_key"] = key
+    row["row_digest"] = row_digest(row)
+    return row
 
 
 def execute(
@@ -125,7 +249,7 @@ def execute(
     jobs: int | None = None,
     executor: str = "process",
     scheduler: str | None = None,
-    repeats: int = 3,
+    repeats: int = MIN_REPEATS,
     cache_dir: str = str(CACHE_DIR),
     on_row: Callable[[list[dict]], None] | None = None,
     log: Callable[[str], None] = engine.log_stderr,
@@ -136,14 +260,15 @@ def execute(
     """Run ``tasks`` on the engine and return the runs table (task order). ``on_row`` gets the
     rows so far after each completion (used to write partial results atomically).
 
-    ``previous``: rows of an earlier run (`benchmark.store.read_previous`); a task whose
+    ``previous``: rows of an earlier run (`benchmark.store.read_runs`, checked); a task whose
     `run_key` is among them keeps that row and is not run again.
 
     ``executor``: "process" (``jobs`` worker processes), "serial" (this process) or "dask" (the
     cluster at ``scheduler``). ``group``: tasks with the same ``group(task)`` run in one worker,
     one after another, so what that worker compiled for the first (JAX solves are cached per
     model and solver) serves the others; e.g. ``lambda t: (t.scene, t.integrator)``. ``cost``:
-    a task's expected seconds; the groups start longest first."""
+    a task's expected seconds (default `task_costs`); the groups start longest first, and the
+    progress line's ETA scales them by the measured rows of the same integrator."""
     if executor not in EXECUTORS:
         raise ValueError(f"executor = {executor!r} is invalid (allowed: {', '.join(EXECUTORS)})")
     if jobs is not None and jobs < 1:
@@ -160,9 +285,7 @@ def execute(
     problems = sorted({ReferenceProblem(t.scene, t.overrides, t.t_end, t.save_every) for t in todo}, key=str)
     if todo:
         log(f"references for {len(problems)} scene(s) ...")
-
-    def finish(i: int, row: dict) -> None:
-        row["run_key"] = keys[i]
+    costs = [cost(t) for t in tasks] if cost else task_costs(tasks)
 
     def crashed(i: int, exc: BaseException) -> dict:
         return {**_empty_row(tasks[i]), "status": "crashed", "reason": engine.crash_reason(exc)}
@@ -171,7 +294,10 @@ def execute(
         functools.partial(run_task, cache_dir=cache_dir, repeats=repeats), tasks,
         workers=0 if executor == "serial" else (jobs or min(len(todo), os.cpu_count() or 1) or 1),
         scheduler=scheduler if executor == "dask" else None, crash_row=crashed,
-        group=(lambda i: group(tasks[i])) if group else None, cost=(lambda i: cost(tasks[i])) if cost else None,
+        group=(lambda i: group(tasks[i])) if group else None, cost=lambda i: costs[i],
+        kind=lambda i: tasks[i].integrator,
         setup=[functools.partial(prepare_reference, p, cache_dir) for p in problems],
-        done=kept, finish=finish, describe=describe_run, on_row=on_row, log=log)
+        setup_labels=[f"reference {Path(p.scene).stem}" + (f" to t = {p.t_end:g} s" if p.t_end else "")
+                      for p in problems],
+        done=kept, finish=lambda i, row: finish_row(row, keys[i]), describe=describe_run, on_row=on_row, log=log)
     return runs_frame(rows)

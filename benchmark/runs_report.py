@@ -1,20 +1,37 @@
-"""results/README.md: what the runs table says, in words and tables, generated from the data
-(never edited by hand): the cheapest method per target error, the changes against an earlier
-run, the observed orders and the statuses."""
+"""results/README.md, cheapest.csv and the project README's answer block: what the runs table
+says, in words and tables, generated from the data (never edited by hand).
+
+The answers come from `benchmark.cheapest`: each method's cost at a target read off its own
+work–precision curve, with an interval, and a verdict that calls a tie a tie. By wall time the
+methods are ranked among the compiled implementations only (a scipy method's time is mostly
+Python calling a compiled right-hand side: a statement about the implementation, not the
+method); by the one-unit work (``flops`` when the table has it, else the RHS-equivalent count)
+every method is ranked. Then the failures and why they were expected, the reproducibility
+statement against an earlier table, the changes since it, the observed orders and the statuses.
+"""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 
-from benchmark.metrics import WORK_DEFINITION, fastest_at
+from benchmark import cheapest as cheap
+from benchmark.metrics import WORK_DEFINITION
 from benchmark.reference import REFERENCE_METHOD
+from benchmark.sweep import MAX_REPEATS, MIN_REPEATS, TIMING_BUDGET
 from benchmark.report import Provenance, code_list, markdown_table
 from models.io import atomic_write_text
 
-TARGETS = (("energy_error", 1e-4, "energy error 1e-4 (relative to max T)"),
-           ("position_error_final", 1e-6, "position error 1e-6 m (body, at t_end)"))
+TARGETS = (("energy_error", 1e-4, "energy error (relative to max T)"),
+           ("position_error_final", 1e-6, "body position error at t_end (m)"))
+LABELS = {metric: label for metric, _, label in TARGETS}
+#: The implementation whose wall times are compared with each other (`Integrator.implementation`).
+COMPILED = "jax-compiled"
+#: The markers of the project README's generated answer block.
+ANSWER_START, ANSWER_END = "<!-- answer:start -->", "<!-- answer:end -->"
 
 
 def horizons_text(horizons: dict | None) -> str:
@@ -33,76 +50,244 @@ def horizons_text(horizons: dict | None) -> str:
     return "Horizons — " + "; ".join(parts) + "."
 
 
-COSTS = (("run_time", "wall time", "{:.3g} s"), ("work_evals", "work count (RHS-equivalent evaluations, see above)", "{:.3g}"))
+# ------------------------------------------------------------------------------------------
+# Cost at a target
+# ------------------------------------------------------------------------------------------
+def implementations(runs: pd.DataFrame) -> pd.Series:
+    """Each row's declared implementation ("" where the table or the method has none)."""
+    if "implementation" not in runs:
+        return pd.Series("", index=runs.index)
+    impl = runs["implementation"]
+    return impl.astype(object).where(impl.notna(), "").astype(str)
 
 
-def answers(runs: pd.DataFrame) -> str:
-    """Which integrator is fastest at each target error, per scene, and by what factor: in wall
-    time and in the machine-independent work count."""
+def compiled_rows(runs: pd.DataFrame) -> tuple[pd.DataFrame, bool]:
+    """(the rows ranked by wall time, whether they are the compiled implementations only): every
+    row when no method declares its implementation (then nothing says which times compare)."""
+    impl = implementations(runs)
+    if (impl == COMPILED).any():
+        return runs[impl == COMPILED], True
+    return runs, False
+
+
+def cheapest_table(runs: pd.DataFrame) -> pd.DataFrame:
+    """cheapest.csv: for every target, the wall-time costs among the compiled implementations
+    (column ``among``) and the work costs among every method (`benchmark.cheapest.cheapest`)."""
+    targets = [(m, t) for m, t, _ in TARGETS if m in runs]
+    if runs.empty or not targets:
+        return pd.DataFrame(columns=cheap.COLUMNS + ["among"])
+    # a table from before the timing spread: each cost is its own interval, widened to the resolution
+    runs = runs.assign(**{c: np.nan for c in cheap.WALL_COLUMNS if c not in runs})
+    ranked, only_compiled = compiled_rows(runs)
+    parts = []
+    if not ranked.empty:
+        parts.append(cheap.cheapest(ranked, targets, cost_kinds=["wall"]).assign(
+            among="compiled implementations" if only_compiled else "every method (no implementation declared)"))
+    parts.append(cheap.cheapest(runs, targets, cost_kinds=["work"]).assign(among="every method"))
+    return pd.concat(parts, ignore_index=True)
+
+
+def write_cheapest(out_dir: Path, table: pd.DataFrame) -> Path:
+    path = Path(out_dir) / "cheapest.csv"
+    atomic_write_text(path, table.to_csv(index=False))
+    return path
+
+
+def _unranked_by_wall(runs: pd.DataFrame) -> list[str]:
+    impl = implementations(runs)
+    return sorted(set(runs.loc[impl != COMPILED, "integrator"])) if (impl == COMPILED).any() else []
+
+
+def answers(runs: pd.DataFrame, table: pd.DataFrame) -> str:
+    """The cost sections of results/README.md from the cheapest table ``table``."""
     out = []
-    for err, target, label in TARGETS:
-        for cost, cost_label, fmt in COSTS:
-            if cost not in runs:
-                continue
-            table = fastest_at(runs, err, target, cost)
-            out.append(f"### Cheapest to reach {label}, by {cost_label}\n\n")
-            for scene in sorted(runs["scene"].unique()):
-                t = table[table["scene"] == scene] if not table.empty else table
-                if t.empty:
-                    out.append(f"- **{scene}**: no run reached it.\n")
-                    continue
-                best = t.iloc[0]
-                if len(t) > 1:
-                    second = t.iloc[1]
-                    out.append(f"- **{scene}**: `{best['integrator']}` ({best['setting']}, {fmt.format(best[cost])}), "
-                               f"{second['factor']:.2g}× cheaper than the next, `{second['integrator']}` "
-                               f"({second['setting']}, {fmt.format(second[cost])}).\n")
-                else:
-                    out.append(f"- **{scene}**: only `{best['integrator']}` reached it ({best['setting']}, "
-                               f"{fmt.format(best[cost])}).\n")
-            out.append("\n" + markdown_table(table) + "\n")
+    for kind, title in (("wall", "By wall time"), ("work", "By work")):
+        g = table[table["cost_kind"] == kind]
+        if g.empty:
+            continue
+        among = g["among"].iloc[0]
+        out.append(f"### {title}, among {among}\n\n")
+        if kind == "wall":
+            out.append(f"The median of each run's timed solves, with the interval of its repeats widened to the "
+                       f"wall-time resolution (a factor {1 + cheap.WALL_RESOLUTION:g}: closer costs are a tie).")
+            others = _unranked_by_wall(runs)
+            if others:
+                out.append(f" Not ranked by wall time: {code_list(others)} (not compiled: their time is mostly the "
+                           "interpreter between right-hand-side calls, see the µs per evaluation below); they are "
+                           "ranked by work.")
+            out.append("\n\n")
+        else:
+            col = g["cost_column"].iloc[0]
+            what = ("floating-point operations (`flops`)" if col == "flops" else f"`{col}`: {WORK_DEFINITION}")
+            out.append(f"Work in {what}; two costs within {cheap.WORK_RESOLUTION:.0%} of each other are a tie.\n\n")
+        out.append("\n".join(cheap.summary_lines(g, LABELS)) + "\n\n")
     return "".join(out)
 
 
-def changes_since(before: pd.DataFrame, runs: pd.DataFrame, label: str) -> str:
-    """What changed against an earlier run's table ``before`` (e.g. the results of an earlier
-    version): the cheapest method per scene and target then and now, and each method's
-    speed-up on the runs both tables have (same scene, integrator and setting, ok in both)."""
-    out = [f"## Compared with {label}\n\n"]
-    for err, target, what in TARGETS:
-        if err not in before or err not in runs:
+def evaluation_costs(runs: pd.DataFrame) -> pd.DataFrame:
+    """µs of run time per RHS-equivalent evaluation of each method over its finished runs
+    (median and range), by implementation; a method without an evaluation count says so."""
+    ok = runs[runs["status"] == "ok"].assign(implementation=implementations(runs))
+    rows = []
+    for (impl, name), g in ok.groupby(["implementation", "integrator"], sort=True):
+        v = pd.to_numeric(g["us_per_eval"], errors="coerce") if "us_per_eval" in g else pd.Series(dtype=float)
+        v = v[np.isfinite(v)]
+        rows.append({"implementation": impl or "(not declared)", "integrator": name, "runs": len(g),
+                     "us_per_eval_median": float(v.median()) if len(v) else np.nan,
+                     "us_per_eval_min": float(v.min()) if len(v) else np.nan,
+                     "us_per_eval_max": float(v.max()) if len(v) else np.nan,
+                     "note": "" if len(v) else "no evaluation count: the method reports none (no work cost either)"})
+    return pd.DataFrame(rows, columns=["implementation", "integrator", "runs", "us_per_eval_median", "us_per_eval_min",
+                                       "us_per_eval_max", "note"])
+
+
+def timing_text(runs: pd.DataFrame) -> str:
+    """How the run times were measured, from the rows: repeats, load, and the wall resolution."""
+    ok = runs[runs["status"] == "ok"]
+    reps = pd.to_numeric(ok.get("timing_repeats", pd.Series(dtype=float)), errors="coerce").dropna()
+    load = pd.to_numeric(ok.get("load_avg", pd.Series(dtype=float)), errors="coerce").dropna()
+    parts = []
+    if len(reps):
+        spread = f"{reps.min():.0f}" if reps.min() == reps.max() else f"{reps.min():.0f}–{reps.max():.0f}"
+        parts.append(f"each finished run was timed {spread} times (median {reps.median():.0f})")
+    if len(load):
+        parts.append(f"the 1-minute load when the rows ran was {load.min():.1f}–{load.max():.1f}")
+    missing = len(ok) - len(reps)
+    if missing:
+        parts.append(f"{missing} finished row(s) come from an older table without a timing spread (their interval is "
+                     "the resolution alone)")
+    return ("Timing: " + "; ".join(parts) + ". " if parts else "") + (
+        f"Run times of a few ms move by up to 2× between sweeps on a shared machine, so the wall-time verdicts use a "
+        f"resolution of a factor {1 + cheap.WALL_RESOLUTION:g} whatever the repeats say (`benchmark/cheapest.py`), "
+        "and need a machine loaded below its core count.")
+
+
+# ------------------------------------------------------------------------------------------
+# The project README's answer block
+# ------------------------------------------------------------------------------------------
+def _short(g: pd.DataFrame) -> str:
+    """One scene at one target and cost kind, in a few words: the winner and the factor to the
+    next, or the tie."""
+    win, tie = g[g["verdict"] == "winner"], g[g["verdict"] == "tie"]
+    slower = g[g["verdict"] == "slower"]
+    if len(win):
+        w = win.iloc[0]
+        nxt = (f", next `{slower.iloc[0]['integrator']}` {cheap._relative(slower.iloc[0].to_dict())}"
+               if len(slower) else "")
+        return f"`{w['integrator']}`{nxt}"
+    if len(tie):
+        return "tie of " + ", ".join(f"`{n}`" for n in tie["integrator"])
+    return "no method reached it"
+
+
+def _power(x: float) -> str:
+    """A target in few characters: 1e-4, 2.5e-7, 0.5."""
+    if 1e-3 <= abs(x) < 1e4:
+        return f"{x:.3g}"
+    m, e = f"{x:.2e}".split("e")
+    return f"{m.rstrip('0').rstrip('.')}e{int(e)}"
+
+
+def answer_block(runs: pd.DataFrame, table: pd.DataFrame, failures: str) -> str:
+    """Five lines for the project README: per target, the verdicts by wall time (compiled
+    implementations) and by work; the failures; how to read it."""
+    lines = []
+    for metric, target, label in TARGETS:
+        g = table[(table["metric"] == metric) & (table["target"] == target)]
+        if g.empty:
             continue
-        then, now = fastest_at(before, err, target), fastest_at(runs, err, target)
-        out.append(f"Cheapest to reach {what}, by wall time (last column: the two methods ranked first "
-                   f"and second then, compared now):\n\n| scene | then | now | then's pair now |\n|---|---|---|---|\n")
-        for scene in sorted(set(runs["scene"]) | set(before["scene"])):
-            cells = []
-            for t in (then, now):
-                g = t[t["scene"] == scene] if not t.empty else t
-                if g.empty:
-                    cells.append("no run reached it")
-                    continue
-                first = g.iloc[0]
-                nxt = (f", {g['factor'].iloc[1]:.2g}× cheaper than `{g['integrator'].iloc[1]}`" if len(g) > 1 else "")
-                cells.append(f"`{first['integrator']}` ({first['setting']}, {first['run_time']:.3g} s){nxt}")
-            pair = ""
-            g_then = then[then["scene"] == scene] if not then.empty else then
-            g_now = now[now["scene"] == scene] if not now.empty else now
-            if len(g_then) > 1 and not g_now.empty:
-                a, b = g_then["integrator"].iloc[0], g_then["integrator"].iloc[1]
-                ta = g_now.loc[g_now["integrator"] == a, "run_time"]
-                tb = g_now.loc[g_now["integrator"] == b, "run_time"]
-                if len(ta) and len(tb):
-                    pair = f"`{b}` / `{a}` = {tb.iloc[0] / ta.iloc[0]:.2g}× (then {g_then['factor'].iloc[1]:.2g}×)"
-            out.append(f"| {scene} | {cells[0]} | {cells[1]} | {pair} |\n")
+        per = []
+        for kind, words in (("wall", "wall time"), ("work", "work")):
+            k = g[g["cost_kind"] == kind]
+            if len(k):
+                per.append(f"by {words}: " + "; ".join(f"{scene} {_short(s)}" for scene, s in k.groupby("scene")))
+        lines.append(f"- **{label[0].upper() + label[1:]} ≤ {_power(target)}** — " + " — ".join(per) + ".")
+    wall = table[table["cost_kind"] == "wall"]
+    among = wall["among"].iloc[0] if len(wall) else "compiled implementations"
+    lines.append(f"- Wall time is ranked among {among}; a winner's interval lies below every other method's, "
+                 f"otherwise it is a tie (resolution ×{1 + cheap.WALL_RESOLUTION:g} for wall time, "
+                 f"{cheap.WORK_RESOLUTION:.0%} for work).")
+    lines.append(f"- {failures}")
+    lines.append("- Generated from `results/runs.csv` by `python -m benchmark run`; each method's cost with its "
+                 "interval: `results/cheapest.csv`; the reading: `results/README.md`.")
+    return "\n".join(lines[:5]) + "\n"
+
+
+def write_answer(readme: Path, block: str) -> str:
+    """Replace the text between `ANSWER_START` and `ANSWER_END` in ``readme`` with ``block``,
+    atomically; the rest of the file is untouched. Returns what it did, in words (without both
+    markers, in order, it writes nothing)."""
+    readme = Path(readme)
+    try:
+        text = readme.read_text(encoding="utf-8")
+    except OSError as exc:
+        return f"{readme} cannot be read ({exc.strerror or exc}): the answer block was not written"
+    start, end = text.find(ANSWER_START), text.find(ANSWER_END)
+    if start < 0 or end < start or text.count(ANSWER_START) != 1 or text.count(ANSWER_END) != 1:
+        return (f"{readme} has no single {ANSWER_START} ... {ANSWER_END} pair: the answer block was not written "
+                "(add the two markers where it belongs)")
+    new = text[: start + len(ANSWER_START)] + "\n" + block + text[end:]
+    if new == text:
+        return f"{readme}: the answer block is unchanged"
+    atomic_write_text(readme, new)
+    return f"{readme}: the answer block between {ANSWER_START} and {ANSWER_END} was rewritten"
+
+
+# ------------------------------------------------------------------------------------------
+# Against an earlier table
+# ------------------------------------------------------------------------------------------
+def reproducibility(before: pd.DataFrame, runs: pd.DataFrame, label: str) -> str:
+    """The reproducibility statement (`benchmark.reproducibility.statement`) over the runs both
+    tables have; the rows only one has are counted, not compared."""
+    from benchmark import reproducibility as repro
+
+    missing = [c for c in ("scene", "integrator", "setting", "dt", "rtol", "status", "steps") if c not in before]
+    if missing:
+        return f"{label} has no column(s) {', '.join(missing)}: no reproducibility statement.\n\n"
+    key = repro.KEY
+    common = before[key].merge(runs[key], on=key)
+    if common.empty:
+        return f"{label} has no run in common with this table (same scene, integrator and setting): nothing compared.\n\n"
+    a = before.merge(common, on=key)
+    b = runs.merge(common, on=key)
+    only = len(before) + len(runs) - 2 * len(common)
+    text = repro.statement(repro.compare_runs(a, b))
+    tail = f" ({only} row(s) in only one of the two tables were not compared.)" if only else ""
+    return f"Against {label}: {text}{tail}\n\n"
+
+
+def changes_since(before: pd.DataFrame, runs: pd.DataFrame, label: str) -> str:
+    """What changed against an earlier run's table ``before``: the reproducibility statement,
+    each target's verdicts by work then and now (work: comparable across machines and timing
+    methods), and each method's median speed-up on the runs both tables finished."""
+    # an earlier table is the user's file: a number column holding text is not a number
+    numeric = [c for c in (*cheap.WALL_COLUMNS, "work_evals", "steps", "dt", "rtol", "t_end", *LABELS) if c in before]
+    before = before.assign(**{c: pd.to_numeric(before[c], errors="coerce") for c in numeric})
+    out = [f"## Compared with {label}\n\n", reproducibility(before, runs, label)]
+    targets = [(m, t) for m, t, _ in TARGETS if m in before and m in runs]
+    count = "work_evals"
+    if targets and count in before and count in runs and "dt" in before and "rtol" in before:
+        then = cheap.cheapest(before, targets, cost_kinds=["work"], work_count=count)
+        now = cheap.cheapest(runs, targets, cost_kinds=["work"], work_count=count)
+        out.append(f"Cheapest by work ({count}, the count both tables have), then and now:\n\n"
+                   "| scene | target | then | now |\n|---|---|---|---|\n")
+        for metric, target in targets:
+            for scene in sorted(set(runs["scene"]) | set(before["scene"])):
+                cells = []
+                for t in (then, now):
+                    g = t[(t["metric"] == metric) & (t["scene"] == scene)]
+                    cells.append(_short(g) if len(g) else "not in the table")
+                out.append(f"| {scene} | {LABELS[metric]} ≤ {target:g} | {cells[0]} | {cells[1]} |\n")
         out.append("\n")
     key = ["scene", "integrator", "setting"]
     both = before[before["status"] == "ok"].merge(runs[runs["status"] == "ok"], on=key, suffixes=("_then", "_now"))
-    if not both.empty:
+    if not both.empty and "run_time_then" in both:
         speed = (both["run_time_then"] / both["run_time_now"]).groupby(both["integrator"]).median()
-        out.append("Median speed-up of each method (run time then / now, over the "
-                   f"{len(both)} runs both tables finished):\n\n| integrator | runs | speed-up |\n|---|---|---|\n")
         counts = both.groupby("integrator").size()
+        out.append("Median speed-up of each method (run time then / now, over the "
+                   f"{len(both)} runs both tables finished; each table's `run_time` as it defines it: tables "
+                   "before the timing spread hold the fastest of the repeats, later ones the median):\n\n"
+                   "| integrator | runs | speed-up |\n|---|---|---|\n")
         for name, v in speed.sort_values(ascending=False).items():
             out.append(f"| {name} | {counts[name]} | {v:.3g}× |\n")
         out.append("\n")
@@ -112,30 +297,81 @@ def changes_since(before: pd.DataFrame, runs: pd.DataFrame, label: str) -> str:
     return "".join(out)
 
 
+# ------------------------------------------------------------------------------------------
+# results/README.md
+# ------------------------------------------------------------------------------------------
+TRUST = """## What is checked before it is trusted
+
+A run that resumes keeps a row of `runs.csv` only when it passes its checks: its status is one
+of the table's statuses, its numbers are numbers in their ranges (counts, errors and costs
+finite and non-negative, `run_time_low` ≤ `run_time` ≤ `run_time_high`, errors only for
+finished runs), and its deterministic columns (settings, status, counts, errors, keys) still
+match the digest (`row_digest`) written with it. A row that fails is named in a warning and
+recomputed (a row outside the run is set aside in `runs.rejected.csv`). Cached reference
+solutions (`cache/`) carry their identity and a SHA-256 checksum of their arrays, and one that
+does not match is recomputed. Both protect against accidents — a hand edit, a damaged or
+truncated file, a file from another problem or other code — not against a deliberate edit that
+recomputes the digest or the checksum: that takes recomputing the results (`--fresh`, or
+deleting `cache/`) or comparing them with another machine's (`--compare-with`).
+"""
+
+
+def _figure_lines(figures: list[tuple[str, str]]) -> str:
+    return "\n".join(f"- [{name}]({name})" + (f" — {note}" if note else "") for name, note in figures)
+
+
 def write_readme(out_dir: Path, runs: pd.DataFrame, orders: pd.DataFrame, *, provenance: Provenance,
-                 figures: list[str], horizons: dict | None = None, compared: str = "") -> Path:
+                 figures: list, horizons: dict | None = None, compared: str = "", table: pd.DataFrame | None = None,
+                 failures: str | None = None, merged: str = "") -> Path:
+    """results/README.md from the (merged) runs table. ``figures``: file names, or (name, note)
+    pairs; ``table``: the cheapest table (computed when not given); ``failures``: the failure
+    sentence (`benchmark.cheapest.failure_summary`); ``merged``: what this run added to the table."""
+    table = cheapest_table(runs) if table is None else table
+    failures = cheap.failure_summary(runs) if failures is None else failures
+    figures = [(f, "") if isinstance(f, str) else tuple(f) for f in figures]
     status = runs.groupby(["integrator", "status"]).size().unstack(fill_value=0).reset_index()
     ref = REFERENCE_METHOD
+    per_eval = evaluation_costs(runs)
     text = f"""# Benchmark results
 
 {provenance.header()}
 {horizons_text(horizons)}
+{merged}
 
 `runs.csv` has one row per run (scene × integrator × setting) with status, cost and accuracy;
-`runs.md` is the same as a table.
-Run time is the whole `solve()` call (output conversion included, e.g. the LGVI's
-velocity recovery) minus its compilation: the minimum (`run_time`) and the median
-(`run_time_median`) over repeated solves (`timing_samples` of them), measured in a separate pass
-from the error computation; the tables use the minimum, the least disturbed by other load.
+`runs.md` is the same as a table; `cheapest.csv` each method's cost at each target below, with
+its interval and verdict. Run time is the whole `solve()` call (output conversion included, e.g.
+the LGVI's velocity recovery) minus its compilation, timed in a separate pass from the error
+computation: `run_time` is the median of `timing_repeats` solves (as many as fit in a {TIMING_BUDGET:g} s budget,
+{MIN_REPEATS} to {MAX_REPEATS}; one when a single solve takes longer), `run_time_low` the fastest, `run_time_high` the
+90th percentile (10 or more solves) or the slowest, `load_avg` the machine's 1-minute load when
+the row ran. `us_per_eval` is the run time per RHS-equivalent evaluation and `implementation`
+the method's declared kind (`jax-compiled` or `scipy-python`).
 Errors are against a {ref["integrator"].upper()} reference at rtol {ref["rtol"]:g} / atol {ref["atol"]:g} on the same model. Every row
 names the right-hand side it ran (`rhs`: the O(N) closed form unless a run asked for `autodiff`).
 {WORK_DEFINITION[0].upper() + WORK_DEFINITION[1:]}: column `work_evals`, the bottom row of the
 work-precision figures, for comparing methods independently of this machine. Energy error is max|ΔE|/max T
 (max|Δ(E − W)|/max T with Carnot loss or reel control), as in the paper.
 
-## What accuracy costs in time
+## What accuracy costs
 
-{answers(runs)}
+Each method's cost at a target is read off its own work–precision curve (log–log between the two
+settings that bracket the target, never extrapolated); a method is the winner only when its whole
+interval lies below every other method's, otherwise the methods whose intervals overlap are a tie.
+A cost *bounded by the stability limit or by the sweep's range* comes from the coarsest setting
+that finished, which already met the target: the method may be cheaper than stated.
+
+{answers(runs, table)}
+{timing_text(runs)}
+
+### Time per evaluation, by implementation
+
+{markdown_table(per_eval)}
+## Runs that did not finish
+
+{failures}
+
+{markdown_table(status)}
 {compared}## Observed convergence orders
 
 Slope p of error ∝ steps^(−p) on the body position at t_end (fixed-step: the order in dt):
@@ -144,13 +380,26 @@ horizons the system is chaotic and coarse steps sit near stability limits, so re
 finest pair; the classical orders are measured on short horizons in `tests/`.
 
 {markdown_table(orders)}
-## Run status by integrator
-
-{markdown_table(status)}
+{TRUST}
 ## Figures
 
-{chr(10).join(f"- [{f}]({f})" for f in figures)}
+{_figure_lines(figures)}
 """
+    text = re.sub(r"\n{3,}", "\n\n", text)
     path = Path(out_dir) / "README.md"
     atomic_write_text(path, text)
     return path
+
+
+def failure_sentence(runs: pd.DataFrame, stability_csv: Path | None = None) -> str:
+    """`benchmark.cheapest.failure_summary` with the stability map's table when there is one."""
+    stability = None
+    if stability_csv is not None and Path(stability_csv).is_file():
+        try:
+            stability = pd.read_csv(stability_csv)
+            if not {"scene", "integrator", "largest_stable_dt"} <= set(stability.columns):
+                stability = None
+        except Exception:  # an unreadable map only loses its evidence, not the summary
+            stability = None
+    return cheap.failure_summary(runs, stability)
+

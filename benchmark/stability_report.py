@@ -12,6 +12,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from matplotlib.lines import Line2D
+
+from benchmark import styles
 from benchmark.plots import plt, save_figure, style_axes
 from benchmark.report import Provenance, code_list, fmt, markdown_table
 from benchmark.stability import ADAPTIVE_ATOL, ADAPTIVE_RTOL, CASES, DT_MAX, LADDER_RUNGS
@@ -21,37 +24,75 @@ from models.io import atomic_write_text
 STIFF_SCENES = ("stiff_string", "many_elements")
 
 
+#: Share of a scene's slot its bars (or points) take, so neighbouring scenes stay apart.
+SLOT = 0.8
+
+
+def _offsets(n: int) -> tuple[np.ndarray, float]:
+    """Offsets of ``n`` bars or points inside one scene's slot, and each one's width."""
+    width = SLOT / max(n, 1)
+    return (np.arange(n) - (n - 1) / 2) * width, width
+
+
 def plot(df: pd.DataFrame, out_dir: Path) -> Path:
+    """Top: the fixed-step methods' largest stable steps, one bar per method inside each scene's
+    slot; bottom: the adaptive methods' steps per simulated second. Every method in its own style
+    (`benchmark.styles.style`), one legend outside the axes."""
     scenes = list(dict.fromkeys(df["scene"]))
     x = np.arange(len(scenes))
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(13, 4.8))
+    fig, (a1, a2) = plt.subplots(2, 1, figsize=(max(9.0, 1.35 * len(scenes)), 8.6))
+    floor = DT_MAX / 2 ** LADDER_RUNGS
     fixed = df[df["kind"] == "fixed"]
-    for k, (integ, g) in enumerate(fixed.groupby("integrator", sort=False)):
-        g = g.set_index("scene").reindex(scenes)
-        xs = x + (k - 0.5) * 0.3
-        a1.bar(xs, g["largest_stable_dt"].fillna(0.0), width=0.3, label=f"{integ} (fixed dt)")
-        for xi, v in zip(xs, g["largest_stable_dt"]):
+    names = list(dict.fromkeys(fixed["integrator"]))
+    offsets, width = _offsets(len(names))
+    drawn = set()
+    for k, integ in enumerate(names):
+        g = fixed[fixed["integrator"] == integ].set_index("scene").reindex(scenes)
+        xs = x + offsets[k]
+        dt = pd.to_numeric(g["largest_stable_dt"], errors="coerce")
+        a1.bar(xs, dt.fillna(0.0), width=width * 0.92, bottom=0, color=styles.style(integ).color,
+               edgecolor="white", linewidth=0.4)
+        drawn.add((integ, "dt"))
+        for xi, v in zip(xs, dt):
             if not np.isfinite(v):
-                a1.text(xi, DT_MAX / 2 ** LADDER_RUNGS, "none", rotation=90, ha="center", va="bottom", fontsize=7)
+                a1.text(xi, floor * 1.1, "none", rotation=90, ha="center", va="bottom", fontsize=6)
     a1.set_yscale("log")
-    a1.set_ylim(DT_MAX / 2 ** LADDER_RUNGS, DT_MAX * 1.5)
+    a1.set_ylim(floor, DT_MAX * 1.5)
     a1.set(ylabel="largest stable step dt (s)", title="fixed-step methods: largest dt that stays bounded")
     adaptive = df[df["kind"] == "adaptive"]
-    for k, (integ, g) in enumerate(adaptive.groupby("integrator", sort=False)):
-        g = g.set_index("scene").reindex(scenes)
-        rate = g["steps"] / g["t_reached"].where(g["t_reached"] > 0)
-        xs = x + (k - 2) * 0.12
-        a2.scatter(xs[g["bounded"] == True], rate[g["bounded"] == True], marker="o", label=f"{integ}")  # noqa: E712
-        bad = (g["bounded"] != True) & g["status"].notna()  # noqa: E712
-        a2.scatter(xs[bad.to_numpy()], np.where(np.isfinite(rate[bad]), rate[bad], 1.0), marker="x", color="k")
-    a2.scatter([], [], marker="x", color="k", label="not bounded / skipped (see table)")
+    names = list(dict.fromkeys(adaptive["integrator"]))
+    offsets, _ = _offsets(len(names))
+    unbounded = False
+    for k, integ in enumerate(names):
+        g = adaptive[adaptive["integrator"] == integ].set_index("scene").reindex(scenes)
+        steps, reached = (pd.to_numeric(g[c], errors="coerce") for c in ("steps", "t_reached"))
+        rate = (steps / reached.where(reached > 0)).to_numpy(float)
+        xs = x + offsets[k]
+        ok = (g["bounded"] == True).to_numpy()  # noqa: E712
+        kw = styles.style(integ).kwargs("rtol")
+        a2.plot(xs[ok], rate[ok], linestyle="none", **{k2: v for k2, v in kw.items() if k2 != "linestyle"})
+        drawn.add((integ, "rtol"))
+        bad = (~ok) & g["status"].notna().to_numpy()
+        if bad.any():
+            unbounded = True
+            a2.plot(xs[bad], np.where(np.isfinite(rate[bad]), rate[bad], 1.0), linestyle="none", marker="x",
+                    color=kw["color"], markersize=7)
     a2.set_yscale("log")
     a2.set(ylabel="accepted steps per simulated second",
            title=f"adaptive methods at rtol {ADAPTIVE_RTOL:g}: steps per second of horizon")
     for ax in (a1, a2):
         ax.set_xticks(x)
-        ax.set_xticklabels(scenes, rotation=25, ha="right", fontsize=8)
-        style_axes(ax, grid="y", legend=7)
+        ax.set_xticklabels(scenes, rotation=30, ha="right", fontsize=8)
+        ax.set_xlim(-0.5, len(scenes) - 0.5)
+        for b in x[:-1] + 0.5:  # the slots' borders: each scene's bars stay inside its own
+            ax.axvline(b, color="0.85", lw=0.8, zorder=0)
+        style_axes(ax, grid="y", legend=None)
+    fig.tight_layout()
+    handles, labels = styles.legend_entries(drawn)
+    if unbounded:
+        handles.append(Line2D([], [], marker="x", color="k", linestyle="none"))
+        labels.append("x: not bounded or skipped (see the table), at 1 when it has no steps")
+    styles.legend_outside(fig, handles, labels)
     return save_figure(fig, Path(out_dir) / "stability.png")
 
 

@@ -5,8 +5,17 @@
   interrupted study leaves the last complete table, never half a file.
 * Resume: every row of the runs table carries a `run_key` (scene physics, integrator,
   setting, horizon, save interval, code version); `kept_rows` keeps the rows of an earlier
-  table (`read_previous`) with the same key, so only the rest is computed. Rows whose status
+  table (`read_runs`) with the same key, so only the rest is computed. Rows whose status
   may have been transient (`RETRY_STATUSES`) are never kept.
+* Trust: a row read back is used only when it passes `check_row` -- its types, ranges and
+  status vocabulary, finite non-negative costs, and the digest of its deterministic columns
+  recorded when it was written (`row_digest`). The digest catches a row edited by hand or
+  damaged on disk; like any checksum stored beside its data, it does not stop a deliberate
+  edit that recomputes it.
+* Merging: a run restricted to fewer scenes, methods or settings than its output table holds
+  adds or replaces only its own rows (`merge_rows`: one row per scene, integrator and
+  setting); a table holds one horizon and one set of scene values per scene, and a run that
+  would mix two is refused before any work (`merge_conflicts`).
 * Trajectory files: `.npz` archives written atomically (`write_npz`), and read back only when
   they are readable archives (`read_npz`, `read_trajectory`, else `UnreadableFile` saying why).
 """
@@ -74,38 +83,248 @@ def run_key(task, code: str | None = None) -> str:
 
 
 # ------------------------------------------------------------------------------------------
-# Resume: which rows of an earlier run are kept
+# Trust: what a row of the runs table may hold, and its digest
 # ------------------------------------------------------------------------------------------
 #: Rows with these statuses are recomputed on resume (the cause may have been transient).
 RETRY_STATUSES = ("crashed", "error")
+#: Statuses of the runs table besides the integrators' own (`integrators.Status`).
+TABLE_STATUSES = ("time_limit", "max_steps", "error", "crashed")
+
+#: The columns a row's digest covers: what the same code computes again for the same task
+#: (timings, the load and the task's wall time are measurements, checked by range only).
+DIGEST_COLUMNS = (
+    "scene", "scene_key", "integrator", "setting", "dt", "rtol", "atol", "t_end", "status", "reason", "rhs",
+    "steps", "rhs_evals", "jac_evals", "lu_decompositions", "newton_iterations", "work_evals",
+    "energy_error", "pi3_error", "orthogonality_error", "position_error_final", "position_error_max",
+    "attitude_error_final", "attitude_error_max", "t_reached", "implementation", "run_key")
+#: Numeric columns: counts (non-negative), errors (non-negative; NaN where a run did not
+#: finish), costs (finite and non-negative where present), settings (positive where present).
+COUNT_COLUMNS = ("steps", "rhs_evals", "jac_evals", "lu_decompositions", "newton_iterations", "work_evals",
+                 "timing_repeats", "rejected_steps", "max_newton_iterations")
+ERROR_COLUMNS = ("energy_error", "pi3_error", "orthogonality_error", "position_error_final", "position_error_max",
+                 "attitude_error_final", "attitude_error_max")
+COST_COLUMNS = ("run_time", "run_time_low", "run_time_high", "compile_time", "us_per_eval", "load_avg",
+                "task_time", "t_reached", "min_step", "median_step", "max_step", "flops")
+SETTING_COLUMNS = ("dt", "rtol", "atol", "t_end")
 
 
-def read_previous(path: str | os.PathLike, log: Callable[[str], None] | None = None) -> list[dict]:
-    """The rows of an earlier run's ``runs.csv`` that can be resumed from (none if the file is
-    missing, unreadable or has no `run_key` column)."""
+def _missing(v) -> bool:
+    return v is None or (isinstance(v, float) and v != v) or (isinstance(v, str) and v == "")
+
+
+def _canonical(v) -> str:
+    """One text per value, the same after a round trip through CSV (numbers as floats)."""
+    if _missing(v):
+        return ""
+    if isinstance(v, (bool, np.bool_)):
+        return str(bool(v))
+    if isinstance(v, (int, float, np.integer, np.floating)):
+        return repr(float(v))
+    return str(v)
+
+
+def row_digest(row: dict) -> str:
+    """SHA-256 (16 hex digits) of a row's `DIGEST_COLUMNS`, written with the row and checked
+    when it is read back (`check_row`)."""
+    text = "\x1f".join(f"{c}={_canonical(row.get(c))}" for c in DIGEST_COLUMNS)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def statuses() -> tuple[str, ...]:
+    """Every status a row of the runs table may have."""
+    from integrators import Status
+
+    return tuple(s.value for s in Status) + TABLE_STATUSES
+
+
+def _number(v) -> float | None:
+    """A number of the table, or None for text that is not one (empty is NaN)."""
+    if _missing(v):
+        return np.nan
+    if isinstance(v, (bool, np.bool_)):
+        return None
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return None
+
+
+def check_row(row: dict, known_statuses=None) -> str | None:
+    """Why a row read back from a runs table cannot be trusted, or None when it can: its
+    identity columns present, its status one of `statuses`, its numbers numbers (counts,
+    errors and costs finite and non-negative where present, settings positive), its run times
+    ordered (low <= median <= high), accuracy values for a finished run and none for another,
+    and its digest (`row_digest`) the one written with it (a row without a digest, from an
+    older table, is checked by the other rules alone)."""
+    for c in ("scene", "integrator", "setting", "status"):
+        if _missing(row.get(c)) or not isinstance(row.get(c), str):
+            return f"no {c}"
+    status = row["status"]
+    if status not in (known_statuses or statuses()):
+        return f"status {status!r} is not a status of the runs table"
+    numbers = {}
+    for c in (*COUNT_COLUMNS, *ERROR_COLUMNS, *COST_COLUMNS, *SETTING_COLUMNS):
+        if c not in row:
+            continue
+        v = _number(row[c])
+        if v is None:
+            return f"{c} = {row[c]!r} is not a number"
+        if v == v and not (np.isfinite(v) and v >= 0):
+            return f"{c} = {row[c]!r} is outside its range (a finite number >= 0)"
+        numbers[c] = v
+    for c in ("dt", "rtol", "atol", "t_end"):
+        if numbers.get(c) == 0:
+            return f"{c} = 0 is outside its range (> 0)"
+    if status != "ok" and any(numbers.get(c, np.nan) == numbers.get(c, np.nan) for c in ERROR_COLUMNS):
+        return f"status {status} with accuracy values (only a finished run has them)"
+    if status == "ok":
+        if not numbers.get("run_time", np.nan) == numbers.get("run_time", np.nan):
+            return "a finished run without a run_time"
+        present = [c for c in ERROR_COLUMNS if c in row]
+        if present and not any(numbers[c] == numbers[c] for c in present):
+            return "a finished run without any accuracy value"
+        lo, mid, hi = (numbers.get(c, np.nan) for c in ("run_time_low", "run_time", "run_time_high"))
+        if (lo == lo and lo > mid * (1 + 1e-12)) or (hi == hi and hi < mid * (1 - 1e-12)):
+            return f"run_time_low <= run_time <= run_time_high does not hold ({lo:g}, {mid:g}, {hi:g})"
+    digest = row.get("row_digest")
+    if not _missing(digest) and str(digest) != row_digest(row):
+        return "its values do not match the digest written with it (edited or damaged after it was written)"
+    return None
+
+
+# ------------------------------------------------------------------------------------------
+# Resume: which rows of an earlier run are kept
+# ------------------------------------------------------------------------------------------
+@dataclasses.dataclass
+class StoredRuns:
+    """The rows of an earlier ``runs.csv``: those that pass `check_row`, and those that do not,
+    each with why (``rejected``: (row, reason))."""
+
+    rows: list[dict]
+    rejected: list[tuple[dict, str]]
+    unverified: int = 0  # rows without a digest (written before digests), checked by range only
+
+    @property
+    def resumable(self) -> list[dict]:
+        """The trusted rows a run may keep instead of computing (transient failures retried)."""
+        return [r for r in self.rows if r.get("status") not in RETRY_STATUSES and r.get("run_key")]
+
+
+def _read_csv(path: Path):
     import pandas as pd
 
+    # every column as text first: a number edited into text must be seen, not coerced to NaN
+    df = pd.read_csv(path, dtype=str, keep_default_na=False)
+    rows = []
+    for rec in df.to_dict("records"):
+        row = {}
+        for k, v in rec.items():
+            if v == "":
+                row[k] = np.nan
+                continue
+            try:
+                row[k] = float(v) if k not in ("scene", "integrator", "setting", "status", "reason", "rhs",
+                                               "implementation", "run_key", "row_digest", "scene_key",
+                                               "traceback") else v
+            except ValueError:
+                row[k] = v  # text where a number belongs: `check_row` says so
+        if "reason" in row and _missing(row["reason"]):
+            row["reason"] = ""
+        rows.append(row)
+    return rows
+
+
+def read_runs(path: str | os.PathLike, log: Callable[[str], None] | None = None) -> StoredRuns:
+    """The rows of an earlier run's ``runs.csv`` (none if the file is missing or unreadable),
+    each checked by `check_row`; every row that fails is named through ``log``."""
     path = Path(path)
     if not path.exists():
-        return []
+        return StoredRuns([], [])
     try:
-        df = pd.read_csv(path)
+        rows = _read_csv(path)
     except Exception as exc:  # a damaged table is not a reason to stop: start afresh
         if log:
             log(f"warning: {path} cannot be read ({type(exc).__name__}); its rows are recomputed")
-        return []
-    if "run_key" not in df or "status" not in df:
-        return []
-    df = df[~df["status"].isin(RETRY_STATUSES)]
-    if "reason" in df:
-        df["reason"] = df["reason"].fillna("")
-    return df.to_dict("records")
+        return StoredRuns([], [])
+    known = statuses()
+    good, bad = [], []
+    for r in rows:
+        why = check_row(r, known)
+        (bad.append((r, why)) if why else good.append(r))
+    if log:
+        for r, why in bad:
+            log(f"warning: {path}: row {describe_row(r)} is not trusted ({why}); it is recomputed if this run "
+                "includes it")
+    unverified = sum(1 for r in good if _missing(r.get("row_digest")))
+    return StoredRuns(good, bad, unverified)
+
+
+def describe_row(row: dict) -> str:
+    """scene/integrator/setting of a row, for messages."""
+    return "/".join(str(row.get(c, "?")) for c in ("scene", "integrator", "setting"))
+
+
+def read_previous(path: str | os.PathLike, log: Callable[[str], None] | None = None) -> list[dict]:
+    """The trusted rows of an earlier run's ``runs.csv`` that a run may resume from
+    (`read_runs`, transient failures left out)."""
+    return read_runs(path, log).resumable
 
 
 def kept_rows(keys: list[str], previous: Iterable[dict] | None) -> dict[int, dict]:
     """{index: earlier row} for every key of ``keys`` that a row of ``previous`` carries."""
-    kept = {r["run_key"]: r for r in (previous or []) if r.get("run_key")}
+    kept = {r["run_key"]: r for r in (previous or []) if isinstance(r.get("run_key"), str) and r["run_key"]}
     return {i: kept[k] for i, k in enumerate(keys) if k in kept}
+
+
+# ------------------------------------------------------------------------------------------
+# Merging a run into the table already in its output directory
+# ------------------------------------------------------------------------------------------
+#: A row's place in a runs table: one row per scene, integrator and setting.
+ROW_IDENTITY = ("scene", "integrator", "setting")
+
+
+def identity_of(row: dict) -> tuple:
+    return tuple(row.get(c) for c in ROW_IDENTITY)
+
+
+def merge_rows(base: Iterable[dict], new: Iterable[dict]) -> list[dict]:
+    """The rows of ``base`` with those of ``new`` in their place (same `ROW_IDENTITY`), and the
+    other rows of ``new`` after the last base row of their scene and integrator (else at the end)."""
+    new = list(new)
+    replace = {identity_of(r): r for r in new}
+    out = [replace.pop(identity_of(r), r) for r in base]
+    for r in new:
+        if identity_of(r) not in replace:
+            continue
+        replace.pop(identity_of(r))
+        same = [k for k, o in enumerate(out) if o.get("scene") == r.get("scene") and o.get("integrator") == r.get("integrator")]
+        out.insert(same[-1] + 1 if same else len(out), r)
+    return out
+
+
+def _same(a, b) -> bool:
+    fa, fb = _number(a), _number(b)
+    if fa is not None and fb is not None and fa == fa and fb == fb:
+        return abs(fa - fb) <= 1e-12 * max(abs(fa), abs(fb))
+    return _canonical(a) == _canonical(b)
+
+
+def merge_conflicts(base: Iterable[dict], scenes: dict[str, tuple[float, str]]) -> list[str]:
+    """Why the rows of a run cannot join ``base``: for each scene of the run (name -> (horizon
+    t_end, physics hash `Scene.key`)), base rows of the same name over another horizon or with
+    other scene values (a row without a physics hash is compared by horizon only)."""
+    out = []
+    for name, (t_end, key) in scenes.items():
+        rows = [r for r in base if r.get("scene") == name]
+        other_t = sorted({float(r["t_end"]) for r in rows if not _missing(r.get("t_end")) and not _same(r["t_end"], t_end)})
+        other_key = sorted({str(r["scene_key"]) for r in rows if not _missing(r.get("scene_key")) and r["scene_key"] != key})
+        if other_t:
+            out.append(f"scene {name!r}: its {len(rows)} rows there are over t_end = "
+                       f"{', '.join(f'{t:g}' for t in other_t)} s, this run's over {t_end:g} s")
+        elif other_key:
+            out.append(f"scene {name!r}: its rows there were computed with other scene values (physics hash "
+                       f"{', '.join(other_key)}, this run's {key}; e.g. another --set)")
+    return out
 
 
 # ------------------------------------------------------------------------------------------
@@ -142,6 +361,41 @@ class TableWriter:
     def __call__(self, rows: list[dict]) -> None:
         write_table(self.path, self.to_table(rows), self.drop)
         self.saved = len(rows)
+
+
+class OutputKeys:
+    """What each derived file of an output directory (a figure, a study's table) was made from:
+    ``{file name: key}`` in one JSON file, so a rerun whose inputs did not change keeps the file
+    instead of recomputing it (`fresh`), and a report can say which files other inputs made."""
+
+    def __init__(self, path: str | os.PathLike):
+        self.path = Path(path)
+        try:
+            data = json.loads(self.path.read_text(encoding="utf-8"))
+            self.keys = {str(k): str(v) for k, v in data.items()} if isinstance(data, dict) else {}
+        except (OSError, ValueError):
+            self.keys = {}
+
+    def fresh(self, name: str, key: str) -> bool:
+        """Whether ``name`` exists beside the keys and was made from ``key``."""
+        return self.keys.get(name) == key and (self.path.parent / name).is_file()
+
+    def record(self, name: str, key: str) -> None:
+        self.keys[name] = key
+        atomic_write_text(self.path, json.dumps(self.keys, indent=1, sort_keys=True) + "\n")
+
+
+def rows_key(rows: Iterable[dict], drop: Iterable[str] = ()) -> str:
+    """A key of table rows that survives a round trip through CSV (numbers as floats, empty as
+    NaN; column order ignored): the same rows read back give the same key."""
+    drop = set(drop)
+    canon = sorted(sorted((str(k), _canonical(v)) for k, v in r.items() if k not in drop) for r in rows)
+    return key_of(canon)
+
+
+def key_of(*parts) -> str:
+    """A 16-hex-digit SHA-256 of ``parts`` (JSON, sorted keys; other objects by their text)."""
+    return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
 # ------------------------------------------------------------------------------------------

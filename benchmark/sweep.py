@@ -33,11 +33,20 @@ IMPLICIT_FULL_RTOLS = (1e-3, 1e-4, 1e-6)
 IMPLICIT_QUICK_RTOLS = (1e-4, 1e-6)
 ATOL_FACTOR = 1e-2
 QUICK_T_END = 1.0
-#: s of repeated solves per run, at most (`benchmark.runner`). The first solve is always a sample;
-#: a run longer than this gets no repeat (its timing noise is small next to its length), shorter
-#: ones up to `--repeats`. A longer budget makes the default job's tight-tolerance scipy runs
-#: twice as long without changing a ranking.
-TIMING_BUDGET = 2.0
+#: s of timed solves per run (`benchmark.runner.timing_repeats`): a run is timed
+#: clamp(floor(TIMING_BUDGET / first solve), --repeats, MAX_REPEATS) times, or once when its
+#: first solve alone exceeds the budget (its noise is small next to its length). The timing
+#: noise measured on a shared 2-core machine (`benchmark.cheapest.WALL_RESOLUTION`): medians of
+#: 10 consecutive solves spread 1.2-1.3x, of 5 1.5-1.85x, single solves 2.2-2.7x. 1 s, not 2 s:
+#: over the committed default sweep's run times the timed solves add 134 s of worker time at a
+#: 2 s budget and 58 s at 1 s (57 s before the spread was recorded), i.e. about 40 s more wall
+#: time on 2 cores at 2 s, over the ~5 min the default sweep should take; at 1 s every run
+#: under 0.1 s still gets 10 or more solves.
+TIMING_BUDGET = 1.0
+#: The most timed solves of one run (a run of a few ms gets this many within the budget).
+MAX_REPEATS = 30
+#: The least timed solves of one run whose first solve fits in the budget (`--repeats`).
+MIN_REPEATS = 3
 #: Where the runs execute: worker processes, this process, or a Dask cluster.
 EXECUTORS = ("process", "serial", "dask")
 #: Length (s) of the long-horizon energy study on fixed_length (`run --horizon`), full and --quick.

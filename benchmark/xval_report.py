@@ -15,7 +15,8 @@ from typing import NamedTuple
 import numpy as np
 import pandas as pd
 
-from benchmark.plots import plt, save_figure, style_axes
+from benchmark import styles
+from benchmark.plots import log_ticks, plt, save_figure, style_axes
 from benchmark.report import Provenance, fmt
 from benchmark.store import write_npz, write_table
 from benchmark.xval import CFL, DT_MAX, OURS_REFINE, OUTPUT_INTERVAL, Study, case_scene, moordyn_input, mujoco_xml
@@ -114,30 +115,56 @@ def error_vs_limit(study: Study, case: str) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+#: One look per code and per pair of codes, fixed (these are codes, not integrators: not the
+#: methods' styles): distinct colours and markers, hollow and shrinking so that curves of the
+#: same discrete model, which coincide, all stay visible.
+CODE_LOOKS = {"ours_consistent": ("#1f77b4", "o", "-"), "ours_lumped": ("#ff7f0e", "s", "--"),
+              "moordyn": ("#2ca02c", "^", "-."), "mujoco": ("#d62728", "D", ":")}
+PAIR_LOOKS = {("ours_lumped", "moordyn"): ("#9467bd", "o", "-"), ("ours_lumped", "mujoco"): ("#8c564b", "s", "--"),
+              ("moordyn", "mujoco"): ("#e377c2", "^", "-."), ("ours_consistent", "moordyn"): ("#17becf", "v", ":"),
+              ("ours_consistent", "mujoco"): ("#bcbd22", "D", "-"), ("ours_consistent", "ours_lumped"): ("#7f7f7f", "P", "--")}
+
+
+def _looks(keys, table) -> list[dict]:
+    return [dict(color=c, marker=m, linestyle=ls, markersize=ms, markerfacecolor="none", markeredgecolor=c)
+            for (c, m, ls), ms in zip((table[k] for k in keys), [9, 7, 6, 5, 4, 3])]
+
+
 def plot(study: Study, case: str, path: Path) -> Path:
     runs, Ns = study.runs, study.elements(case)
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11, 4.2))
-    # curves of the same discrete model coincide: distinct markers and dashes keep each visible
-    styles = [dict(marker=m, linestyle=ls, markersize=ms, markerfacecolor="none")
-              for m, ls, ms in zip("osx^+d", ["-", "--", ":", "-.", "-", "--"], [9, 7, 6, 5, 4, 3])]
-    for (a, b), st in zip(PAIRS, styles):
+    handles, labels = [], []
+    for (a, b), look in zip(PAIRS, _looks(PAIRS, PAIR_LOOKS)):
+        name = f"{a} − {b}"
         vals = [(N, _max_dist(runs[(case, N)][a].tip, runs[(case, N)][b].tip)) for N in Ns
                 if a in runs[(case, N)] and b in runs[(case, N)]]
         if vals:
-            ax.loglog(*zip(*vals), label=f"{a} − {b}", **st)
+            handles += ax.loglog(*zip(*vals), **look)
+            labels.append(f"left: {name}")
     style_axes(ax, xlabel="N (elements)", ylabel="max over t of tip distance [m]", title=f"{case}: codes at equal N",
-               grid=None, legend=7)
-    for code, st in zip(TRAJ_CODES, styles):
+               grid=None, legend=None)
+    for code, look in zip(TRAJ_CODES, _looks(TRAJ_CODES, CODE_LOOKS)):
         have = [N for N in Ns if code in runs[(case, N)]]
         vals = [(N2, _max_dist(runs[(case, N1)][code].tip, runs[(case, N2)][code].tip)) for N1, N2 in zip(have[:-1], have[1:])]
         if vals:
-            ax2.loglog(*zip(*vals), label=code, **st)
+            handles += ax2.loglog(*zip(*vals), **look)
+            labels.append(f"right: {code}")
     if Ns:
         ref = np.array(Ns[1:], float)
-        ax2.loglog(ref, 0.5 * (ref / ref[0]) ** -2, "k:", label="slope −2")
+        handles += ax2.loglog(ref, 0.5 * (ref / ref[0]) ** -2, color="0.4", linestyle=(0, (1, 2)))
+        labels.append("right: slope −2")
     style_axes(ax2, xlabel="N", ylabel="max |tip(N) − tip(N/2)| [m]", title=f"{case}: self-convergence", grid=None,
-               legend=7)
+               legend=None)
+    from matplotlib.ticker import FixedLocator, FuncFormatter, NullLocator
+
+    for a in (ax, ax2):
+        log_ticks(a)
+        if Ns:  # N is one of few integers: label each one
+            a.xaxis.set_major_locator(FixedLocator(Ns))
+            a.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+            a.xaxis.set_minor_locator(NullLocator())
     fig.tight_layout()
+    styles.legend_outside(fig, handles, labels)
     return save_figure(fig, path, dpi=120)
 
 

@@ -66,3 +66,16 @@ def reference_solution(scene, t_end, rtol=1e-11, atol=1e-12, n_save=21, method="
         work=y[:, lay.y_work][:, 0] if lay.has_work else np.zeros(len(sol.t)),
         stats={"rhs_evals": sol.nfev}, integrator="solve_ivp-" + method,
     )
+
+
+def installed_plugin(site, module: str, code: str, entry: str, group: str = "reelbench.integrators"):
+    """Write ``code`` as ``module``.py into the directory ``site`` with the metadata of an
+    installed distribution declaring ``entry`` ("name = module:Class") in entry-point ``group``,
+    so that a process with ``site`` on its path finds it as a plugin. Returns ``site``."""
+    site.mkdir(parents=True, exist_ok=True)
+    (site / f"{module}.py").write_text(code)
+    dist = site / f"{module}-0.1.dist-info"
+    dist.mkdir()
+    (dist / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {module.replace('_', '-')}\nVersion: 0.1\n")
+    (dist / "entry_points.txt").write_text(f"[{group}]\n{entry}\n")
+    return site

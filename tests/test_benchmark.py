@@ -52,8 +52,13 @@ def test_tiny_sweep_rows_statuses_and_orders(tmp_path, flaky_integrators):
     assert list(runs.columns[: len(COLUMNS)]) == COLUMNS
     ok = runs[runs["status"] == "ok"]
     assert set(ok["integrator"]) == {"lgvi", "rk45"} and len(ok) == 4
-    for col in ACCURACY + ["run_time", "steps"]:
+    for col in ACCURACY + ["run_time", "steps", "run_time_low", "run_time_high", "load_avg", "us_per_eval"]:
         assert np.all(np.isfinite(ok[col].astype(float))), col
+    # the timing spread: the median of as many solves as fit in the budget, between the fastest and the slowest
+    assert (ok["run_time_low"] <= ok["run_time"]).all() and (ok["run_time"] <= ok["run_time_high"]).all()
+    assert (ok["timing_repeats"] >= 1).all() and (ok["timing_repeats"] <= sweep.MAX_REPEATS).all()
+    np.testing.assert_allclose(ok["us_per_eval"], 1e6 * ok["run_time"] / ok["work_evals"])
+    assert runs["row_digest"].notna().all() and runs["scene_key"].notna().all()
     assert (ok["position_error_final"] < 1e-2).all()
     raised = runs[runs["integrator"] == "test_raises"]
     assert (raised["status"] == "error").all() and raised["reason"].str.contains("boom").all()

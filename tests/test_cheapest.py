@@ -246,7 +246,21 @@ def test_summary_line_of_a_winner_names_the_next_method_and_of_no_method():
     lines = summary_lines(cheapest(runs, [("energy_error", 1e-4)], cost_kinds=["work"]))
     assert lines[0] == "- **hard**, energy_error ≤ 0.0001: By work (work_evals), no method reached it. Not reached by `a`."
     assert lines[1] == ("- **s**, energy_error ≤ 0.0001: By work (work_evals), `a` is cheapest, 1e+03 evaluations "
-                        "(953–1.05e+03); the next, `b`, costs 3.00× (2.73×–3.30×) as much.")
+                        "(953–1.05e+03); the next, `b`, costs 3.00× (2.73×–3.30×) as much; cost of `a` bounded by "
+                        "the sweep's range (its coarsest setting already meets the target), not by the target.")
+
+
+def test_a_cost_fixed_by_failed_coarser_steps_or_the_sweeps_range_says_so():
+    runs = table(row("a", "dt=0.02", status="diverged"), row("a", "dt=0.01", error=1e-6, time=1.0),
+                 row("b", "dt=0.02", error=1e-3, time=2.0), row("b", "dt=0.01", error=1e-5, time=4.0),
+                 row("c", "rtol=1e-3", status="max_steps"), row("c", "rtol=1e-4", error=1e-6, time=9.0),
+                 row("d", "dt=0.01", error=1e-6, time=30.0))
+    t = cheapest(runs, [("energy_error", 1e-4)], cost_kinds=["wall"])
+    assert {i: one(t, i)["bound"] for i in "abcd"} == {"a": "stability", "b": "accuracy", "c": "failures",
+                                                       "d": "sweep range"}
+    line = summary_lines(t)[0]
+    assert "cost of `a` bounded by the stability limit (coarser steps did not finish), not by the target" in line
+    assert "`b`" in line and "cost of `b`" not in line  # interpolated: fixed by the target
 
 
 # ---- bad input ----------------------------------------------------------------------------

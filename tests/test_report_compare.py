@@ -6,23 +6,34 @@ from benchmark import runs_report
 from benchmark.cli import main
 
 
-def _rows(times: dict) -> pd.DataFrame:
-    """One scene, two methods, one setting each: run times given, both reach both targets."""
-    return pd.DataFrame([{"scene": "s", "integrator": m, "setting": "dt=0.01", "status": "ok", "run_time": t,
-                          "energy_error": 1e-6, "position_error_final": 1e-8} for m, t in times.items()])
+def _rows(costs: dict) -> pd.DataFrame:
+    """One scene, methods with one setting each: (run time, work) given, both targets reached."""
+    return pd.DataFrame([{"scene": "s", "integrator": m, "setting": "dt=0.01", "dt": 0.01, "rtol": float("nan"),
+                          "t_end": 1.0, "status": "ok", "steps": 100, "run_time": t, "run_time_low": t,
+                          "run_time_high": t, "work_evals": w, "energy_error": 1e-6, "position_error_final": 1e-8}
+                         for m, (t, w) in costs.items()])
 
 
-def test_changes_name_the_winners_then_and_now_and_each_speed_up():
-    before = _rows({"a": 1.0, "b": 7.0})
-    now = pd.concat([_rows({"a": 0.5, "b": 0.7}), _rows({"c": 0.1})])
+def test_changes_name_the_verdicts_then_and_now_the_reproducibility_and_each_speed_up():
+    before = _rows({"a": (1.0, 1000.0), "b": (7.0, 7000.0)})
+    now = pd.concat([_rows({"a": (0.5, 1000.0), "b": (0.7, 7000.0)}), _rows({"c": (0.1, 100.0)})])
     text = runs_report.changes_since(before, now, "the old table")
     assert "## Compared with the old table" in text
-    row = next(line for line in text.splitlines() if line.startswith("| s |"))
-    # then: a was 7x cheaper than b; now c wins, and b / a has shrunk to 1.4x
-    assert "`a` (dt=0.01, 1 s), 7× cheaper than `b`" in row and "`c` (dt=0.01, 0.1 s)" in row
-    assert "`b` / `a` = 1.4× (then 7×)" in row
+    # the two runs both tables have are equal to the last digit; c is in one table only
+    assert "2 runs compared: 2 equal to the last digit" in text
+    assert "(1 row(s) in only one of the two tables were not compared.)" in text
+    row = next(line for line in text.splitlines() if line.startswith("| s | energy error"))
+    # then: a won by work, 7x below b; now c wins, 10x below a (ratios with their ranges)
+    assert "| `a`, next `b` 7.00× (" in row and "| `c`, next `a` 10× (9.09×–11×) |" in row, row
     assert "| a | 1 | 2× |" in text and "| b | 1 | 10× |" in text
     assert "New in this run: `c`." in text
+
+
+def test_a_close_call_is_a_tie_in_the_comparison():
+    before = _rows({"a": (1.0, 1000.0), "b": (1.0, 1050.0)})
+    text = runs_report.changes_since(before, before, "itself")
+    row = next(line for line in text.splitlines() if line.startswith("| s | energy error"))
+    assert row.count("tie of `a`, `b`") == 2, row
 
 
 def test_compare_with_a_file_that_is_not_a_runs_table_is_refused(tmp_path, capsys):
@@ -32,3 +43,44 @@ def test_compare_with_a_file_that_is_not_a_runs_table_is_refused(tmp_path, capsy
     err = capsys.readouterr().err
     assert "--compare-with" in err and "no column(s)" in err
     assert main(["run", "--compare-with", str(tmp_path / "missing.csv"), "--out", str(tmp_path / "o")]) == 2
+
+
+def _sweep_rows() -> pd.DataFrame:
+    """Two compiled methods and a scipy one: the scipy method has the least work, the most time."""
+    rows = []
+    for name, impl, t, w in (("lgvi", "jax-compiled", 0.01, 3000.0), ("tsit5", "jax-compiled", 0.05, 2000.0),
+                             ("dop853", "scipy-python", 0.9, 1000.0)):
+        for k, f in enumerate((1.0, 2.0)):
+            rows.append({"scene": "s", "integrator": name, "setting": f"dt={0.01 / f:g}", "dt": 0.01 / f,
+                         "rtol": float("nan"), "t_end": 1.0, "status": "ok", "steps": 100 * f, "run_time": t * f,
+                         "run_time_low": t * f, "run_time_high": t * f, "work_evals": w * f,
+                         "energy_error": 1e-3 / 4 ** (k + 1), "position_error_final": 1e-5 / 4 ** (k + 1),
+                         "implementation": impl, "us_per_eval": 1e6 * t / w})
+    return pd.DataFrame(rows)
+
+
+def test_wall_time_ranks_the_compiled_implementations_and_work_ranks_every_method():
+    runs = _sweep_rows()
+    table = runs_report.cheapest_table(runs)
+    wall, work = table[table["cost_kind"] == "wall"], table[table["cost_kind"] == "work"]
+    assert set(wall["integrator"]) == {"lgvi", "tsit5"} and set(wall["among"]) == {"compiled implementations"}
+    assert set(work["integrator"]) == {"lgvi", "tsit5", "dop853"}
+    assert set(work.loc[work["verdict"] == "winner", "integrator"]) == {"dop853"}
+    assert set(wall.loc[wall["verdict"] == "winner", "integrator"]) == {"lgvi"}
+    text = runs_report.answers(runs, table)
+    assert "### By wall time, among compiled implementations" in text and "Not ranked by wall time: `dop853`" in text
+    per_eval = runs_report.evaluation_costs(runs).set_index("integrator")
+    assert per_eval.loc["dop853", "implementation"] == "scipy-python"
+    assert per_eval.loc["dop853", "us_per_eval_median"] == 900.0
+    block = runs_report.answer_block(runs, table, "All 6 runs ok.")
+    lines = block.strip().splitlines()
+    assert len(lines) == 5 and lines[3] == "- All 6 runs ok."
+    assert "by wall time: s `lgvi`, next `tsit5`" in lines[0] and "by work: s `dop853`" in lines[0]
+
+
+def test_a_table_without_a_timing_spread_is_ranked_with_the_resolution_alone():
+    runs = _sweep_rows().drop(columns=["run_time_low", "run_time_high", "implementation"])
+    wall = runs_report.cheapest_table(runs).query("cost_kind == 'wall'")
+    assert set(wall["among"]) == {"every method (no implementation declared)"}
+    lgvi = wall[(wall["integrator"] == "lgvi") & (wall["metric"] == "energy_error")].iloc[0]
+    assert lgvi["cost_low"] < lgvi["cost"] < lgvi["cost_high"]  # widened to the wall resolution

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
+from _helpers import installed_plugin
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -42,13 +43,8 @@ class SlowLGVI(LGVI):
 @pytest.fixture
 def plugin_env(tmp_path):
     """Environment in which `python -m benchmark` (and its spawned workers) find `test_slow`."""
-    site = tmp_path / "site"
-    site.mkdir()
-    (site / "reelbench_slow_plugin.py").write_text(PLUGIN)
-    dist = site / "reelbench_slow_plugin-0.1.dist-info"
-    dist.mkdir()
-    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: reelbench-slow-plugin\nVersion: 0.1\n")
-    (dist / "entry_points.txt").write_text("[reelbench.integrators]\ntest_slow = reelbench_slow_plugin:SlowLGVI\n")
+    site = installed_plugin(tmp_path / "site", "reelbench_slow_plugin", PLUGIN,
+                            "test_slow = reelbench_slow_plugin:SlowLGVI")
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), str(site)]), REELBENCH_TEST_SLEEP="60")
     return env
 
@@ -168,11 +164,12 @@ def test_fresh_ignores_the_rows_already_there(tmp_path, monkeypatch):
         seen["previous"] = kw["previous"]
         raise Stop
 
-    monkeypatch.setattr(store, "read_previous", lambda *a, **k: [{"run_key": "x"}])
+    earlier = {"run_key": "x", "status": "ok", "scene": "elsewhere", "integrator": "lgvi", "setting": "dt=0.01"}
+    monkeypatch.setattr(store, "read_runs", lambda *a, **k: store.StoredRuns([earlier], []))
     monkeypatch.setattr(runner, "execute", execute)
     args = ["run", "--scenes", "fixed_length", "--integrators", "lgvi", "--dts", "0.01", "--t-end", "0.02",
             "--no-figures", "--out", str(tmp_path)]
-    for extra, previous in (([], [{"run_key": "x"}]), (["--fresh"], [])):
+    for extra, previous in (([], [earlier]), (["--fresh"], [])):
         with pytest.raises(Stop):
             cli.main(args + extra)
         assert seen["previous"] == previous

@@ -136,12 +136,17 @@ def test_it_runs_in_the_benchmark_into_tables_and_the_work_precision_plot(site, 
     # the work-precision figure has its curve on both cost axes (run time and work count)
     from benchmark import plots
 
-    labels = []
-    monkeypatch.setattr(plots, "save_figure", lambda fig, path: labels.append(
-        [[t.get_text() for t in ax.get_legend().get_texts()] for ax in fig.axes if ax.get_legend()]) or path)
+    from benchmark.styles import style
+
+    seen = []
+    monkeypatch.setattr(plots, "save_figure", lambda fig, path: seen.append(
+        ([t.get_text() for leg in fig.legends for t in leg.get_texts()],
+         [{line.get_color() for line in ax.get_lines()} for ax in fig.axes])) or path)
     plots.work_precision(runs, "fixed_length", tmp_path)
-    assert len(labels[0]) == len(plots.COST_AXES)
-    assert all(f"{NAME} (fixed dt)" in row for row in labels[0])
+    legend, colours = seen[0]
+    assert f"{NAME} (fixed dt)" in legend  # one legend for the figure, outside the axes
+    assert len(colours) == len(plots.COST_AXES) * len(plots.ERROR_LABELS)
+    assert all(style(NAME).color in c for c in colours)  # in every panel, in its own colour
 
 
 # ------------------------------------------------------------------------------------------
