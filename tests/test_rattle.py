@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from integrators import Capability, Status, get_integrator
-from integrators.lie_group_rk import pendulum_field, rkmk4_step
-from integrators.rattle import (RattleState, extension_inertia, initial_state, pendulum_system, quat_matrix,
+from integrators._lie_group_steps import pendulum_field, rkmk4_step
+from integrators._rattle_step import (RattleState, extension_inertia, initial_state, pendulum_system, quat_matrix,
                                 rattle_step)
 from integrators.rhs import closed_form_of
 from models import build_model
@@ -309,7 +309,7 @@ def test_lie_rk4_step_is_not_symplectic(small_system):
         R = quat_to_rot(Q)
         Pi = quat_matrix(Q) @ pQ / (2.0 * (Q @ Q))
         w = cf.velocity_from_momentum(x, R, jnp.concatenate([px, Pi]))
-        (R1, v1), _, _ = rkmk4_step(field, (R, jnp.concatenate([x, w])), 0.0, h)
+        R1, v1 = rkmk4_step(field, (R, jnp.concatenate([x, w])), 0.0, h)
         x1, w1 = v1[:nx], v1[nx:]
         step = R.T @ R1  # exp(u), near the identity: its quaternion from the trace formula
         s = 0.5 * jnp.sqrt(1.0 + jnp.trace(step))
@@ -430,3 +430,23 @@ def test_rattle_state_starts_on_the_constraint():
     assert isinstance(s, RattleState)
     Q, pQ = s.q[model.layout.nx:], s.p[model.layout.nx:]
     assert abs(float(Q @ Q) - 1.0) < 1e-15 and abs(float(Q @ pQ)) < 1e-14
+
+
+def test_a_failed_newton_solve_ends_the_run_as_newton_failed_with_its_iterations():
+    """The step reports its code and iterations to the lifecycle (`StepResult`): a normal run sums
+    the Newton iterations into the stats; a cap of one iteration cannot converge (the stopping
+    rule needs two updates to estimate the contraction), so the run stops at its first step as
+    ``newton_failed``, keeping the initial state."""
+    from integrators.rattle import Rattle
+
+    scene = scene_with_effects(VARIANTS["fixed_length"][0], elements=2)
+    ok = get_integrator("rattle").solve(scene, t_end=0.05, dt=0.005, save_every=0.05)
+    assert ok.ok and ok.stats["steps"] == 10
+    assert 10 * 2 <= ok.stats["newton_iterations"] <= 10 * 20
+
+    class OneIteration(Rattle):
+        newton_max_iter = 1
+
+    failed = OneIteration().solve(scene, t_end=0.05, dt=0.005, save_every=0.05)
+    assert failed.status == Status.NEWTON_FAILED.value, (failed.status, failed.reason)
+    assert failed.stats["steps"] == 0 and len(failed.t) == 1
