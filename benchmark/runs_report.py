@@ -332,6 +332,8 @@ def write_readme(out_dir: Path, runs: pd.DataFrame, orders: pd.DataFrame, *, pro
     status = runs.groupby(["integrator", "status"]).size().unstack(fill_value=0).reset_index()
     ref = REFERENCE_METHOD
     per_eval = evaluation_costs(runs)
+    from benchmark.properties import properties_text
+
     text = f"""# Benchmark results
 
 {provenance.header()}
@@ -380,6 +382,7 @@ horizons the system is chaotic and coarse steps sit near stability limits, so re
 finest pair; the classical orders are measured on short horizons in `tests/`.
 
 {markdown_table(orders)}
+{properties_text(runs, Path(out_dir) / "energy_horizon.csv")}
 {TRUST}
 ## Figures
 

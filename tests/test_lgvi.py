@@ -228,7 +228,7 @@ def test_fixed_length_energy_bounded_and_headline(fixed_long, fixed):
     df, s = _metrics(fixed, fixed_long)
     paper = df[df.t <= 10.0 + 1e-9]
     s10 = summary(paper, has_work=False)
-    # headline (SCENARIOS.md, paper horizon 10 s) at h = 5 ms: max|ΔE| < 0.01 % of max T
+    # headline (the fixed_length scene file, paper horizon 10 s) at h = 5 ms: max|ΔE| < 0.01 % of max T
     # (measured 2.8e-5 = 0.0028 %), π3 deviation < 3e-8 % (measured ~1e-13 relative),
     # ‖I − RᵀR‖ < 1e-13 (measured ~3e-14)
     assert s10["energy_error"] < 1e-4
@@ -302,7 +302,7 @@ def test_deployment_energy_minus_work_and_headline(deploy, deploy_full):
         errs[h] = s["energy_error"]
         assert abs(df.pi3).max() < 1e-10  # π3(0) = 0 (at rest); conserved to Newton tolerance
         assert s["orthogonality_error"] < 1e-13
-        assert 25.0 < df.deployed_length.iloc[-1] < 33.0  # SCENARIOS.md sanity range
+        assert 25.0 < df.deployed_length.iloc[-1] < 33.0  # deployment: the paper's range for the length at the end
         assert df.work.iloc[-1] < 0  # Carnot loss dissipates
     print("deployment |Δ(E−W)|/max T", errs)  # measured: 4.2e-6 (h = 2 ms), 2.1e-6 (h = 1 ms): first order
     assert errs[0.001] < 0.7 * errs[0.002]

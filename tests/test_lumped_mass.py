@@ -1,4 +1,4 @@
-"""The lumped-mass string (`string.mass_model = "lumped"`, MODEL.md §8): scene key, energy,
+"""The lumped-mass string (`string.mass_model = "lumped"`, docs/equations.md, "Lumped-mass string"): scene key, energy,
 closed form vs autodiff, the LGVI's discrete equations, order and energy, and the consistent
 and lumped models converging to each other as N grows."""
 

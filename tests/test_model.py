@@ -51,7 +51,7 @@ def test_initial_state_is_straight_and_unstretched():
     np.testing.assert_allclose(np.linalg.norm(q[-1]), 10.0)
     np.testing.assert_allclose(np.linalg.norm(np.diff(q, axis=0), axis=1), 1.0)
     assert float(model.potential_terms["V_elastic"](jnp.asarray(x), jnp.asarray(R))) < 1e-20
-    # SCENARIOS.md: E ≈ -85.54 J for the fixed-length scene
+    # the fixed-length scene's initial energy, E ≈ -85.54 J (paper's scene, N = 10)
     assert abs(float(model.energy(jnp.asarray(x), jnp.asarray(R), jnp.asarray(w))) + 85.54) < 0.01
 
 
