@@ -115,7 +115,8 @@ VARIANTS = {
 }
 
 
-@pytest.mark.parametrize("variant", list(VARIANTS))
+@pytest.mark.parametrize("variant", [pytest.param(v, marks=pytest.mark.slow) if v == "reel_point_mass" else v
+                                     for v in VARIANTS])
 def test_closed_form_residuals_match_autodiff_discrete_lagrangian(variant, rng):
     """The LGVI step's closed-form p_k(X) and p_{k+1}(X) (the production formulas) = autodiff of L_d."""
     model = build_model(scene_with_effects(VARIANTS[variant], elements=4))

@@ -248,7 +248,8 @@ def damped_reel():
 
 
 @pytest.mark.parametrize("method, hs, low", [("lgvi_sym", (0.004, 0.002, 0.001), 1.9),
-                                             ("lgvi_suzuki4", (0.008, 0.004, 0.002), 3.7)])
+                                             pytest.param("lgvi_suzuki4", (0.008, 0.004, 0.002), 3.7,
+                                                          marks=pytest.mark.slow)])
 def test_damped_reel_orders(damped_reel, method, hs, low):
     scene, ref, e0 = damped_reel
     errs = []
@@ -280,6 +281,7 @@ def test_bad_arguments_name_the_method():
 # ------------------------------------------------------------------------------------------
 # Hard case: the reel reverses (ṡ_p changes sign, ṡ|ṡ| only C¹ there)
 # ------------------------------------------------------------------------------------------
+@pytest.mark.slow  # the default run checks the reel-reversal command's orders (tests/test_benchmark.py)
 def test_reel_reversal_keeps_the_orders(tmp_path):
     """reel_reversal (N = 5, to 0.96 s; ṡ_p changes sign at t = 0.517 s): lgvi_sym stays second
     order and Suzuki fourth. Expected: ṡ|ṡ| has a jump in its second time derivative, so the

@@ -138,6 +138,7 @@ def test_lgvi_lumped_second_order_and_energy(lumped_body):
 # ------------------------------------------------------------------------------------------
 # Consistent and lumped converge to the same continuum solution
 # ------------------------------------------------------------------------------------------
+@pytest.mark.slow  # the same convergence is measured by `python -m benchmark xval`
 def test_consistent_and_lumped_converge_to_each_other():
     """Tip position at t = 1 s: the gap between the two mass models falls ≈ 4× per doubling of N
     (measured 0.062, 0.019, 0.0035 m at N = 4, 8, 16; 9 s)."""
