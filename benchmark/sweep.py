@@ -148,13 +148,18 @@ def build_tasks(
     names = list(integrators) if integrators else default_names()
     given_dts = bool(dts)
     dts = tuple(dts) if dts else (QUICK_DTS if quick else FULL_DTS)
+    given_rtols = bool(rtols)
     implicit_rtols = tuple(rtols) if rtols else (IMPLICIT_QUICK_RTOLS if quick else IMPLICIT_FULL_RTOLS)
     rtols = tuple(rtols) if rtols else (QUICK_RTOLS if quick else FULL_RTOLS)
     if quick and t_end is None:
         t_end = QUICK_T_END
     methods = {name: get_integrator(name) for name in names}  # raises for unknown names, before any work
     own_dts = {name: (dts if given_dts or quick else integ.sweep_dts or dts) for name, integ in methods.items()}
-    check_settings(tuple(v for d in own_dts.values() for v in d) + dts, rtols + implicit_rtols)
+    own_rtols = {name: (implicit_rtols if integ.has(Capability.IMPLICIT) else rtols)
+                 if given_rtols or quick or integ.sweep_rtols is None else integ.sweep_rtols
+                 for name, integ in methods.items()}
+    check_settings(tuple(v for d in own_dts.values() for v in d) + dts,
+                   tuple(v for r in own_rtols.values() for v in r) + rtols + implicit_rtols)
     ov = tuple(sorted((overrides or {}).items()))
     tasks = []
     for scene in scenes:
@@ -163,6 +168,6 @@ def build_tasks(
                 own = own_dts[name]
                 tasks += [Task(scene, name, dt=dt, t_end=t_end, overrides=ov) for dt in own]
             if integ.has(Capability.ADAPTIVE):
-                tols = implicit_rtols if integ.has(Capability.IMPLICIT) else rtols
-                tasks += [Task(scene, name, rtol=r, atol=r * ATOL_FACTOR, t_end=t_end, overrides=ov) for r in tols]
+                tasks += [Task(scene, name, rtol=r, atol=r * ATOL_FACTOR, t_end=t_end, overrides=ov)
+                          for r in own_rtols[name]]
     return tasks

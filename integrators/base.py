@@ -273,6 +273,10 @@ class Integrator(abc.ABC):
     #: waste runs beyond the method's stability limit; each must divide the save interval. None:
     #: the shared ones. (``--dts`` and ``--quick`` override it.)
     sweep_dts: ClassVar[tuple[float, ...] | None] = None
+    #: likewise the relative tolerances of an adaptive method in the full default sweep, where the
+    #: shared ones (`benchmark.sweep.FULL_RTOLS`) reach past the method's useful range; None: the
+    #: shared ones. (``--rtols`` and ``--quick`` override it.)
+    sweep_rtols: ClassVar[tuple[float, ...] | None] = None
     #: (compile seconds per scene, run cost per step relative to an explicit RK step): a rough
     #: scheduling hint (the stability map starts the longest jobs first), never a result
     cost_hint: ClassVar[tuple[float, float]] = (30.0, 1.0)
