@@ -23,6 +23,7 @@ from pathlib import Path
 
 from benchmark import options as opt
 from benchmark.options import UsageError
+from models.io import inside
 
 
 def _log(msg: str) -> None:
@@ -65,6 +66,10 @@ def cmd_run(args) -> int:
         raise UsageError("--executor dask needs --scheduler ADDRESS (e.g. tcp://host:8786)")
     if args.scheduler and args.executor != "dask":
         raise UsageError(f"--scheduler is only used with --executor dask (got --executor {args.executor})")
+    from integrators import get_integrator  # JAX-free: names and capabilities only
+
+    for name in args.integrators or ():
+        get_integrator(name)  # an unknown name is refused before any work
     scene_names = args.scenes or list(sweep.PAPER_SCENES)
     ov = _overrides(args.set)
     with_t_end = {"t_end": args.t_end, **ov} if args.t_end is not None else ov  # validated with the scene
@@ -109,10 +114,14 @@ def cmd_simulate(args) -> int:
 
     if args.atol is not None and args.rtol is None:
         raise UsageError("--atol needs --rtol (an adaptive method); with --dt the step is fixed and atol is unused")
+    from integrators import get_integrator  # JAX-free: names and capabilities only
+
+    get_integrator(args.integrator)  # an unknown name is refused before its name reaches a file name
     scene = load_scene(args.scene, **_overrides(args.set))
     if args.t_end is not None:
         scene = scene.with_(t_end=args.t_end)  # the same range and plausibility rules as the file
-    out = opt.writable_file(args.out or Path.cwd() / f"simulate_{scene.name}_{args.integrator}.npz")
+    out = opt.writable_file(args.out if args.out is not None else
+                            inside(Path.cwd(), f"simulate_{scene.name}_{args.integrator}.npz"))
     if out.suffix != ".npz":
         raise UsageError(f"--out {str(out)!r}: a trajectory file ends in .npz (the diagnostics go beside it as .csv)")
     if args.save_every > scene.t_end:
@@ -144,7 +153,7 @@ def cmd_figures(args) -> int:
     ov = _overrides(args.set)
     if args.scene:
         load_scene(args.scene, **ov)  # a bad scene is refused before the trajectory is read
-    out = opt.writable_file(args.out or Path.cwd() / f"{src.stem}.png")
+    out = opt.writable_file(args.out if args.out is not None else inside(Path.cwd(), f"{src.stem}.png"))
     try:
         traj = read_trajectory(src)
     except UnreadableFile as exc:
@@ -188,7 +197,7 @@ def cmd_speed(args) -> int:
     for sc in scenes:  # every scene and N is checked (names, plausibility) before any work
         for n in elements:
             load_scene(sc, elements=n)
-    out = opt.writable_file(args.out) if args.out else None
+    out = opt.writable_file(args.out) if args.out is not None else None
     from benchmark import lgvi_speed, pipelines
     from integrators.rhs import check_rhs
 
@@ -203,6 +212,9 @@ def cmd_speed(args) -> int:
 
 
 def cmd_stability(args) -> int:
+    from benchmark import stability
+
+    stability.jobs_for(args.scenes, args.integrators)  # unknown names are refused before any work
     out = opt.writable_dir(args.out)
     from benchmark import pipelines
 

@@ -103,15 +103,29 @@ def names(text: str) -> list[str]:
     return parts
 
 
+def _nearest_existing(p: Path) -> Path:
+    """``p`` or the closest of its parents that exists (where a missing directory would be made)."""
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    return p
+
+
 def writable_dir(path: str | os.PathLike, option: str = "--out") -> Path:
-    """Create ``path`` if needed and prove it takes a file (a write and a delete), or raise
-    UsageError naming the option, the place and the fix."""
+    """Prove that ``path`` is, or can be created as, a directory that takes a file (a probe file
+    written and deleted in it or in its nearest existing parent), or raise UsageError naming the
+    option, the place and the fix. Nothing is created: a command refused by a later check leaves
+    no empty --out behind (the study creates the directory when it starts writing)."""
+    if not str(path).strip():
+        raise UsageError(f"{option} is empty: give a directory (it is created if missing)")
     p = Path(path)
     if p.exists() and not p.is_dir():
         raise UsageError(f"{option} {str(p)!r} is a file, not a directory: give a directory (it is created if missing)")
+    base = _nearest_existing(p.absolute())
+    if not base.is_dir():
+        raise UsageError(f"{option} {str(p)!r} is not writable ({base} is a file, not a directory): "
+                         f"give a directory you can write to")
     try:
-        p.mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(prefix=".write-test-", dir=p)
+        fd, probe = tempfile.mkstemp(prefix=".write-test-", dir=base)
         os.close(fd)
         os.unlink(probe)
     except OSError as exc:
@@ -121,7 +135,10 @@ def writable_dir(path: str | os.PathLike, option: str = "--out") -> Path:
 
 
 def writable_file(path: str | os.PathLike, option: str = "--out") -> Path:
-    """A file path whose directory takes a file (created if missing); refuses a directory."""
+    """A file path whose directory takes a file (created when the file is written); refuses an
+    empty path and a directory."""
+    if not str(path).strip():
+        raise UsageError(f"{option} is empty: give a file name (e.g. run.npz)")
     p = Path(path)
     if p.is_dir():
         raise UsageError(f"{option} {str(p)!r} is a directory: give a file name (e.g. {p / 'run.npz'})")

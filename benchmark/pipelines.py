@@ -19,6 +19,7 @@ from typing import Callable
 from benchmark import engine, store
 from benchmark.engine import log_stderr
 from benchmark.report import Provenance
+from models.io import inside
 
 
 @contextlib.contextmanager
@@ -242,7 +243,7 @@ def _sweep_figures(request: SweepRequest, merged, log) -> list[tuple[str, str]]:
             log(f"figure: {name}: solving {scene.name} with {paper.label} ...")
             traj = get_integrator(paper.name).solve(scene, t_end=request.sweep_t_end or scene.t_end, save_every=0.02,
                                                     **paper.settings)
-            plots.paper_panels(scene, traj, evaluate(scene, traj), out / name)
+            plots.paper_panels(scene, traj, evaluate(scene, traj), inside(out, name))
             keys.record(name, key)
             log(f"figure: {name} ({traj.status}, {time.perf_counter() - t0:.0f} s)")
         figures.append((name, ""))
@@ -327,7 +328,7 @@ def run_horizon_study(t_end: float, out: Path, overrides: tuple = (), jobs: int 
     kept = [m for m in methods if m.name in earlier and "job_key" in earlier[m.name]
             and (earlier[m.name]["job_key"] == wanted[m.name]).all()]
     todo = [m for m in methods if m not in kept]
-    figure = out / f"energy_horizon_{load_scene(horizon.SCENE, **dict(overrides)).name}.png"
+    figure = inside(out, f"energy_horizon_{load_scene(horizon.SCENE, **dict(overrides)).name}.png")
     if kept:
         log(f"horizon: kept {', '.join(m.name for m in kept)} (same settings, horizon and code)")
     rows = []

@@ -28,6 +28,7 @@ from benchmark.engine import log_stderr
 from benchmark.store import (UnreadableFile, read_npz, source_hash, trajectory_from, trajectory_parts,
                              write_npz)
 from integrators import get_integrator
+from models.io import inside
 
 REFERENCE_METHOD = {"integrator": "dop853", "rtol": 1e-12, "atol": 1e-14}
 CACHE_DIR = Path("results") / "cache"
@@ -51,7 +52,7 @@ def reference_path(scene, t_end: float, save_every: float, cache_dir: Path = CAC
     by other code is found there, refused by its identity and replaced)."""
     key = json.dumps({"scene": scene.key(), "t_end": t_end, "save_every": save_every, **REFERENCE_METHOD}, sort_keys=True)
     digest = hashlib.sha256(key.encode()).hexdigest()[:16]
-    return Path(cache_dir) / f"reference-{scene.name}-{digest}.npz"
+    return inside(cache_dir, f"reference-{scene.name}-{digest}.npz")
 
 
 def _versions() -> dict:

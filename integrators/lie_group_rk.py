@@ -49,12 +49,13 @@ from __future__ import annotations
 
 from typing import Callable, ClassVar
 
+from integrators._lazy import jax, jnp, lazy_function  # JAX on first use: the registry lists this module
 from integrators.base import Capability
 from integrators.fixed_step import FixedStepMethod
 from integrators.lifecycle import ODEProblem
 from integrators.rhs import closed_form_of
-from models._jax import jax, jnp
-from models.model import hat, quat_to_rot
+hat = lazy_function("models.model", "hat")
+quat_to_rot = lazy_function("models.model", "quat_to_rot")
 
 __all__ = ["CrouchGrossman3", "LieRK4", "crouch_grossman3_step", "pendulum_field", "rkmk4_step", "rotation_to_quat",
            "so3_exp"]

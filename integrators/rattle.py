@@ -63,13 +63,14 @@ from typing import Callable, ClassVar, NamedTuple
 
 import numpy as np
 
+from integrators._lazy import jax, jnp, lazy_function  # JAX on first use: the registry lists this module
 from integrators import rhs as _rhs
 from integrators.base import Capability
 from integrators.fixed_step import FixedStepMethod, run_fixed_step
 from integrators.lifecycle import ODEProblem
 from integrators.rhs import closed_form_of
-from models._jax import jax, jnp
-from models.model import quat_rate, quat_to_rot
+quat_rate = lazy_function("models.model", "quat_rate")
+quat_to_rot = lazy_function("models.model", "quat_to_rot")
 
 __all__ = ["QuaternionSystem", "Rattle", "RattleState", "body_rate", "extension_inertia", "initial_state", "ode_state",
            "pendulum_system", "quat_matrix", "rattle_step"]

@@ -62,7 +62,7 @@ def inside(directory: str | os.PathLike, *parts: str | os.PathLike) -> Path:
         >>> inside("/tmp/out", "../evil.png")
         Traceback (most recent call last):
         ...
-        models.io.UnsafePath: '../evil.png' leads outside /tmp/out (to /tmp/evil.png): ...
+        models.io.UnsafePath: '../evil.png' is not a file name inside /tmp/out: ...
     """
     base = Path(directory).resolve()
     if not parts:
@@ -71,6 +71,10 @@ def inside(directory: str | os.PathLike, *parts: str | os.PathLike) -> Path:
         text = os.fspath(part)
         if not text or "\x00" in text or os.path.isabs(text):
             raise UnsafePath(f"{text!r} is not a name below {base}: names are relative, non-empty, without NUL")
+        if "/" in text or "\\" in text or text in (".", ".."):
+            # one directory level per part: a name glued to a prefix ("fig_" + "../x") stays refused
+            raise UnsafePath(f"{text!r} is not a file name inside {base}: a name from input must be one "
+                             f"path component, without '/', '\\', or a bare '.' / '..'")
     target = base.joinpath(*parts).resolve()
     if base not in target.parents:
         shown = os.path.join(*map(os.fspath, parts))
