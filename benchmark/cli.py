@@ -55,6 +55,13 @@ def _csv(values) -> str:
     return ",".join(f"{v:g}" if isinstance(v, float) else str(v) for v in values)
 
 
+def _check_integrator(name: str) -> None:
+    """Refuse an unknown integrator name (the registry lists names without importing JAX)."""
+    from integrators import get_integrator
+
+    get_integrator(name)
+
+
 # ------------------------------------------------------------------------------------------
 # Each command: check its input, then call its pipeline
 # ------------------------------------------------------------------------------------------
@@ -66,10 +73,8 @@ def cmd_run(args) -> int:
         raise UsageError("--executor dask needs --scheduler ADDRESS (e.g. tcp://host:8786)")
     if args.scheduler and args.executor != "dask":
         raise UsageError(f"--scheduler is only used with --executor dask (got --executor {args.executor})")
-    from integrators import get_integrator  # JAX-free: names and capabilities only
-
     for name in args.integrators or ():
-        get_integrator(name)  # an unknown name is refused before any work
+        _check_integrator(name)  # an unknown name is refused before any work
     scene_names = args.scenes or list(sweep.PAPER_SCENES)
     ov = _overrides(args.set)
     with_t_end = {"t_end": args.t_end, **ov} if args.t_end is not None else ov  # validated with the scene
@@ -114,9 +119,10 @@ def cmd_simulate(args) -> int:
 
     if args.atol is not None and args.rtol is None:
         raise UsageError("--atol needs --rtol (an adaptive method); with --dt the step is fixed and atol is unused")
-    from integrators import get_integrator  # JAX-free: names and capabilities only
+    from models.schema import is_safe_name
 
-    get_integrator(args.integrator)  # an unknown name is refused before its name reaches a file name
+    if not is_safe_name(args.integrator):
+        _check_integrator(args.integrator)  # refused before the name reaches a file name
     scene = load_scene(args.scene, **_overrides(args.set))
     if args.t_end is not None:
         scene = scene.with_(t_end=args.t_end)  # the same range and plausibility rules as the file
@@ -129,6 +135,7 @@ def cmd_simulate(args) -> int:
                          f"give a save interval <= t_end")
     size = opt.check_size(scene, scene.t_end, args.save_every, args.dt, warn=_log,
                           what=f"{scene.name} to t_end = {scene.t_end:g} s")
+    _check_integrator(args.integrator)
     settings = {"save_every": args.save_every}
     if args.dt is not None:
         settings["dt"] = args.dt
@@ -181,10 +188,16 @@ def cmd_check(args) -> int:
     command = check.UPDATE_COMMAND + "".join(f" --{k} {shlex.quote(v)}" for k, v in
                                              (("integrators", args.integrators), ("baseline", args.baseline)) if v)
     names = [v.strip() for v in args.integrators.split(",") if v.strip()] if args.integrators else None
+    if args.allow_new and args.update:
+        raise UsageError("--allow-new is for a check against the baseline; --update writes the rows of every "
+                         "integrator it runs")
+    for name in args.allow_new or ():
+        _check_integrator(name)  # a misspelt name would allow nothing
     from benchmark import pipelines
 
     return pipelines.run_check(update=args.update, baseline=args.baseline, integrators=names, factor=args.factor,
-                               order_margin=args.order_margin, jobs=args.jobs, command=command, log=_log)
+                               order_margin=args.order_margin, jobs=args.jobs, command=command,
+                               allow_new=tuple(args.allow_new or ()), log=_log)
 
 
 def cmd_speed(args) -> int:
@@ -355,6 +368,9 @@ def _add_check(sub) -> None:
     c.add_argument("--order-margin", type=float,
                    help="an observed order fails when lower than baseline - MARGIN (default: 0.5)")
     c.add_argument("--jobs", type=int, help="worker processes (default: CPU count)")
+    c.add_argument("--allow-new", type=opt.names, metavar="NAMES",
+                   help="comma-separated integrators that may lack baseline rows (new methods); any other selected "
+                        "integrator without rows to compare fails the check (exit 2)")
     c.set_defaults(func=cmd_check)
 
 

@@ -396,11 +396,12 @@ def run_stability(scenes=None, integrators=None, *, workers: int = 2, out: Path 
 
 def run_check(*, update: bool = False, baseline=None, integrators=None, factor: float | None = None,
               order_margin: float | None = None, jobs: int | None = None, executor: str = "process",
-              cache_dir: str | None = None, tasks=None, command: str | None = None,
+              cache_dir: str | None = None, tasks=None, command: str | None = None, allow_new=(),
               log: Callable[[str], None] | None = None, echo: Callable[[str], None] = print) -> int:
     """Recompute the check sweep and compare it with the baseline (or with ``update``, rewrite
     the baseline). Returns the exit status: 0 passed or updated, 1 regressions. Bad input
-    raises ValueError before any work."""
+    raises ValueError before any work, a baseline that leaves a selected integrator (not in
+    ``allow_new``) with nothing to compare included."""
     from benchmark import check
     from benchmark.reference import CACHE_DIR
 
@@ -411,9 +412,12 @@ def run_check(*, update: bool = False, baseline=None, integrators=None, factor: 
     if jobs is not None and jobs < 1:
         raise ValueError(f"--jobs = {jobs!r} is invalid (allowed: >= 1)")
     tasks = check.build_check_tasks(integrators) if tasks is None else tasks
+    old = check.baseline_for(baseline, update=update, warn=log or echo)
+    table = old.table if old is not None else None
+    if not update:
+        check.comparable(table, tasks, baseline, allow_new)
+    engine.install_stop_handlers()  # SIGTERM stops the sweep like Ctrl-C (its workers with it)
     try:
-        old = check.baseline_for(baseline, update=update, warn=log or echo)
-        table = old.table if old is not None else None
         current = check.measure(tasks, executor=executor, jobs=jobs, cache_dir=cache_dir or str(CACHE_DIR),
                                 costs=check.costs_of(table), log=log)
     except KeyboardInterrupt as exc:
@@ -421,6 +425,8 @@ def run_check(*, update: bool = False, baseline=None, integrators=None, factor: 
     cmp = check.compare(table, current, tol) if old is not None else None
     if cmp is not None:
         echo(check.format_report(cmp, tol, baseline, old.header))
+        if not update and cmp.compared == 0:
+            raise ValueError(f"baseline {baseline}: no row of this check was compared (a check of nothing cannot pass)")
     if update:
         path = check.write_baseline(check.merge(table, current), baseline, provenance=provenance,
                                     sweep_note=check.describe(tasks))
