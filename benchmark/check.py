@@ -49,6 +49,7 @@ import pandas as pd
 
 from benchmark import runner, sweep
 from benchmark.metrics import ACCURACY, DIRECTIONS, observed_orders
+from benchmark.options import check_tolerance_rules
 from benchmark.metrics import FLOORS as METRIC_FLOORS
 from benchmark.reference import CACHE_DIR, REFERENCE_METHOD
 from benchmark.report import Provenance, fmt, markdown_table
@@ -83,10 +84,7 @@ class Tolerance:
     floors: dict = field(default_factory=lambda: dict(FLOORS))
 
     def __post_init__(self):
-        if not (math.isfinite(self.factor) and self.factor > 1):
-            raise ValueError(f"--factor = {self.factor!r} is invalid (allowed: finite, > 1; e.g. 2 = twice the baseline)")
-        if not (math.isfinite(self.order_margin) and self.order_margin >= 0):
-            raise ValueError(f"--order-margin = {self.order_margin!r} is invalid (allowed: finite, >= 0)")
+        check_tolerance_rules(self.factor, self.order_margin)
 
 
 def build_check_tasks(integrators=None, *, scenes=SCENES, t_end: float = T_END, dts=FIXED_DTS,

@@ -55,6 +55,15 @@ def _csv(values) -> str:
     return ",".join(f"{v:g}" if isinstance(v, float) else str(v) for v in values)
 
 
+def _any_finite(values) -> bool:
+    import numpy as np
+
+    try:
+        return bool(np.isfinite(np.asarray(values, dtype=float)).any())
+    except (TypeError, ValueError):
+        return False
+
+
 def _check_integrator(name: str) -> None:
     """Refuse an unknown integrator name (the registry lists names without importing JAX)."""
     from integrators import get_integrator
@@ -82,6 +91,9 @@ def cmd_run(args) -> int:
     sweep.check_settings(args.dts, args.rtols)
     t_end = args.t_end or (sweep.QUICK_T_END if args.quick else None)
     for sc in scenes:
+        if (t_end or sc.t_end) < sweep.SAVE_EVERY:  # every run would end in an error row
+            raise UsageError(f"{'--t-end' if t_end else sc.name + ': t_end'} = {t_end or sc.t_end:g} s is shorter than "
+                             f"the sweep's save interval {sweep.SAVE_EVERY:g} s: give --t-end >= {sweep.SAVE_EVERY:g}")
         for dt in args.dts or (sweep.QUICK_DTS if args.quick else sweep.FULL_DTS):
             opt.check_size(sc, t_end or sc.t_end, sweep.SAVE_EVERY, dt, warn=_log, what=f"{sc.name} at dt = {dt:g} s")
     out = opt.writable_dir(_run_out(args))
@@ -165,6 +177,9 @@ def cmd_figures(args) -> int:
         traj = read_trajectory(src)
     except UnreadableFile as exc:
         raise UsageError(f"{src}: not a trajectory file ({exc}); give a trajectory written by `simulate`") from None
+    if not _any_finite(traj.x):  # a figure of nothing would look like a result
+        raise UsageError(f"{src}: the trajectory has no finite point (status {getattr(traj, 'status', '?')}): "
+                         "nothing to draw; give a trajectory of a run that computed something")
     scene = load_scene(args.scene or traj.scene_name, **ov)
     lay = StateLayout.from_scene(scene)
     nx = traj.x.shape[1] if getattr(traj.x, "ndim", 0) == 2 else None
@@ -188,6 +203,10 @@ def cmd_check(args) -> int:
     command = check.UPDATE_COMMAND + "".join(f" --{k} {shlex.quote(v)}" for k, v in
                                              (("integrators", args.integrators), ("baseline", args.baseline)) if v)
     names = [v.strip() for v in args.integrators.split(",") if v.strip()] if args.integrators else None
+    for name in names or ():
+        _check_integrator(name)  # before the baseline is read
+    opt.check_tolerance_rules(2.0 if args.factor is None else args.factor,
+                              0.5 if args.order_margin is None else args.order_margin)  # before any import of JAX
     if args.allow_new and args.update:
         raise UsageError("--allow-new is for a check against the baseline; --update writes the rows of every "
                          "integrator it runs")
@@ -207,9 +226,16 @@ def cmd_speed(args) -> int:
 
     default = SpeedRequest()
     elements, scenes = tuple(args.elements or default.elements), tuple(args.scenes or default.scenes)
+    horizon = {"t_end": args.dt * args.steps} if args.dt is not None else {}  # what each timed run covers
     for sc in scenes:  # every scene and N is checked (names, plausibility) before any work
         for n in elements:
-            load_scene(sc, elements=n)
+            try:
+                load_scene(sc, elements=n, **horizon)
+            except ValueError as exc:
+                if not horizon or "'t_end'" not in str(exc):
+                    raise
+                raise UsageError(f"--dt {args.dt:g} x --steps {args.steps} = {horizon['t_end']:g} s per timed run: "
+                                 f"{exc}; give a smaller --dt or fewer --steps") from None
     out = opt.writable_file(args.out) if args.out is not None else None
     from benchmark import lgvi_speed, pipelines
     from integrators.rhs import check_rhs
@@ -245,7 +271,9 @@ def cmd_xval(args) -> int:
     from benchmark import xval
     from models import load_scene
 
-    xval.check_scene(load_scene(args.scene))  # names what cannot be translated, before any work
+    scene = load_scene(args.scene, **({"t_end": args.t_end} if args.t_end else {}))  # plausible horizon
+    xval.check_scene(scene)  # names what cannot be translated, before any work
+    opt.check_size(scene, args.t_end or xval.DEFAULT_T_END, xval.OUTPUT_INTERVAL, what=f"xval of {scene.name}")
     out = opt.writable_dir(args.out)
     missing = [m for m in ("moordyn", "mujoco") if importlib.util.find_spec(m) is None]
     if missing:
@@ -363,11 +391,11 @@ def _add_check(sub) -> None:
     c.add_argument("--update", action="store_true", help="rewrite the baseline from this run instead of failing")
     c.add_argument("--baseline", help="baseline CSV (default: results/baseline/drift.csv, run from the repository root)")
     c.add_argument("--integrators", help="comma-separated names (default: all registered except test_*)")
-    c.add_argument("--factor", type=float,
+    c.add_argument("--factor", type=opt.number,
                    help="a drift or error fails when worse than FACTOR x baseline, above its floor (default: 2)")
-    c.add_argument("--order-margin", type=float,
+    c.add_argument("--order-margin", type=opt.number,
                    help="an observed order fails when lower than baseline - MARGIN (default: 0.5)")
-    c.add_argument("--jobs", type=int, help="worker processes (default: CPU count)")
+    c.add_argument("--jobs", type=opt.positive_int, help="worker processes (default: CPU count)")
     c.add_argument("--allow-new", type=opt.names, metavar="NAMES",
                    help="comma-separated integrators that may lack baseline rows (new methods); any other selected "
                         "integrator without rows to compare fails the check (exit 2)")

@@ -23,10 +23,16 @@ def _number(text: str, kind=float) -> float:
     try:
         v = kind(text)
     except (TypeError, ValueError):
-        raise argparse.ArgumentTypeError(f"{text!r} is not {'an integer' if kind is int else 'a number'}") from None
+        what = "an integer (give one, e.g. 4)" if kind is int else "a number (give one, e.g. 0.01)"
+        raise argparse.ArgumentTypeError(f"{text!r} is not {what}") from None
     if kind is float and not math.isfinite(v):
-        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
+        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number (give one, e.g. 0.01)")
     return v
+
+
+def number(text: str) -> float:
+    """A finite float (its range is checked where it is used)."""
+    return _number(text)
 
 
 def positive_int(text: str) -> int:
@@ -58,9 +64,12 @@ def nonnegative_float(text: str) -> float:
 
 
 def tolerance(text: str) -> float:
+    from integrators.lifecycle import MIN_RTOL  # the API's floor (imported only when a tolerance is given)
+
     v = _number(text)
-    if not 0 < v < 1:
-        raise argparse.ArgumentTypeError(f"{text!r} is invalid (allowed: 0 < tolerance < 1)")
+    if not MIN_RTOL <= v < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} is invalid (allowed: {MIN_RTOL:g} <= tolerance < 1; "
+                                         "tighter is below float64 rounding)")
     return v
 
 
@@ -78,6 +87,14 @@ def _list_of(item):
 positive_floats = _list_of(positive_float)
 positive_ints = _list_of(positive_int)
 tolerances = _list_of(tolerance)
+
+
+def check_tolerance_rules(factor: float, order_margin: float) -> None:
+    """`check`'s --factor (finite, > 1) and --order-margin (finite, >= 0); UsageError naming them."""
+    if not (math.isfinite(factor) and factor > 1):
+        raise UsageError(f"--factor = {factor!r} is invalid (allowed: finite, > 1; e.g. 2 = twice the baseline)")
+    if not (math.isfinite(order_margin) and order_margin >= 0):
+        raise UsageError(f"--order-margin = {order_margin!r} is invalid (allowed: finite, >= 0; e.g. 0.5)")
 
 
 def runs_table(text: str) -> str:

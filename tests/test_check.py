@@ -226,9 +226,9 @@ def test_bad_input_is_refused_before_any_work(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(check, "measure", lambda *a, **k: pytest.fail("ran the sweep"))
     check.write_baseline(table(["ok"]), tmp_path / "b.csv")
     for args, message in [(["--factor", "1"], "--factor = 1.0 is invalid"),
-                          (["--factor", "nan"], "--factor = nan is invalid"),
+                          (["--factor", "nan"], "argument --factor: 'nan' is not a finite number"),
                           (["--order-margin", "-1"], "--order-margin = -1.0 is invalid"),
-                          (["--jobs", "0"], "--jobs = 0 is invalid"),
+                          (["--jobs", "0"], "argument --jobs: '0' is invalid (allowed: an integer >= 1)"),
                           (["--integrators", "lgvy"], "unknown integrator 'lgvy'"),
                           (["--baseline", str(tmp_path / "none.csv")], "none.csv does not exist")]:
         assert main(["check", "--baseline", str(tmp_path / "b.csv"), *args]) == 2, args
