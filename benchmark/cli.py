@@ -97,6 +97,7 @@ def cmd_run(args) -> int:
         for dt in args.dts or (sweep.QUICK_DTS if args.quick else sweep.FULL_DTS):
             opt.check_size(sc, t_end or sc.t_end, sweep.SAVE_EVERY, dt, warn=_log, what=f"{sc.name} at dt = {dt:g} s")
     out = opt.writable_dir(_run_out(args))
+    opt.no_directory_at(out, ("runs.csv", "runs.md", "orders.csv", "cheapest.csv", "README.md", "figures.json"))
 
     from benchmark import pipelines
 
@@ -255,6 +256,7 @@ def cmd_stability(args) -> int:
 
     stability.jobs_for(args.scenes, args.integrators)  # unknown names are refused before any work
     out = opt.writable_dir(args.out)
+    opt.no_directory_at(out, ("stability.csv", "stability.md", "stability.png", "README.md"))
     from benchmark import pipelines
 
     return pipelines.run_stability(args.scenes, args.integrators, workers=args.jobs, out=out, command=_command(args),
@@ -519,6 +521,11 @@ def main(argv=None) -> int:
             raise
         _log(f"error: {exc}")
         return 2
+    except OSError as exc:  # the file system failed during work (full, read-only, ...): no traceback
+        if os.environ.get("REELBENCH_DEBUG"):
+            raise
+        _log(f"error: {exc}")
+        return 1
     except KeyboardInterrupt as exc:  # a command without its own stop message
         from benchmark.engine import stop_cause, stop_status
 

@@ -151,6 +151,15 @@ def writable_dir(path: str | os.PathLike, option: str = "--out") -> Path:
     return p
 
 
+def no_directory_at(directory: Path, names, option: str = "--out") -> None:
+    """Refuse a directory where a command will write one of its files ``names`` in ``directory``
+    (it would fail only after the work, when the first result is written)."""
+    for name in names:
+        if (Path(directory) / name).is_dir():
+            raise UsageError(f"{option} {str(directory)!r}: {name} there is a directory, where this command writes a "
+                             f"file: move it away, or give another {option}")
+
+
 def writable_file(path: str | os.PathLike, option: str = "--out") -> Path:
     """A file path whose directory takes a file (created when the file is written); refuses an
     empty path and a directory."""

@@ -86,14 +86,17 @@ def run_sweep(request: SweepRequest, log: Callable[[str], None] = log_stderr) ->
     try:
         with _exclusive(request.out, log):
             return _sweep(request, runs_csv, log)
-    except KeyboardInterrupt as exc:
+    except (KeyboardInterrupt, OSError) as exc:
         what = (f"{runs_csv.saved} finished run(s) are saved in {runs_csv.path}" if runs_csv.saved
-                else "no run had finished, nothing saved")
+                else "no finished run is saved")
         earlier = getattr(runs_csv, "earlier", 0)
         if earlier:
             what += f" (its {earlier} earlier row(s) are kept)"
-        return engine.stopped(exc, f"{what}; run the same command again to resume (finished runs are kept), "
-                                   "or add --fresh to recompute this run's rows", log)
+        resume = "run the same command again to resume (finished runs are kept), or add --fresh to recompute this run's rows"
+        if isinstance(exc, OSError):  # a full or failing disk: stop, say what is safe, exit 1
+            log(f"error: {exc}; {what}; free space (or fix the file system) and {resume}")
+            return 1
+        return engine.stopped(exc, f"{what}; {resume}", log)
 
 
 #: The committed results directory: a run into it also rewrites the project README's answer block.
@@ -392,6 +395,9 @@ def run_stability(scenes=None, integrators=None, *, workers: int = 2, out: Path 
     except KeyboardInterrupt as exc:
         return engine.stopped(exc, f"the rows finished so far are in {table.path}; run the same command again to "
                                    "compute the map", log)
+    except OSError as exc:  # a full or failing disk: what was written is intact
+        log(f"error: {exc}; {table.saved} row(s) are saved in {table.path}")
+        return 1
 
 
 def run_check(*, update: bool = False, baseline=None, integrators=None, factor: float | None = None,
@@ -509,8 +515,12 @@ def simulate(scene, integrator: str, settings: dict, out: Path, *, estimate: flo
             traj = integ.solve(scene, t_end=scene.t_end, **settings)
     except KeyboardInterrupt as exc:
         return engine.stopped(exc, "nothing saved (a trajectory is written when the run ends)", log)
-    traj.save(out)
-    atomic_write_text(out.with_suffix(".csv"), evaluate(scene, traj).to_csv(index=False))
+    try:
+        traj.save(out)
+        atomic_write_text(out.with_suffix(".csv"), evaluate(scene, traj).to_csv(index=False))
+    except OSError as exc:
+        log(f"error: {exc}; the run ended ({traj.status}) but is not saved: free space and run it again")
+        return 1
     log(f"{scene.name} / {integ.name}: status {traj.status} {traj.reason}; {len(traj.t)} saved points; "
         f"stats {json.dumps({k: v for k, v in traj.stats.items() if np.isscalar(v)}, default=str)}")
     log(f"wrote {out} and {out.with_suffix('.csv')}")

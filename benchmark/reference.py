@@ -129,7 +129,11 @@ def get_reference(scene, t_end: float, save_every: float, cache_dir: Path = CACH
                        save_every=save_every)
     if not traj.ok:
         raise RuntimeError(f"reference solution for {scene.name} failed: {traj.status}: {traj.reason}")
-    save_reference(traj, path, ident)
+    try:
+        save_reference(traj, path, ident)
+    except OSError as exc:  # a full disk costs the cache, not the study
+        if log:
+            log(f"warning: {exc}; the reference of {scene.name} is used without being cached")
     return traj
 
 

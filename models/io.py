@@ -16,13 +16,35 @@ from contextlib import contextmanager
 from pathlib import Path
 
 
+class WriteFailed(OSError):
+    """A result file could not be written (no space, read-only, a directory in its place...);
+    the old file, if any, is intact. The message names the file and the cause."""
+
+    def __str__(self) -> str:
+        return f"cannot write {self.filename}: {self.strerror}"
+
+
+def _write_failed(path: Path, exc: OSError) -> WriteFailed:
+    if isinstance(exc, WriteFailed):
+        return exc
+    why = exc.strerror or str(exc)
+    if os.path.isdir(path):
+        why = "a directory is in its place"
+    return WriteFailed(exc.errno or errno.EIO, why, str(path))
+
+
 @contextmanager
 def atomic_path(path: str | os.PathLike):
-    """Yield a temporary path beside ``path``; on success rename it over ``path``."""
+    """Yield a temporary path beside ``path``; on success rename it over ``path``. A failure of
+    the file system (full, read-only, a directory where the file goes) is a `WriteFailed`
+    naming the file, with no temporary left behind."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
-    os.close(fd)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
+        os.close(fd)
+    except OSError as exc:
+        raise _write_failed(path, exc) from None
     try:
         yield Path(tmp)
         # mkstemp makes the file private (0600); a result file gets the usual umask mode
@@ -30,9 +52,11 @@ def atomic_path(path: str | os.PathLike):
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         if os.path.exists(tmp):
             os.unlink(tmp)
+        if isinstance(exc, OSError):
+            raise _write_failed(path, exc) from None
         raise
 
 
