@@ -19,6 +19,7 @@ import json
 import os
 import shlex
 import sys
+import threading
 from pathlib import Path
 
 from benchmark import options as opt
@@ -515,6 +516,10 @@ def main(argv=None) -> int:
         except SystemExit as exc:  # --help (0) or a bad option (2, argparse printed "error: ...")
             return exc.code if isinstance(exc.code, int) else 2
         args.argv = argv
+        if threading.current_thread() is threading.main_thread():
+            from benchmark.engine import install_stop_handlers
+
+            install_stop_handlers()  # SIGTERM stops every command like Ctrl-C: one line, exit 143
         return args.func(args)
     except ValueError as exc:  # bad input (UsageError, SceneError, an integrator's argument check)
         if os.environ.get("REELBENCH_DEBUG"):  # a developer chasing a ValueError gets its traceback
@@ -529,5 +534,5 @@ def main(argv=None) -> int:
     except KeyboardInterrupt as exc:  # a command without its own stop message
         from benchmark.engine import stop_cause, stop_status
 
-        _log(f"stopped by {stop_cause(exc)}")
+        _log(f"stopped by {stop_cause(exc)}: no result was written (this command writes its results when it ends)")
         return stop_status(exc)

@@ -88,7 +88,7 @@ def run_sweep(request: SweepRequest, log: Callable[[str], None] = log_stderr) ->
             return _sweep(request, runs_csv, log)
     except (KeyboardInterrupt, OSError) as exc:
         what = (f"{runs_csv.saved} finished run(s) are saved in {runs_csv.path}" if runs_csv.saved
-                else "no finished run is saved")
+                else "no run had finished, nothing saved")
         earlier = getattr(runs_csv, "earlier", 0)
         if earlier:
             what += f" (its {earlier} earlier row(s) are kept)"

@@ -151,3 +151,49 @@ def test_a_scene_that_is_a_link_to_dev_zero_is_refused_at_once(tmp_path, capsys)
     rc = main(["simulate", str(tmp_path / "zero.toml"), "--dt", "0.01"])
     err, line = outcome(capsys)
     assert rc == 2 and "zero.toml" in line and "character device" in line, err
+
+
+# ------------------------------------------------------------------------------------------
+# A stop signal during work: one line, the exit status a shell reports, no traceback
+# ------------------------------------------------------------------------------------------
+ROOT = Path(__file__).resolve().parent.parent
+LONG = {  # each runs for minutes if not stopped
+    "simulate": ["simulate", "fixed_length", "--dt", "1e-4", "--t-end", "2000", "--out", "{d}/t.npz"],
+    "check": ["check", "--integrators", "lgvi,rk45", "--jobs", "1"],
+    "stability": ["stability", "--scenes", "stiff_string", "--integrators", "lgvi", "--jobs", "0", "--out", "{d}/s"],
+    "xval": ["xval", "--elements", "5,10,20,40,80,160", "--out", "{d}/x"],
+    "speed": ["speed", "--elements", "10", "--scenes", "fixed_length", "--methods", "lgvi", "--steps", "2000000",
+              "--repeats", "50", "--rhs", ""],
+}
+EXPECTED = {"simulate": "nothing saved", "check": "the baseline was not changed",
+            "stability": "the rows finished so far are in", "xval": "no result was written",
+            "speed": "no result was written"}
+
+
+#: SIGTERM to simulate and check in the fast suite (~7 s each: they had no handler at all); the rest slow.
+SIGNALS = [pytest.param(c, sig, rc, name, id=f"{c}-{name}",
+                        marks=[] if sig == 15 and c in ("simulate", "check") else pytest.mark.slow)
+           for c in LONG for sig, rc, name in ((15, 143, "SIGTERM"), (2, 130, "Ctrl-C"))]
+
+
+@pytest.mark.parametrize("command, sig, rc, name", SIGNALS)
+def test_a_stop_signal_during_work_ends_the_command_with_one_line(tmp_path, command, sig, rc, name):
+    import subprocess
+    import sys
+    import time
+
+    args = [a.format(d=tmp_path) for a in LONG[command]]
+    proc = subprocess.Popen([sys.executable, "-m", "benchmark", *args], cwd=ROOT, stderr=subprocess.PIPE,
+                            stdout=subprocess.DEVNULL, text=True, start_new_session=True)
+    time.sleep(6)  # past the checks and the imports: at work
+    assert proc.poll() is None, proc.stderr.read()
+    proc.send_signal(sig)
+    try:
+        _, err = proc.communicate(timeout=60)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, 9)
+        pytest.fail(f"{command} did not stop within 60 s of {name}")
+    assert "Traceback" not in err, err
+    last = err.strip().splitlines()[-1]
+    assert proc.returncode == rc and last.startswith(f"stopped by {name}"), (proc.returncode, err)
+    assert EXPECTED[command] in last, last
