@@ -49,11 +49,11 @@ from __future__ import annotations
 
 from typing import Callable, ClassVar
 
-from integrators._lazy import jax, jnp, lazy_function  # JAX on first use: the registry lists this module
 from integrators.base import Capability
 from integrators.fixed_step import FixedStepMethod
 from integrators.lifecycle import ODEProblem
 from integrators.rhs import closed_form_of
+from models._lazy import jax, jnp, lazy_function  # JAX on first use: the registry lists this module
 hat = lazy_function("models.model", "hat")
 quat_to_rot = lazy_function("models.model", "quat_to_rot")
 

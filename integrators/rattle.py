@@ -63,12 +63,12 @@ from typing import Callable, ClassVar, NamedTuple
 
 import numpy as np
 
-from integrators._lazy import jax, jnp, lazy_function  # JAX on first use: the registry lists this module
 from integrators import rhs as _rhs
 from integrators.base import Capability
 from integrators.fixed_step import FixedStepMethod, run_fixed_step
 from integrators.lifecycle import ODEProblem
 from integrators.rhs import closed_form_of
+from models._lazy import jax, jnp, lazy_function  # JAX on first use: the registry lists this module
 quat_rate = lazy_function("models.model", "quat_rate")
 quat_to_rot = lazy_function("models.model", "quat_to_rot")
 

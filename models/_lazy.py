@@ -1,10 +1,10 @@
 """Names from JAX-backed modules, imported on first use.
 
-The registry loads every method's module to list its name and capabilities; a module that
-imported JAX at the top would make every refusal of the command line wait a second or more
-for it. A method module binds ``jax``, ``jnp`` and the model's functions through these
-stand-ins instead: each imports its module (``models._jax`` first, for float64) when the
-method first computes.
+The registry loads every method's module to list its name and capabilities, and the command
+line imports the studies' modules to check their names; a module that imported JAX at the
+top would make every refusal wait a second or more for it. Such a module binds ``jax``,
+``jnp`` and the model's functions through these stand-ins instead: each imports its module
+(``models._jax`` first, for float64) when it is first used.
 """
 
 from __future__ import annotations
