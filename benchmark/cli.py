@@ -65,11 +65,28 @@ def _any_finite(values) -> bool:
         return False
 
 
-def _check_integrator(name: str) -> None:
-    """Refuse an unknown integrator name (the registry lists names without importing JAX)."""
+def _check_integrator(name: str):
+    """The integrator ``name``, or UsageError for an unknown one (the registry lists names and
+    capabilities without importing JAX)."""
     from integrators import get_integrator
 
-    get_integrator(name)
+    return get_integrator(name)
+
+
+def _check_setting(integ, dt, rtol, t_end: float) -> None:
+    """simulate's --dt / --rtol as the method takes them (from its declared capabilities)."""
+    from integrators import Capability
+
+    fixed, adaptive = integ.has(Capability.FIXED_STEP), integ.has(Capability.ADAPTIVE)
+    takes = " or ".join(o for o, ok in (("--dt (a fixed step)", fixed), ("--rtol (a tolerance)", adaptive)) if ok)
+    if dt is None and rtol is None:
+        raise UsageError(f"{integ.name} needs a setting: give {takes}")
+    if dt is not None and not fixed:
+        raise UsageError(f"--dt: {integ.name} is adaptive and takes no fixed step: give {takes} instead")
+    if rtol is not None and not adaptive:
+        raise UsageError(f"--rtol: {integ.name} is a fixed-step method: give {takes} instead")
+    if dt is not None and dt > t_end:
+        raise UsageError(f"--dt {dt:g} is longer than the run (t_end = {t_end:g} s): give --dt <= t_end")
 
 
 # ------------------------------------------------------------------------------------------
@@ -96,7 +113,8 @@ def cmd_run(args) -> int:
             raise UsageError(f"{'--t-end' if t_end else sc.name + ': t_end'} = {t_end or sc.t_end:g} s is shorter than "
                              f"the sweep's save interval {sweep.SAVE_EVERY:g} s: give --t-end >= {sweep.SAVE_EVERY:g}")
         for dt in args.dts or (sweep.QUICK_DTS if args.quick else sweep.FULL_DTS):
-            opt.check_size(sc, t_end or sc.t_end, sweep.SAVE_EVERY, dt, warn=_log, what=f"{sc.name} at dt = {dt:g} s")
+            opt.check_size(sc, t_end or sc.t_end, sweep.SAVE_EVERY, dt, warn=_log, what=f"{sc.name} at dt = {dt:g} s",
+                           save_option=None)  # run saves every SAVE_EVERY: no option to raise
     out = opt.writable_dir(_run_out(args))
     opt.no_directory_at(out, ("runs.csv", "runs.md", "orders.csv", "cheapest.csv", "README.md", "figures.json"))
 
@@ -149,7 +167,7 @@ def cmd_simulate(args) -> int:
                          f"give a save interval <= t_end")
     size = opt.check_size(scene, scene.t_end, args.save_every, args.dt, warn=_log,
                           what=f"{scene.name} to t_end = {scene.t_end:g} s")
-    _check_integrator(args.integrator)
+    _check_setting(_check_integrator(args.integrator), args.dt, args.rtol, scene.t_end)
     settings = {"save_every": args.save_every}
     if args.dt is not None:
         settings["dt"] = args.dt
@@ -276,7 +294,8 @@ def cmd_xval(args) -> int:
 
     scene = load_scene(args.scene, **({"t_end": args.t_end} if args.t_end else {}))  # plausible horizon
     xval.check_scene(scene)  # names what cannot be translated, before any work
-    opt.check_size(scene, args.t_end or xval.DEFAULT_T_END, xval.OUTPUT_INTERVAL, what=f"xval of {scene.name}")
+    opt.check_size(scene, args.t_end or xval.DEFAULT_T_END, xval.OUTPUT_INTERVAL, what=f"xval of {scene.name}",
+                   save_option=None)
     out = opt.writable_dir(args.out)
     missing = [m for m in ("moordyn", "mujoco") if importlib.util.find_spec(m) is None]
     if missing:

@@ -226,15 +226,16 @@ def _human_seconds(s: float) -> str:
 
 
 def check_size(scene, t_end: float, save_every: float, dt: float | None = None, *, warn=None,
-               what: str = "this run") -> dict:
+               what: str = "this run", save_option: str | None = "--save-every") -> dict:
     """Refuse (UsageError) a run that cannot fit (memory, steps); warn through ``warn`` about a
-    large one. Returns `run_size`."""
+    large one. ``save_option``: the option that sets the save interval, if the command has one
+    (the fix a refusal names). Returns `run_size`."""
     size = run_size(scene, t_end, save_every, dt)
     mem = (f"{size['points']:,} saved points × {scene.string.elements} elements ≈ "
            f"{_human_bytes(size['bytes'])}")
     if size["bytes"] > MEMORY_REFUSE:
         raise UsageError(f"{what} would keep {mem} of trajectory in memory (limit {_human_bytes(MEMORY_REFUSE)}): "
-                         f"raise --save-every, shorten --t-end or use fewer elements")
+                         + (f"raise {save_option}, " if save_option else "") + "shorten --t-end or use fewer elements")
     if size["steps"] is not None and size["steps"] > STEPS_REFUSE:
         raise UsageError(f"{what} would take {size['steps']:.3g} steps of dt = {dt:g} s to t_end = {t_end:g} s "
                          f"(limit {STEPS_REFUSE:.0e}; estimated {_human_seconds(size['seconds'])}): "

@@ -348,3 +348,23 @@ def test_refusals_that_need_the_registry_or_a_study_do_not_import_jax(args):
     assert res["rc"] == 2, out.stderr
     assert not {"jax", "diffrax", "matplotlib", "scipy.integrate"} & set(res["heavy"]), res
     assert not Path("/tmp/never").exists()
+
+
+@pytest.mark.parametrize("args, fragments", [
+    (["simulate", "fixed_length"], ["lgvi needs a setting", "give --dt (a fixed step)"]),
+    (["simulate", "fixed_length", "--integrator", "dop853"], ["dop853 needs a setting", "give --rtol (a tolerance)"]),
+    (["simulate", "fixed_length", "--integrator", "tsit5"], ["give --dt (a fixed step) or --rtol (a tolerance)"]),
+    (["simulate", "fixed_length", "--integrator", "dop853", "--dt", "0.01"], ["--dt: dop853 is adaptive"]),
+    (["simulate", "fixed_length", "--rtol", "1e-6"], ["--rtol: lgvi is a fixed-step method", "give --dt"]),
+    (["simulate", "fixed_length", "--dt", "5", "--t-end", "0.1", "--save-every", "0.1"],
+     ["--dt 5 is longer than the run", "give --dt <= t_end"]),
+    (["run", "--scenes", "fixed_length", "--t-end", "1e5", "--set", "elements=2000", "--dts", "0.01", "--out", "{d}/o"],
+     ["saved points", "shorten --t-end"]),
+])
+def test_messages_name_the_option_the_user_types(tmp_path, capsys, no_pipeline, args, fragments):
+    assert main([a.format(d=tmp_path) for a in args]) == 2
+    line = capsys.readouterr().err.strip().splitlines()[-1]
+    for f in fragments:
+        assert f in line, (f, line)
+    assert "--save-every" not in line or args[0] == "simulate"  # run has no --save-every to raise
+
