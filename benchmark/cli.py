@@ -2,12 +2,15 @@
 (also ``reelbench``).
 
 Every command checks all of its input first -- option types and ranges, conflicting options,
-the scene (and the plausibility of its values), the output place (created and test-written)
-and the size of the run -- and only then imports JAX and calls its pipeline
+integrator and study names, the scene (and the plausibility of its values), the output place
+(proved writable, but created only when the work starts, so a refused command leaves no
+--out behind) and the size of the run -- and only then imports JAX and calls its pipeline
 (`benchmark.pipelines`). A mistake is answered in well under a second with ``error: ...`` and
 exit status 2, without a traceback (set REELBENCH_DEBUG=1 to see where a ValueError came
-from); any other exception is an internal error and keeps its traceback. Ctrl-C or SIGTERM
-stops a command with one line saying what was saved (exit status 130 or 143).
+from); a file-system fault during the work (a full disk, a read-only place) is one
+``error: cannot write FILE: ...`` line and exit status 1, with the rows finished so far kept;
+any other exception is an internal error and keeps its traceback. Ctrl-C or SIGTERM stops
+every command with one line saying what was saved (exit status 130 or 143).
 
 The model and the scene format: models/README.md. The integrators: integrators/README.md.
 """

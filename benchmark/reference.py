@@ -83,6 +83,11 @@ def save_reference(traj, path: Path, ident: dict) -> None:
     write_npz(path, {"header": np.array(header), "checksum": np.array(checksum(arrays, header)), **arrays})
 
 
+class ReferenceFailed(ValueError):
+    """The reference solve of a scene did not finish (its step budget ran out, or it diverged):
+    the scene is at fault more often than the solver, so the message names it and its fix."""
+
+
 class CacheError(ValueError):
     """A cached reference that cannot be trusted (the message says why)."""
 
@@ -128,7 +133,11 @@ def get_reference(scene, t_end: float, save_every: float, cache_dir: Path = CACH
     traj = integ.solve(scene, t_end=t_end, rtol=REFERENCE_METHOD["rtol"], atol=REFERENCE_METHOD["atol"],
                        save_every=save_every)
     if not traj.ok:
-        raise RuntimeError(f"reference solution for {scene.name} failed: {traj.status}: {traj.reason}")
+        raise ReferenceFailed(
+            f"the reference solution of scene {scene.name!r} ({REFERENCE_METHOD['integrator']}, rtol "
+            f"{REFERENCE_METHOD['rtol']:g}) did not reach t = {t_end:g} s: {traj.status}: {traj.reason}. Check the scene's "
+            "values (lengths, stiffness, masses, speeds: a scene can validate and still be too stiff to integrate), "
+            "or give a shorter --t-end")
     try:
         save_reference(traj, path, ident)
     except OSError as exc:  # a full disk costs the cache, not the study

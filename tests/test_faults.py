@@ -117,6 +117,27 @@ def test_a_directory_in_place_of_a_cached_reference_costs_the_cache_only(tmp_pat
     assert any("is not used" in s for s in said) and any("without being cached" in s for s in said), said
 
 
+def test_a_reference_that_cannot_finish_names_the_scene_and_the_fix(tmp_path, monkeypatch):
+    """The reference solver has a step budget (scipy's adapters: max_steps); when it runs out the
+    error names the scene, not just the solver's status."""
+    from benchmark import reference
+    from integrators import get_integrator
+    from models import load_scene
+
+    real = get_integrator(reference.REFERENCE_METHOD["integrator"])
+
+    class Budgeted:
+        def solve(self, scene, **kw):
+            return real.solve(scene, **kw, max_steps=3)
+
+    monkeypatch.setattr(reference, "get_integrator", lambda name: Budgeted())
+    with pytest.raises(reference.ReferenceFailed) as err:
+        reference.get_reference(load_scene("fixed_length", elements=1), 0.1, 0.02, tmp_path, log=None)
+    msg = str(err.value)
+    assert "scene 'fixed_length'" in msg and "max_steps = 3 reached" in msg and "Check the scene's values" in msg
+    assert not list(tmp_path.iterdir())  # nothing cached
+
+
 def test_figures_on_a_full_disk_exit_1_naming_the_figure(tmp_path, monkeypatch, capsys):
     from integrators import get_integrator
     from models import load_scene
