@@ -152,12 +152,22 @@ def writable_dir(path: str | os.PathLike, option: str = "--out") -> Path:
 
 
 def no_directory_at(directory: Path, names, option: str = "--out") -> None:
-    """Refuse a directory where a command will write one of its files ``names`` in ``directory``
-    (it would fail only after the work, when the first result is written)."""
+    """Refuse a directory, or a FIFO, device or link to one, where a command reads back and
+    writes one of its files ``names`` in ``directory``: reading a FIFO would block, a device
+    read forever, and a directory fails only after the work, when the first result is written."""
+    import stat
+
     for name in names:
-        if (Path(directory) / name).is_dir():
-            raise UsageError(f"{option} {str(directory)!r}: {name} there is a directory, where this command writes a "
-                             f"file: move it away, or give another {option}")
+        path = Path(directory) / name
+        try:
+            mode = path.stat().st_mode
+        except OSError:  # missing (or a dangling link): written fresh
+            continue
+        if stat.S_ISREG(mode):
+            continue
+        what = "a directory" if stat.S_ISDIR(mode) else "not a regular file (a FIFO, device or socket)"
+        raise UsageError(f"{option} {str(directory)!r}: {name} there is {what}, where this command writes a "
+                         f"file: move it away, or give another {option}")
 
 
 def writable_file(path: str | os.PathLike, option: str = "--out") -> Path:

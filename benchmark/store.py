@@ -506,6 +506,12 @@ def _unreadable(exc: Exception) -> UnreadableFile:
 
 
 def _require_archive(path: Path) -> None:
+    from models.io import FileRefused, require_regular
+
+    try:
+        require_regular(path)  # a FIFO would block the zip reader, a device feed it forever
+    except FileRefused as exc:
+        raise UnreadableFile(str(exc)) from None
     # an .npz is a zip archive; random bytes, a pickle or a cut file are not
     if not zipfile.is_zipfile(path):
         raise UnreadableFile("not an .npz archive: truncated or not written by reelbench")

@@ -150,6 +150,17 @@ def _os_problem(path: str, exc: OSError) -> FileRefused:
     return FileRefused("unreadable", f"cannot be read ({exc.strerror or exc})")
 
 
+def require_regular(path: str | os.PathLike, max_bytes: float = float("inf")) -> None:
+    """`FileRefused` unless ``path`` (links followed) is a regular file of at most ``max_bytes``:
+    for readers that open a file themselves (numpy, zipfile), which a FIFO would block."""
+    path = os.fspath(path)
+    try:
+        st = os.stat(path)
+    except OSError as exc:
+        raise _os_problem(path, exc) from None
+    _refuse_unless_regular(st.st_mode, max_bytes, st.st_size)
+
+
 def read_regular_file(path: str | os.PathLike, max_bytes: int) -> bytes:
     """The bytes of ``path``, a regular file of at most ``max_bytes``; anything else is refused
     (`FileRefused`) before it is read: a FIFO (whose open would block), a device (``/dev/zero``
@@ -159,11 +170,7 @@ def read_regular_file(path: str | os.PathLike, max_bytes: int) -> bytes:
     replaced in between), and never more than ``max_bytes + 1`` bytes are read.
     """
     path = os.fspath(path)
-    try:
-        st = os.stat(path)
-    except OSError as exc:
-        raise _os_problem(path, exc) from None
-    _refuse_unless_regular(st.st_mode, max_bytes, st.st_size)
+    require_regular(path, max_bytes)
     try:
         fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
     except OSError as exc:

@@ -105,6 +105,22 @@ def test_a_directory_in_place_of_a_result_file_is_refused_before_any_work(tmp_pa
     assert rc == 2 and "runs.csv there is a directory" in line and "give another --out" in line, err
 
 
+@pytest.mark.parametrize("kind", ["fifo", "link to /dev/zero"])
+def test_a_special_file_in_place_of_the_runs_table_is_refused_without_reading_it(tmp_path, monkeypatch, capsys, kind):
+    from benchmark import pipelines
+
+    monkeypatch.setattr(pipelines, "run_sweep", lambda *a, **k: pytest.fail("started the sweep"))
+    out = tmp_path / "out"
+    out.mkdir()
+    if kind == "fifo":
+        os.mkfifo(out / "runs.csv")
+    else:
+        (out / "runs.csv").symlink_to("/dev/zero")
+    rc = main(TINY + ["--dts", "0.01", "--out", str(out)])  # reading either would block or never end
+    err, line = outcome(capsys)
+    assert rc == 2 and "runs.csv there is not a regular file" in line, err
+
+
 def test_a_directory_in_place_of_a_cached_reference_costs_the_cache_only(tmp_path, capsys):
     from benchmark.reference import get_reference, reference_path
     from models import load_scene
@@ -136,6 +152,17 @@ def test_a_reference_that_cannot_finish_names_the_scene_and_the_fix(tmp_path, mo
     msg = str(err.value)
     assert "scene 'fixed_length'" in msg and "max_steps = 3 reached" in msg and "Check the scene's values" in msg
     assert not list(tmp_path.iterdir())  # nothing cached
+
+
+def test_a_fifo_in_place_of_a_cached_reference_is_not_opened(tmp_path):
+    from benchmark.reference import get_reference, reference_path
+    from models import load_scene
+
+    scene = load_scene("fixed_length", elements=1)
+    os.mkfifo(reference_path(scene, 0.04, 0.02, tmp_path))
+    said = []
+    assert get_reference(scene, 0.04, 0.02, tmp_path, log=said.append).ok  # would block in open() before
+    assert any("named pipe (FIFO)" in s and "is not used" in s for s in said), said
 
 
 def test_figures_on_a_full_disk_exit_1_naming_the_figure(tmp_path, monkeypatch, capsys):
