@@ -333,21 +333,22 @@ def test_more_than_150_bad_inputs_are_each_refused_with_exit_2_and_the_fix(tmp_p
 
 
 @pytest.mark.parametrize("args", [["simulate", "fixed_length", "--integrator", "nosuch", "--dt", "0.01"],
-                                  ["run", "--integrators", "nosuch", "--quick", "--out", "/tmp/never"],
-                                  ["stability", "--scenes", "nosuch", "--out", "/tmp/never"],
+                                  ["run", "--integrators", "nosuch", "--quick", "--out", "{d}/never"],
+                                  ["stability", "--scenes", "nosuch", "--out", "{d}/never"],
                                   ["check", "--factor", "1"], ["check", "--integrators", "nosuch"],
                                   ["check", "--baseline", "/nonexistent/drift.csv"],
                                   ["run", "--rtols", "1e-300"], ["speed", "--dt", "1e300"],
-                                  ["xval", "--t-end", "1e12", "--out", "/tmp/never"]])
-def test_refusals_that_need_the_registry_or_a_study_do_not_import_jax(args):
+                                  ["xval", "--t-end", "1e12", "--out", "{d}/never"]])
+def test_refusals_that_need_the_registry_or_a_study_do_not_import_jax(tmp_path, args):
     """The registry lists names and capabilities, and the studies' modules load, without JAX
     (the methods and metrics import it on first use), so these refusals are as quick as the rest."""
-    out = subprocess.run([sys.executable, "-c", PROBE, json.dumps(args)], cwd=ROOT, capture_output=True,
-                         text=True, timeout=60)
+    argv = [a.format(d=tmp_path) for a in args]
+    out = subprocess.run([sys.executable, "-c", PROBE, json.dumps(argv)], cwd=ROOT, capture_output=True, text=True,
+                         timeout=60)
     res = json.loads(out.stdout.strip().splitlines()[-1])
     assert res["rc"] == 2, out.stderr
     assert not {"jax", "diffrax", "matplotlib", "scipy.integrate"} & set(res["heavy"]), res
-    assert not Path("/tmp/never").exists()
+    assert not (tmp_path / "never").exists()
 
 
 @pytest.mark.parametrize("args, fragments", [

@@ -233,7 +233,7 @@ option_values = st.one_of(
     st.integers(-10**20, 10**20).map(str))
 override_values = st.one_of(option_values, st.sampled_from(['"1.0"', "[1,2,3]", "[1e200,0,1e200]", "true", "{}"]))
 OPTIONS_OF = {
-    "simulate": ["--dt", "--rtol", "--atol", "--t-end", "--save-every"],
+    "simulate": ["--atol", "--t-end", "--save-every"],  # and a setting, drawn first (see below)
     "run": ["--dts", "--rtols", "--t-end", "--jobs", "--repeats", "--horizon"],
     "speed": ["--elements", "--steps", "--repeats", "--dt", "--autodiff-max-n"],
     "stability": ["--jobs"],
@@ -251,6 +251,9 @@ def command_lines(draw, out):
     args = [command]
     if command == "simulate":
         args.append(draw(st.sampled_from(["fixed_length", "deployment", str(out / "scene.toml")])))
+        # half the time a setting lgvi takes, so that accepted command lines are common too
+        args += draw(st.one_of(st.just(["--dt", "0.01"]), st.just(["--dt", "0.005"]),
+                               st.tuples(st.sampled_from(["--dt", "--rtol"]), option_values).map(list), st.just([])))
     for option in draw(st.lists(st.sampled_from(OPTIONS_OF[command]), unique=True, max_size=3)):
         args += [option, draw(option_values)]
     if command in ("simulate", "run", "speed") and draw(st.booleans()):
