@@ -422,7 +422,6 @@ def run_check(*, update: bool = False, baseline=None, integrators=None, factor: 
     table = old.table if old is not None else None
     if not update:
         check.comparable(table, tasks, baseline, allow_new)
-    engine.install_stop_handlers()  # SIGTERM stops the sweep like Ctrl-C (its workers with it)
     try:
         current = check.measure(tasks, executor=executor, jobs=jobs, cache_dir=cache_dir or str(CACHE_DIR),
                                 costs=check.costs_of(table), log=log)
