@@ -245,3 +245,20 @@ def test_a_stop_signal_during_work_ends_the_command_with_one_line(tmp_path, comm
     last = err.strip().splitlines()[-1]
     assert proc.returncode == rc and last.startswith(f"stopped by {name}"), (proc.returncode, err)
     assert EXPECTED[command] in last, last
+
+
+@pytest.mark.parametrize("content, fragment", [
+    ("[" + ".".join(["a"] * 2000) + "]\nx = 1\n", "nested"),
+    ("# padding\n" * 200_000, "more than the 1,000,000"),
+    ("\udcff", "not a text file"),
+], ids=["2000 nested tables", "over the size limit", "binary"])
+def test_a_scene_file_that_cannot_be_a_scene_is_one_error_line_for_every_command(tmp_path, capsys, content, fragment):
+    path = tmp_path / "bad.toml"
+    path.write_bytes(content.encode("utf-8", "surrogateescape"))
+    for args in (["simulate", str(path), "--dt", "0.01"], ["run", "--scenes", str(path), "--out", str(tmp_path / "o")],
+                 ["speed", "--scenes", str(path)], ["xval", "--scene", str(path), "--out", str(tmp_path / "o")],
+                 ["reel-reversal", "--scene", str(path), "--cache-dir", str(tmp_path / "o")]):
+        rc = main(args)
+        err, line = outcome(capsys)
+        assert rc == 2 and str(path) in line and fragment in line, (args, err)
+    assert not (tmp_path / "o").exists()
