@@ -203,6 +203,11 @@ def cmd_figures(args) -> int:
     if not _any_finite(traj.x):  # a figure of nothing would look like a result
         raise UsageError(f"{src}: the trajectory has no finite point (status {getattr(traj, 'status', '?')}): "
                          "nothing to draw; give a trajectory of a run that computed something")
+    from models.schema import is_safe_name
+
+    if not args.scene and not is_safe_name(traj.scene_name):  # a name read from a file is data, not a path
+        raise UsageError(f"{src} records the scene {traj.scene_name!r}, which is not a scene name: give --scene "
+                         "(the scene name or .toml path the trajectory was computed with)")
     scene = load_scene(args.scene or traj.scene_name, **ov)
     lay = StateLayout.from_scene(scene)
     nx = traj.x.shape[1] if getattr(traj.x, "ndim", 0) == 2 else None

@@ -369,3 +369,19 @@ def test_messages_name_the_option_the_user_types(tmp_path, capsys, no_pipeline, 
         assert f in line, (f, line)
     assert "--save-every" not in line or args[0] == "simulate"  # run has no --save-every to raise
 
+
+
+def test_figures_does_not_follow_a_scene_path_recorded_in_a_trajectory(tmp_path, capsys):
+    """The scene name stored in a .npz is data: a path there (to a FIFO, say) is never opened."""
+    import os
+
+    from integrators import get_integrator
+    from models import load_scene
+
+    traj = get_integrator("lgvi").solve(load_scene("fixed_length", elements=1), t_end=0.02, dt=0.01)
+    os.mkfifo(tmp_path / "pipe.toml")
+    traj.scene_name = str(tmp_path / "pipe.toml")
+    traj.save(tmp_path / "t.npz")
+    assert main(["figures", str(tmp_path / "t.npz"), "--out", str(tmp_path / "f.png")]) == 2
+    line = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "which is not a scene name: give --scene" in line, line
