@@ -18,4 +18,9 @@ By concern, from the command line down:
   before they are trusted, a run merged into the table of its --out, atomic tables and .npz files),
   `reference` (the one cached reference solution every study compares with), `options`
   (JAX-free input checks).
+
+Names from input (scenes, integrators, rows read back) reach a file name only through
+`models.io.inside`, which refuses one that leaves its directory; `check` fails (exit 2) on a
+baseline that would compare nothing, and on an integrator without baseline rows unless
+`--allow-new NAME`.
 """

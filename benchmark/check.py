@@ -23,9 +23,15 @@ Tolerance rules (a regression fails the check, exit status 1):
 - status: a run that was "ok" and no longer is (diverged, newton_failed, error, ...); an
   integrator of the baseline whose module no longer loads (`plugin_errors()`).
 
-Improvements beyond the same margins are reported, as are integrators without a baseline
-(a new plugin: "no baseline, run --update") and baseline rows of integrators that are no
-longer registered; none of those fails. Run and compile times are reported, never judged.
+Improvements beyond the same margins are reported, as are baseline rows of integrators that
+are no longer registered; neither fails. Run and compile times are reported, never judged.
+
+A check cannot pass on nothing (exit 2, naming the file and the line, before any work): a
+baseline that is unreadable, binary, not a table, without rows, with a repeated row, or with
+a finished run whose metrics are not finite numbers >= 0 is refused, and so is a selected
+integrator without a baseline row this check compares with (a new method: `--allow-new NAME`,
+or add its rows with `--update --integrators NAME`). A metric the run has and the baseline
+lacks is a regression, not a note.
 """
 
 from __future__ import annotations
@@ -43,6 +49,7 @@ import pandas as pd
 
 from benchmark import runner, sweep
 from benchmark.metrics import ACCURACY, DIRECTIONS, observed_orders
+from benchmark.options import check_tolerance_rules
 from benchmark.metrics import FLOORS as METRIC_FLOORS
 from benchmark.reference import CACHE_DIR, REFERENCE_METHOD
 from benchmark.report import Provenance, fmt, markdown_table
@@ -77,10 +84,7 @@ class Tolerance:
     floors: dict = field(default_factory=lambda: dict(FLOORS))
 
     def __post_init__(self):
-        if not (math.isfinite(self.factor) and self.factor > 1):
-            raise ValueError(f"--factor = {self.factor!r} is invalid (allowed: finite, > 1; e.g. 2 = twice the baseline)")
-        if not (math.isfinite(self.order_margin) and self.order_margin >= 0):
-            raise ValueError(f"--order-margin = {self.order_margin!r} is invalid (allowed: finite, >= 0)")
+        check_tolerance_rules(self.factor, self.order_margin)
 
 
 def build_check_tasks(integrators=None, *, scenes=SCENES, t_end: float = T_END, dts=FIXED_DTS,
@@ -189,31 +193,108 @@ class Baseline(NamedTuple):
     header: list[str]
 
 
+#: A baseline is a few hundred rows; anything far larger is not one (and is not read whole).
+MAX_BASELINE_BYTES = 16 * 2**20
+
+
+def _refuse(path, what: str) -> ValueError:
+    return ValueError(f"baseline {path}: {what}; regenerate it with `{UPDATE_COMMAND}`")
+
+
+def _baseline_text(path: Path) -> str:
+    from models.io import FileRefused, read_regular_file
+
+    try:
+        data = read_regular_file(path, MAX_BASELINE_BYTES)
+    except FileRefused as exc:
+        if exc.kind == "missing":
+            raise ValueError(f"baseline {path} does not exist; create it with `{UPDATE_COMMAND}`") from None
+        raise _refuse(path, str(exc)) from None
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError:
+        text = "\x00"
+    if "\x00" in text:
+        raise _refuse(path, "not a text file (binary or not UTF-8), not a baseline table")
+    return text
+
+
 def read_baseline(path: str | os.PathLike = BASELINE) -> Baseline:
-    """The baseline table and its comment header; ValueError naming the file if unusable."""
+    """The baseline table and its comment header; ValueError naming the file (and the line)
+    when it cannot be a baseline: unreadable, binary, not a table, without rows, with a
+    duplicated row, or with a finished run whose metrics are not finite numbers."""
     path = Path(path)
-    if not path.exists():
-        raise ValueError(f"baseline {path} does not exist; create it with `{UPDATE_COMMAND}`")
-    lines = path.read_text().splitlines(keepends=True)
+    lines = _baseline_text(path).splitlines(keepends=True)
     n = 0
     while n < len(lines) and lines[n].startswith("#"):
         n += 1
     try:
         df = pd.read_csv(io.StringIO("".join(lines[n:])), dtype=str, keep_default_na=False)
     except (pd.errors.ParserError, pd.errors.EmptyDataError) as exc:
-        raise ValueError(f"baseline {path}: not a CSV table ({exc}); regenerate it with `{UPDATE_COMMAND}`") from None
+        raise _refuse(path, f"not a CSV table ({str(exc).strip()})") from None
     missing = [c for c in KEY + ["status", *ACCURACY, ORDER] if c not in df]
     if missing:
-        raise ValueError(f"baseline {path}: missing column(s) {', '.join(missing)}; regenerate it with `{UPDATE_COMMAND}`")
+        raise _refuse(path, f"missing column(s) {', '.join(missing)}")
+    if df.empty:
+        raise _refuse(path, "no rows (only its header): a check against it would compare nothing")
     df = df.reindex(columns=COLUMNS).fillna("")
+    df.index = range(n + 2, n + 2 + len(df))  # each row's line in the file, for messages
     for c in COLUMNS:
         if c not in KEY + ["status", "reason"]:
             # Python's float() parses the shortest repr to the same double on every pandas version
-            try:
-                df[c] = [float(v) if v != "" else np.nan for v in df[c]]
-            except ValueError as exc:
-                raise ValueError(f"baseline {path}: column {c}: {exc}") from None
-    return Baseline(df, [line[1:].strip() for line in lines[:n]])
+            for line, v in df[c].items():
+                try:
+                    float(v) if v != "" else None
+                except ValueError:
+                    raise _refuse(path, f"line {line}: column {c} = {v!r} is not a number") from None
+            df[c] = [float(v) if v != "" else np.nan for v in df[c]]
+    _check_rows(df, path)
+    return Baseline(df.reset_index(drop=True), [line[1:].strip() for line in lines[:n]])
+
+
+def _check_rows(df: pd.DataFrame, path) -> None:
+    """Each (scene, integrator, setting) once; a finished run with every metric a finite number
+    >= 0, an order row with a finite order (else the check would compare nothing, silently)."""
+    first: dict = {}
+    for line, row in df.iterrows():
+        key = tuple(row[c] for c in KEY)
+        if not all(key):
+            raise _refuse(path, f"line {line}: empty {', '.join(c for c, v in zip(KEY, key) if not v)}")
+        if key in first:
+            raise _refuse(path, f"line {line} repeats {_name(key)} of line {first[key]} (one row per run)")
+        first[key] = line
+        if _is_order_row(key[2]):
+            bad = [ORDER] if not np.isfinite(row[ORDER]) else []
+        elif row["status"] == "ok":
+            bad = [m for m in ACCURACY if not (np.isfinite(row[m]) and row[m] >= 0)]
+        else:
+            bad = []
+        if bad:
+            shown = ", ".join(f"{m} = {row[m]:g}" for m in bad)
+            raise _refuse(path, f"line {line} ({_name(key)}): {shown} (allowed: a finite number >= 0; every "
+                                "finished run and order row has its values)")
+
+
+def comparable(baseline: pd.DataFrame, tasks, path, allow_new=()) -> None:
+    """Before any work: every selected integrator has rows in ``baseline`` that this check's
+    runs compare with, unless named in ``allow_new`` (a new method, no baseline yet); ValueError
+    naming the file and the fix otherwise."""
+    have = set(zip(*(baseline[c] for c in KEY)))
+    based = set(baseline["integrator"])
+    by_integrator: dict[str, int] = {}
+    for t in tasks:
+        by_integrator.setdefault(t.integrator, 0)
+        by_integrator[t.integrator] += (t.scene, t.integrator, t.setting) in have
+    lacking = [n for n, k in by_integrator.items() if k == 0 and n not in set(allow_new)]
+    if lacking:
+        why = "; ".join(f"{n}: {'no rows' if n not in based else 'rows of other scenes or settings only'}"
+                        for n in lacking)
+        names = ",".join(lacking)
+        raise ValueError(f"baseline {path} has no row this check can compare with for {why}. Add them with "
+                         f"`{UPDATE_COMMAND} --integrators {names}`, or pass --allow-new {names} to check the others "
+                         "without them")
+    if not any(by_integrator[n] for n in by_integrator):
+        raise ValueError(f"baseline {path}: none of this check's runs has a row there (a check of nothing cannot pass)")
 
 
 def merge(baseline: pd.DataFrame | None, current: pd.DataFrame) -> pd.DataFrame:
@@ -339,8 +420,8 @@ def _compare_metrics(out: Comparison, key, b: pd.Series, c: pd.Series, tol: Tole
     for m in ACCURACY:
         bv, cv = float(b[m]), float(c[m])
         if not np.isfinite(bv):
-            if np.isfinite(cv):
-                out.notes.append(f"{_name(key)}: {m} now {_g(cv)} (none in the baseline)")
+            if np.isfinite(cv):  # nothing to compare with is a failure, not a pass
+                out.regression(key, m, _g(bv), _g(cv), "missing in the baseline", "a finite baseline value")
             continue
         floor = tol.floors.get(m, 0.0)
         if DIRECTIONS.get(m, "lower") == "lower":  # smaller is better: worse is above factor x baseline

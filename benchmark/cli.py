@@ -2,12 +2,15 @@
 (also ``reelbench``).
 
 Every command checks all of its input first -- option types and ranges, conflicting options,
-the scene (and the plausibility of its values), the output place (created and test-written)
-and the size of the run -- and only then imports JAX and calls its pipeline
+integrator and study names, the scene (and the plausibility of its values), the output place
+(proved writable, but created only when the work starts, so a refused command leaves no
+--out behind) and the size of the run -- and only then imports JAX and calls its pipeline
 (`benchmark.pipelines`). A mistake is answered in well under a second with ``error: ...`` and
 exit status 2, without a traceback (set REELBENCH_DEBUG=1 to see where a ValueError came
-from); any other exception is an internal error and keeps its traceback. Ctrl-C or SIGTERM
-stops a command with one line saying what was saved (exit status 130 or 143).
+from); a file-system fault during the work (a full disk, a read-only place) is one
+``error: cannot write FILE: ...`` line and exit status 1, with the rows finished so far kept;
+any other exception is an internal error and keeps its traceback. Ctrl-C or SIGTERM stops
+every command with one line saying what was saved (exit status 130 or 143).
 
 The model and the scene format: models/README.md. The integrators: integrators/README.md.
 """
@@ -19,10 +22,12 @@ import json
 import os
 import shlex
 import sys
+import threading
 from pathlib import Path
 
 from benchmark import options as opt
 from benchmark.options import UsageError
+from models.io import inside
 
 
 def _log(msg: str) -> None:
@@ -54,6 +59,39 @@ def _csv(values) -> str:
     return ",".join(f"{v:g}" if isinstance(v, float) else str(v) for v in values)
 
 
+def _any_finite(values) -> bool:
+    import numpy as np
+
+    try:
+        return bool(np.isfinite(np.asarray(values, dtype=float)).any())
+    except (TypeError, ValueError):
+        return False
+
+
+def _check_integrator(name: str):
+    """The integrator ``name``, or UsageError for an unknown one (the registry lists names and
+    capabilities without importing JAX)."""
+    from integrators import get_integrator
+
+    return get_integrator(name)
+
+
+def _check_setting(integ, dt, rtol, t_end: float) -> None:
+    """simulate's --dt / --rtol as the method takes them (from its declared capabilities)."""
+    from integrators import Capability
+
+    fixed, adaptive = integ.has(Capability.FIXED_STEP), integ.has(Capability.ADAPTIVE)
+    takes = " or ".join(o for o, ok in (("--dt (a fixed step)", fixed), ("--rtol (a tolerance)", adaptive)) if ok)
+    if dt is None and rtol is None:
+        raise UsageError(f"{integ.name} needs a setting: give {takes}")
+    if dt is not None and not fixed:
+        raise UsageError(f"--dt: {integ.name} is adaptive and takes no fixed step: give {takes} instead")
+    if rtol is not None and not adaptive:
+        raise UsageError(f"--rtol: {integ.name} is a fixed-step method: give {takes} instead")
+    if dt is not None and dt > t_end:
+        raise UsageError(f"--dt {dt:g} is longer than the run (t_end = {t_end:g} s): give --dt <= t_end")
+
+
 # ------------------------------------------------------------------------------------------
 # Each command: check its input, then call its pipeline
 # ------------------------------------------------------------------------------------------
@@ -65,6 +103,8 @@ def cmd_run(args) -> int:
         raise UsageError("--executor dask needs --scheduler ADDRESS (e.g. tcp://host:8786)")
     if args.scheduler and args.executor != "dask":
         raise UsageError(f"--scheduler is only used with --executor dask (got --executor {args.executor})")
+    for name in args.integrators or ():
+        _check_integrator(name)  # an unknown name is refused before any work
     scene_names = args.scenes or list(sweep.PAPER_SCENES)
     ov = _overrides(args.set)
     with_t_end = {"t_end": args.t_end, **ov} if args.t_end is not None else ov  # validated with the scene
@@ -72,9 +112,14 @@ def cmd_run(args) -> int:
     sweep.check_settings(args.dts, args.rtols)
     t_end = args.t_end or (sweep.QUICK_T_END if args.quick else None)
     for sc in scenes:
+        if (t_end or sc.t_end) < sweep.SAVE_EVERY:  # every run would end in an error row
+            raise UsageError(f"{'--t-end' if t_end else sc.name + ': t_end'} = {t_end or sc.t_end:g} s is shorter than "
+                             f"the sweep's save interval {sweep.SAVE_EVERY:g} s: give --t-end >= {sweep.SAVE_EVERY:g}")
         for dt in args.dts or (sweep.QUICK_DTS if args.quick else sweep.FULL_DTS):
-            opt.check_size(sc, t_end or sc.t_end, sweep.SAVE_EVERY, dt, warn=_log, what=f"{sc.name} at dt = {dt:g} s")
+            opt.check_size(sc, t_end or sc.t_end, sweep.SAVE_EVERY, dt, warn=_log, what=f"{sc.name} at dt = {dt:g} s",
+                           save_option=None)  # run saves every SAVE_EVERY: no option to raise
     out = opt.writable_dir(_run_out(args))
+    opt.no_directory_at(out, ("runs.csv", "runs.md", "orders.csv", "cheapest.csv", "README.md", "figures.json"))
 
     from benchmark import pipelines
 
@@ -109,10 +154,15 @@ def cmd_simulate(args) -> int:
 
     if args.atol is not None and args.rtol is None:
         raise UsageError("--atol needs --rtol (an adaptive method); with --dt the step is fixed and atol is unused")
+    from models.schema import is_safe_name
+
+    if not is_safe_name(args.integrator):
+        _check_integrator(args.integrator)  # refused before the name reaches a file name
     scene = load_scene(args.scene, **_overrides(args.set))
     if args.t_end is not None:
         scene = scene.with_(t_end=args.t_end)  # the same range and plausibility rules as the file
-    out = opt.writable_file(args.out or Path.cwd() / f"simulate_{scene.name}_{args.integrator}.npz")
+    out = opt.writable_file(args.out if args.out is not None else
+                            inside(Path.cwd(), f"simulate_{scene.name}_{args.integrator}.npz"))
     if out.suffix != ".npz":
         raise UsageError(f"--out {str(out)!r}: a trajectory file ends in .npz (the diagnostics go beside it as .csv)")
     if args.save_every > scene.t_end:
@@ -120,6 +170,7 @@ def cmd_simulate(args) -> int:
                          f"give a save interval <= t_end")
     size = opt.check_size(scene, scene.t_end, args.save_every, args.dt, warn=_log,
                           what=f"{scene.name} to t_end = {scene.t_end:g} s")
+    _check_setting(_check_integrator(args.integrator), args.dt, args.rtol, scene.t_end)
     settings = {"save_every": args.save_every}
     if args.dt is not None:
         settings["dt"] = args.dt
@@ -144,11 +195,19 @@ def cmd_figures(args) -> int:
     ov = _overrides(args.set)
     if args.scene:
         load_scene(args.scene, **ov)  # a bad scene is refused before the trajectory is read
-    out = opt.writable_file(args.out or Path.cwd() / f"{src.stem}.png")
+    out = opt.writable_file(args.out if args.out is not None else inside(Path.cwd(), f"{src.stem}.png"))
     try:
         traj = read_trajectory(src)
     except UnreadableFile as exc:
         raise UsageError(f"{src}: not a trajectory file ({exc}); give a trajectory written by `simulate`") from None
+    if not _any_finite(traj.x):  # a figure of nothing would look like a result
+        raise UsageError(f"{src}: the trajectory has no finite point (status {getattr(traj, 'status', '?')}): "
+                         "nothing to draw; give a trajectory of a run that computed something")
+    from models.schema import is_safe_name
+
+    if not args.scene and not is_safe_name(traj.scene_name):  # a name read from a file is data, not a path
+        raise UsageError(f"{src} records the scene {traj.scene_name!r}, which is not a scene name: give --scene "
+                         "(the scene name or .toml path the trajectory was computed with)")
     scene = load_scene(args.scene or traj.scene_name, **ov)
     lay = StateLayout.from_scene(scene)
     nx = traj.x.shape[1] if getattr(traj.x, "ndim", 0) == 2 else None
@@ -172,10 +231,20 @@ def cmd_check(args) -> int:
     command = check.UPDATE_COMMAND + "".join(f" --{k} {shlex.quote(v)}" for k, v in
                                              (("integrators", args.integrators), ("baseline", args.baseline)) if v)
     names = [v.strip() for v in args.integrators.split(",") if v.strip()] if args.integrators else None
+    for name in names or ():
+        _check_integrator(name)  # before the baseline is read
+    opt.check_tolerance_rules(2.0 if args.factor is None else args.factor,
+                              0.5 if args.order_margin is None else args.order_margin)  # before any import of JAX
+    if args.allow_new and args.update:
+        raise UsageError("--allow-new is for a check against the baseline; --update writes the rows of every "
+                         "integrator it runs")
+    for name in args.allow_new or ():
+        _check_integrator(name)  # a misspelt name would allow nothing
     from benchmark import pipelines
 
     return pipelines.run_check(update=args.update, baseline=args.baseline, integrators=names, factor=args.factor,
-                               order_margin=args.order_margin, jobs=args.jobs, command=command, log=_log)
+                               order_margin=args.order_margin, jobs=args.jobs, command=command,
+                               allow_new=tuple(args.allow_new or ()), log=_log)
 
 
 def cmd_speed(args) -> int:
@@ -185,10 +254,17 @@ def cmd_speed(args) -> int:
 
     default = SpeedRequest()
     elements, scenes = tuple(args.elements or default.elements), tuple(args.scenes or default.scenes)
+    horizon = {"t_end": args.dt * args.steps} if args.dt is not None else {}  # what each timed run covers
     for sc in scenes:  # every scene and N is checked (names, plausibility) before any work
         for n in elements:
-            load_scene(sc, elements=n)
-    out = opt.writable_file(args.out) if args.out else None
+            try:
+                load_scene(sc, elements=n, **horizon)
+            except ValueError as exc:
+                if not horizon or "'t_end'" not in str(exc):
+                    raise
+                raise UsageError(f"--dt {args.dt:g} x --steps {args.steps} = {horizon['t_end']:g} s per timed run: "
+                                 f"{exc}; give a smaller --dt or fewer --steps") from None
+    out = opt.writable_file(args.out) if args.out is not None else None
     from benchmark import lgvi_speed, pipelines
     from integrators.rhs import check_rhs
 
@@ -203,7 +279,11 @@ def cmd_speed(args) -> int:
 
 
 def cmd_stability(args) -> int:
+    from benchmark import stability
+
+    stability.jobs_for(args.scenes, args.integrators)  # unknown names are refused before any work
     out = opt.writable_dir(args.out)
+    opt.no_directory_at(out, ("stability.csv", "stability.md", "stability.png", "README.md"))
     from benchmark import pipelines
 
     return pipelines.run_stability(args.scenes, args.integrators, workers=args.jobs, out=out, command=_command(args),
@@ -220,7 +300,10 @@ def cmd_xval(args) -> int:
     from benchmark import xval
     from models import load_scene
 
-    xval.check_scene(load_scene(args.scene))  # names what cannot be translated, before any work
+    scene = load_scene(args.scene, **({"t_end": args.t_end} if args.t_end else {}))  # plausible horizon
+    xval.check_scene(scene)  # names what cannot be translated, before any work
+    opt.check_size(scene, args.t_end or xval.DEFAULT_T_END, xval.OUTPUT_INTERVAL, what=f"xval of {scene.name}",
+                   save_option=None)
     out = opt.writable_dir(args.out)
     missing = [m for m in ("moordyn", "mujoco") if importlib.util.find_spec(m) is None]
     if missing:
@@ -338,11 +421,14 @@ def _add_check(sub) -> None:
     c.add_argument("--update", action="store_true", help="rewrite the baseline from this run instead of failing")
     c.add_argument("--baseline", help="baseline CSV (default: results/baseline/drift.csv, run from the repository root)")
     c.add_argument("--integrators", help="comma-separated names (default: all registered except test_*)")
-    c.add_argument("--factor", type=float,
+    c.add_argument("--factor", type=opt.number,
                    help="a drift or error fails when worse than FACTOR x baseline, above its floor (default: 2)")
-    c.add_argument("--order-margin", type=float,
+    c.add_argument("--order-margin", type=opt.number,
                    help="an observed order fails when lower than baseline - MARGIN (default: 0.5)")
-    c.add_argument("--jobs", type=int, help="worker processes (default: CPU count)")
+    c.add_argument("--jobs", type=opt.positive_int, help="worker processes (default: CPU count)")
+    c.add_argument("--allow-new", type=opt.names, metavar="NAMES",
+                   help="comma-separated integrators that may lack baseline rows (new methods); any other selected "
+                        "integrator without rows to compare fails the check (exit 2)")
     c.set_defaults(func=cmd_check)
 
 
@@ -457,14 +543,23 @@ def main(argv=None) -> int:
         except SystemExit as exc:  # --help (0) or a bad option (2, argparse printed "error: ...")
             return exc.code if isinstance(exc.code, int) else 2
         args.argv = argv
+        if threading.current_thread() is threading.main_thread():
+            from benchmark.engine import install_stop_handlers
+
+            install_stop_handlers()  # SIGTERM stops every command like Ctrl-C: one line, exit 143
         return args.func(args)
     except ValueError as exc:  # bad input (UsageError, SceneError, an integrator's argument check)
         if os.environ.get("REELBENCH_DEBUG"):  # a developer chasing a ValueError gets its traceback
             raise
         _log(f"error: {exc}")
         return 2
+    except OSError as exc:  # the file system failed during work (full, read-only, ...): no traceback
+        if os.environ.get("REELBENCH_DEBUG"):
+            raise
+        _log(f"error: {exc}")
+        return 1
     except KeyboardInterrupt as exc:  # a command without its own stop message
         from benchmark.engine import stop_cause, stop_status
 
-        _log(f"stopped by {stop_cause(exc)}")
+        _log(f"stopped by {stop_cause(exc)}: no result was written (this command writes its results when it ends)")
         return stop_status(exc)

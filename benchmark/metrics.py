@@ -8,9 +8,13 @@ from typing import Callable
 import numpy as np
 import pandas as pd
 
-from models import build_model
-from models.diagnostics import energy_deviation, evaluate
-from models.model import quat_to_rot
+from models._lazy import lazy_function
+
+# JAX-backed: imported on first use, so that the command line can list the metrics without JAX
+build_model = lazy_function("models.model", "build_model")
+energy_deviation = lazy_function("models.diagnostics", "energy_deviation")
+evaluate = lazy_function("models.diagnostics", "evaluate")
+quat_to_rot = lazy_function("models.model", "quat_to_rot")
 
 #: The machine-independent work count of a run (column ``work_evals``, the x axis of the
 #: work-precision-vs-work plots), in right-hand-side-equivalent evaluations:

@@ -23,10 +23,16 @@ def _number(text: str, kind=float) -> float:
     try:
         v = kind(text)
     except (TypeError, ValueError):
-        raise argparse.ArgumentTypeError(f"{text!r} is not {'an integer' if kind is int else 'a number'}") from None
+        what = "an integer (give one, e.g. 4)" if kind is int else "a number (give one, e.g. 0.01)"
+        raise argparse.ArgumentTypeError(f"{text!r} is not {what}") from None
     if kind is float and not math.isfinite(v):
-        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
+        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number (give one, e.g. 0.01)")
     return v
+
+
+def number(text: str) -> float:
+    """A finite float (its range is checked where it is used)."""
+    return _number(text)
 
 
 def positive_int(text: str) -> int:
@@ -58,9 +64,12 @@ def nonnegative_float(text: str) -> float:
 
 
 def tolerance(text: str) -> float:
+    from integrators.lifecycle import MIN_RTOL  # the API's floor (imported only when a tolerance is given)
+
     v = _number(text)
-    if not 0 < v < 1:
-        raise argparse.ArgumentTypeError(f"{text!r} is invalid (allowed: 0 < tolerance < 1)")
+    if not MIN_RTOL <= v < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} is invalid (allowed: {MIN_RTOL:g} <= tolerance < 1; "
+                                         "tighter is below float64 rounding)")
     return v
 
 
@@ -78,6 +87,14 @@ def _list_of(item):
 positive_floats = _list_of(positive_float)
 positive_ints = _list_of(positive_int)
 tolerances = _list_of(tolerance)
+
+
+def check_tolerance_rules(factor: float, order_margin: float) -> None:
+    """`check`'s --factor (finite, > 1) and --order-margin (finite, >= 0); UsageError naming them."""
+    if not (math.isfinite(factor) and factor > 1):
+        raise UsageError(f"--factor = {factor!r} is invalid (allowed: finite, > 1; e.g. 2 = twice the baseline)")
+    if not (math.isfinite(order_margin) and order_margin >= 0):
+        raise UsageError(f"--order-margin = {order_margin!r} is invalid (allowed: finite, >= 0; e.g. 0.5)")
 
 
 def runs_table(text: str) -> str:
@@ -103,15 +120,29 @@ def names(text: str) -> list[str]:
     return parts
 
 
+def _nearest_existing(p: Path) -> Path:
+    """``p`` or the closest of its parents that exists (where a missing directory would be made)."""
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    return p
+
+
 def writable_dir(path: str | os.PathLike, option: str = "--out") -> Path:
-    """Create ``path`` if needed and prove it takes a file (a write and a delete), or raise
-    UsageError naming the option, the place and the fix."""
+    """Prove that ``path`` is, or can be created as, a directory that takes a file (a probe file
+    written and deleted in it or in its nearest existing parent), or raise UsageError naming the
+    option, the place and the fix. Nothing is created: a command refused by a later check leaves
+    no empty --out behind (the study creates the directory when it starts writing)."""
+    if not str(path).strip():
+        raise UsageError(f"{option} is empty: give a directory (it is created if missing)")
     p = Path(path)
     if p.exists() and not p.is_dir():
         raise UsageError(f"{option} {str(p)!r} is a file, not a directory: give a directory (it is created if missing)")
+    base = _nearest_existing(p.absolute())
+    if not base.is_dir():
+        raise UsageError(f"{option} {str(p)!r} is not writable ({base} is a file, not a directory): "
+                         f"give a directory you can write to")
     try:
-        p.mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(prefix=".write-test-", dir=p)
+        fd, probe = tempfile.mkstemp(prefix=".write-test-", dir=base)
         os.close(fd)
         os.unlink(probe)
     except OSError as exc:
@@ -120,8 +151,30 @@ def writable_dir(path: str | os.PathLike, option: str = "--out") -> Path:
     return p
 
 
+def no_directory_at(directory: Path, names, option: str = "--out") -> None:
+    """Refuse a directory, or a FIFO, device or link to one, where a command reads back and
+    writes one of its files ``names`` in ``directory``: reading a FIFO would block, a device
+    read forever, and a directory fails only after the work, when the first result is written."""
+    import stat
+
+    for name in names:
+        path = Path(directory) / name
+        try:
+            mode = path.stat().st_mode
+        except OSError:  # missing (or a dangling link): written fresh
+            continue
+        if stat.S_ISREG(mode):
+            continue
+        what = "a directory" if stat.S_ISDIR(mode) else "not a regular file (a FIFO, device or socket)"
+        raise UsageError(f"{option} {str(directory)!r}: {name} there is {what}, where this command writes a "
+                         f"file: move it away, or give another {option}")
+
+
 def writable_file(path: str | os.PathLike, option: str = "--out") -> Path:
-    """A file path whose directory takes a file (created if missing); refuses a directory."""
+    """A file path whose directory takes a file (created when the file is written); refuses an
+    empty path and a directory."""
+    if not str(path).strip():
+        raise UsageError(f"{option} is empty: give a file name (e.g. run.npz)")
     p = Path(path)
     if p.is_dir():
         raise UsageError(f"{option} {str(p)!r} is a directory: give a file name (e.g. {p / 'run.npz'})")
@@ -183,15 +236,16 @@ def _human_seconds(s: float) -> str:
 
 
 def check_size(scene, t_end: float, save_every: float, dt: float | None = None, *, warn=None,
-               what: str = "this run") -> dict:
+               what: str = "this run", save_option: str | None = "--save-every") -> dict:
     """Refuse (UsageError) a run that cannot fit (memory, steps); warn through ``warn`` about a
-    large one. Returns `run_size`."""
+    large one. ``save_option``: the option that sets the save interval, if the command has one
+    (the fix a refusal names). Returns `run_size`."""
     size = run_size(scene, t_end, save_every, dt)
     mem = (f"{size['points']:,} saved points × {scene.string.elements} elements ≈ "
            f"{_human_bytes(size['bytes'])}")
     if size["bytes"] > MEMORY_REFUSE:
         raise UsageError(f"{what} would keep {mem} of trajectory in memory (limit {_human_bytes(MEMORY_REFUSE)}): "
-                         f"raise --save-every, shorten --t-end or use fewer elements")
+                         + (f"raise {save_option}, " if save_option else "") + "shorten --t-end or use fewer elements")
     if size["steps"] is not None and size["steps"] > STEPS_REFUSE:
         raise UsageError(f"{what} would take {size['steps']:.3g} steps of dt = {dt:g} s to t_end = {t_end:g} s "
                          f"(limit {STEPS_REFUSE:.0e}; estimated {_human_seconds(size['seconds'])}): "

@@ -19,6 +19,7 @@ from typing import Callable
 from benchmark import engine, store
 from benchmark.engine import log_stderr
 from benchmark.report import Provenance
+from models.io import inside
 
 
 @contextlib.contextmanager
@@ -85,14 +86,17 @@ def run_sweep(request: SweepRequest, log: Callable[[str], None] = log_stderr) ->
     try:
         with _exclusive(request.out, log):
             return _sweep(request, runs_csv, log)
-    except KeyboardInterrupt as exc:
+    except (KeyboardInterrupt, OSError) as exc:
         what = (f"{runs_csv.saved} finished run(s) are saved in {runs_csv.path}" if runs_csv.saved
                 else "no run had finished, nothing saved")
         earlier = getattr(runs_csv, "earlier", 0)
         if earlier:
             what += f" (its {earlier} earlier row(s) are kept)"
-        return engine.stopped(exc, f"{what}; run the same command again to resume (finished runs are kept), "
-                                   "or add --fresh to recompute this run's rows", log)
+        resume = "run the same command again to resume (finished runs are kept), or add --fresh to recompute this run's rows"
+        if isinstance(exc, OSError):  # a full or failing disk: stop, say what is safe, exit 1
+            log(f"error: {exc}; {what}; free space (or fix the file system) and {resume}")
+            return 1
+        return engine.stopped(exc, f"{what}; {resume}", log)
 
 
 #: The committed results directory: a run into it also rewrites the project README's answer block.
@@ -242,7 +246,7 @@ def _sweep_figures(request: SweepRequest, merged, log) -> list[tuple[str, str]]:
             log(f"figure: {name}: solving {scene.name} with {paper.label} ...")
             traj = get_integrator(paper.name).solve(scene, t_end=request.sweep_t_end or scene.t_end, save_every=0.02,
                                                     **paper.settings)
-            plots.paper_panels(scene, traj, evaluate(scene, traj), out / name)
+            plots.paper_panels(scene, traj, evaluate(scene, traj), inside(out, name))
             keys.record(name, key)
             log(f"figure: {name} ({traj.status}, {time.perf_counter() - t0:.0f} s)")
         figures.append((name, ""))
@@ -327,7 +331,7 @@ def run_horizon_study(t_end: float, out: Path, overrides: tuple = (), jobs: int 
     kept = [m for m in methods if m.name in earlier and "job_key" in earlier[m.name]
             and (earlier[m.name]["job_key"] == wanted[m.name]).all()]
     todo = [m for m in methods if m not in kept]
-    figure = out / f"energy_horizon_{load_scene(horizon.SCENE, **dict(overrides)).name}.png"
+    figure = inside(out, f"energy_horizon_{load_scene(horizon.SCENE, **dict(overrides)).name}.png")
     if kept:
         log(f"horizon: kept {', '.join(m.name for m in kept)} (same settings, horizon and code)")
     rows = []
@@ -391,15 +395,19 @@ def run_stability(scenes=None, integrators=None, *, workers: int = 2, out: Path 
     except KeyboardInterrupt as exc:
         return engine.stopped(exc, f"the rows finished so far are in {table.path}; run the same command again to "
                                    "compute the map", log)
+    except OSError as exc:  # a full or failing disk: what was written is intact
+        log(f"error: {exc}; {table.saved} row(s) are saved in {table.path}")
+        return 1
 
 
 def run_check(*, update: bool = False, baseline=None, integrators=None, factor: float | None = None,
               order_margin: float | None = None, jobs: int | None = None, executor: str = "process",
-              cache_dir: str | None = None, tasks=None, command: str | None = None,
+              cache_dir: str | None = None, tasks=None, command: str | None = None, allow_new=(),
               log: Callable[[str], None] | None = None, echo: Callable[[str], None] = print) -> int:
     """Recompute the check sweep and compare it with the baseline (or with ``update``, rewrite
     the baseline). Returns the exit status: 0 passed or updated, 1 regressions. Bad input
-    raises ValueError before any work."""
+    raises ValueError before any work, a baseline that leaves a selected integrator (not in
+    ``allow_new``) with nothing to compare included."""
     from benchmark import check
     from benchmark.reference import CACHE_DIR
 
@@ -410,9 +418,11 @@ def run_check(*, update: bool = False, baseline=None, integrators=None, factor: 
     if jobs is not None and jobs < 1:
         raise ValueError(f"--jobs = {jobs!r} is invalid (allowed: >= 1)")
     tasks = check.build_check_tasks(integrators) if tasks is None else tasks
+    old = check.baseline_for(baseline, update=update, warn=log or echo)
+    table = old.table if old is not None else None
+    if not update:
+        check.comparable(table, tasks, baseline, allow_new)
     try:
-        old = check.baseline_for(baseline, update=update, warn=log or echo)
-        table = old.table if old is not None else None
         current = check.measure(tasks, executor=executor, jobs=jobs, cache_dir=cache_dir or str(CACHE_DIR),
                                 costs=check.costs_of(table), log=log)
     except KeyboardInterrupt as exc:
@@ -420,6 +430,8 @@ def run_check(*, update: bool = False, baseline=None, integrators=None, factor: 
     cmp = check.compare(table, current, tol) if old is not None else None
     if cmp is not None:
         echo(check.format_report(cmp, tol, baseline, old.header))
+        if not update and cmp.compared == 0:
+            raise ValueError(f"baseline {baseline}: no row of this check was compared (a check of nothing cannot pass)")
     if update:
         path = check.write_baseline(check.merge(table, current), baseline, provenance=provenance,
                                     sweep_note=check.describe(tasks))
@@ -502,8 +514,12 @@ def simulate(scene, integrator: str, settings: dict, out: Path, *, estimate: flo
             traj = integ.solve(scene, t_end=scene.t_end, **settings)
     except KeyboardInterrupt as exc:
         return engine.stopped(exc, "nothing saved (a trajectory is written when the run ends)", log)
-    traj.save(out)
-    atomic_write_text(out.with_suffix(".csv"), evaluate(scene, traj).to_csv(index=False))
+    try:
+        traj.save(out)
+        atomic_write_text(out.with_suffix(".csv"), evaluate(scene, traj).to_csv(index=False))
+    except OSError as exc:
+        log(f"error: {exc}; the run ended ({traj.status}) but is not saved: free space and run it again")
+        return 1
     log(f"{scene.name} / {integ.name}: status {traj.status} {traj.reason}; {len(traj.t)} saved points; "
         f"stats {json.dumps({k: v for k, v in traj.stats.items() if np.isscalar(v)}, default=str)}")
     log(f"wrote {out} and {out.with_suffix('.csv')}")

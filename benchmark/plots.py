@@ -20,7 +20,7 @@ from benchmark import styles  # noqa: E402
 from benchmark.metrics import WORK_DEFINITION, pi3_deviation  # noqa: E402
 from models import build_model  # noqa: E402
 from models.diagnostics import energy_deviation  # noqa: E402
-from models.io import atomic_path  # noqa: E402
+from models.io import atomic_path, inside  # noqa: E402
 
 ERROR_LABELS = {
     "energy_error": "energy error  max|ΔE (−W)| / max T",
@@ -85,6 +85,7 @@ def work_precision(runs: pd.DataFrame, scene: str, out_dir: Path) -> Path:
     so a reader on another machine can check the ranking). Every method has its own style
     (`benchmark.styles.style`) in every panel; the legend is outside the axes and names a method
     without a work count as such."""
+    path = inside(out_dir, f"work_precision_{scene}.png")  # the scene name comes from a table: refused if it walks out
     cols = [c for c, _ in COST_AXES] + list(ERROR_LABELS) + ["dt"]
     sel = runs[runs["scene"] == scene]
     g = _numeric(sel[sel["status"] == "ok"], cols)
@@ -110,7 +111,7 @@ def work_precision(runs: pd.DataFrame, scene: str, out_dir: Path) -> Path:
     failed = sel[sel["status"] != "ok"]
     fig.suptitle(f"{scene}: work–precision" + (f"  ({len(failed)} runs failed, see runs.csv)" if len(failed) else "")
                  + f"\nbottom row: {WORK_DEFINITION}" + _clash_caption(set(g["integrator"])), fontsize=10)
-    return save_figure(fig, Path(out_dir) / f"work_precision_{scene}.png")
+    return save_figure(fig, path)
 
 
 def method_of(label: str) -> str:
@@ -120,6 +121,7 @@ def method_of(label: str) -> str:
 
 def energy_horizon(histories: dict[str, pd.DataFrame], scene: str, out_dir: Path) -> Path:
     """Energy error vs time over a long horizon, one curve per method (its own colour and line)."""
+    path = inside(out_dir, f"energy_horizon_{scene}.png")  # the scene name comes from a table: refused if it walks out
     fig, ax = plt.subplots(figsize=(8, 4.2))
     for label, h in histories.items():
         st = styles.style(method_of(label))
@@ -130,7 +132,7 @@ def energy_horizon(histories: dict[str, pd.DataFrame], scene: str, out_dir: Path
     handles = [Line2D([], [], color=styles.style(method_of(lb)).color, linestyle=styles.style(method_of(lb)).linestyle)
                for lb in histories]
     styles.legend_outside(fig, handles, list(histories))
-    return save_figure(fig, Path(out_dir) / f"energy_horizon_{scene}.png")
+    return save_figure(fig, path)
 
 
 def paper_panels(scene, traj, df: pd.DataFrame, out_path: Path, n_snapshots: int = 20) -> Path:

@@ -28,6 +28,7 @@ from benchmark.engine import log_stderr
 from benchmark.store import (UnreadableFile, read_npz, source_hash, trajectory_from, trajectory_parts,
                              write_npz)
 from integrators import get_integrator
+from models.io import inside
 
 REFERENCE_METHOD = {"integrator": "dop853", "rtol": 1e-12, "atol": 1e-14}
 CACHE_DIR = Path("results") / "cache"
@@ -51,7 +52,7 @@ def reference_path(scene, t_end: float, save_every: float, cache_dir: Path = CAC
     by other code is found there, refused by its identity and replaced)."""
     key = json.dumps({"scene": scene.key(), "t_end": t_end, "save_every": save_every, **REFERENCE_METHOD}, sort_keys=True)
     digest = hashlib.sha256(key.encode()).hexdigest()[:16]
-    return Path(cache_dir) / f"reference-{scene.name}-{digest}.npz"
+    return inside(cache_dir, f"reference-{scene.name}-{digest}.npz")
 
 
 def _versions() -> dict:
@@ -80,6 +81,11 @@ def save_reference(traj, path: Path, ident: dict) -> None:
     header = json.dumps({"identity": ident, "versions": _versions(),
                          "meta": json.dumps(meta, default=str, sort_keys=True)}, sort_keys=True)
     write_npz(path, {"header": np.array(header), "checksum": np.array(checksum(arrays, header)), **arrays})
+
+
+class ReferenceFailed(ValueError):
+    """The reference solve of a scene did not finish (its step budget ran out, or it diverged):
+    the scene is at fault more often than the solver, so the message names it and its fix."""
 
 
 class CacheError(ValueError):
@@ -127,8 +133,16 @@ def get_reference(scene, t_end: float, save_every: float, cache_dir: Path = CACH
     traj = integ.solve(scene, t_end=t_end, rtol=REFERENCE_METHOD["rtol"], atol=REFERENCE_METHOD["atol"],
                        save_every=save_every)
     if not traj.ok:
-        raise RuntimeError(f"reference solution for {scene.name} failed: {traj.status}: {traj.reason}")
-    save_reference(traj, path, ident)
+        raise ReferenceFailed(
+            f"the reference solution of scene {scene.name!r} ({REFERENCE_METHOD['integrator']}, rtol "
+            f"{REFERENCE_METHOD['rtol']:g}) did not reach t = {t_end:g} s: {traj.status}: {traj.reason}. Check the scene's "
+            "values (lengths, stiffness, masses, speeds: a scene can validate and still be too stiff to integrate), "
+            "or give a shorter --t-end")
+    try:
+        save_reference(traj, path, ident)
+    except OSError as exc:  # a full disk costs the cache, not the study
+        if log:
+            log(f"warning: {exc}; the reference of {scene.name} is used without being cached")
     return traj
 
 

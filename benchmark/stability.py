@@ -30,7 +30,7 @@ from typing import Callable, NamedTuple
 import numpy as np
 import pandas as pd
 
-from benchmark import engine, runner
+from benchmark import engine
 from benchmark.metrics import CONSERVATION
 from benchmark.store import frame
 from benchmark.sweep import Task
@@ -198,6 +198,8 @@ def _climb(case: Case, integrator: str) -> tuple[dict, dict]:
     """Walk the ladder down to the first bounded rung: (the row's ladder columns, the run shown:
     that rung, or the last one tried when none stays bounded)."""
     tried, stable, above = 0, None, None
+    from benchmark import runner  # JAX: only when a job runs
+
     for task in ladder(case, integrator):
         r = runner.run_task(task, repeats=0, reference=False, finished=case.bounded)
         tried += 1
@@ -225,6 +227,8 @@ def run_job(job: Job) -> dict:
             cols, r = _climb(case, integrator)
             row.update(cols)
         else:
+            from benchmark import runner  # JAX: only when a job runs
+
             r = runner.run_task(adaptive_task(case, integrator), repeats=0, reference=False, finished=case.bounded)
         row.update({k: r.get(k, np.nan) for k in (
             "setting", "status", "reason", "steps", "rejected_steps", "min_step", "median_step", "newton_iterations",

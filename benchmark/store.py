@@ -159,6 +159,11 @@ def check_row(row: dict, known_statuses=None) -> str | None:
     for c in ("scene", "integrator", "setting", "status"):
         if _missing(row.get(c)) or not isinstance(row.get(c), str):
             return f"no {c}"
+    from models.schema import is_safe_name  # the names become parts of file names (figures)
+
+    for c in ("scene", "integrator"):
+        if not is_safe_name(row[c]):
+            return f"{c} = {row[c]!r} is not a plain name (it would become part of a file name)"
     status = row["status"]
     if status not in (known_statuses or statuses()):
         return f"status {status!r} is not a status of the runs table"
@@ -436,6 +441,7 @@ class OutputLock:
 
     def acquire(self) -> "OutputLock":
         me = {"pid": os.getpid(), "host": socket.gethostname(), "command": " ".join(sys.argv)}
+        self.path.parent.mkdir(parents=True, exist_ok=True)  # the command line checks --out without creating it
         for _ in range(3):
             try:
                 fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
@@ -500,6 +506,12 @@ def _unreadable(exc: Exception) -> UnreadableFile:
 
 
 def _require_archive(path: Path) -> None:
+    from models.io import FileRefused, require_regular
+
+    try:
+        require_regular(path)  # a FIFO would block the zip reader, a device feed it forever
+    except FileRefused as exc:
+        raise UnreadableFile(str(exc)) from None
     # an .npz is a zip archive; random bytes, a pickle or a cut file are not
     if not zipfile.is_zipfile(path):
         raise UnreadableFile("not an .npz archive: truncated or not written by reelbench")

@@ -85,11 +85,16 @@ def check_settings(dts=(), rtols=()) -> None:
     """ValueError for a step size that does not divide the save interval or a tolerance
     outside (0, 1); needs no JAX, so the command line checks this before importing it."""
     for v in dts or ():
-        if not (v > 0 and abs(SAVE_EVERY / v - round(SAVE_EVERY / v)) < 1e-9):
-            raise ValueError(f"dt = {v!r} is invalid (allowed: > 0 and dividing the save interval {SAVE_EVERY} s)")
-    for v in rtols or ():
-        if not 0 < v < 1:
-            raise ValueError(f"rtol = {v!r} is invalid (allowed: 0 < rtol < 1)")
+        # round() >= 1: a dt far above the interval has a quotient that rounds to 0 "exactly"
+        if not (v > 0 and round(SAVE_EVERY / v) >= 1 and abs(SAVE_EVERY / v - round(SAVE_EVERY / v)) < 1e-9):
+            raise ValueError(f"--dts: dt = {v!r} is invalid (allowed: > 0 and dividing the save interval {SAVE_EVERY} s, "
+                             f"e.g. {SAVE_EVERY / 4:g})")
+    if rtols:
+        from integrators.lifecycle import MIN_RTOL, RTOL_RULE
+
+        for v in rtols:
+            if not MIN_RTOL <= v < 1:
+                raise ValueError(f"--rtols: rtol = {v!r} is invalid (allowed: {RTOL_RULE})")
 
 
 def default_names() -> list[str]:

@@ -89,7 +89,8 @@ def check_translatable(scene: Scene, code: str) -> None:
     if code == "moordyn" and scene.has("rigid_body"):
         why.append("effect 'rigid_body' (MoorDyn is given point masses only; the body runs are against MuJoCo)")
     if why:
-        raise Untranslatable(f"{code} cannot translate scene {scene.name!r}: " + "; ".join(why))
+        raise Untranslatable(f"{code} cannot translate scene {scene.name!r}: " + "; ".join(why)
+                             + ": give a fixed-length scene without those effects (e.g. --scene fixed_length)")
 
 
 def time_step(scene: Scene) -> float:

@@ -79,15 +79,23 @@ def resolve_scene(scene):
     raise ValueError(f"scene = {scene!r} is invalid (allowed: a models.Scene or a scene name)")
 
 
+#: The tightest relative tolerance a run may ask for: below it the error estimate is float64
+#: rounding of the state (scipy raises anything under 100 eps = 2.2e-14 to that itself), so a
+#: tighter one only makes the steps shrink until the step budget runs out.
+MIN_RTOL = 1e-14
+#: The allowed tolerances in words, for every message that refuses one (the CLI's too).
+RTOL_RULE = f"a finite number, {MIN_RTOL:g} <= rtol < 1"
+
+
 def check_tolerances(rtol, atol) -> None:
-    """rtol in (0, 1), atol > 0; both required."""
+    """rtol in [MIN_RTOL, 1), atol > 0; both required."""
     if rtol is None:
-        raise ValueError("rtol is required for an adaptive method (allowed: a finite number in (0, 1))")
+        raise ValueError(f"rtol is required for an adaptive method (allowed: {RTOL_RULE})")
     if atol is None:
         raise ValueError("atol is required for an adaptive method (allowed: a finite number > 0)")
     check_positive("rtol", rtol)
-    if rtol >= 1:
-        raise ValueError(f"rtol = {rtol!r} is invalid (allowed: a finite number in (0, 1))")
+    if not MIN_RTOL <= rtol < 1:
+        raise ValueError(f"rtol = {rtol!r} is invalid (allowed: {RTOL_RULE})")
     check_positive("atol", atol)
 
 

@@ -16,13 +16,35 @@ from contextlib import contextmanager
 from pathlib import Path
 
 
+class WriteFailed(OSError):
+    """A result file could not be written (no space, read-only, a directory in its place...);
+    the old file, if any, is intact. The message names the file and the cause."""
+
+    def __str__(self) -> str:
+        return f"cannot write {self.filename}: {self.strerror}"
+
+
+def _write_failed(path: Path, exc: OSError) -> WriteFailed:
+    if isinstance(exc, WriteFailed):
+        return exc
+    why = exc.strerror or str(exc)
+    if os.path.isdir(path):
+        why = "a directory is in its place"
+    return WriteFailed(exc.errno or errno.EIO, why, str(path))
+
+
 @contextmanager
 def atomic_path(path: str | os.PathLike):
-    """Yield a temporary path beside ``path``; on success rename it over ``path``."""
+    """Yield a temporary path beside ``path``; on success rename it over ``path``. A failure of
+    the file system (full, read-only, a directory where the file goes) is a `WriteFailed`
+    naming the file, with no temporary left behind."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
-    os.close(fd)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
+        os.close(fd)
+    except OSError as exc:
+        raise _write_failed(path, exc) from None
     try:
         yield Path(tmp)
         # mkstemp makes the file private (0600); a result file gets the usual umask mode
@@ -30,9 +52,11 @@ def atomic_path(path: str | os.PathLike):
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         if os.path.exists(tmp):
             os.unlink(tmp)
+        if isinstance(exc, OSError):
+            raise _write_failed(path, exc) from None
         raise
 
 
@@ -62,7 +86,7 @@ def inside(directory: str | os.PathLike, *parts: str | os.PathLike) -> Path:
         >>> inside("/tmp/out", "../evil.png")
         Traceback (most recent call last):
         ...
-        models.io.UnsafePath: '../evil.png' leads outside /tmp/out (to /tmp/evil.png): ...
+        models.io.UnsafePath: '../evil.png' is not a file name inside /tmp/out: ...
     """
     base = Path(directory).resolve()
     if not parts:
@@ -71,6 +95,10 @@ def inside(directory: str | os.PathLike, *parts: str | os.PathLike) -> Path:
         text = os.fspath(part)
         if not text or "\x00" in text or os.path.isabs(text):
             raise UnsafePath(f"{text!r} is not a name below {base}: names are relative, non-empty, without NUL")
+        if "/" in text or "\\" in text or text in (".", ".."):
+            # one directory level per part: a name glued to a prefix ("fig_" + "../x") stays refused
+            raise UnsafePath(f"{text!r} is not a file name inside {base}: a name from input must be one "
+                             f"path component, without '/', '\\', or a bare '.' / '..'")
     target = base.joinpath(*parts).resolve()
     if base not in target.parents:
         shown = os.path.join(*map(os.fspath, parts))
@@ -122,6 +150,17 @@ def _os_problem(path: str, exc: OSError) -> FileRefused:
     return FileRefused("unreadable", f"cannot be read ({exc.strerror or exc})")
 
 
+def require_regular(path: str | os.PathLike, max_bytes: float = float("inf")) -> None:
+    """`FileRefused` unless ``path`` (links followed) is a regular file of at most ``max_bytes``:
+    for readers that open a file themselves (numpy, zipfile), which a FIFO would block."""
+    path = os.fspath(path)
+    try:
+        st = os.stat(path)
+    except OSError as exc:
+        raise _os_problem(path, exc) from None
+    _refuse_unless_regular(st.st_mode, max_bytes, st.st_size)
+
+
 def read_regular_file(path: str | os.PathLike, max_bytes: int) -> bytes:
     """The bytes of ``path``, a regular file of at most ``max_bytes``; anything else is refused
     (`FileRefused`) before it is read: a FIFO (whose open would block), a device (``/dev/zero``
@@ -131,11 +170,7 @@ def read_regular_file(path: str | os.PathLike, max_bytes: int) -> bytes:
     replaced in between), and never more than ``max_bytes + 1`` bytes are read.
     """
     path = os.fspath(path)
-    try:
-        st = os.stat(path)
-    except OSError as exc:
-        raise _os_problem(path, exc) from None
-    _refuse_unless_regular(st.st_mode, max_bytes, st.st_size)
+    require_regular(path, max_bytes)
     try:
         fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
     except OSError as exc:

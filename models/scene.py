@@ -248,7 +248,8 @@ def _apply_overrides(data: dict, overrides: Mapping, source: str) -> set[str]:
             section, key = leaf_owner[name][0], name
         else:
             valid = list(leaf_owner) + [k for k, v in full.items() if not isinstance(v, dict)]
-            raise SceneError(f"{source}: unknown override {name!r}{suggest(name, valid)}")
+            raise SceneError(f"{source}: unknown override {name!r}{suggest(name, valid)}; allowed: a key of the scene "
+                             "format (models/README.md), e.g. elements, mass, t_end, or SECTION.KEY")
         if section is None:
             if key == "effects":
                 _drop_keys_of_removed_effects(data, value)
@@ -256,7 +257,8 @@ def _apply_overrides(data: dict, overrides: Mapping, source: str) -> set[str]:
             applied.add(key)
             continue
         if section not in full or not isinstance(full[section], dict) or key not in full[section]:
-            raise SceneError(f"{source}: unknown override {name!r}")
+            raise SceneError(f"{source}: unknown override {name!r}; allowed: SECTION.KEY of the scene format "
+                             "(models/README.md), e.g. string.elements")
         sec = data.setdefault(section, {})
         if not isinstance(sec, dict):
             raise SceneError(f"{source}: key '{section}' is not a table, so '{name}' cannot be overridden")

@@ -226,9 +226,9 @@ def test_bad_input_is_refused_before_any_work(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(check, "measure", lambda *a, **k: pytest.fail("ran the sweep"))
     check.write_baseline(table(["ok"]), tmp_path / "b.csv")
     for args, message in [(["--factor", "1"], "--factor = 1.0 is invalid"),
-                          (["--factor", "nan"], "--factor = nan is invalid"),
+                          (["--factor", "nan"], "argument --factor: 'nan' is not a finite number"),
                           (["--order-margin", "-1"], "--order-margin = -1.0 is invalid"),
-                          (["--jobs", "0"], "--jobs = 0 is invalid"),
+                          (["--jobs", "0"], "argument --jobs: '0' is invalid (allowed: an integer >= 1)"),
                           (["--integrators", "lgvy"], "unknown integrator 'lgvy'"),
                           (["--baseline", str(tmp_path / "none.csv")], "none.csv does not exist")]:
         assert main(["check", "--baseline", str(tmp_path / "b.csv"), *args]) == 2, args
@@ -245,3 +245,103 @@ def test_ci_runs_exactly_the_readme_test_command():
     ci = [line for line in (ROOT / ".ci" / "run").read_text().splitlines() if line and not line.startswith("#")]
     assert command.strip() in ci, (command, ci)
     assert "\n" not in command.strip() and shlex.split(command)  # one shell line, well quoted
+
+
+# ------------------------------------------------------------------------------------------
+# a gate that cannot pass on nothing: each baseline below once gave "0 rows compared ...
+# check passed" (or an error naming neither file nor row) after the whole sweep
+
+def baseline_of(names) -> pd.DataFrame:
+    """A well-formed baseline for the check sweep of ``names``: one ok row per task."""
+    rows = [{"scene": t.scene, "integrator": t.integrator, "setting": t.setting, "status": "ok", "reason": "",
+             "run_time": 0.01, "compile_time": 1.0, **{m: 1e-6 for m in ACCURACY}}
+            for t in check.build_check_tasks(names)]
+    return pd.DataFrame(rows).reindex(columns=check.COLUMNS).fillna({"status": "", "reason": ""})
+
+
+@pytest.fixture
+def no_sweep(monkeypatch):
+    """The sweep replaced by the baseline's own numbers; ``ran`` says whether it was reached."""
+    ran = []
+
+    def measure(tasks, **kw):
+        ran.append(len(tasks))
+        return baseline_of(sorted({t.integrator for t in tasks}))
+
+    monkeypatch.setattr(check, "measure", measure)
+    return ran
+
+
+def check_cli(capsys, path, *args):
+    from benchmark.cli import main
+
+    rc = main(["check", "--baseline", str(path), *args])
+    captured = capsys.readouterr()
+    assert "Traceback" not in captured.err
+    return rc, captured.err.strip().splitlines()[-1] if captured.err.strip() else "", captured.out
+
+
+def test_a_well_formed_baseline_passes_and_the_gate_is_reached(tmp_path, capsys, no_sweep):
+    path = tmp_path / "b.csv"
+    check.write_baseline(baseline_of(["lgvi"]), path)
+    rc, err, out = check_cli(capsys, path, "--integrators", "lgvi")
+    assert rc == 0 and no_sweep and "6 rows compared" in out and "check passed" in out, (err, out)
+
+
+@pytest.mark.parametrize("damage, fragments", [
+    (lambda text: "\n".join(text.splitlines()[:8]) + "\n", ["no rows (only its header)"]),
+    (lambda text: text + text.splitlines()[8] + "\n", ["repeats fixed_length / lgvi / dt=0.0025 of line 9"]),
+    (lambda text: text.replace(",ok,1e-06,", ",ok,inf,", 1), ["line 9", "energy_error = inf", "finite number"]),
+    (lambda text: text.replace(",ok,1e-06,", ",ok,,", 1), ["line 9", "energy_error = nan", "finite number"]),
+    (lambda text: text.replace(",ok,1e-06,", ",ok,-5,", 1), ["line 9", "energy_error = -5"]),
+    (lambda text: text.replace(",ok,1e-06,", ",ok,tiny,", 1), ["line 9", "energy_error = 'tiny' is not a number"]),
+    (lambda text: text.replace(",lgvi,", ",lgvi_renamed,"), ["no row this check can compare with for lgvi",
+                                                             "--allow-new lgvi"]),
+    (lambda text: text.replace(",dt=0.00", ",dt=0.50"), ["no row this check can compare with for lgvi",
+                                                             "rows of other scenes or settings only"]),
+    (lambda text: "\x89PNG\x00\x00binary", ["not a text file"]),
+])
+def test_a_baseline_that_would_compare_nothing_is_refused_naming_the_file(tmp_path, capsys, no_sweep, damage,
+                                                                         fragments):
+    path = tmp_path / "b.csv"
+    check.write_baseline(baseline_of(["lgvi"]), path)
+    text = path.read_text()
+    assert text.splitlines()[8].startswith("fixed_length,lgvi,dt=0.0025,ok,1e-06,")  # line 9: the first row
+    path.write_text(damage(text), encoding="latin-1")
+    rc, err, _ = check_cli(capsys, path, "--integrators", "lgvi")
+    assert rc == 2 and err.startswith("error: baseline " + str(path)), err
+    for f in fragments:
+        assert f in err, (f, err)
+    assert not no_sweep  # refused before any work
+
+
+def test_a_directory_or_a_fifo_as_baseline_is_refused_naming_it(tmp_path, capsys, no_sweep):
+    import os
+
+    os.mkfifo(tmp_path / "fifo.csv")
+    for path, what in ((tmp_path, "is a directory"), (tmp_path / "fifo.csv", "named pipe")):
+        rc, err, _ = check_cli(capsys, path, "--integrators", "lgvi")
+        assert rc == 2 and str(path) in err and what in err, err
+    assert not no_sweep
+
+
+def test_a_new_integrator_fails_unless_allowed_by_name(tmp_path, capsys, no_sweep):
+    path = tmp_path / "b.csv"
+    check.write_baseline(baseline_of(["lgvi"]), path)
+    rc, err, _ = check_cli(capsys, path, "--integrators", "lgvi,rk45")
+    assert rc == 2 and "for rk45: no rows" in err and "--update --integrators rk45" in err, err
+    assert not no_sweep
+    rc, err, _ = check_cli(capsys, path, "--integrators", "lgvi,rk45", "--allow-new", "rk45x")
+    assert rc == 2 and "unknown integrator 'rk45x'" in err, err
+    rc, err, out = check_cli(capsys, path, "--integrators", "lgvi,rk45", "--allow-new", "rk45")
+    assert rc == 0 and "rk45: no baseline" in out and "6 rows compared" in out, (err, out)
+    # allowing every selected integrator leaves nothing to compare: still refused
+    rc, err, _ = check_cli(capsys, path, "--integrators", "rk45", "--allow-new", "rk45")
+    assert rc == 2 and "a check of nothing cannot pass" in err, err
+
+
+def test_a_metric_missing_from_the_baseline_where_the_run_has_one_fails():
+    base = table(["ok"]).assign(energy_error=np.nan)
+    cmp = check.compare(base, table(["ok"]), registered=["lgvi"])
+    assert cmp.failed and regressed(cmp) == {("dt=0.01", "energy_error")}
+    assert cmp.regressions[0]["change"] == "missing in the baseline"

@@ -39,7 +39,7 @@ CASES = [
     (["run", "--horizon", "-5"], ["argument --horizon", ">= 0"]),
     (["run", "--dts", "abc"], ["argument --dts", "'abc' is not a number"]),
     (["run", "--dts", "0.003", "--out", "{d}/o"], ["dt = 0.003", "dividing the save interval"]),
-    (["run", "--rtols", "2"], ["argument --rtols", "0 < tolerance < 1"]),
+    (["run", "--rtols", "2"], ["argument --rtols", "1e-14 <= tolerance < 1"]),
     (["run", "--t-end", "-1"], ["argument --t-end", "> 0"]),
     (["run", "--t-end", "nan"], ["argument --t-end", "not a finite number"]),
     (["run", "--set", "mass"], ["--set 'mass'", "KEY=VALUE"]),
@@ -188,3 +188,200 @@ def test_size_estimate_warns_about_a_long_run_and_refuses_what_cannot_fit():
         options.check_size(big, 1e5, 1e-3, None)
     with pytest.raises(options.UsageError, match="steps of dt"):
         options.check_size(big, 10.0, 0.02, 1e-9)
+
+
+# ------------------------------------------------------------------------------------------
+# runs that would do nothing, or nothing useful, and exit 0: refused before any work, and a
+# refused command leaves no --out behind
+# ------------------------------------------------------------------------------------------
+@pytest.fixture
+def no_pipeline(monkeypatch):
+    """Every pipeline replaced by a failure: a bad input that got through would start work."""
+    from benchmark import pipelines
+
+    for name in ("run_sweep", "simulate", "draw_figures", "run_check", "run_speed", "run_stability", "run_xval",
+                 "run_reel_reversal"):
+        monkeypatch.setattr(pipelines, name, lambda *a, _n=name, **k: pytest.fail(f"reached pipelines.{_n}"))
+
+
+NOTHING = [
+    (["run", "--scenes", "fixed_length", "--dts", "1e308", "--out", "{d}/o"], ["--dts", "1e+308", "dividing"]),
+    (["run", "--scenes", "fixed_length", "--dts", "0.04", "--out", "{d}/o"], ["--dts", "0.04", "dividing"]),
+    (["run", "--scenes", "fixed_length", "--dts", "0.02", "--t-end", "0.01", "--out", "{d}/o"],
+     ["--t-end = 0.01 s is shorter than", "give --t-end >= 0.02"]),
+    (["run", "--scenes", "fixed_length", "--rtols", "1e-300", "--out", "{d}/o"], ["--rtols", "1e-14 <= tolerance"]),
+    (["simulate", "fixed_length", "--rtol", "1e-300", "--out", "{d}/o/t.npz"], ["--rtol", "1e-14 <= tolerance"]),
+    (["simulate", "fixed_length", "--dt", "0.01", "--out", ""], ["--out is empty", "give a file name"]),
+    (["simulate", "fixed_length", "--dt", "0.01", "--out", "{d}/o/t.npz", "--save-every", "100"],
+     ["--save-every 100", "give a save interval"]),
+    (["simulate", "fixed_length", "--integrator", "nosuch", "--dt", "0.01", "--out", "{d}/o/t.npz"],
+     ["unknown integrator 'nosuch'"]),
+    (["speed", "--dt", "1e300", "--out", "{d}/o/speed.md"], ["t_end", "implausible"]),
+    (["speed", "--out", ""], ["--out is empty"]),
+    (["stability", "--scenes", "nosuch", "--out", "{d}/o"], ["no stability case", "nosuch"]),
+    (["stability", "--integrators", "nosuch", "--out", "{d}/o"], ["unknown integrator 'nosuch'"]),
+    (["stability", "--out", ""], ["--out is empty"]),
+    (["xval", "--t-end", "1e12", "--out", "{d}/o"], ["'t_end'", "implausible"]),
+    (["xval", "--scene", "deployment", "--out", "{d}/o"], ["cannot translate scene 'deployment'"]),
+    (["reel-reversal", "--methods", "nosuch", "--cache-dir", "{d}/o"], ["--methods", "'nosuch'"]),
+    (["run", "--integrators", "nosuch", "--quick", "--out", "{d}/o"], ["unknown integrator 'nosuch'"]),
+    (["run", "--quick", "--out", ""], ["--out is empty"]),
+    (["check", "--update", "--allow-new", "lgvi"], ["--allow-new is for a check against the baseline"]),
+]
+
+
+@pytest.mark.parametrize("args, fragments", NOTHING, ids=[" ".join(a) for a, _ in NOTHING])
+def test_a_run_that_would_do_nothing_is_refused_and_creates_nothing(tmp_path, capsys, no_pipeline, args, fragments):
+    rc = main([a.format(d=tmp_path) for a in args])
+    err = capsys.readouterr().err
+    assert rc == 2 and "Traceback" not in err, err
+    line = err.strip().splitlines()[-1]
+    for f in fragments:
+        assert f in line, (f, line)
+    assert not (tmp_path / "o").exists()  # a refused command leaves no --out behind
+
+
+def test_figures_of_a_trajectory_without_a_finite_point_is_refused(tmp_path, capsys):
+    import numpy as np
+
+    from integrators import get_integrator
+    from models import load_scene
+
+    traj = get_integrator("lgvi").solve(load_scene("fixed_length", elements=1), t_end=0.02, dt=0.01)
+    traj.x = np.full_like(np.asarray(traj.x), np.nan)
+    traj.save(tmp_path / "nan.npz")
+    assert main(["figures", str(tmp_path / "nan.npz"), "--set", "elements=1", "--out", str(tmp_path / "f.png")]) == 2
+    err = capsys.readouterr().err
+    assert "no finite point" in err and "nothing to draw" in err, err
+    assert not (tmp_path / "f.png").exists()
+
+
+# ------------------------------------------------------------------------------------------
+# 150+ bad inputs: every option of every command with the values people get wrong
+# ------------------------------------------------------------------------------------------
+POSITIVE_INT = ["0", "-1", "x", "", "1.5", "1e3"]
+NONNEGATIVE_INT = ["-1", "x", "", "2.5"]
+POSITIVE_FLOAT = ["0", "-1", "nan", "inf", "x", ""]
+TOLERANCE = ["0", "1", "2", "1e-300", "nan", "x"]
+#: (command and the arguments that make it otherwise valid, option, bad values)
+OPTIONS = [
+    (["run", "--quick", "--out", "{d}/o"], "--jobs", POSITIVE_INT),
+    (["run", "--quick", "--out", "{d}/o"], "--repeats", POSITIVE_INT),
+    (["run", "--quick", "--out", "{d}/o"], "--horizon", ["-1", "nan", "inf", "x", ""]),
+    (["run", "--quick", "--out", "{d}/o"], "--dts", POSITIVE_FLOAT + ["0.003", "1e308", "0.04", ","]),
+    (["run", "--quick", "--out", "{d}/o"], "--rtols", TOLERANCE + [","]),
+    (["run", "--quick", "--out", "{d}/o"], "--t-end", POSITIVE_FLOAT + ["1e12", "0.001"]),
+    (["simulate", "fixed_length", "--out", "{d}/o/t.npz"], "--dt", POSITIVE_FLOAT + ["1e-300"]),
+    (["simulate", "fixed_length", "--out", "{d}/o/t.npz"], "--rtol", TOLERANCE),
+    (["simulate", "fixed_length", "--rtol", "1e-6", "--out", "{d}/o/t.npz"], "--atol", POSITIVE_FLOAT),
+    (["simulate", "fixed_length", "--dt", "0.01", "--out", "{d}/o/t.npz"], "--t-end", POSITIVE_FLOAT + ["1e12"]),
+    (["simulate", "fixed_length", "--dt", "0.01", "--out", "{d}/o/t.npz"], "--save-every", POSITIVE_FLOAT + ["1e3"]),
+    (["simulate", "fixed_length", "--dt", "0.01", "--out", "{d}/o/t.npz"], "--integrator", ["nosuch", "", "../x"]),
+    (["simulate", "fixed_length", "--dt", "0.01", "--out", "{d}/o/t.npz"], "--set",
+     ["mass", "=1", "mass=-1", "mass=1e300", "elements=0", "elements=1e6", "nosuch=1", "name=../x", "t_end=1e12",
+      "box=[0,0,0]", "direction=[1e200,0,1e200]", "deployed_length=1e-300", "control_moment=5"]),
+    (["speed", "--out", "{d}/o/s.md"], "--elements", POSITIVE_INT + ["1000000"]),
+    (["speed", "--out", "{d}/o/s.md"], "--steps", POSITIVE_INT),
+    (["speed", "--out", "{d}/o/s.md"], "--repeats", POSITIVE_INT),
+    (["speed", "--out", "{d}/o/s.md"], "--dt", POSITIVE_FLOAT + ["1e300"]),
+    (["speed", "--out", "{d}/o/s.md"], "--autodiff-max-n", POSITIVE_INT),
+    (["speed", "--out", "{d}/o/s.md"], "--methods", ["nosuch", "rk45", ","]),
+    (["speed", "--out", "{d}/o/s.md"], "--scenes", ["nosuch", ","]),
+    (["stability", "--out", "{d}/o"], "--jobs", NONNEGATIVE_INT),
+    (["stability", "--out", "{d}/o"], "--scenes", ["nosuch", ","]),
+    (["stability", "--out", "{d}/o"], "--integrators", ["nosuch", ","]),
+    (["xval", "--out", "{d}/o"], "--elements", POSITIVE_INT + ["1", "5"]),
+    (["xval", "--out", "{d}/o"], "--t-end", POSITIVE_FLOAT + ["1e12"]),
+    (["xval", "--out", "{d}/o"], "--scene", ["nosuch", "deployment", ""]),
+    (["reel-reversal", "--cache-dir", "{d}/o"], "--elements", POSITIVE_INT),
+    (["reel-reversal", "--cache-dir", "{d}/o"], "--t-end", POSITIVE_FLOAT + ["0.5"]),
+    (["reel-reversal", "--cache-dir", "{d}/o"], "--jobs", NONNEGATIVE_INT),
+    (["reel-reversal", "--cache-dir", "{d}/o"], "--methods", ["nosuch", "rk45"]),
+    (["check", "--baseline", "{d}/b.csv"], "--factor", ["1", "0.5", "nan", "x", ""]),
+    (["check", "--baseline", "{d}/b.csv"], "--order-margin", ["-1", "nan", "x"]),
+    (["check", "--baseline", "{d}/b.csv"], "--jobs", POSITIVE_INT),
+    (["check", "--baseline", "{d}/b.csv"], "--integrators", ["nosuch"]),
+    (["check", "--baseline", "{d}/b.csv", "--integrators", "lgvi"], "--allow-new", ["nosuch", ","]),
+]
+BULK = [(base, option, value) for base, option, values in OPTIONS for value in values]
+#: A message names the fix: what is allowed, what to give, or what to do.
+FIX = ("allowed", "available:", "give", "e.g.", "raise", "shorten", "expected", "add ", "remove", "use ", "run ",
+       "pip install")
+
+
+def test_more_than_150_bad_inputs_are_each_refused_with_exit_2_and_the_fix(tmp_path, capsys, no_pipeline):
+    assert len(BULK) >= 150, len(BULK)
+    from benchmark import check
+
+    check.write_baseline(check.to_table.__globals__["pd"].DataFrame(columns=check.COLUMNS), tmp_path / "b.csv")
+    failures = []
+    for base, option, value in BULK:
+        args = [a.format(d=tmp_path) for a in base] + [option, value]
+        try:
+            rc = main(args)
+        except BaseException as exc:  # a pipeline reached (pytest.fail) or a crash: recorded, the others still run
+            rc = f"{type(exc).__name__}: {exc}"
+        err = capsys.readouterr().err.strip()
+        line = err.splitlines()[-1] if err else ""
+        key = value.split("=")[0] if option == "--set" else None  # an override is named by its key
+        named = (option in line or option.lstrip("-").replace("-", "_") in line or repr(value) in line
+                 or bool(value and value in line) or bool(key and key in line))
+        if rc != 2 or "Traceback" in err or "error: " not in line or not named or not any(f in line for f in FIX):
+            failures.append((args[len(base):], rc, line))
+    assert not failures, "\n".join(map(str, failures))
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("args", [["simulate", "fixed_length", "--integrator", "nosuch", "--dt", "0.01"],
+                                  ["run", "--integrators", "nosuch", "--quick", "--out", "{d}/never"],
+                                  ["stability", "--scenes", "nosuch", "--out", "{d}/never"],
+                                  ["check", "--factor", "1"], ["check", "--integrators", "nosuch"],
+                                  ["check", "--baseline", "/nonexistent/drift.csv"],
+                                  ["run", "--rtols", "1e-300"], ["speed", "--dt", "1e300"],
+                                  ["xval", "--t-end", "1e12", "--out", "{d}/never"]])
+def test_refusals_that_need_the_registry_or_a_study_do_not_import_jax(tmp_path, args):
+    """The registry lists names and capabilities, and the studies' modules load, without JAX
+    (the methods and metrics import it on first use), so these refusals are as quick as the rest."""
+    argv = [a.format(d=tmp_path) for a in args]
+    out = subprocess.run([sys.executable, "-c", PROBE, json.dumps(argv)], cwd=ROOT, capture_output=True, text=True,
+                         timeout=60)
+    res = json.loads(out.stdout.strip().splitlines()[-1])
+    assert res["rc"] == 2, out.stderr
+    assert not {"jax", "diffrax", "matplotlib", "scipy.integrate"} & set(res["heavy"]), res
+    assert not (tmp_path / "never").exists()
+
+
+@pytest.mark.parametrize("args, fragments", [
+    (["simulate", "fixed_length"], ["lgvi needs a setting", "give --dt (a fixed step)"]),
+    (["simulate", "fixed_length", "--integrator", "dop853"], ["dop853 needs a setting", "give --rtol (a tolerance)"]),
+    (["simulate", "fixed_length", "--integrator", "tsit5"], ["give --dt (a fixed step) or --rtol (a tolerance)"]),
+    (["simulate", "fixed_length", "--integrator", "dop853", "--dt", "0.01"], ["--dt: dop853 is adaptive"]),
+    (["simulate", "fixed_length", "--rtol", "1e-6"], ["--rtol: lgvi is a fixed-step method", "give --dt"]),
+    (["simulate", "fixed_length", "--dt", "5", "--t-end", "0.1", "--save-every", "0.1"],
+     ["--dt 5 is longer than the run", "give --dt <= t_end"]),
+    (["run", "--scenes", "fixed_length", "--t-end", "1e5", "--set", "elements=2000", "--dts", "0.01", "--out", "{d}/o"],
+     ["saved points", "shorten --t-end"]),
+])
+def test_messages_name_the_option_the_user_types(tmp_path, capsys, no_pipeline, args, fragments):
+    assert main([a.format(d=tmp_path) for a in args]) == 2
+    line = capsys.readouterr().err.strip().splitlines()[-1]
+    for f in fragments:
+        assert f in line, (f, line)
+    assert "--save-every" not in line or args[0] == "simulate"  # run has no --save-every to raise
+
+
+
+def test_figures_does_not_follow_a_scene_path_recorded_in_a_trajectory(tmp_path, capsys):
+    """The scene name stored in a .npz is data: a path there (to a FIFO, say) is never opened."""
+    import os
+
+    from integrators import get_integrator
+    from models import load_scene
+
+    traj = get_integrator("lgvi").solve(load_scene("fixed_length", elements=1), t_end=0.02, dt=0.01)
+    os.mkfifo(tmp_path / "pipe.toml")
+    traj.scene_name = str(tmp_path / "pipe.toml")
+    traj.save(tmp_path / "t.npz")
+    assert main(["figures", str(tmp_path / "t.npz"), "--out", str(tmp_path / "f.png")]) == 2
+    line = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "which is not a scene name: give --scene" in line, line

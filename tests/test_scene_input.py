@@ -102,6 +102,62 @@ def test_simulate_and_run_refuse_a_traversing_name_before_writing_anything(tmp_p
     assert sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*")) == ["a", "a/b", "a/b/evil.toml"]
 
 
+EVIL = "../../elsewhere/evil"
+#: Every command that writes files, given a traversing name where it takes one ({s}: a scene
+#: file named EVIL, {d}: a trajectory file); each must refuse it before writing anything.
+TRAVERSALS = [
+    ["simulate", "{s}", "--set", "elements=1", "--t-end", "0.02", "--dt", "0.01"],
+    ["simulate", "fixed_length", "--integrator", EVIL, "--t-end", "0.02", "--dt", "0.01"],
+    ["run", "--scenes", "{s}", "--integrators", "lgvi", "--quick", "--out", "out"],
+    ["run", "--scenes", "fixed_length", "--integrators", EVIL, "--quick", "--out", "out"],
+    ["figures", "{d}", "--scene", "{s}"],
+    ["speed", "--scenes", "{s}", "--elements", "2", "--out", "out/speed.md"],
+    ["stability", "--scenes", EVIL, "--out", "out"],
+    ["stability", "--integrators", EVIL, "--out", "out"],
+    ["xval", "--scene", "{s}", "--out", "out"],
+    ["check", "--update", "--integrators", EVIL, "--baseline", "out/drift.csv"],
+    ["reel-reversal", "--scene", "{s}", "--cache-dir", "out"],
+    ["reel-reversal", "--methods", EVIL, "--cache-dir", "out"],
+]
+
+
+@pytest.mark.parametrize("args", TRAVERSALS, ids=lambda a: " ".join(a[:3]))
+def test_every_command_that_writes_refuses_a_traversing_name_before_writing_anything(tmp_path, monkeypatch, capsys,
+                                                                                      args):
+    work = tmp_path / "a" / "b"
+    work.mkdir(parents=True)
+    (work / "evil.toml").write_text(scene_text(name=f'name = "{EVIL}"'))
+    (work / "t.npz").write_bytes(b"")
+    monkeypatch.chdir(work)
+    assert main([a.format(s="evil.toml", d="t.npz") for a in args]) == 2
+    err = capsys.readouterr().err
+    assert "error: " in err and "Traceback" not in err, err
+    assert "evil" in err.splitlines()[-1], err  # the message names what was refused
+    made = sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*"))
+    assert made == ["a", "a/b", "a/b/evil.toml", "a/b/t.npz"], made  # not even an empty --out
+
+
+def test_the_writers_themselves_keep_a_name_inside_their_directory(tmp_path):
+    """Past the command line's checks: a name from a table read back (runs.csv) or from a scene
+    object never validated is refused by the writer that would put it into a file name."""
+    import pandas as pd
+
+    from benchmark import plots, store
+    from benchmark.reference import reference_path
+
+    out = tmp_path / "out"
+    out.mkdir()
+    rows = pd.DataFrame([{"scene": EVIL, "integrator": "lgvi", "setting": "dt=0.01", "status": "ok"}])
+    with pytest.raises(UnsafePath):
+        plots.work_precision(rows, EVIL, out)
+    scene = dataclasses.replace(load_scene("fixed_length"), name=EVIL)  # past the schema
+    with pytest.raises(UnsafePath):
+        reference_path(scene, 1.0, 0.02, out)
+    row = {"scene": EVIL, "integrator": "lgvi", "setting": "dt=0.01", "status": "ok"}
+    assert "not a plain name" in store.check_row(row)
+    assert not list(tmp_path.parent.glob("elsewhere"))
+
+
 def test_inside_joins_a_name_and_refuses_a_path_out_of_the_directory(tmp_path):
     out = tmp_path / "out"
     out.mkdir()

@@ -1,0 +1,264 @@
+"""Disk and file-system faults during work: each is one `error: ...` line naming the file, exit
+status 1 (2 when it is found before any work), no traceback, no temporary file left behind,
+and what had finished saved where the disk still takes it.
+
+A full disk is simulated by making the atomic writer's rename (or one chosen target) fail with
+ENOSPC, as a real full disk fails the write before it."""
+
+import errno
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from benchmark.cli import main
+from models import io as model_io
+
+#: The smallest sweep: one scene, one method, two steps, no figures, in this process.
+TINY = ["run", "--scenes", "fixed_length", "--integrators", "lgvi", "--t-end", "0.04", "--set", "elements=1",
+        "--no-figures", "--executor", "serial", "--repeats", "1"]
+
+
+def disk_full(monkeypatch, when=lambda target: True):
+    """Every atomic write whose target passes ``when`` fails with ENOSPC (the others succeed)."""
+    real = os.replace
+
+    def replace(src, dst, *a, **k):
+        if Path(dst).name.startswith(".") is False and when(Path(dst)):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return real(src, dst, *a, **k)
+
+    monkeypatch.setattr(model_io.os, "replace", replace)
+
+
+def leftovers(root: Path) -> list[str]:
+    return sorted(p.name for p in root.rglob("*") if ".tmp" in p.name)
+
+
+def outcome(capsys) -> tuple[str, str]:
+    err = capsys.readouterr().err
+    assert "Traceback" not in err, err
+    return err, err.strip().splitlines()[-1]
+
+
+def test_atomic_writer_names_the_file_and_leaves_nothing_behind(tmp_path, monkeypatch):
+    target = tmp_path / "table.csv"
+    target.write_text("old\n")
+    disk_full(monkeypatch)
+    with pytest.raises(model_io.WriteFailed) as err:
+        model_io.atomic_write_text(target, "new\n")
+    assert str(err.value) == f"cannot write {target}: No space left on device"
+    assert err.value.errno == errno.ENOSPC
+    assert target.read_text() == "old\n" and leftovers(tmp_path) == []
+
+
+def test_a_directory_where_a_result_file_goes_is_named_as_such(tmp_path):
+    (tmp_path / "table.csv").mkdir()
+    with pytest.raises(model_io.WriteFailed, match="table.csv: a directory is in its place"):
+        model_io.atomic_write_text(tmp_path / "table.csv", "x\n")
+    assert leftovers(tmp_path) == []
+
+
+def test_simulate_on_a_full_disk_says_so_and_exits_1(tmp_path, monkeypatch, capsys):
+    disk_full(monkeypatch)
+    out = tmp_path / "t.npz"
+    rc = main(["simulate", "fixed_length", "--set", "elements=1", "--t-end", "0.04", "--dt", "0.01", "--out", str(out)])
+    err, line = outcome(capsys)
+    assert rc == 1 and line.startswith(f"error: cannot write {out}: No space left on device"), err
+    assert "is not saved" in line and not out.exists() and leftovers(tmp_path) == []
+
+
+def test_a_sweep_on_a_disk_that_fills_keeps_the_rows_it_saved(tmp_path, monkeypatch, capsys):
+    """The first row reaches runs.csv; the disk is full for the second: exit 1, the saved row
+    intact, the line says how many are saved; the reference that could not be cached is used."""
+    writes = []
+
+    def full_after_first_table(target):
+        if target.name == "runs.csv":
+            writes.append(target)
+            return len(writes) > 1
+        return target.suffix == ".npz"  # the reference cache too
+
+    disk_full(monkeypatch, full_after_first_table)
+    out = tmp_path / "out"
+    rc = main(TINY + ["--dts", "0.01,0.005", "--out", str(out)])
+    err, line = outcome(capsys)
+    assert rc == 1, err
+    assert line.startswith(f"error: cannot write {out / 'runs.csv'}: No space left on device"), line
+    assert "1 finished run(s) are saved" in line and "run the same command again to resume" in line
+    assert "is used without being cached" in err
+    import pandas as pd
+
+    saved = pd.read_csv(out / "runs.csv")
+    assert len(saved) == 1 and saved["status"].iloc[0] == "ok"
+    assert leftovers(tmp_path) == [] and not (out / ".reelbench.lock").exists()
+
+
+def test_a_directory_in_place_of_a_result_file_is_refused_before_any_work(tmp_path, monkeypatch, capsys):
+    from benchmark import pipelines
+
+    monkeypatch.setattr(pipelines, "run_sweep", lambda *a, **k: pytest.fail("started the sweep"))
+    (tmp_path / "out" / "runs.csv").mkdir(parents=True)
+    rc = main(TINY + ["--dts", "0.01", "--out", str(tmp_path / "out")])
+    err, line = outcome(capsys)
+    assert rc == 2 and "runs.csv there is a directory" in line and "give another --out" in line, err
+
+
+@pytest.mark.parametrize("kind", ["fifo", "link to /dev/zero"])
+def test_a_special_file_in_place_of_the_runs_table_is_refused_without_reading_it(tmp_path, monkeypatch, capsys, kind):
+    from benchmark import pipelines
+
+    monkeypatch.setattr(pipelines, "run_sweep", lambda *a, **k: pytest.fail("started the sweep"))
+    out = tmp_path / "out"
+    out.mkdir()
+    if kind == "fifo":
+        os.mkfifo(out / "runs.csv")
+    else:
+        (out / "runs.csv").symlink_to("/dev/zero")
+    rc = main(TINY + ["--dts", "0.01", "--out", str(out)])  # reading either would block or never end
+    err, line = outcome(capsys)
+    assert rc == 2 and "runs.csv there is not a regular file" in line, err
+
+
+def test_a_directory_in_place_of_a_cached_reference_costs_the_cache_only(tmp_path, capsys):
+    from benchmark.reference import get_reference, reference_path
+    from models import load_scene
+
+    scene = load_scene("fixed_length", elements=1)
+    reference_path(scene, 0.04, 0.02, tmp_path).mkdir()
+    said = []
+    traj = get_reference(scene, 0.04, 0.02, tmp_path, log=said.append)
+    assert traj.ok and np.isfinite(traj.x).all()
+    assert any("is not used" in s for s in said) and any("without being cached" in s for s in said), said
+
+
+def test_a_reference_that_cannot_finish_names_the_scene_and_the_fix(tmp_path, monkeypatch):
+    """The reference solver has a step budget (scipy's adapters: max_steps); when it runs out the
+    error names the scene, not just the solver's status."""
+    from benchmark import reference
+    from integrators import get_integrator
+    from models import load_scene
+
+    real = get_integrator(reference.REFERENCE_METHOD["integrator"])
+
+    class Budgeted:
+        def solve(self, scene, **kw):
+            return real.solve(scene, **kw, max_steps=3)
+
+    monkeypatch.setattr(reference, "get_integrator", lambda name: Budgeted())
+    with pytest.raises(reference.ReferenceFailed) as err:
+        reference.get_reference(load_scene("fixed_length", elements=1), 0.1, 0.02, tmp_path, log=None)
+    msg = str(err.value)
+    assert "scene 'fixed_length'" in msg and "max_steps = 3 reached" in msg and "Check the scene's values" in msg
+    assert not list(tmp_path.iterdir())  # nothing cached
+
+
+def test_a_fifo_in_place_of_a_cached_reference_is_not_opened(tmp_path):
+    from benchmark.reference import get_reference, reference_path
+    from models import load_scene
+
+    scene = load_scene("fixed_length", elements=1)
+    os.mkfifo(reference_path(scene, 0.04, 0.02, tmp_path))
+    said = []
+    assert get_reference(scene, 0.04, 0.02, tmp_path, log=said.append).ok  # would block in open() before
+    assert any("named pipe (FIFO)" in s and "is not used" in s for s in said), said
+
+
+def test_figures_on_a_full_disk_exit_1_naming_the_figure(tmp_path, monkeypatch, capsys):
+    from integrators import get_integrator
+    from models import load_scene
+
+    traj = get_integrator("lgvi").solve(load_scene("fixed_length", elements=1), t_end=0.04, dt=0.01)
+    traj.save(tmp_path / "t.npz")
+    disk_full(monkeypatch)
+    rc = main(["figures", str(tmp_path / "t.npz"), "--set", "elements=1", "--out", str(tmp_path / "f.png")])
+    err, line = outcome(capsys)
+    assert rc == 1 and line == f"error: cannot write {tmp_path / 'f.png'}: No space left on device", err
+    assert leftovers(tmp_path) == []
+
+
+def test_a_read_only_output_place_is_refused_before_any_work(tmp_path, monkeypatch, capsys):
+    """(Simulated: the tests may run as root, for whom a chmod'ed directory stays writable.)"""
+    import tempfile
+
+    def read_only(*a, **k):
+        raise OSError(errno.EROFS, os.strerror(errno.EROFS))
+
+    monkeypatch.setattr(tempfile, "mkstemp", read_only)
+    for args in (["simulate", "fixed_length", "--dt", "0.01", "--out", str(tmp_path / "t.npz")],
+                 ["run", "--quick", "--out", str(tmp_path / "o")], ["stability", "--out", str(tmp_path / "o")]):
+        rc = main(args)
+        err, line = outcome(capsys)
+        assert rc == 2 and "not writable (Read-only file system)" in line and "give a directory" in line, (args, err)
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_scene_that_is_a_link_to_dev_zero_is_refused_at_once(tmp_path, capsys):
+    (tmp_path / "zero.toml").symlink_to("/dev/zero")
+    rc = main(["simulate", str(tmp_path / "zero.toml"), "--dt", "0.01"])
+    err, line = outcome(capsys)
+    assert rc == 2 and "zero.toml" in line and "character device" in line, err
+
+
+# ------------------------------------------------------------------------------------------
+# A stop signal during work: one line, the exit status a shell reports, no traceback
+# ------------------------------------------------------------------------------------------
+ROOT = Path(__file__).resolve().parent.parent
+LONG = {  # each runs for minutes if not stopped
+    "simulate": ["simulate", "fixed_length", "--dt", "1e-4", "--t-end", "2000", "--out", "{d}/t.npz"],
+    "check": ["check", "--integrators", "lgvi,rk45", "--jobs", "1"],
+    "stability": ["stability", "--scenes", "stiff_string", "--integrators", "lgvi", "--jobs", "0", "--out", "{d}/s"],
+    "xval": ["xval", "--elements", "5,10,20,40,80,160", "--out", "{d}/x"],
+    "speed": ["speed", "--elements", "10", "--scenes", "fixed_length", "--methods", "lgvi", "--steps", "2000000",
+              "--repeats", "50", "--rhs", ""],
+}
+EXPECTED = {"simulate": "nothing saved", "check": "the baseline was not changed",
+            "stability": "the rows finished so far are in", "xval": "no result was written",
+            "speed": "no result was written"}
+
+
+#: SIGTERM to simulate and check in the fast suite (~7 s each: they had no handler at all); the rest slow.
+SIGNALS = [pytest.param(c, sig, rc, name, id=f"{c}-{name}",
+                        marks=[] if sig == 15 and c in ("simulate", "check") else pytest.mark.slow)
+           for c in LONG for sig, rc, name in ((15, 143, "SIGTERM"), (2, 130, "Ctrl-C"))]
+
+
+@pytest.mark.parametrize("command, sig, rc, name", SIGNALS)
+def test_a_stop_signal_during_work_ends_the_command_with_one_line(tmp_path, command, sig, rc, name):
+    import subprocess
+    import sys
+    import time
+
+    args = [a.format(d=tmp_path) for a in LONG[command]]
+    proc = subprocess.Popen([sys.executable, "-m", "benchmark", *args], cwd=ROOT, stderr=subprocess.PIPE,
+                            stdout=subprocess.DEVNULL, text=True, start_new_session=True)
+    time.sleep(6)  # past the checks and the imports: at work
+    assert proc.poll() is None, proc.stderr.read()
+    proc.send_signal(sig)
+    try:
+        _, err = proc.communicate(timeout=60)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, 9)
+        pytest.fail(f"{command} did not stop within 60 s of {name}")
+    assert "Traceback" not in err and "leaked" not in err, err  # the pools' semaphores released too
+    last = err.strip().splitlines()[-1]
+    assert proc.returncode == rc and last.startswith(f"stopped by {name}"), (proc.returncode, err)
+    assert EXPECTED[command] in last, last
+
+
+@pytest.mark.parametrize("content, fragment", [
+    ("[" + ".".join(["a"] * 2000) + "]\nx = 1\n", "nested"),
+    ("# padding\n" * 200_000, "more than the 1,000,000"),
+    ("\udcff", "not a text file"),
+], ids=["2000 nested tables", "over the size limit", "binary"])
+def test_a_scene_file_that_cannot_be_a_scene_is_one_error_line_for_every_command(tmp_path, capsys, content, fragment):
+    path = tmp_path / "bad.toml"
+    path.write_bytes(content.encode("utf-8", "surrogateescape"))
+    for args in (["simulate", str(path), "--dt", "0.01"], ["run", "--scenes", str(path), "--out", str(tmp_path / "o")],
+                 ["speed", "--scenes", str(path)], ["xval", "--scene", str(path), "--out", str(tmp_path / "o")],
+                 ["reel-reversal", "--scene", str(path), "--cache-dir", str(tmp_path / "o")]):
+        rc = main(args)
+        err, line = outcome(capsys)
+        assert rc == 2 and str(path) in line and fragment in line, (args, err)
+    assert not (tmp_path / "o").exists()
