@@ -96,3 +96,17 @@ def test_reading_is_generated_from_the_rows():
     assert "(`lgvi` vs `tsit5`" in text and "is 2–2x" in text.split("**Robustness.**")[1]
     assert "`rk45`" in text and "left out" in text
     assert list(df.columns) == stability.COLUMNS
+
+
+def test_a_length_limit_reached_too_soon_is_not_bounded():
+    """On a length-limit scene a run counts as bounded only when it reaches its limit no earlier
+    than the physics allows: an unstable step can throw the string to its limit in a few steps
+    (crouch_grossman3 at 10 ms was seen at 0.05 s, against 1.10 s for every adaptive method)."""
+    from benchmark.stability import CASES, is_bounded
+
+    case = next(c for c in CASES if c.scene == "retrieval_to_limit")
+    assert is_bounded(case, {"status": "length_limit", "t_reached": 1.146})
+    assert not is_bounded(case, {"status": "length_limit", "t_reached": 0.0})
+    assert not is_bounded(case, {"status": "diverged", "t_reached": 1.146})
+    fast = next(c for c in CASES if c.scene == "fast_spin")
+    assert is_bounded(fast, {"status": "ok", "t_reached": 2.0}) and fast.earliest_end == 0.0
