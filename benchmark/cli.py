@@ -128,7 +128,7 @@ def cmd_run(args) -> int:
         quick=args.quick, dts=tuple(args.dts) if args.dts else None, rtols=tuple(args.rtols) if args.rtols else None,
         t_end=args.t_end, overrides=tuple(sorted((k, v) for k, v in ov.items() if k != "t_end")), jobs=args.jobs,
         executor=args.executor, scheduler=args.scheduler, repeats=args.repeats, horizon=args.horizon,
-        figures=not args.no_figures, fresh=args.fresh, compare_with=args.compare_with, command=_command(args)), log=_log)
+        figures=not args.no_figures, fresh=args.fresh, compare_with=tuple(args.compare_with or ()), command=_command(args)), log=_log)
 
 
 #: The options of `run` that make it something other than the default sweep (other rows).
@@ -406,8 +406,10 @@ def _add_run(sub) -> None:
                         f"{sweep.FULL_HORIZON:g}; --quick: {sweep.QUICK_HORIZON:g})")
     r.add_argument("--no-figures", action="store_true", help="skip the figures and the energy study")
     r.add_argument("--fresh", action="store_true", help="recompute every run, ignoring rows already in OUT/runs.csv")
-    r.add_argument("--compare-with", type=opt.runs_table, metavar="RUNS.csv",
-                   help="an earlier run's runs.csv: the README then says which conclusions changed and by how much")
+    r.add_argument("--compare-with", type=opt.runs_table, metavar="RUNS.csv", action="append",
+                   help="an earlier run's runs.csv: the README then says which conclusions changed and by how much "
+                        "(give it more than once to compare with several, e.g. the last committed run and a second "
+                        "fresh run of the same code)")
     r.add_argument("--out", help="output directory, created if missing (default: results); the run's rows join the "
                                  "table there (rows of other scenes, methods and settings are kept). A run that is not "
                                  "the default sweep (--quick, --scenes, ...) writes into results/ only when named: "

@@ -52,7 +52,7 @@ class SweepRequest:
     horizon: float | None = None  # of the energy study; None: sweep.FULL_HORIZON (--quick: QUICK_HORIZON)
     figures: bool = True
     fresh: bool = False
-    compare_with: str | None = None
+    compare_with: tuple[str, ...] = ()  # earlier runs.csv files, one README section each
     command: str = "python -m benchmark run"
 
     @property
@@ -266,11 +266,10 @@ def _sweep_readme(request: SweepRequest, runs, orders, figures, provenance: Prov
                   merged_note: str = "") -> Path:
     from benchmark import runs_report
 
-    compared = ""
-    if request.compare_with:
-        import pandas as pd
+    import pandas as pd
 
-        compared = runs_report.changes_since(pd.read_csv(request.compare_with), runs, f"`{request.compare_with}`")
+    compared = "".join(runs_report.changes_since(pd.read_csv(earlier), runs, f"`{earlier}`")
+                       for earlier in request.compare_with)
     horizons = {"sweep": request.sweep_t_end, "energy study": request.energy_horizon if request.figures else 0.0}
     return runs_report.write_readme(request.out, runs, orders, provenance=provenance, figures=figures,
                                     compared=compared, horizons=horizons, table=table, failures=failures,
