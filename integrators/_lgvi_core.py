@@ -133,6 +133,62 @@ def tridiag_solve(sub, diag, sup, rhs):
     return ys
 
 
+class FixedTridiag:
+    """A constant tridiagonal matrix (the string rows at a fixed length), factored once.
+
+    The Thomas factors are computed here in numpy, so a solve is two first-order linear
+    recurrences with constant coefficients (d_i = a_i d_{i-1} + r_i / den_i, then
+    y_i = b_i y_{i+1} + d_i) and no divisions. ``ends`` = A⁻¹ e_N (the tip column, which the
+    body term multiplies) is a constant too.
+    """
+
+    def __init__(self, sub, diag, sup):
+        sub, diag, sup = (np.asarray(a, dtype=float) for a in (sub, diag, sup))
+        n = diag.shape[0]
+        invden, cp = np.empty(n), np.empty(n)
+        prev = 0.0
+        for i in range(n):
+            den = diag[i] - (sub[i] * prev if i else 0.0)
+            invden[i], cp[i] = 1.0 / den, sup[i] / den
+            prev = cp[i]
+        self.invden, self.fwd, self.bwd = invden, -sub * invden, -cp
+        self.fwd[0] = 0.0
+        e = np.zeros(n)
+        e[-1] = 1.0
+        self.ends = self._solve_np(e)
+
+    def _solve_np(self, r):
+        d = r * self.invden
+        for i in range(1, d.shape[0]):
+            d[i] += self.fwd[i] * d[i - 1]
+        for i in range(d.shape[0] - 2, -1, -1):
+            d[i] += self.bwd[i] * d[i + 1]
+        return d
+
+    def __call__(self, rhs):
+        """A⁻¹ rhs, rhs (n, k)."""
+        n = rhs.shape[0]
+        d0 = rhs * self.invden[:, None]
+        if n <= UNROLL_MAX:
+            d = [d0[0]]
+            for i in range(1, n):
+                d.append(self.fwd[i] * d[-1] + d0[i])
+            y = [d[-1]]
+            for i in range(n - 2, -1, -1):
+                y.append(self.bwd[i] * y[-1] + d[i])
+            return jnp.stack(y[::-1])
+
+        def rec(prev, row):
+            a, r = row
+            out = a * prev + r
+            return out, out
+
+        zero = jnp.zeros(rhs.shape[1:], rhs.dtype)
+        _, d = jax.lax.scan(rec, zero, (jnp.asarray(self.fwd), d0), unroll=8)
+        _, y = jax.lax.scan(rec, zero, (jnp.asarray(np.append(self.bwd[:-1], 0.0)), d), reverse=True, unroll=8)
+        return y
+
+
 @dataclass
 class StepContext:
     """Quantities of g_k used by one step (mass terms at g_k)."""
@@ -209,6 +265,14 @@ class DiscreteLagrangian:
         self.node_forced = bool(model.string_forces)
         #: w = M(x, R)⁻¹ p by the structured O(N) solve (string forcing, the LGVI's energy guard)
         self.legendre = ClosedFormEOM(model).velocity_from_momentum
+        #: at a fixed length the string rows' matrix is a constant: factored once
+        self.fixed_rows = None if self.reel else FixedTridiag(*self._fixed_coeffs())
+
+    def _fixed_coeffs(self):
+        """(sub, diag, sup) of the q rows at the fixed length (numpy; `q_coeffs` with Δs = 0)."""
+        mul = self.model.mu * (self.model.L - self.model.s_fixed) / self.N
+        return tuple(np.asarray(a) for a in (mul * self.msub, mul * self.mdiag + self.model.m_b * self.e_last,
+                                             mul * self.msup))
 
     # -------------------------------------------------------------------------------------
     def context(self, t, x, R, gradV, p=None) -> StepContext:
@@ -398,8 +462,10 @@ class DiscreteLagrangian:
         One Thomas pass with four right-hand sides:
         A(Δs) [u | v] = [h p_q − C Δs − (h²/2)(∇_q V_k − Q_q,k) | e_N]  (Q_q,k: explicit string forcing).
         """
-        sub, diag, sup = self.q_coeffs(ctx, ds)
         rhs = h * pq - ctx.C * ds - (0.5 * h * h) * (ctx.dVq - ctx.fq)
+        if self.fixed_rows is not None:
+            return self.fixed_rows(rhs), jnp.asarray(self.fixed_rows.ends)
+        sub, diag, sup = self.q_coeffs(ctx, ds)
         sol = tridiag_solve(sub, diag, sup, jnp.concatenate([rhs, self.e_last[:, None]], axis=1))
         return sol[:, :3], sol[:, 3]
 
