@@ -184,8 +184,8 @@ class FixedTridiag:
             return out, out
 
         zero = jnp.zeros(rhs.shape[1:], rhs.dtype)
-        _, d = jax.lax.scan(rec, zero, (jnp.asarray(self.fwd), d0), unroll=8)
-        _, y = jax.lax.scan(rec, zero, (jnp.asarray(np.append(self.bwd[:-1], 0.0)), d), reverse=True, unroll=8)
+        _, d = jax.lax.scan(rec, zero, (jnp.asarray(self.fwd), d0))
+        _, y = jax.lax.scan(rec, zero, (jnp.asarray(np.append(self.bwd[:-1], 0.0)), d), reverse=True)
         return y
 
 
