@@ -52,12 +52,17 @@ def test_tiny_sweep_rows_statuses_and_orders(tmp_path, flaky_integrators):
     assert list(runs.columns[: len(COLUMNS)]) == COLUMNS
     ok = runs[runs["status"] == "ok"]
     assert set(ok["integrator"]) == {"lgvi", "rk45"} and len(ok) == 4
-    for col in ACCURACY + ["run_time", "steps", "run_time_low", "run_time_high", "load_avg", "us_per_eval"]:
+    for col in ACCURACY + ["run_time", "steps", "run_time_low", "run_time_high", "load_avg", "flops"]:
         assert np.all(np.isfinite(ok[col].astype(float))), col
+    assert (ok["flops"] > 0).all() and ok["flops_note"].str.len().gt(0).all()
     # the timing spread: the median of as many solves as fit in the budget, between the fastest and the slowest
     assert (ok["run_time_low"] <= ok["run_time"]).all() and (ok["run_time"] <= ok["run_time_high"]).all()
     assert (ok["timing_repeats"] >= 1).all() and (ok["timing_repeats"] <= sweep.MAX_REPEATS).all()
-    np.testing.assert_allclose(ok["us_per_eval"], 1e6 * ok["run_time"] / ok["work_evals"])
+    # per right-hand-side evaluation where they are counted (rk45); the LGVI evaluates none
+    rk = ok[ok["integrator"] == "rk45"]
+    np.testing.assert_allclose(rk["us_per_eval"], 1e6 * rk["run_time"] / rk["rhs_evals"])
+    assert ok.loc[ok["integrator"] == "lgvi", "us_per_eval"].isna().all()
+    assert (ok["implementation"] == "jax-compiled").sum() == 2 and (ok["implementation"] == "scipy-python").sum() == 2
     assert runs["row_digest"].notna().all() and runs["scene_key"].notna().all()
     assert (ok["position_error_final"] < 1e-2).all()
     raised = runs[runs["integrator"] == "test_raises"]
