@@ -18,7 +18,7 @@ def test_rhs_flops_scale_with_the_evaluations(model):
     one, note = flops.run_flops("rk45", model, {"rhs_evals": 100, "steps": 16}, "closed_form")
     two, _ = flops.run_flops("rk45", model, {"rhs_evals": 200, "steps": 32}, "closed_form")
     assert one > 0 and two == pytest.approx(2 * one) and note == flops.FROM_RHS
-    f_eval, f_jac = flops.rhs_flops(model, "closed_form")
+    f_eval, f_jac = flops.rhs_flops(model, "closed_form"), flops.rhs_flops(model, "closed_form", True)
     assert one == pytest.approx(100 * f_eval) and f_jac > f_eval > 0
     ny = model.layout.ny
     with_jac, _ = flops.run_flops("radau", model, {"rhs_evals": 100, "jac_evals": 2, "lu_decompositions": 3},
