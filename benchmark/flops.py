@@ -8,11 +8,12 @@ Runge–Kutta method are no longer both "1":
   evaluation of the right-hand side it ran (``rhs`` column), plus ``jac_evals`` × one compiled
   forward-mode Jacobian, plus ``lu_decompositions`` × (2/3) ny³ (a dense LU, counted, since
   scipy factors outside XLA);
-* a method with its own discrete equations (the LGVI family): ``steps`` × the flops of one
-  compiled step. XLA's cost model counts the body of a loop once, so the step's loops are
+* a fixed-step method that counts no evaluations (the LGVI family, RATTLE): ``steps`` × the
+  flops of one compiled step. XLA's cost model counts the body of a loop once, so the step's loops are
   multiplied by their trip counts here: a ``scan`` by its length, a ``while_loop`` (the Newton
   iteration, the symmetric scheme's forcing fixed point) by the run's mean Newton iterations
-  per (sub)step, which is exact for the one Newton loop of the paper's LGVI.
+  per (sub)step, which is exact for the one Newton loop of the paper's LGVI (a method that
+  reports no iteration count gets its while loops once per step, and its note says so).
 
 Where a count cannot be had the row gets no number and ``flops_note`` says why (never a zero).
 Compiled pieces are cached per process (model, method, right-hand side).
@@ -106,25 +107,40 @@ def extra_flops(terms, while_trips: float) -> float:
 
 
 @functools.lru_cache(maxsize=64)
-def step_cost(name: str, model) -> tuple[float, tuple]:
-    """(XLA's one-pass flops of one step, its loop terms) of the fixed-step method ``name``."""
+def step_cost(name: str, model, rhs: str | None = None) -> tuple[float, tuple]:
+    """(XLA's one-pass flops of one step, its loop terms) of the fixed-step method ``name``
+    (``rhs``: the right-hand side its ``ode.f`` is, for a method that uses one)."""
     from models._jax import jax
     from integrators import get_integrator
     from integrators.lifecycle import ODEProblem
 
+    from integrators.rhs import DEFAULT_RHS, ode_rhs
+
     integ = get_integrator(name)
+    f = ode_rhs(model, rhs or DEFAULT_RHS) if getattr(integ, "uses_rhs", False) else None
     params = integ.run_parameters(integ.check_options({}))
-    y0 = tuple(np.asarray(a, dtype=float) for a in model.initial_state())
+    # what ``init`` starts from: the ODE state by default (`FixedStepMethod.initial_state`);
+    # the LGVI family overrides it with (x, R, p), p shaped like w
+    from integrators.fixed_step import FixedStepMethod
+
+    if type(integ).initial_state is FixedStepMethod.initial_state:
+        y0 = np.asarray(model.initial_ode_state(), dtype=float)
+    else:
+        y0 = tuple(np.asarray(a, dtype=float) for a in model.initial_state())
 
     def step(carry, t, h, prm):
-        ode = ODEProblem(model=model, f=None, layout=model.layout, params=prm)
+        ode = ODEProblem(model=model, f=f, layout=model.layout, params=prm)
         out = integ.step(ode, carry, t, h)
         return out
 
-    ode0 = ODEProblem(model=model, f=None, layout=model.layout, params=params)
+    ode0 = ODEProblem(model=model, f=f, layout=model.layout, params=params)
     carry = jax.eval_shape(lambda y: integ.init(ode0, y), y0)
     closed = jax.make_jaxpr(step)(carry, np.float64(0.0), np.float64(1e-3), params)
     return _body_flops(closed), tuple(loop_terms(closed))
+
+
+def _has_while(terms) -> bool:
+    return any(kind == "while" or _has_while(nested) for kind, _, _, nested in terms)
 
 
 def run_flops(integrator: str, model, stats: dict, rhs: str | None) -> tuple[float, str]:
@@ -145,12 +161,16 @@ def run_flops(integrator: str, model, stats: dict, rhs: str | None) -> tuple[flo
         from integrators import get_integrator
 
         integ = get_integrator(integrator)
-        if steps is None or getattr(integ, "uses_rhs", True) or not hasattr(integ, "step"):
+        if steps is None or not (hasattr(integ, "step") and hasattr(integ, "init")):
             return np.nan, "no flops: the method reports neither RHS evaluations nor a compiled step"
-        base, terms = step_cost(integrator, model)
+        base, terms = step_cost(integrator, model, rhs if getattr(integ, "uses_rhs", False) else None)
         scheme = getattr(integ, "scheme", None)
         substeps = scheme.substeps if scheme is not None else 1
-        per_solve = (count("newton_iterations") or steps) / max(steps * substeps, 1.0)
-        return steps * (base + extra_flops(terms, per_solve)), FROM_STEP
+        newton = count("newton_iterations")
+        per_solve = (newton or steps * substeps) / max(steps * substeps, 1.0)
+        note = FROM_STEP
+        if newton is None and _has_while(terms):
+            note += "; this method reports no iteration count: its while loops counted once per step (a lower bound)"
+        return steps * (base + extra_flops(terms, per_solve)), note
     except Exception as exc:  # a count that fails must not lose the row
         return np.nan, f"no flops: counting failed ({type(exc).__name__}: {str(exc).splitlines()[0][:120]})"
