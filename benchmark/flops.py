@@ -34,7 +34,12 @@ def xla_flops(fn, *args) -> float:
     """Flops of ``fn(*args)`` by XLA's cost model of the compiled function (loops counted once)."""
     from models._jax import jax
 
-    cost = jax.jit(fn).lower(*args).compile().cost_analysis()
+    return compiled_flops(jax.jit(fn).lower(*args).compile())
+
+
+def compiled_flops(compiled) -> float:
+    """The ``flops`` of a compiled executable's ``cost_analysis()`` (a dict, or a list of one)."""
+    cost = compiled.cost_analysis()
     cost = cost[0] if isinstance(cost, (list, tuple)) else cost
     return float(cost.get("flops", np.nan))
 
@@ -42,14 +47,12 @@ def xla_flops(fn, *args) -> float:
 @functools.lru_cache(maxsize=64)
 def rhs_flops(model, rhs: str, jacobian: bool = False) -> float:
     """Flops of one evaluation of the right-hand side ``rhs`` (``jacobian``: of one forward-mode
-    Jacobian of it, compiled only for the methods that evaluate one)."""
-    from models._jax import jax
-    from integrators.rhs import ode_rhs
+    Jacobian of it). Through the jitted functions the scipy methods call (`integrators.rhs`),
+    so that after such a run the executable is already compiled (a cache hit, not a compile)."""
+    from integrators.rhs import jacobian_jit, rhs_jit
 
-    f = ode_rhs(model, rhs)
-    y = jax.ShapeDtypeStruct((model.layout.ny,), np.float64)
-    t = jax.ShapeDtypeStruct((), np.float64)
-    return xla_flops(jax.jacfwd(f, argnums=1) if jacobian else f, t, y)
+    f = (jacobian_jit if jacobian else rhs_jit)(model, rhs)
+    return compiled_flops(f.lower(0.0, np.asarray(model.initial_ode_state(), dtype=float)).compile())
 
 
 def _sub_jaxprs(eqn):
