@@ -1,6 +1,7 @@
 """Speed: time per step of every fixed-step method, and per-call cost of each right-hand side, vs N.
 
-    python -m benchmark speed --elements 10,40,160,640 --scenes fixed_length,deployment --steps 2000
+    python -m benchmark speed                      # short: N = 10 on fixed_length, under a minute
+    python -m benchmark speed --elements 10,40,160,640 --scenes fixed_length,deployment   # the full run
 
 Two tables:
 
@@ -63,8 +64,9 @@ def check_methods(methods) -> None:
 class SpeedRequest:
     """What `python -m benchmark speed` measures (its options)."""
 
-    elements: tuple = (10, 40, 160, 640)
-    scenes: tuple = ("fixed_length", "deployment")
+    # the default run stays short (under a minute on one core); the full run names 160 and 640
+    elements: tuple = (10,)
+    scenes: tuple = ("fixed_length",)
     methods: tuple | None = None  # None: every fixed-step method
     steps: int = 2000
     repeats: int = 3
@@ -75,8 +77,9 @@ class SpeedRequest:
 
 def measure(scene_name: str, n: int, steps: int, repeats: int, dt: float | None = None, method: str = "lgvi") -> dict:
     """Time per step of ``method`` at a constant step on ``scene_name`` with N = n."""
+    from benchmark.flops import run_flops
     from integrators import get_integrator  # JAX: only once the options are known good
-    from models import load_scene
+    from models import build_model, load_scene
 
     scene = load_scene(scene_name, elements=n)
     h = dt or DEFAULT_DT10.get(scene_name, 0.002) * 10.0 / n
@@ -93,10 +96,15 @@ def measure(scene_name: str, n: int, steps: int, repeats: int, dt: float | None 
         tr = integ.solve(scene, **kw)
         times.append(tr.stats["wall_time"] / max(tr.stats["steps"], 1))
     per = statistics.median(times) if times else float("nan")
+    steps_run = max(tr.stats["steps"], 1)
     newton = tr.stats.get("newton_iterations")
+    evals = tr.stats.get("rhs_evals")
+    flops, note = run_flops(method, build_model(scene), tr.stats, tr.stats.get("rhs"))
     return {"method": method, "scene": scene_name, "N": n, "dt": h, "compile_s": first.stats.get("compile_time", np.nan),
             "us_per_step": per * 1e6, "steps_per_s": 1.0 / per if per > 0 else np.nan,
-            "newton_per_step": newton / max(tr.stats["steps"], 1) if newton is not None else np.nan,
+            "us_per_eval": per * 1e6 * steps_run / evals if evals else np.nan,
+            "flops_per_step": flops / steps_run, "flops_note": note,
+            "newton_per_step": newton / steps_run if newton is not None else np.nan,
             "status": tr.status}
 
 
@@ -162,6 +170,7 @@ def run_job(job) -> dict:
 def describe(r: dict) -> str:
     if r["kind"] == "step":
         return (f"{r['method']} {r['scene']} N={r['N']} dt={r['dt']:.3g}: {r['us_per_step']:.2f} us/step, "
+                f"{r['us_per_eval']:.2f} us/eval, {r['flops_per_step']:.3g} flops/step, "
                 f"compile {r['compile_s']:.2f} s, {r['newton_per_step']:.2f} newton/step, {r['status']}")
     if "skipped" in r:
         return f"rhs {r['rhs']} {r['scene']} N={r['N']}: skipped ({r['skipped']})"
@@ -187,10 +196,17 @@ def _slope(rows, key):
     return float(np.polyfit(np.log([p[0] for p in pts]), np.log([p[1] for p in pts]), 1)[0])
 
 
+def _num(value, fmt: str, why: str) -> str:
+    """A number, or why there is none (never a silent blank)."""
+    return format(value, fmt) if np.isfinite(value) else f"— ({why})"
+
+
 def _step_tables(rows: list[dict]) -> tuple[list[str], list[str]]:
-    md = ["| method | scene | N | dt (s) | compile (s) | µs/step | steps/s | Newton iterations/step | status |",
-          "|---|---|---|---|---|---|---|---|---|"]
+    md = ["| method | scene | N | dt (s) | compile (s) | µs/step | µs/evaluation | flops/step | steps/s "
+          "| Newton iterations/step | status |",
+          "|---|---|---|---|---|---|---|---|---|---|---|"]
     md += [f"| {r['method']} | {r['scene']} | {r['N']} | {r['dt']:.3g} | {r['compile_s']:.2f} | {r['us_per_step']:.2f} "
+           f"| {_num(r['us_per_eval'], '.2f', 'no RHS evaluations')} | {_num(r['flops_per_step'], '.3g', r['flops_note'])} "
            f"| {r['steps_per_s']:.0f} | {r['newton_per_step']:.2f} | {r['status']} |" for r in rows]
     summary = [f"| method | scene | µs/step at N = 10 | ratio N={RATIO_MAX_N} / N=10 | log-log slope |",
                "|---|---|---|---|---|"]
@@ -218,6 +234,8 @@ def document(rows: list[dict], provenance: Provenance) -> str:
     rhs = _rhs_table([r for r in rows if r["kind"] == "rhs"])
     return (f"# Speed of the fixed-step methods and of the right-hand sides\n\n{provenance.header()}\n\n"
             "Time per step: the whole `solve()` after compilation (output conversion included), divided by the "
-            "steps, median of repeats; compile time apart.\n\n"
+            "steps, median of repeats; compile time apart. µs/evaluation: the same time per right-hand-side "
+            "evaluation (methods that count them); flops/step: XLA's cost model of the compiled step or right-hand "
+            "side times the run's counts (`benchmark.flops`).\n\n"
             + "\n".join(md) + "\n\n## Scaling with N\n\n" + "\n".join(summary)
             + "\n\n## Right-hand side per call (jitted, called from numpy)\n\n" + "\n".join(rhs) + "\n")

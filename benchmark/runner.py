@@ -6,9 +6,12 @@ errors, then a separate timing pass (compilation excluded) of `timing_repeats` s
 `benchmark.sweep.TIMING_BUDGET`: ``run_time`` is their median, ``run_time_low`` the fastest,
 ``run_time_high`` the 90th percentile (10 or more solves) or the slowest, ``timing_repeats``
 their count and ``load_avg`` the machine's 1-minute load when the row finished (timings on a
-loaded machine are inflated). ``us_per_eval`` is the run time per right-hand-side-equivalent
-evaluation (`benchmark.metrics.WORK_DEFINITION`; empty where a method reports no count), and
-``implementation`` the method's declared kind ("jax-compiled" or "scipy-python").
+loaded machine are inflated). ``us_per_eval`` is the run time per right-hand-side evaluation
+(``run_time / rhs_evals``; empty where a method counts none, e.g. the LGVI, which evaluates no
+right-hand side), ``implementation`` the method's declared kind ("jax-compiled" or
+"scipy-python"), ``flops`` the run's floating-point operations from XLA's cost model times its
+counts (`benchmark.flops`; the one-unit work axis) and ``flops_note`` how they were counted,
+or why a row has none.
 
 A failed or diverged run becomes a row with its status; an exception inside a task becomes a row
 with status "error"; a crashed worker becomes a row with status "crashed". The sweep goes on.
@@ -30,6 +33,7 @@ import numpy as np
 import pandas as pd
 
 from benchmark import engine
+from benchmark.flops import run_flops
 from benchmark.metrics import ACCURACY, COLUMNS, run_metrics, work_evals
 from benchmark.reference import CACHE_DIR, ReferenceProblem, get_reference, prepare_reference
 from benchmark.report import shorten
@@ -40,7 +44,7 @@ from benchmark.sweep import EXECUTORS, MAX_REPEATS, MIN_REPEATS, TIMING_BUDGET, 
 STEP_STATS = ("rejected_steps", "min_step", "median_step", "max_step", "max_newton_iterations")
 #: Columns after `benchmark.metrics.COLUMNS`: the timing spread and the implementation ...
 TIMING_COLUMNS = ["implementation", "run_time_low", "run_time_high", "timing_repeats", "load_avg", "us_per_eval",
-                  "task_time"]
+                  "flops", "flops_note", "task_time"]
 #: ... and a row's identity: the scene's physics hash, the resume key and the row's digest.
 IDENTITY_COLUMNS = ["scene_key", "run_key", "row_digest"]
 RUN_COLUMNS = COLUMNS + TIMING_COLUMNS + IDENTITY_COLUMNS
@@ -121,7 +125,7 @@ def _timing(first: float, repeat: Callable[[], float], least: int) -> dict:
 
 
 def us_per_eval(run_time: float, evals: float) -> float:
-    """Microseconds of run time per right-hand-side-equivalent evaluation; NaN without a count."""
+    """Microseconds of run time per right-hand-side evaluation; NaN without a count."""
     if np.isfinite(run_time) and np.isfinite(evals) and evals > 0:
         return 1e6 * run_time / evals
     return np.nan
@@ -166,14 +170,16 @@ def _solved_row(task: Task, cache_dir: str, repeats: int, reference: bool, finis
     integ = get_integrator(task.integrator)
     kw = {**task.solve_kwargs(), "t_end": t_end}
     traj = integ.solve(scene, **kw)
-    row.update(_run_columns(traj, build_model(scene).layout.ny))
+    model = build_model(scene)
+    row.update(_run_columns(traj, model.layout.ny))
+    row["flops"], row["flops_note"] = run_flops(task.integrator, model, traj.stats, row["rhs"])
     row.update(run_metrics(scene, traj, ref, task.save_every, finished))
     if traj.ok and repeats > 0:  # timing pass, separate from the error computation
         again = lambda: integ.solve(scene, **kw).stats.get("wall_time", np.nan)  # noqa: E731
         row.update(_timing(row["run_time"], again, repeats))
     else:
         row.update(timing_summary([row["run_time"]]))
-    row["us_per_eval"] = us_per_eval(row["run_time"], row["work_evals"])
+    row["us_per_eval"] = us_per_eval(row["run_time"], row["rhs_evals"])
     return row
 
 

@@ -125,7 +125,7 @@ def answers(runs: pd.DataFrame, table: pd.DataFrame) -> str:
 
 
 def evaluation_costs(runs: pd.DataFrame) -> pd.DataFrame:
-    """µs of run time per RHS-equivalent evaluation of each method over its finished runs
+    """µs of run time per right-hand-side evaluation of each method over its finished runs
     (median and range), by implementation; a method without an evaluation count says so."""
     ok = runs[runs["status"] == "ok"].assign(implementation=implementations(runs))
     rows = []
@@ -136,7 +136,7 @@ def evaluation_costs(runs: pd.DataFrame) -> pd.DataFrame:
                      "us_per_eval_median": float(v.median()) if len(v) else np.nan,
                      "us_per_eval_min": float(v.min()) if len(v) else np.nan,
                      "us_per_eval_max": float(v.max()) if len(v) else np.nan,
-                     "note": "" if len(v) else "no evaluation count: the method reports none (no work cost either)"})
+                     "note": "" if len(v) else "no right-hand-side evaluations counted (its own discrete equations, or no count): see flops"})
     return pd.DataFrame(rows, columns=["implementation", "integrator", "runs", "us_per_eval_median", "us_per_eval_min",
                                        "us_per_eval_max", "note"])
 
@@ -347,7 +347,9 @@ the LGVI's velocity recovery) minus its compilation, timed in a separate pass fr
 computation: `run_time` is the median of `timing_repeats` solves (as many as fit in a {TIMING_BUDGET:g} s budget,
 {MIN_REPEATS} to {MAX_REPEATS}; one when a single solve takes longer), `run_time_low` the fastest, `run_time_high` the
 90th percentile (10 or more solves) or the slowest, `load_avg` the machine's 1-minute load when
-the row ran. `us_per_eval` is the run time per RHS-equivalent evaluation and `implementation`
+the row ran. `us_per_eval` is the run time per right-hand-side evaluation (empty for a method that counts none, e.g. the
+LGVI), `flops` the run's floating-point operations (XLA's cost model of one compiled step or right-hand side
+times the counts; `flops_note` says how, or why a row has none) and `implementation`
 the method's declared kind (`jax-compiled` or `scipy-python`).
 Errors are against a {ref["integrator"].upper()} reference at rtol {ref["rtol"]:g} / atol {ref["atol"]:g} on the same model. Every row
 names the right-hand side it ran (`rhs`: the O(N) closed form unless a run asked for `autodiff`).

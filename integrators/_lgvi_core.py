@@ -11,9 +11,11 @@ Per step, with X = (Δs, Δq_2..Δq_{N+1}, c) and F = cay(c) = (I + ĉ)(I − ĉ
   known body term m_b R_k (F − I) ρ_c on the right-hand side), solved by the Thomas algorithm
   in O(N);
 * what is left is a reduced nonlinear system in z = (Δs if reel, c if rigid body), at most
-  4 unknowns (the s_p row and the Π row), solved by Newton with a Jacobian from
-  ``jax.jacfwd`` through the tridiagonal solve. Fixed length with a point mass needs no
-  Newton at all (one linear solve per step).
+  4 unknowns (the s_p row and the Π row), solved by Newton with a Jacobian assembled by the
+  chain rule: the Cayley pieces in closed form (`cayley_apply_jac`, `cayley_moment_jac`), the
+  Δs-derivative of the tridiagonal solve by forward mode through it. At a fixed length the
+  string rows' matrix is a constant, factored once (`FixedTridiag`). Fixed length with a point
+  mass needs no Newton at all (one linear solve per step).
 
 `hp_k_full` / `hp_k1` give the full closed-form residual sides for testing against the
 autodiff discrete Lagrangian (tests/test_lgvi.py).
@@ -57,6 +59,26 @@ def cayley(c):
     """F = (I + ĉ)(I − ĉ)⁻¹ = ((1 − |c|²) I + 2 ĉ + 2 c cᵀ) / (1 + |c|²)."""
     cc = c @ c
     return ((1.0 - cc) * jnp.eye(3) + 2.0 * hat(c) + 2.0 * jnp.outer(c, c)) / (1.0 + cc)
+
+
+def cayley_apply_jac(c, rho):
+    """(F ρ, ∂(F ρ)/∂c) for F = cay(c), in closed form (the derivative of `cayley`'s formula):
+    with n = (1 − |c|²) ρ + 2 c × ρ + 2 c (c·ρ) and d = 1 + |c|²,
+    ∂(n/d)/∂c = (2 c ρᵀ − 2 ρ cᵀ − 2 ρ^ + 2 (c·ρ) I) / d − n (2 cᵀ) / d²."""
+    d = 1.0 + c @ c
+    cr = c @ rho
+    n = (2.0 - d) * rho + 2.0 * jnp.cross(c, rho) + 2.0 * cr * c
+    dn = 2.0 * (jnp.outer(c, rho) - jnp.outer(rho, c) - hat(rho) + cr * jnp.eye(3))
+    return n / d, dn / d - jnp.outer(n, 2.0 * c) / (d * d)
+
+
+def cayley_moment_jac(c, J):
+    """(m, ∂m/∂c) of m = (F J_d − J_d Fᵀ)^∨ = 2 (J c + c × J c) / (1 + |c|²), J = J_o, in
+    closed form: ∂m/∂c = 2 (J + ĉ J − (J c)^) / d − m (2 cᵀ) / d."""
+    d = 1.0 + c @ c
+    Jc = J @ c
+    m = 2.0 * (Jc + jnp.cross(c, Jc)) / d
+    return m, 2.0 * (J + hat(c) @ J - hat(Jc)) / d - jnp.outer(m, 2.0 * c) / d
 
 
 def small_solve(J, r):
@@ -131,6 +153,62 @@ def tridiag_solve(sub, diag, sup, rhs):
 
     _, ys = jax.lax.scan(bwd, jnp.zeros(rhs.shape[1:], rhs.dtype), (cp, dp), reverse=True, unroll=8)
     return ys
+
+
+class FixedTridiag:
+    """A constant tridiagonal matrix (the string rows at a fixed length), factored once.
+
+    The Thomas factors are computed here in numpy, so a solve is two first-order linear
+    recurrences with constant coefficients (d_i = a_i d_{i-1} + r_i / den_i, then
+    y_i = b_i y_{i+1} + d_i) and no divisions. ``ends`` = A⁻¹ e_N (the tip column, which the
+    body term multiplies) is a constant too.
+    """
+
+    def __init__(self, sub, diag, sup):
+        sub, diag, sup = (np.asarray(a, dtype=float) for a in (sub, diag, sup))
+        n = diag.shape[0]
+        invden, cp = np.empty(n), np.empty(n)
+        prev = 0.0
+        for i in range(n):
+            den = diag[i] - (sub[i] * prev if i else 0.0)
+            invden[i], cp[i] = 1.0 / den, sup[i] / den
+            prev = cp[i]
+        self.invden, self.fwd, self.bwd = invden, -sub * invden, -cp
+        self.fwd[0] = 0.0
+        e = np.zeros(n)
+        e[-1] = 1.0
+        self.ends = self._solve_np(e)
+
+    def _solve_np(self, r):
+        d = r * self.invden
+        for i in range(1, d.shape[0]):
+            d[i] += self.fwd[i] * d[i - 1]
+        for i in range(d.shape[0] - 2, -1, -1):
+            d[i] += self.bwd[i] * d[i + 1]
+        return d
+
+    def __call__(self, rhs):
+        """A⁻¹ rhs, rhs (n, k)."""
+        n = rhs.shape[0]
+        d0 = rhs * self.invden[:, None]
+        if n <= UNROLL_MAX:
+            d = [d0[0]]
+            for i in range(1, n):
+                d.append(self.fwd[i] * d[-1] + d0[i])
+            y = [d[-1]]
+            for i in range(n - 2, -1, -1):
+                y.append(self.bwd[i] * y[-1] + d[i])
+            return jnp.stack(y[::-1])
+
+        def rec(prev, row):
+            a, r = row
+            out = a * prev + r
+            return out, out
+
+        zero = jnp.zeros(rhs.shape[1:], rhs.dtype)
+        _, d = jax.lax.scan(rec, zero, (jnp.asarray(self.fwd), d0))
+        _, y = jax.lax.scan(rec, zero, (jnp.asarray(np.append(self.bwd[:-1], 0.0)), d), reverse=True)
+        return y
 
 
 @dataclass
@@ -209,6 +287,14 @@ class DiscreteLagrangian:
         self.node_forced = bool(model.string_forces)
         #: w = M(x, R)⁻¹ p by the structured O(N) solve (string forcing, the LGVI's energy guard)
         self.legendre = ClosedFormEOM(model).velocity_from_momentum
+        #: at a fixed length the string rows' matrix is a constant: factored once
+        self.fixed_rows = None if self.reel else FixedTridiag(*self._fixed_coeffs())
+
+    def _fixed_coeffs(self):
+        """(sub, diag, sup) of the q rows at the fixed length (numpy; `q_coeffs` with Δs = 0)."""
+        mul = self.model.mu * (self.model.L - self.model.s_fixed) / self.N
+        return tuple(np.asarray(a) for a in (mul * self.msub, mul * self.mdiag + self.model.m_b * self.e_last,
+                                             mul * self.msup))
 
     # -------------------------------------------------------------------------------------
     def context(self, t, x, R, gradV, p=None) -> StepContext:
@@ -398,8 +484,10 @@ class DiscreteLagrangian:
         One Thomas pass with four right-hand sides:
         A(Δs) [u | v] = [h p_q − C Δs − (h²/2)(∇_q V_k − Q_q,k) | e_N]  (Q_q,k: explicit string forcing).
         """
-        sub, diag, sup = self.q_coeffs(ctx, ds)
         rhs = h * pq - ctx.C * ds - (0.5 * h * h) * (ctx.dVq - ctx.fq)
+        if self.fixed_rows is not None:
+            return self.fixed_rows(rhs), jnp.asarray(self.fixed_rows.ends)
+        sub, diag, sup = self.q_coeffs(ctx, ds)
         sol = tridiag_solve(sub, diag, sup, jnp.concatenate([rhs, self.e_last[:, None]], axis=1))
         return sol[:, :3], sol[:, 3]
 
@@ -421,8 +509,10 @@ class DiscreteLagrangian:
         else:
             u, v = uv
             du, dv = jnp.zeros_like(u), jnp.zeros_like(v)
-        if self.rigid:
-            Bc, b = jax.jacfwd(lambda cc: (self.body_of_c(ctx, cc),) * 2, has_aux=True)(c)
+        if self.rigid:  # b = m_b R_k (F − I) ρ_c and ∂b/∂c, in closed form (no autodiff per iteration)
+            Frho, dFrho = cayley_apply_jac(c, self.rho)
+            b = self.model.m_b * (ctx.R @ (Frho - self.rho))
+            Bc = self.model.m_b * (ctx.R @ dFrho)
         else:
             b, Bc = jnp.zeros(3), jnp.zeros((3, 3))
         dq = u - v[:, None] * b[None, :]
@@ -436,9 +526,10 @@ class DiscreteLagrangian:
                 row.append(-(v @ g_q) @ Bc)
             rows.append(jnp.concatenate(row))
         if self.rigid:
-            (P_c, P_t), val = jax.jacfwd(lambda cc, tt: (self.hp_Pi(ctx, h, cc, tt),) * 2, argnums=(0, 1),
-                                         has_aux=True)(c, dq[-1])
-            r.append(val - h * Pi)
+            # hp_Pi = moment(c) + m_b ρ × R_kᵀ Δq_tip + const: its derivatives in closed form
+            _, P_c = cayley_moment_jac(c, self.J_o)
+            P_t = self.model.m_b * (hat(self.rho) @ ctx.R.T)
+            r.append(self.hp_Pi(ctx, h, c, dq[-1]) - h * Pi)
             blk = P_c - v[-1] * (P_t @ Bc)
             if self.reel:
                 blk = jnp.concatenate([(P_t @ dq_ds[-1])[:, None], blk], axis=1)
