@@ -277,6 +277,9 @@ class Integrator(abc.ABC):
     #: shared ones (`benchmark.sweep.FULL_RTOLS`) reach past the method's useful range; None: the
     #: shared ones. (``--rtols`` and ``--quick`` override it.)
     sweep_rtols: ClassVar[tuple[float, ...] | None] = None
+    #: whether `benchmark run` without ``--integrators`` runs this method; False: an extended-sweep
+    #: method, run when named (its rows merge into the same table)
+    default_sweep: ClassVar[bool] = True
     #: (compile seconds per scene, run cost per step relative to an explicit RK step): a rough
     #: scheduling hint (the stability map starts the longest jobs first), never a result
     cost_hint: ClassVar[tuple[float, float]] = (30.0, 1.0)

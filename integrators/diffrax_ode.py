@@ -350,6 +350,7 @@ class Dopri8(DiffraxODE):
     order = 8
     description = ("diffrax Dopri8: Prince-Dormand 8(7), compiled (an 8th-order pair like DOP853's, not its "
                    "tableau); PID-adaptive or constant step, quaternion attitude")
+    horizon_settings = {"rtol": 1e-8, "atol": 1e-10}
 
 
 class Kvaerno5(DiffraxODE):
