@@ -188,3 +188,17 @@ def test_a_method_s_own_sweep_tolerances_and_their_overrides():
     assert rtols(full, "dopri5") == sorted(FULL_RTOLS)
     assert rtols(build_tasks(scenes=("fixed_length",), integrators=["rk45"], quick=True), "rk45") == sorted(QUICK_RTOLS)
     assert rtols(build_tasks(scenes=("fixed_length",), integrators=["rk45"], rtols=[1e-10]), "rk45") == [1e-10]
+
+
+def test_extended_sweep_methods_run_only_when_named():
+    """A method declaring ``default_sweep = False`` is left out of `run` without --integrators and
+    runs when named; every other registered method is in the default sweep."""
+    from benchmark.sweep import build_tasks, default_names
+    from integrators import get_integrator
+
+    default = {t.integrator for t in build_tasks(scenes=("fixed_length",))}
+    extended = {n for n in default_names() if not get_integrator(n).default_sweep}
+    assert {"rk45_projected", "dopri5", "dopri8", "kvaerno5", "crouch_grossman3"} <= extended
+    assert default == set(default_names()) - extended and {"lgvi", "lie_rk4", "rattle", "rk45", "radau"} <= default
+    named = {t.integrator for t in build_tasks(scenes=("fixed_length",), integrators=sorted(extended))}
+    assert named == extended
