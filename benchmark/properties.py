@@ -57,9 +57,8 @@ def property_table(runs: pd.DataFrame, horizon: pd.DataFrame | None) -> pd.DataF
     error of the study and its drift ratio, and the largest orthogonality error."""
     rows = {}
     if horizon is not None and len(horizon):
-        for label, g in horizon.groupby("method", sort=False):
+        for (name, label), g in horizon.groupby(["integrator", "method"], sort=False):
             g = g.sort_values("t")
-            name = str(label).split()[0]
             rows[name] = {"integrator": name, "energy_study": str(label), "horizon_s": float(g["t"].iloc[-1]),
                           "energy_error_max": float(np.max(np.abs(g["energy_error"]))),
                           "drift_ratio": drift_ratio(g["t"].to_numpy(), g["energy_error"].to_numpy())}

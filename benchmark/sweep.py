@@ -134,6 +134,13 @@ def horizon_methods() -> tuple[MethodSettings, ...]:
     return tuple(sorted(chosen, key=lambda m: ("dt" not in m.settings, -m.settings.get("rtol", 0.0))))
 
 
+def _own(shared: tuple, declared: tuple | None, overridden: bool) -> tuple:
+    """A method's settings in the sweep: its declared ones (`Integrator.sweep_dts` /
+    `sweep_rtols`) in the full default sweep, else the shared ones (also whenever the command
+    line or --quick sets them)."""
+    return shared if overridden or not declared else tuple(declared)
+
+
 def build_tasks(
     scenes=PAPER_SCENES,
     integrators=None,
@@ -157,10 +164,9 @@ def build_tasks(
     if quick and t_end is None:
         t_end = QUICK_T_END
     methods = {name: get_integrator(name) for name in names}  # raises for unknown names, before any work
-    own_dts = {name: (dts if given_dts or quick else integ.sweep_dts or dts) for name, integ in methods.items()}
-    own_rtols = {name: (implicit_rtols if integ.has(Capability.IMPLICIT) else rtols)
-                 if given_rtols or quick or integ.sweep_rtols is None else integ.sweep_rtols
-                 for name, integ in methods.items()}
+    own_dts = {name: _own(dts, integ.sweep_dts, given_dts or quick) for name, integ in methods.items()}
+    own_rtols = {name: _own(implicit_rtols if integ.has(Capability.IMPLICIT) else rtols, integ.sweep_rtols,
+                            given_rtols or quick) for name, integ in methods.items()}
     check_settings(tuple(v for d in own_dts.values() for v in d) + dts,
                    tuple(v for r in own_rtols.values() for v in r) + rtols + implicit_rtols)
     ov = tuple(sorted((overrides or {}).items()))

@@ -340,9 +340,7 @@ class Dopri5(DiffraxODE):
     order = 5
     description = ("diffrax Dopri5: scipy RK45's Dormand-Prince 5(4) tableau, compiled; PID-adaptive or constant "
                    "step, quaternion attitude")
-    #: extended sweep (`run --integrators NAME --out results` adds its rows): the compiled twin of rk45's
-    #: tableau; the default run keeps to ~5 min on 2 cores
-    default_sweep = False
+    default_sweep = False  # extended sweep: the compiled twin of rk45's tableau (the default run keeps to ~5 min)
 
 
 class Dopri8(DiffraxODE):
@@ -354,9 +352,7 @@ class Dopri8(DiffraxODE):
     description = ("diffrax Dopri8: Prince-Dormand 8(7), compiled (an 8th-order pair like DOP853's, not its "
                    "tableau); PID-adaptive or constant step, quaternion attitude")
     horizon_settings = {"rtol": 1e-8, "atol": 1e-10}
-    #: extended sweep (`run --integrators NAME --out results` adds its rows): the compiled twin of dop853's
-    #: order; the default run keeps to ~5 min on 2 cores
-    default_sweep = False
+    default_sweep = False  # extended sweep: the compiled twin of dop853's order (the default run keeps to ~5 min)
 
 
 class Kvaerno5(DiffraxODE):
@@ -365,11 +361,11 @@ class Kvaerno5(DiffraxODE):
     capabilities = frozenset({Capability.ADAPTIVE, Capability.IMPLICIT})
     order = 5
     description = "diffrax Kvaerno5 (implicit ESDIRK 5(4), full Newton), PID-adaptive, quaternion attitude"
+    #: extended sweep: an implicit method on a non-stiff problem, 67 s of worker time in the
+    #: default sweep (measured); radau represents the implicit ones
+    default_sweep = False
     #: measured 2026-11-30 (one core): 0.2 s of stiff_string had not finished after 6 min; its full
     #: Newton re-forms the Jacobian at every iteration
-    #: extended sweep (`run --integrators NAME --out results` adds its rows): an implicit method on a non-stiff
-    #: problem, 67 s of worker time in the default sweep (measured); radau represents the implicit ones
-    default_sweep = False
     expensive = "re-forms its Jacobian at every Newton iteration (0.2 s of stiff_string ran over 6 min here)"
     cost_hint = (30.0, 3.0)
     #: ``count_evaluations=True``: count the evaluations and Jacobians in a replay (`COUNTS_UNAVAILABLE`)

@@ -144,6 +144,4 @@ class CrouchGrossman3(_LieGroupMethod):
     description = ("Crouch-Grossman order 3 on SO(3) x R^n: products of exponentials of frozen fields; "
                    "group-preserving, not symplectic")
     horizon_settings = None  # lie_rk4 represents the Lie group methods in the energy study
-    #: extended sweep (`run --integrators NAME --out results` adds its rows): lie_rk4 represents the Lie group
-    #: methods in the default run, which keeps to ~5 min on 2 cores
-    default_sweep = False
+    default_sweep = False  # extended sweep: lie_rk4 represents the Lie group methods in the default run

@@ -253,7 +253,6 @@ class RK45Projected(RK45):
     name = "rk45_projected"
     projected = True
     horizon_settings = None
-    #: an extended-sweep method (`run --integrators rk45_projected --out results` adds its rows):
-    #: a variant of rk45 that answers one side question (does projecting the quaternion help?)
+    #: extended sweep: a variant of rk45 for one side question (does projecting the quaternion help?)
     default_sweep = False
     description = "scipy RK45 with the quaternion rescaled to unit norm after every accepted step"

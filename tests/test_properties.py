@@ -19,9 +19,9 @@ def test_drift_ratio_separates_oscillation_from_drift(rng):
 def _study(rng):
     t = np.linspace(0.0, 100.0, 501)
     rows = [pd.DataFrame({"t": t, "energy_error": 1e-3 * (1 + np.sin(t)) + 1e-5 * rng.random(t.size),
-                          "method": "lgvi dt=0.005"}),
+                          "method": "lgvi dt=0.005", "integrator": "lgvi"}),
             pd.DataFrame({"t": t, "energy_error": 1e-7 * t + 1e-7 * rng.random(t.size),
-                          "method": "lie_rk4 dt=0.005"})]
+                          "method": "lie_rk4 dt=0.005", "integrator": "lie_rk4"})]
     return pd.concat(rows, ignore_index=True)
 
 
