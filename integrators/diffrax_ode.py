@@ -322,32 +322,36 @@ def _result_status(run: Run, result, y_final, t_final: float) -> tuple[Status, s
     return found, f"{message} (stopped at t = {t_final:.6g})"
 
 
-class Tsit5(DiffraxODE):
+class _ExplicitPair(DiffraxODE):
+    """An explicit embedded Runge-Kutta pair of diffrax: adaptive with rtol/atol, or a constant step
+    with dt alone."""
+
+    capabilities = frozenset({Capability.ADAPTIVE, Capability.FIXED_STEP})
+
+
+class Tsit5(_ExplicitPair):
     name = "tsit5"
     solver = library_attribute("diffrax", "Tsit5")
     fsal_stages = 7
-    capabilities = frozenset({Capability.ADAPTIVE, Capability.FIXED_STEP})
     order = 5
     description = "diffrax Tsit5: PID-adaptive (rtol/atol) or constant step (dt alone), quaternion attitude"
     horizon_settings = {"rtol": 1e-6, "atol": 1e-8}
 
 
-class Dopri5(DiffraxODE):
+class Dopri5(_ExplicitPair):
     name = "dopri5"
     solver = library_attribute("diffrax", "Dopri5")
     fsal_stages = 7
-    capabilities = frozenset({Capability.ADAPTIVE, Capability.FIXED_STEP})
     order = 5
     description = ("diffrax Dopri5: scipy RK45's Dormand-Prince 5(4) tableau, compiled; PID-adaptive or constant "
                    "step, quaternion attitude")
     default_sweep = False  # extended sweep: the compiled twin of rk45's tableau (the default run keeps to ~5 min)
 
 
-class Dopri8(DiffraxODE):
+class Dopri8(_ExplicitPair):
     name = "dopri8"
     solver = library_attribute("diffrax", "Dopri8")
     fsal_stages = 14
-    capabilities = frozenset({Capability.ADAPTIVE, Capability.FIXED_STEP})
     order = 8
     description = ("diffrax Dopri8: Prince-Dormand 8(7), compiled (an 8th-order pair like DOP853's, not its "
                    "tableau); PID-adaptive or constant step, quaternion attitude")
