@@ -568,17 +568,26 @@ class DiscreteLagrangian:
         hPi = self.hp_Pi(ctx, h, c, dq[-1]) if self.rigid else jnp.zeros(3)
         return self.join(hps, rows, hPi)
 
-    def hp_k1(self, ctx: StepContext, h, ds, dq, c, gradV1):
+    def hp_k1(self, ctx: StepContext, h, ds, dq, c, gradV1, pq=None):
         """h·p_{k+1} (w's layout) from the step X and ∇V(g_{k+1}) (symmetric:
-        the consistent mass at l_{k+1}, +(μ/2)Δs² − (μ/6N) Σ quad_a in the s_p row, Q_{k+½})."""
+        the consistent mass at l_{k+1}, +(μ/2)Δs² − (μ/6N) Σ quad_a in the s_p row, Q_{k+½}).
+
+        ``pq`` (p_k's q rows, fixed length only): the q rows of p_k and p_{k+1} then share their
+        matrix, A Δq + e_N b = h p_q,k − (h²/2)(∇_q V_k − Q_q,k) (the rows the step solved), so
+        h p_q,k+1 = h p_q,k − (h²/2)(∇_q V_k − Q_q,k + ∇_q V_{k+1} − Q⁺_q): the Störmer–Verlet
+        form, without the tridiagonal product (equal to round-off; not with the lagged
+        symmetric forcing, whose last context is one iterate newer than the solve)."""
         F = cayley(c) if self.rigid else jnp.eye(3)
         N, lay = self.N, self.model.layout
         mu = self.model.mu
-        mul = mu * (ctx.l - ds / N if self.symmetric else ctx.l)
-        diag = mul * self.mdiag + self.model.m_b * self.e_last
-        dqf = jnp.concatenate([jnp.zeros((1, 3)), dq, jnp.zeros((1, 3))], axis=0)
-        lin = (mul * self.msub)[:, None] * dqf[:-2] + diag[:, None] * dqf[1:-1] + (mul * self.msup)[:, None] * dqf[2:]
-        lin = lin + ctx.C * ds + self.e_last[:, None] * self.body_term(ctx, F)[None, :]
+        if pq is not None and self.fixed_rows is not None and not (self.symmetric and self.node_forced):
+            lin = h * pq - (0.5 * h * h) * (ctx.dVq - ctx.fq)
+        else:
+            mul = mu * (ctx.l - ds / N if self.symmetric else ctx.l)
+            diag = mul * self.mdiag + self.model.m_b * self.e_last
+            dqf = jnp.concatenate([jnp.zeros((1, 3)), dq, jnp.zeros((1, 3))], axis=0)
+            lin = (mul * self.msub)[:, None] * dqf[:-2] + diag[:, None] * dqf[1:-1] + (mul * self.msup)[:, None] * dqf[2:]
+            lin = lin + ctx.C * ds + self.e_last[:, None] * self.body_term(ctx, F)[None, :]
         fs1, fq1, feta1 = self.end_forcing(ctx, h, ds, dq)  # f⁺ of the string forces (zeros without)
         hpq = lin - 0.5 * h * h * (gradV1[lay.nodes].reshape(N, 3) - fq1)
         hps = 0.0

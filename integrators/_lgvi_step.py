@@ -149,7 +149,7 @@ class LGVIStep:
         x1 = x + dl.step_vector(ds, dq)
         R1 = R @ F if dl.rigid else R
         gV1 = model.potential_gradient(x1, R1)
-        p1 = dl.hp_k1(ctx, h, ds, dq, c, gV1) / h
+        p1 = dl.hp_k1(ctx, h, ds, dq, c, gV1, pq=pq) / h
         dW = dl.work(ctx, h, ds, dq)
         code = jnp.where(~newton_ok, StepCode.NEWTON_FAILED, 0)
         if check_state:

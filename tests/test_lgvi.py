@@ -145,6 +145,10 @@ def check_step_equations(model, dl, ctx, h, dx, c, F, auto_k, auto_k1) -> float:
     scale = np.max(np.abs(auto_k)) + np.max(np.abs(auto_k1))
     assert np.max(np.abs(cf_k - auto_k)) < 1e-10 * scale
     assert np.max(np.abs(cf_k1 - auto_k1)) < 1e-10 * scale
+    if not lay.has_reel:  # the fixed-length Störmer–Verlet form of p_{k+1}, from p_k's q rows
+        pq_k = jnp.asarray(cf_k)[lay.nodes].reshape(-1, 3)
+        sv_k1 = np.asarray(dl.hp_k1(ctx, h, ds, dq, c, model.potential_gradient(ctx.x + dx, ctx.R @ F), pq=pq_k)) / h
+        assert np.max(np.abs(sv_k1 - auto_k1)) < 1e-10 * scale
     if dl.nz:
         z = dl.pack_z(ds, c)
         p_k = jnp.asarray(cf_k)
