@@ -448,10 +448,10 @@ def run_fixed_step(method: FixedStepMethod, scene, t_end=None, *, dt=None, rtol=
     guards = run.guards = guards or run.guards
     ode = run.ode_problem()
     idx, n_run, truncated = step_indices(run.t_end, run.dt, save_every, max_steps)
-    n_buf = bucket(len(idx))
+    y0 = method.initial_state(run, ode)
+    n_buf = bucket(len(idx), _nbytes(y0))
     idx_buf = np.full(n_buf, idx[-1], dtype=np.int32)
     idx_buf[: len(idx)] = idx
-    y0 = method.initial_state(run, ode)
     params = method.run_parameters(checked)
     rest = (np.float64(run.dt), idx_buf, np.int32(len(idx)), np.float64(guards.E0),
             np.float64(guards.energy_bound), np.float64(guards.blowup))
@@ -473,6 +473,15 @@ def run_fixed_step(method: FixedStepMethod, scene, t_end=None, *, dt=None, rtol=
     traj.stats.update(stats)
     traj.settings = run.settings(rhs=rhs or method.rhs_label, **checked)
     return run.finish(traj)
+
+
+def _nbytes(state) -> int:
+    """Bytes of a method's state (arrays, possibly in tuples, lists or dicts)."""
+    if isinstance(state, dict):
+        return sum(_nbytes(a) for a in state.values())
+    if isinstance(state, (tuple, list)):
+        return sum(_nbytes(a) for a in state)
+    return np.asarray(state).nbytes
 
 
 def _method_rhs(method: FixedStepMethod, rhs):

@@ -190,10 +190,19 @@ def step_indices(t_end, dt, save_every, max_steps):
     return idx, n_run, truncated
 
 
-def bucket(n: int) -> int:
-    """Save-buffer length: the next power of two (at least 256), so that runs of other lengths
-    share compiled code."""
-    return max(256, 1 << (int(n) - 1).bit_length())
+#: a save buffer has at least this many slots (runs of other lengths then share compiled code),
+#: fewer for a large state, down to `BUCKET_MIN_SLOTS`, so that its empty slots stay below
+#: `BUCKET_BYTES` (zero-filling and copying 256 slots of N = 640 cost 6.5 ms per run)
+BUCKET_SLOTS, BUCKET_MIN_SLOTS, BUCKET_BYTES = 256, 16, 1 << 20
+
+
+def bucket(n: int, slot_bytes: int = 0) -> int:
+    """Save-buffer length for ``n`` saved states of ``slot_bytes`` each: the next power of two,
+    at least `BUCKET_SLOTS` (fewer for a large state, see there)."""
+    least = BUCKET_SLOTS
+    while least > BUCKET_MIN_SLOTS and least * slot_bytes > BUCKET_BYTES:
+        least //= 2
+    return max(least, 1 << (int(n) - 1).bit_length())
 
 
 # ------------------------------------------------------------------------------------------
