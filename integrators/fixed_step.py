@@ -242,6 +242,17 @@ def _guard(method, ode, carry, result, blowup):
     return code.astype(jnp.int32), ell
 
 
+def _keep_saved_if_failed(method, ode, good, carry1, carry):
+    """The carry after a step: ``carry1``, except that a failed step (``good`` false) keeps the
+    saved leaves of ``carry`` (the last good state, which the run ends with). The other leaves
+    (e.g. the LGVI's ∇V and Newton history) are never read after a failure, so they are not
+    selected: a select is a pass over the array (~1 µs per 2,000 numbers on XLA CPU)."""
+    from models._jax import jax, jnp
+
+    saved_ids = {id(a) for a in jax.tree_util.tree_leaves(method.saved(ode, carry1))}
+    return jax.tree_util.tree_map(lambda a, b: jnp.where(good, a, b) if id(a) in saved_ids else a, carry1, carry)
+
+
 def _steps_until(method, ode, h, blowup, seen: dict):
     """The inner loop: steps until a target step index or a failure. ``seen["result"]`` records
     (at trace time) whether the step returns a `StepResult`."""
@@ -258,7 +269,7 @@ def _steps_until(method, ode, h, blowup, seen: dict):
         code, ell = _guard(method, ode, carry1, result, blowup)
         it = jnp.zeros((), jnp.int32) if result is None else jnp.asarray(result.iterations, jnp.int32)
         good = code == 0
-        carry = jax.tree_util.tree_map(lambda a, b: jnp.where(good, a, b), carry1, s.carry)
+        carry = _keep_saved_if_failed(method, ode, good, carry1, s.carry)
         s = LoopState(carry, jnp.where(good, s.k + 1, s.k), code, s.iterations + it,
                       jnp.maximum(s.max_iterations, it), jnp.where(good, s.fail_ell, ell), s.fail_err)
         return s, target
