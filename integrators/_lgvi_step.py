@@ -57,8 +57,10 @@ class LGVIStep:
         return (x0, R0, p0, gV0, jnp.zeros((), jnp.float64), jnp.zeros(self.z_shape))
 
     # -------------------------------------------------------------------------------------
-    def newton(self, ctx, p, h, z0, uv, tol, maxit):
+    def newton(self, ctx, p, h, z0, d, tol, maxit):
         """(Δs, c, F, Δq, iterations, ok, z) of the p_k equations for the forcing in ``ctx``.
+        ``d`` (fixed length): the forward pass of the string rows' solve (`string_forward`);
+        Newton reads its tip row, Δq is finished after it (`string_finish`).
 
         With a reel, chord-Newton: the exact reduced Jacobian is assembled on the first
         iteration and kept while the iteration contracts fast; later iterations only evaluate
@@ -68,8 +70,9 @@ class LGVIStep:
         no Newton at all (one linear solve)."""
         dl = self.dl
         ps, pq, Pi = dl.split_momentum(p)
+        uv = None if dl.reel else dl.tip_rows(d)
         if dl.nz == 0:
-            dq = uv[0]
+            dq = dl.string_finish(d, jnp.zeros(3))
             return (jnp.asarray(0.0), jnp.zeros(3), jnp.eye(3), dq, jnp.asarray(1, jnp.int32),
                     jnp.all(jnp.isfinite(dq)), z0)
 
@@ -99,8 +102,11 @@ class LGVIStep:
                          jnp.asarray(False), jnp.asarray(False), jnp.asarray(True)))
         ds, c = dl.unpack_z(z_sol)
         F = cayley(c) if dl.rigid else jnp.eye(3)
-        u, v = dl.string_solve(ctx, pq, h, ds) if dl.reel else uv
-        dq = u - v[:, None] * dl.body_term(ctx, F)[None, :]
+        if dl.reel:
+            u, v = dl.string_solve(ctx, pq, h, ds)
+            dq = u - v[:, None] * dl.body_term(ctx, F)[None, :]
+        else:
+            dq = dl.string_finish(d, dl.body_term(ctx, F))
         return ds, c, F, dq, it, conv & ~bad & jnp.all(jnp.isfinite(dq)), z_sol
 
     def midpoint_forcing(self, ctx, p, pq, h, first, tol, maxit):
@@ -118,8 +124,8 @@ class LGVIStep:
         def fp_body(c_):
             ds_, c_prev, F_, dq_, it_, zz, n, _, _ = c_
             ctx_ = dl.with_forcing(ctx, h, ds_, dq_)
-            uv_ = None if dl.reel else dl.string_solve(ctx_, pq, h, jnp.asarray(0.0))
-            ds1, c1, F1, dq1, it1, ok1, z1 = self.newton(ctx_, p, h, zz, uv_, tol, maxit)
+            d_ = None if dl.reel else dl.string_forward(ctx_, pq, h)
+            ds1, c1, F1, dq1, it1, ok1, z1 = self.newton(ctx_, p, h, zz, d_, tol, maxit)
             conv = (jnp.max(jnp.abs(dq1 - dq_)) <= tol) & (jnp.abs(ds1 - ds_) <= tol)
             return ds1, c1, F1, dq1, it_ + it1, z1, n + 1, conv, ok1
 
@@ -139,10 +145,10 @@ class LGVIStep:
         tol, maxit = prm["newton_tol"], prm["newton_max_iter"]
         ctx = dl.context(t, x, R, gV, p)
         _, pq, _ = dl.split_momentum(p)
-        uv = None if dl.reel else dl.string_solve(ctx, pq, h, jnp.asarray(0.0))
+        d = None if dl.reel else dl.string_forward(ctx, pq, h)
         # the first guess extrapolates the last two steps' solutions, which saves one iteration
         z0 = 2.0 * z[1] - z[0] if dl.nz else z[1]
-        first = self.newton(ctx, p, h, z0, uv, tol, maxit)
+        first = self.newton(ctx, p, h, z0, d, tol, maxit)
         ds, c, F, dq, it, newton_ok, z_sol = first
         if self.lagged:
             (ds, c, F, dq, it, z_sol), newton_ok, ctx = self.midpoint_forcing(ctx, p, pq, h, first, tol, maxit)

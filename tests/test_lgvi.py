@@ -161,6 +161,26 @@ def check_step_equations(model, dl, ctx, h, dx, c, F, auto_k, auto_k1) -> float:
     return scale
 
 
+@pytest.mark.parametrize("elements", [4, 40])  # the unrolled and the scanned recurrences
+@pytest.mark.parametrize("effects", [VARIANTS["fixed_length"], VARIANTS["fixed_point_mass"]])
+def test_fixed_length_split_solve_equals_the_full_solve(elements, effects, rng):
+    """The step's split string solve (forward pass, the tip row for Newton, then the back
+    substitution with the body term) gives the full solve's Δq = u − v ⊗ b and tip row."""
+    model = build_model(scene_with_effects(effects, elements=elements))
+    dl, h = DiscreteLagrangian(model), 0.01
+    x, R, _ = random_state(model, rng)
+    ctx = dl.context(0.0, jnp.asarray(x), jnp.asarray(R), model.potential_gradient(jnp.asarray(x), jnp.asarray(R)))
+    pq = jnp.asarray(rng.standard_normal((model.N, 3)))
+    b = jnp.asarray(rng.standard_normal(3))
+    u, v = dl.string_solve(ctx, pq, h, 0.0)
+    full = np.asarray(u - v[:, None] * b[None, :])
+    d = dl.string_forward(ctx, pq, h)
+    u_tip, v_tip = dl.tip_rows(d)
+    scale = np.max(np.abs(full))
+    np.testing.assert_allclose(u_tip - v_tip[:, None] * b[None, :], full[-1:], atol=1e-14 * scale)
+    np.testing.assert_allclose(dl.string_finish(d, b), full, atol=1e-14 * scale)
+
+
 def test_cayley_identity():
     """(F J_d − J_d Fᵀ)^∨ = 2 (J_o c + c × J_o c)/(1+|c|²) for F = cay(c) (used by hp_Pi)."""
     model = build_model(load_scene("fixed_length", elements=2))
