@@ -99,6 +99,23 @@ def loop_terms(closed) -> list:
     return terms
 
 
+def has_uneven_cond(closed, ratio: float = 2.0) -> bool:
+    """Whether ``closed`` holds a cond whose branches differ in cost by more than ``ratio`` (e.g.
+    RATTLE's dense exact-Jacobian fallback beside a no-op): the count takes the costlier one on
+    every step, which makes the run's flops an upper bound."""
+    for eqn in closed.jaxpr.eqns:
+        if eqn.primitive.name == "cond":
+            costs = [_body_flops(b) + extra_flops(loop_terms(b), 1.0) for b in eqn.params["branches"]]
+            if max(costs) > ratio * max(min(costs), 1.0):
+                return True
+        subs = ([eqn.params["jaxpr"]] if eqn.primitive.name == "scan" else
+                [eqn.params["body_jaxpr"]] if eqn.primitive.name == "while" else
+                list(eqn.params["branches"]) if eqn.primitive.name == "cond" else _sub_jaxprs(eqn))
+        if any(has_uneven_cond(sub, ratio) for sub in subs):
+            return True
+    return False
+
+
 def extra_flops(terms, while_trips: float) -> float:
     """Flops the loops add beyond XLA's one pass: a loop of n trips over a body B adds
     (n − 1) B + n × (what B's own loops add)."""
@@ -110,9 +127,10 @@ def extra_flops(terms, while_trips: float) -> float:
 
 
 @functools.lru_cache(maxsize=64)
-def step_cost(name: str, model, rhs: str | None = None) -> tuple[float, tuple]:
-    """(XLA's one-pass flops of one step, its loop terms) of the fixed-step method ``name``
-    (``rhs``: the right-hand side its ``ode.f`` is, for a method that uses one)."""
+def step_cost(name: str, model, rhs: str | None = None) -> tuple[float, tuple, bool]:
+    """(XLA's one-pass flops of one step, its loop terms, whether it has an uneven cond
+    (`has_uneven_cond`)) of the fixed-step method ``name`` (``rhs``: the right-hand side its
+    ``ode.f`` is, for a method that uses one)."""
     from models._jax import jax
     from integrators import get_integrator
     from integrators.lifecycle import ODEProblem
@@ -139,7 +157,7 @@ def step_cost(name: str, model, rhs: str | None = None) -> tuple[float, tuple]:
     ode0 = ODEProblem(model=model, f=f, layout=model.layout, params=params)
     carry = jax.eval_shape(lambda y: integ.init(ode0, y), y0)
     closed = jax.make_jaxpr(step)(carry, np.float64(0.0), np.float64(1e-3), params)
-    return _body_flops(closed), tuple(loop_terms(closed))
+    return _body_flops(closed), tuple(loop_terms(closed)), has_uneven_cond(closed)
 
 
 def _has_while(terms) -> bool:
@@ -166,7 +184,7 @@ def run_flops(integrator: str, model, stats: dict, rhs: str | None) -> tuple[flo
         integ = get_integrator(integrator)
         if steps is None or not (hasattr(integ, "step") and hasattr(integ, "init")):
             return np.nan, "no flops: the method reports neither RHS evaluations nor a compiled step"
-        base, terms = step_cost(integrator, model, rhs if getattr(integ, "uses_rhs", False) else None)
+        base, terms, uneven = step_cost(integrator, model, rhs if getattr(integ, "uses_rhs", False) else None)
         scheme = getattr(integ, "scheme", None)
         substeps = scheme.substeps if scheme is not None else 1
         newton = count("newton_iterations")
@@ -174,6 +192,9 @@ def run_flops(integrator: str, model, stats: dict, rhs: str | None) -> tuple[flo
         note = FROM_STEP
         if newton is None and _has_while(terms):
             note += "; this method reports no iteration count: its while loops counted once per step (a lower bound)"
+        if uneven:
+            note += ("; a branch taken only on some steps or iterations (a fallback solve, a Jacobian refresh) is counted "
+                     "every time: an upper bound")
         return steps * (base + extra_flops(terms, per_solve)), note
     except Exception as exc:  # a count that fails must not lose the row
         return np.nan, f"no flops: counting failed ({type(exc).__name__}: {str(exc).splitlines()[0][:120]})"

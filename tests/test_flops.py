@@ -32,7 +32,8 @@ def test_lgvi_flops_scale_with_steps_and_newton_iterations(model):
     more_newton, _ = flops.run_flops("lgvi", model, {"steps": 100, "newton_iterations": 300}, None)
     assert one > 0 and two == pytest.approx(2 * one) and note == flops.FROM_STEP
     # one more Newton iteration per step costs one more pass through the loop body
-    base, terms = flops.step_cost("lgvi", model)
+    base, terms, uneven = flops.step_cost("lgvi", model)
+    assert not uneven  # the fixed-length step has no branch taken only sometimes
     newton = [t for t in terms if t[0] == "while"]
     assert len(newton) == 1 and more_newton == pytest.approx(one + 100 * newton[0][2])
 
@@ -48,6 +49,25 @@ def test_loop_terms_multiply_a_scan_by_its_length():
     assert [(k, n) for k, n, _, _ in terms] == [("scan", 10)]
     total = flops._body_flops(closed) + flops.extra_flops(terms, 1.0)
     assert total == pytest.approx(10 * terms[0][2], rel=0.05)  # the body (200 flops) ten times
+
+
+def test_an_uneven_cond_is_found_and_said(model):
+    """A cond whose branches differ in cost (a fallback beside a no-op) is counted at its costlier
+    branch on every step: found, and the note says that the count is an upper bound."""
+    from models._jax import jax, jnp
+
+    def f(pred, x):
+        return jax.lax.cond(pred, lambda y: jnp.linalg.solve(jnp.outer(y, y) + jnp.eye(30), y), lambda y: y, x)
+
+    def g(pred, x):
+        return jax.lax.cond(pred, lambda y: 2.0 * y, lambda y: 3.0 * y, x)
+
+    assert flops.has_uneven_cond(jax.make_jaxpr(f)(True, jnp.ones(30)))
+    assert not flops.has_uneven_cond(jax.make_jaxpr(g)(True, jnp.ones(30)))
+    _, note = flops.run_flops("rattle", model, {"steps": 10, "newton_iterations": 30}, None)
+    assert "upper bound" in note
+    _, note = flops.run_flops("lgvi", model, {"steps": 10, "newton_iterations": 30}, None)
+    assert "upper bound" not in note
 
 
 def test_a_run_without_counts_gets_a_reason_not_a_zero(model):
