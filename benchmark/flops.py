@@ -105,7 +105,8 @@ def has_uneven_cond(closed, ratio: float = 2.0) -> bool:
     every step, which makes the run's flops an upper bound."""
     for eqn in closed.jaxpr.eqns:
         if eqn.primitive.name == "cond":
-            costs = [_body_flops(b) + extra_flops(loop_terms(b), 1.0) for b in eqn.params["branches"]]
+            # a branch with no arithmetic (a pass-through) has no "flops" entry: 0
+            costs = [np.nan_to_num(_body_flops(b)) + extra_flops(loop_terms(b), 1.0) for b in eqn.params["branches"]]
             if max(costs) > ratio * max(min(costs), 1.0):
                 return True
         subs = ([eqn.params["jaxpr"]] if eqn.primitive.name == "scan" else
