@@ -218,3 +218,38 @@ def test_a_non_finite_state_stops_the_run_at_that_step(small):
     # the saved points before it, and the last good state (step 5) after them
     np.testing.assert_allclose(tr.t, [0.0, 0.002, 0.004, 0.005], atol=1e-15)
     assert np.all(np.isfinite(tr.x)) and np.all(np.isfinite(tr.velocity))
+
+
+class PoisonedCarry(FixedStepMethod):
+    """`Poisoned` with a carry of (state, step count) and a saved state that is either the carry's
+    own leaf or computed from it (``copy``): either way a failed step keeps the last good state."""
+
+    name = "test_poisoned_carry"
+    order = 1
+    copy = False
+
+    def init(self, ode, y0):
+        from models._jax import jnp
+
+        return y0, jnp.zeros(())
+
+    def step(self, ode, carry, t, h):
+        from models._jax import jnp
+
+        y, n = carry
+        return jnp.where(t >= 0.0049, jnp.nan, y + h * ode.f(t, y)), n + 1.0
+
+    def state(self, ode, carry):
+        return 1.0 * carry[0] if self.copy else carry[0]
+
+
+@pytest.mark.parametrize("copy", [False, True])
+def test_a_failed_step_keeps_the_last_good_state_whatever_saved_returns(small, copy):
+    method = PoisonedCarry()
+    method.copy = copy
+    tr = method.solve(small, t_end=0.02, dt=1e-3, save_every=0.002)
+    good = Poisoned().solve(small, t_end=0.02, dt=1e-3, save_every=0.002)
+    assert tr.status == Status.DIVERGED.value and tr.stats["steps"] == 5
+    np.testing.assert_allclose(tr.t, [0.0, 0.002, 0.004, 0.005], atol=1e-15)
+    np.testing.assert_array_equal(tr.x, good.x)
+    assert np.all(np.isfinite(tr.velocity))
