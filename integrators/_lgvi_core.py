@@ -174,7 +174,7 @@ class FixedTridiag:
             invden[i], cp[i] = 1.0 / den, sup[i] / den
             prev = cp[i]
         self.invden, self.fwd, self.bwd = invden, -sub * invden, -cp
-        self.fwd[0] = 0.0
+        self.fwd[0] = self.bwd[-1] = 0.0  # each pass's starting row has no predecessor
         e = np.zeros(n)
         e[-1] = 1.0
         self.ends = self._solve_np(e)
@@ -202,11 +202,11 @@ class FixedTridiag:
 
     def backward(self, d):
         """The back substitution y (n, k) from the forward pass: y_i = b_i y_{i+1} + d_i."""
-        return self._recurrence(np.append(self.bwd[:-1], 0.0), d, reverse=True)
+        return self._recurrence(self.bwd, d, reverse=True)
 
     @staticmethod
     def _recurrence(coeff, r, reverse: bool):
-        """out_i = coeff_i out_{i∓1} + r_i (coeff at the first row ignored), unrolled at trace
+        """out_i = coeff_i out_{i∓1} + r_i (coeff of the starting row is 0), unrolled at trace
         time up to `UNROLL_MAX` rows, else a lax.scan."""
         n = r.shape[0]
         if n <= UNROLL_MAX:
@@ -223,8 +223,6 @@ class FixedTridiag:
             y = a * prev + x
             return y, y
 
-        coeff = np.array(coeff, dtype=float)
-        coeff[-1 if reverse else 0] = 0.0
         _, out = jax.lax.scan(rec, jnp.zeros(r.shape[1:], r.dtype), (jnp.asarray(coeff), r), reverse=reverse)
         return out
 
@@ -539,7 +537,8 @@ class DiscreteLagrangian:
         The string rows are eliminated exactly: Δq(Δs, c) = u(Δs) − v(Δs) ⊗ b(c). With a reel,
         (u, v) and their Δs-derivatives come from one Thomas pass (forward-mode through it);
         without a reel, A is independent of z and ``uv`` = (u, v) is passed in, computed once
-        per step. The Jacobian is assembled by the chain rule from small closed-form pieces.
+        per step, or their tip rows alone (`tip_rows`: all the Π row reads; the Δq returned is
+        then the tip row). The Jacobian is assembled by the chain rule from small closed-form pieces.
         """
         ps, pq, Pi = self.split_momentum(p)
         ds, c = self.unpack_z(z)
@@ -579,7 +578,7 @@ class DiscreteLagrangian:
         """Residual of the reduced system in z = (Δs, c) by direct elimination.
 
         The chord iterations of the LGVI step use it; ``uv`` (fixed length only) reuses the
-        per-step string solve, as in `reduced_system`.
+        per-step string solve or its tip rows, as in `reduced_system`.
         """
         ps, pq, Pi = self.split_momentum(p)
         ds, c = self.unpack_z(z)
