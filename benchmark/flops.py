@@ -56,7 +56,8 @@ def rhs_flops(model, rhs: str, jacobian: bool = False) -> float:
 
 
 def _sub_jaxprs(eqn):
-    """The closed jaxprs called by an equation that is not a loop (jit, custom rules, cond)."""
+    """The closed jaxprs an equation calls (jit, custom rules, a cond's branches, a loop's body
+    and condition)."""
     from jax.extend import core
 
     out = []
@@ -109,10 +110,7 @@ def has_uneven_cond(closed, ratio: float = 2.0) -> bool:
             costs = [np.nan_to_num(_body_flops(b)) + extra_flops(loop_terms(b), 1.0) for b in eqn.params["branches"]]
             if max(costs) > ratio * max(min(costs), 1.0):
                 return True
-        subs = ([eqn.params["jaxpr"]] if eqn.primitive.name == "scan" else
-                [eqn.params["body_jaxpr"]] if eqn.primitive.name == "while" else
-                list(eqn.params["branches"]) if eqn.primitive.name == "cond" else _sub_jaxprs(eqn))
-        if any(has_uneven_cond(sub, ratio) for sub in subs):
+        if any(has_uneven_cond(sub, ratio) for sub in _sub_jaxprs(eqn)):
             return True
     return False
 
