@@ -246,7 +246,8 @@ class Heartbeat:
         self._t0 = time.perf_counter()
 
     def __enter__(self):
-        if self.estimate is not None and self.estimate > self.every:
+        if self.estimate is not None and self.estimate > self.every:  # a long run says at once that it started
+            self.log(f"{self.what}: started; estimated {self.estimate:.0f} s, a line every {self.every:.0f} s")
             threading.Thread(target=self._run, daemon=True).start()
         return self
 

@@ -459,8 +459,9 @@ def run_speed(request, out: Path | None = None, *, command: str = "python -m ben
     from models.io import atomic_write_text
 
     provenance = Provenance(command)
-    rows = engine.run_jobs(lgvi_speed.run_job, lgvi_speed.jobs_for(request), workers=0, describe=lgvi_speed.describe,
-                           log=log)
+    jobs = lgvi_speed.jobs_for(request)
+    log(f"speed: {len(jobs)} measurement(s), one after another in this process")
+    rows = engine.run_jobs(lgvi_speed.run_job, jobs, workers=0, describe=lgvi_speed.describe, log=log)
     text = lgvi_speed.document(rows, provenance)
     echo(text)
     if out is not None:

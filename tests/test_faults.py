@@ -216,6 +216,10 @@ LONG = {  # each runs for minutes if not stopped
 EXPECTED = {"simulate": "nothing saved", "check": "the baseline was not changed",
             "stability": "the rows finished so far are in", "xval": "no result was written",
             "speed": "no result was written"}
+#: The line each command writes once it is past its checks and imports, at work: the signal is
+#: sent after it (a fixed sleep raced the imports on a loaded machine).
+AT_WORK = {"simulate": ": started; estimated", "check": "references for", "stability": "stability map:",
+           "xval": "[1/", "speed": "speed: "}
 
 
 #: SIGTERM to simulate and check in the fast suite (~7 s each: they had no handler at all); the rest slow.
@@ -226,21 +230,37 @@ SIGNALS = [pytest.param(c, sig, rc, name, id=f"{c}-{name}",
 
 @pytest.mark.parametrize("command, sig, rc, name", SIGNALS)
 def test_a_stop_signal_during_work_ends_the_command_with_one_line(tmp_path, command, sig, rc, name):
+    import queue
     import subprocess
     import sys
-    import time
+    import threading
 
     args = [a.format(d=tmp_path) for a in LONG[command]]
     proc = subprocess.Popen([sys.executable, "-m", "benchmark", *args], cwd=ROOT, stderr=subprocess.PIPE,
                             stdout=subprocess.DEVNULL, text=True, start_new_session=True)
-    time.sleep(6)  # past the checks and the imports: at work
-    assert proc.poll() is None, proc.stderr.read()
+    lines: queue.Queue = queue.Queue()
+    reader = threading.Thread(target=lambda: [lines.put(x) for x in iter(proc.stderr.readline, "")] + [lines.put(None)],
+                              daemon=True)
+    reader.start()
+    seen: list[str] = []
+    try:
+        while not seen or AT_WORK[command] not in seen[-1]:
+            line = lines.get(timeout=180)
+            assert line is not None, f"{command} ended before it was at work: {''.join(seen)}"
+            seen.append(line)
+    except queue.Empty:
+        os.killpg(proc.pid, 9)
+        pytest.fail(f"{command} wrote no {AT_WORK[command]!r} line within 180 s: {''.join(seen)}")
     proc.send_signal(sig)
     try:
-        _, err = proc.communicate(timeout=60)
+        proc.wait(timeout=60)
     except subprocess.TimeoutExpired:
         os.killpg(proc.pid, 9)
         pytest.fail(f"{command} did not stop within 60 s of {name}")
+    reader.join(10)  # the pipe closes with the process: every line is in the queue
+    while (line := lines.get_nowait() if not lines.empty() else None) is not None:
+        seen.append(line)
+    err = "".join(seen)
     assert "Traceback" not in err and "leaked" not in err, err  # the pools' semaphores released too
     last = err.strip().splitlines()[-1]
     assert proc.returncode == rc and last.startswith(f"stopped by {name}"), (proc.returncode, err)
