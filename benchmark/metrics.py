@@ -30,6 +30,11 @@ quat_to_rot = lazy_function("models.model", "quat_to_rot")
 WORK_DEFINITION = ("work = RHS evaluations + Newton iterations + ny × Jacobian evaluations "
                    "(LU factorisations not counted)")
 
+#: The work in one unit that ranks methods (column ``flops``, the bottom row of the work-precision
+#: figures): the sum above adds unlike units (an LGVI Newton iteration is not an evaluation).
+FLOPS_DEFINITION = ("work = floating-point operations: XLA's cost model of each method's compiled step "
+                    "or right-hand side × the run's counts")
+
 
 def work_evals(stats: dict, ny: int | None = None) -> float:
     """Work of a run's stats in RHS-equivalent evaluations (see `WORK_DEFINITION`; ``ny`` is the

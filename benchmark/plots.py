@@ -16,8 +16,8 @@ import pandas as pd  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 
 from benchmark import styles  # noqa: E402
-
-from benchmark.metrics import WORK_DEFINITION, pi3_deviation  # noqa: E402
+from benchmark.cheapest import work_column  # noqa: E402
+from benchmark.metrics import FLOPS_DEFINITION, WORK_DEFINITION, pi3_deviation  # noqa: E402
 from models import build_model  # noqa: E402
 from models.diagnostics import energy_deviation  # noqa: E402
 from models.io import atomic_path, inside  # noqa: E402
@@ -47,9 +47,12 @@ def style_axes(ax, *, xlabel: str | None = None, ylabel: str | None = None, titl
         ax.legend(fontsize=legend)
 
 
-#: x axes of the work-precision figure: wall time (this machine) and a machine-independent work count
+#: x axes of the work-precision figure: wall time (this machine), then work in one unit that does
+#: not depend on the machine, the floating-point operations the methods are ranked by
 COST_AXES = (("run_time", "run time (s): solve() after compilation, median of repeats"),
-             ("work_evals", "work (RHS-equivalent evaluations)"))
+             ("flops", "work (floating-point operations)"))
+#: The bottom row of a table from before the ``flops`` column: the sum of counts
+_COUNT_AXIS = ("work_evals", "work (RHS-equivalent evaluations)")
 
 
 def _numeric(df: pd.DataFrame, columns) -> pd.DataFrame:
@@ -81,19 +84,22 @@ def log_ticks(ax) -> None:
 
 def work_precision(runs: pd.DataFrame, scene: str, out_dir: Path) -> Path:
     """Error vs cost, one curve per integrator and sweep axis, log-log: one column per error kind,
-    one row per cost axis (`COST_AXES`: wall time, then the work count of `benchmark.metrics.WORK_DEFINITION`,
+    one row per cost axis (`COST_AXES`: wall time, then the work in flops that ranks the methods,
     so a reader on another machine can check the ranking). Every method has its own style
     (`benchmark.styles.style`) in every panel; the legend is outside the axes and names a method
     without a work count as such."""
     path = inside(out_dir, f"work_precision_{scene}.png")  # the scene name comes from a table: refused if it walks out
-    cols = [c for c, _ in COST_AXES] + list(ERROR_LABELS) + ["dt"]
+    by_flops = work_column(runs) == "flops"
+    cost_axes = COST_AXES if by_flops else (COST_AXES[0], _COUNT_AXIS)
+    work = cost_axes[1][0]
+    cols = [c for c, _ in cost_axes] + list(ERROR_LABELS) + ["dt"]
     sel = runs[runs["scene"] == scene]
     g = _numeric(sel[sel["status"] == "ok"], cols)
     g = g.assign(axis=np.where(g["dt"].notna(), "dt", "rtol"))
-    fig, axes = plt.subplots(len(COST_AXES), len(ERROR_LABELS), figsize=(4.6 * len(ERROR_LABELS), 4.0 * len(COST_AXES)),
+    fig, axes = plt.subplots(len(cost_axes), len(ERROR_LABELS), figsize=(4.6 * len(ERROR_LABELS), 4.0 * len(cost_axes)),
                              squeeze=False)
     drawn, absent = set(), {}
-    for row, (cost, cost_label) in zip(axes, COST_AXES):
+    for row, (cost, cost_label) in zip(axes, cost_axes):
         for ax, (err, label) in zip(row, ERROR_LABELS.items()):
             for (integ, axis), c in g.groupby(["integrator", "axis"]):
                 c = c[(c[err] > 0) & (c[cost] > 0)].sort_values(cost) if cost in c else c.iloc[:0]
@@ -103,14 +109,14 @@ def work_precision(runs: pd.DataFrame, scene: str, out_dir: Path) -> Path:
             log_ticks(ax)
             style_axes(ax, xlabel=cost_label, ylabel=label, legend=None)
     for integ in sorted(set(g["integrator"])):
-        has_count = "work_evals" in g and g.loc[g["integrator"] == integ, "work_evals"].notna().any()
-        if not has_count:
-            absent[integ] = "no work count (bottom row)"
+        if not (work in g and g.loc[g["integrator"] == integ, work].notna().any()):
+            absent[integ] = f"no {'flops' if by_flops else 'work'} count (bottom row)"
     fig.tight_layout(rect=(0, 0, 1, 0.93))
     styles.legend_outside(fig, *styles.legend_entries(drawn, absent))
     failed = sel[sel["status"] != "ok"]
     fig.suptitle(f"{scene}: work–precision" + (f"  ({len(failed)} runs failed, see runs.csv)" if len(failed) else "")
-                 + f"\nbottom row: {WORK_DEFINITION}" + _clash_caption(set(g["integrator"])), fontsize=10)
+                 + f"\nbottom row: {FLOPS_DEFINITION if by_flops else WORK_DEFINITION}"
+                 + _clash_caption(set(g["integrator"])), fontsize=10)
     return save_figure(fig, path)
 
 

@@ -261,14 +261,16 @@ def changes_since(before: pd.DataFrame, runs: pd.DataFrame, label: str) -> str:
     each target's verdicts by work then and now (work: comparable across machines and timing
     methods), and each method's median speed-up on the runs both tables finished."""
     # an earlier table is the user's file: a number column holding text is not a number
-    numeric = [c for c in (*cheap.WALL_COLUMNS, "work_evals", "steps", "dt", "rtol", "t_end", *LABELS) if c in before]
+    numeric = [c for c in (*cheap.WALL_COLUMNS, "flops", "work_evals", "steps", "dt", "rtol", "t_end", *LABELS)
+               if c in before]
     before = before.assign(**{c: pd.to_numeric(before[c], errors="coerce") for c in numeric})
     out = [f"## Compared with {label}\n\n", reproducibility(before, runs, label)]
     targets = [(m, t) for m, t, _ in TARGETS if m in before and m in runs]
-    count = "work_evals"
+    # one unit then and now: flops where both tables have them, else the sum of counts
+    count = "flops" if cheap.work_column(before) == cheap.work_column(runs) == "flops" else "work_evals"
     if targets and count in before and count in runs and "dt" in before and "rtol" in before:
-        then = cheap.cheapest(before, targets, cost_kinds=["work"], work_count=count)
-        now = cheap.cheapest(runs, targets, cost_kinds=["work"], work_count=count)
+        then, now = (cheap.cheapest(t if count == "flops" else t.drop(columns="flops", errors="ignore"), targets,
+                                    cost_kinds=["work"], work_count=count) for t in (before, runs))
         out.append(f"Cheapest by work ({count}, the count both tables have), then and now:\n\n"
                    "| scene | target | then | now |\n|---|---|---|---|\n")
         for metric, target in targets:
@@ -353,8 +355,10 @@ times the counts; `flops_note` says how, or why a row has none) and `implementat
 the method's declared kind (`jax-compiled` or `scipy-python`).
 Errors are against a {ref["integrator"].upper()} reference at rtol {ref["rtol"]:g} / atol {ref["atol"]:g} on the same model. Every row
 names the right-hand side it ran (`rhs`: the O(N) closed form unless a run asked for `autodiff`).
-{WORK_DEFINITION[0].upper() + WORK_DEFINITION[1:]}: column `work_evals`, the bottom row of the
-work-precision figures, for comparing methods independently of this machine. Energy error is max|ΔE|/max T
+Work, for comparing methods independently of this machine, is counted in one unit: `flops`, the
+ranking by work below and the bottom row of the work-precision figures. The raw counts keep their own
+columns (`rhs_evals`, `newton_iterations`, `jac_evals`, `lu_decompositions`); `work_evals` is their sum
+in unlike units ({WORK_DEFINITION}), kept to compare with tables from before `flops`. Energy error is max|ΔE|/max T
 (max|Δ(E − W)|/max T with Carnot loss or reel control), as in the paper.
 
 ## What accuracy costs

@@ -62,6 +62,23 @@ def test_work_precision_styles_legend_outside_and_a_method_without_work_counts(f
     assert "1 runs failed" in fig._suptitle.get_text()
 
 
+def test_the_bottom_row_is_work_in_flops_the_unit_methods_are_ranked_by(figures):
+    """With a ``flops`` column the bottom row plots it (not the sum of unlike counts ``work_evals``)."""
+    runs = _runs()
+    flops = runs["work_evals"] * 7.0 + np.where(runs["integrator"] == "lgvi", 5e4, 0.0)  # not a multiple of work_evals
+    plots.work_precision(runs.assign(flops=flops), "s", "unused")
+    (fig,) = figures
+    bottom = fig.axes[3:]
+    assert all(ax.get_xlabel() == "work (floating-point operations)" for ax in bottom)
+    ok = runs["status"] == "ok"
+    lgvi = sorted(flops[ok & (runs["integrator"] == "lgvi")])
+    colour = style("lgvi").color
+    assert any(sorted(line.get_xdata()) == lgvi for ax in bottom for line in ax.get_lines() if line.get_color() == colour)
+    labels = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert "kvaerno5: no flops count (bottom row)" in labels
+    assert "floating-point operations" in fig._suptitle.get_text() and "Newton" not in fig._suptitle.get_text()
+
+
 def test_tick_labels_of_a_panel_do_not_overlap(figures):
     plots.work_precision(_runs(), "s", "unused")
     (fig,) = figures

@@ -36,6 +36,18 @@ def test_a_close_call_is_a_tie_in_the_comparison():
     assert row.count("tie of `a`, `b`") == 2, row
 
 
+def test_the_comparison_ranks_then_and_now_in_one_unit():
+    """flops where both tables have them; else the sum of counts in both, never one unit against another."""
+    before = _rows({"a": (1.0, 1000.0), "b": (1.0, 3000.0)})
+    now = before.assign(flops=before["integrator"].map({"a": 9e6, "b": 1e6}))  # by flops, b is cheaper
+    mixed = runs_report.changes_since(before, now, "a table without flops")
+    row = next(line for line in mixed.splitlines() if line.startswith("| s | energy error"))
+    assert "(work_evals, the count both tables have)" in mixed and row.count("`a`, next `b` 3.00×") == 2, row
+    both = runs_report.changes_since(now, now, "itself")
+    row = next(line for line in both.splitlines() if line.startswith("| s | energy error"))
+    assert "(flops, the count both tables have)" in both and row.count("`b`, next `a` 9.00×") == 2, row
+
+
 def test_compare_with_a_file_that_is_not_a_runs_table_is_refused(tmp_path, capsys):
     bad = tmp_path / "x.csv"
     bad.write_text("a,b\n1,2\n")
