@@ -16,15 +16,15 @@ energy_deviation = lazy_function("models.diagnostics", "energy_deviation")
 evaluate = lazy_function("models.diagnostics", "evaluate")
 quat_to_rot = lazy_function("models.model", "quat_to_rot")
 
-#: The machine-independent work count of a run (column ``work_evals``, the x axis of the
-#: work-precision-vs-work plots), in right-hand-side-equivalent evaluations:
+#: The sum of a run's counts (column ``work_evals``; rankings and figures use ``flops``, see
+#: `FLOPS_DEFINITION`, and this sum is kept to compare with tables from before it), in
+#: right-hand-side-equivalent evaluations:
 #: ``rhs_evals + newton_iterations + ny × jac_evals``. For the ODE baselines the Newton
 #: iterations are already right-hand-side evaluations (counted in ``rhs_evals``); a Jacobian
 #: counts as the ny evaluations a finite-difference Jacobian costs (the classical convention;
 #: ny = size of the ODE state), LU factorisations are not counted (reported apart in
-#: ``lu_decompositions``). For the LGVI it is its Newton iterations (one per step on a
-#: fixed-length scene, where the step is one explicit O(N) string solve), each an O(N) pass
-#: through the discrete equations like one evaluation of the closed-form right-hand side.
+#: ``lu_decompositions``). For the LGVI it is its Newton iterations (two or three per step),
+#: each counted as one evaluation although it costs less than one (hence ``flops``).
 #: NaN when the integrator reports no count (diffrax Kvaerno5: diffrax does not expose its
 #: Newton iterations).
 WORK_DEFINITION = ("work = RHS evaluations + Newton iterations + ny × Jacobian evaluations "
