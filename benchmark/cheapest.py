@@ -23,11 +23,11 @@ with the same weight. Nothing is extrapolated:
 - a method with a fixed-step and an adaptive sweep (``tsit5``) is represented by the cheaper
   of its two curves (column ``sweep`` says which).
 
-**Spread.** A wall-time cost carries the interval of its timing repeats. A work cost (``flops``
-when the table has it, else the count column given, ``work_evals`` by default) is
-deterministic; its interval is zero. Each interval is widened to at least a relative
-resolution around the cost, ``[cost / √(1 + r), cost · √(1 + r)]``, so two costs within a
-factor ``1 + r`` of each other always overlap: `WORK_RESOLUTION` for work, `WALL_RESOLUTION`
+**Spread.** A wall-time cost carries the interval of its timing repeats. A work cost (the
+column given, else ``flops`` when the table has it, else ``work_evals``) is deterministic;
+its interval is zero. Each interval is widened to at least a relative resolution around the
+cost, ``[cost / √(1 + r), cost · √(1 + r)]``, so two costs within a factor ``1 + r`` of each
+other always overlap: `WORK_RESOLUTION` for work, `WALL_RESOLUTION`
 for wall time (from measured timing noise, see there).
 
 **Verdicts.** Among the methods that reached the target, the one of lowest cost is the
@@ -79,11 +79,11 @@ BOUNDS = ("accuracy", "stability", "failures", "sweep range")
 _KEY_COLUMNS = ("scene", "integrator", "setting", "dt", "rtol", "status")
 
 
-def work_column(runs: pd.DataFrame, count: str = "work_evals") -> str:
-    """The work column of a runs table: ``flops`` when it has any value, else ``count``."""
+def work_column(runs: pd.DataFrame) -> str:
+    """The work column of a runs table: ``flops`` when it has any value, else ``work_evals``."""
     if "flops" in runs and runs["flops"].notna().any():
         return "flops"
-    return count
+    return "work_evals"
 
 
 def sweep_of(runs: pd.DataFrame) -> pd.Series:
@@ -224,19 +224,19 @@ def _verdicts(rows: list[dict]) -> None:
 
 
 def cheapest(runs: pd.DataFrame, targets: Iterable[tuple[str, float]], *, cost_kinds: Sequence[str] = COST_KINDS,
-             work_count: str = "work_evals", work_resolution: float = WORK_RESOLUTION,
+             work_count: str | None = None, work_resolution: float = WORK_RESOLUTION,
              wall_resolution: float = WALL_RESOLUTION) -> pd.DataFrame:
     """The cheapest table: one row per (scene, metric, target, cost kind, integrator); see the
     module's docstring for the definitions.
 
     ``targets``: (metric column, target value) pairs, e.g. ``[("energy_error", 1e-4)]``.
     ``cost_kinds``: ``"wall"`` needs the columns `WALL_COLUMNS`; ``"work"`` the column
-    `work_column` picks (``flops`` when present, else ``work_count``). Every integrator of a scene
-    has a row (``not reached`` when it finished no run)."""
+    ``work_count``, or when None the one `work_column` picks (``flops`` when present, else
+    ``work_evals``). Every integrator of a scene has a row (``not reached`` when it finished no run)."""
     targets = list(targets)
     resolution = {"work": work_resolution, "wall": wall_resolution}
     _check_arguments(targets, resolution, cost_kinds)
-    work = work_column(runs, work_count)
+    work = work_count or work_column(runs)
     columns = {"wall": WALL_COLUMNS, "work": (work, "", "")}
     _check_table(runs, [m for m, _ in targets], [c for k in cost_kinds for c in columns[k] if c])
     curves = _curves(runs)

@@ -269,8 +269,7 @@ def changes_since(before: pd.DataFrame, runs: pd.DataFrame, label: str) -> str:
     # one unit then and now: flops where both tables have them, else the sum of counts
     count = "flops" if cheap.work_column(before) == cheap.work_column(runs) == "flops" else "work_evals"
     if targets and count in before and count in runs and "dt" in before and "rtol" in before:
-        then, now = (cheap.cheapest(t if count == "flops" else t.drop(columns="flops", errors="ignore"), targets,
-                                    cost_kinds=["work"], work_count=count) for t in (before, runs))
+        then, now = (cheap.cheapest(t, targets, cost_kinds=["work"], work_count=count) for t in (before, runs))
         out.append(f"Cheapest by work ({count}, the count both tables have), then and now:\n\n"
                    "| scene | target | then | now |\n|---|---|---|---|\n")
         for metric, target in targets:
