@@ -109,15 +109,61 @@ def install_stop_handlers() -> None:
     """SIGTERM stops the process like Ctrl-C does (KeyboardInterrupt in the main thread), so
     one ``except KeyboardInterrupt`` handles both and the pools' workers are terminated.
 
-    SIGINT gets Python's own handler back too: a process started from a background job of a
-    script (``python -m benchmark run ... &``) inherits SIGINT *ignored*, and Python then never
-    raises KeyboardInterrupt, so Ctrl-C / ``kill -INT`` would not stop the study."""
+    SIGINT gets a handler too: a process started from a background job of a script
+    (``python -m benchmark run ... &``) inherits SIGINT *ignored*, and Python then never raises
+    KeyboardInterrupt, so Ctrl-C / ``kill -INT`` would not stop the study.
+
+    A stop is never lost nor harmful: one that lands inside an import or the start of a worker
+    waits for it to end (`_critical`; interrupted imports also had a library's fallback swallow
+    the stop), and one that Python drops (raised in a gc callback or a finalizer: JAX runs one
+    at every collection) is sent again."""
 
     def stop(signum, frame):
+        if _critical(frame):
+            _send_again(signum)
+            return
         raise KeyboardInterrupt(f"signal {signal.Signals(signum).name}")
 
     signal.signal(signal.SIGTERM, stop)
-    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGINT, stop)
+    if getattr(sys.unraisablehook, "redelivers_stops", False):
+        return
+    dropped = sys.unraisablehook
+
+    def redeliver(unraisable) -> None:
+        exc = unraisable.exc_value
+        if isinstance(exc, KeyboardInterrupt):
+            _send_again(signal.SIGTERM if "SIGTERM" in str(exc) else signal.SIGINT)
+        else:
+            dropped(unraisable)
+
+    redeliver.redelivers_stops = True
+    sys.unraisablehook = redeliver
+
+
+#: Seconds after which a stop signal that could not be raised is sent again.
+STOP_REDELIVERY = 0.05
+
+
+def _send_again(signum: int) -> None:
+    threading.Timer(STOP_REDELIVERY, os.kill, (os.getpid(), signum)).start()
+
+
+def _critical(frame) -> bool:
+    """Whether ``frame`` (the main thread's, where a signal handler runs) is inside an import or
+    the start of a worker process, where a KeyboardInterrupt does harm: a module left
+    half-initialised (JAX's C++ extensions aborted the interpreter at exit), or a spawned worker
+    that reads a truncated start-up message and prints a traceback."""
+    while frame is not None:
+        name = frame.f_code.co_filename
+        if name.startswith("<frozen importlib") or name == _SPAWN_FILE:
+            return True
+        frame = frame.f_back
+    return False
+
+
+#: Where multiprocessing hands a spawned worker its start-up message.
+_SPAWN_FILE = os.path.join(os.path.dirname(multiprocessing.__file__), "popen_spawn_posix.py")
 
 
 def stop_cause(exc: KeyboardInterrupt) -> str:

@@ -267,6 +267,59 @@ def test_a_stop_signal_during_work_ends_the_command_with_one_line(tmp_path, comm
     assert EXPECTED[command] in last, last
 
 
+def _stop_script(tmp_path, body: str) -> str:
+    """Run ``body`` after the stop handlers are installed, in a fresh interpreter; its output."""
+    import subprocess
+    import sys
+    import textwrap
+
+    script = "import os, signal, sys, time\nfrom benchmark.engine import install_stop_handlers\n" \
+             "install_stop_handlers()\n" + textwrap.dedent(body)
+    out = subprocess.run([sys.executable, "-c", script], cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(ROOT)},
+                         capture_output=True, text=True, timeout=60)
+    return out.stdout + out.stderr
+
+
+def test_a_stop_that_lands_in_a_gc_callback_is_sent_again(tmp_path):
+    """Python drops an exception raised in a gc callback (JAX runs one at every collection):
+    the stop must still end the work, not be printed as 'Exception ignored' and forgotten."""
+    out = _stop_script(tmp_path, """
+        import gc
+        def callback(phase, info):
+            if phase == "start" and not getattr(callback, "sent", False):
+                callback.sent = True
+                os.kill(os.getpid(), signal.SIGTERM)
+                for _ in range(10000):  # the handler runs here, inside the callback
+                    pass
+        gc.callbacks.append(callback)
+        gc.collect()
+        try:
+            time.sleep(5)
+            print("not stopped")
+        except KeyboardInterrupt as exc:
+            print("stopped:", exc)
+    """)
+    assert "stopped: signal SIGTERM" in out and "not stopped" not in out and "Exception ignored" not in out, out
+
+
+def test_a_stop_during_an_import_lands_when_the_import_ends(tmp_path):
+    """An import interrupted half-way leaves a module half-initialised (JAX's C++ extensions
+    aborted the interpreter at exit): the stop waits for the import, then stops the work."""
+    (tmp_path / "slow_module.py").write_text(
+        "import os, signal\nos.kill(os.getpid(), signal.SIGTERM)\nfor _ in range(200000):\n    pass\nDONE = True\n")
+    out = _stop_script(tmp_path, """
+        sys.path.insert(0, os.getcwd())
+        try:
+            import slow_module
+            print("imported:", slow_module.DONE)
+            time.sleep(5)
+            print("not stopped")
+        except KeyboardInterrupt as exc:
+            print("stopped:", exc, "slow_module" in sys.modules)
+    """)
+    assert "imported: True" in out and "stopped: signal SIGTERM True" in out and "not stopped" not in out, out
+
+
 @pytest.mark.parametrize("content, fragment", [
     ("[" + ".".join(["a"] * 2000) + "]\nx = 1\n", "nested"),
     ("# padding\n" * 200_000, "more than the 1,000,000"),
