@@ -217,8 +217,9 @@ EXPECTED = {"simulate": "nothing saved", "check": "the baseline was not changed"
             "stability": "the rows finished so far are in", "xval": "no result was written",
             "speed": "no result was written"}
 #: The line each command writes once it is past its checks and imports, at work: the signal is
-#: sent after it (a fixed sleep raced the imports on a loaded machine).
-AT_WORK = {"simulate": ": started; estimated", "check": "references for", "stability": "stability map:",
+#: sent after it (a fixed sleep raced the imports on a loaded machine). A stop in the imports
+#: themselves is tested on its own (`test_a_stop_during_an_import_lands_when_the_import_ends`).
+AT_WORK = {"simulate": ": started; estimated", "check": "[1/", "stability": "stability map:",
            "xval": "[1/", "speed": "speed: "}
 
 
