@@ -133,7 +133,7 @@ def install_stop_handlers() -> None:
     def redeliver(unraisable) -> None:
         exc = unraisable.exc_value
         if isinstance(exc, KeyboardInterrupt):
-            _send_again(signal.SIGTERM if "SIGTERM" in str(exc) else signal.SIGINT)
+            _send_again(signal.SIGTERM if stop_cause(exc) == "SIGTERM" else signal.SIGINT)
         else:
             dropped(unraisable)
 
