@@ -1,4 +1,4 @@
-"""Command line: ``python -m benchmark {run,check,simulate,figures,speed,stability,xval,reel-reversal,list}``
+"""Command line: ``python -m benchmark {run,check,simulate,figures,speed,stability,xval,reel-reversal,orders,energy,list}``
 (also ``reelbench``).
 
 Every command checks all of its input first -- option types and ranges, conflicting options,
@@ -330,6 +330,35 @@ def cmd_reel_reversal(args) -> int:
                                        cache_dir=str(cache), log=_log)
 
 
+def cmd_orders(args) -> int:
+    from benchmark import orders
+    from models import load_scene
+
+    for sc in args.scenes or ():
+        load_scene(sc)  # an unknown scene is refused before any work
+    orders.fixed_step_methods(args.integrators)  # an unknown or adaptive-only method likewise
+    out = opt.writable_dir(args.out)
+    from benchmark import pipelines
+
+    return pipelines.run_orders(args.scenes, args.integrators, out=out, jobs=args.jobs, log=_log)
+
+
+def cmd_energy(args) -> int:
+    from benchmark import horizon
+    from models import load_scene
+
+    for sc in args.scenes or ():
+        load_scene(sc)
+    horizon.methods(args.integrators)  # an unknown name, or one without energy-study settings, is refused
+    out = opt.writable_dir(args.out)
+    from benchmark import pipelines
+
+    figures = pipelines.run_horizon_study(args.horizon, out, scenes=args.scenes, jobs=args.jobs, log=_log,
+                                          selected=args.integrators)
+    _log("wrote " + ", ".join(f"{out}/{name}" for name, _ in figures) if figures else "energy study: nothing written")
+    return 0
+
+
 def cmd_list(args) -> int:
     from integrators import available, get_integrator, plugin_errors
     from models import available_scenes
@@ -402,7 +431,7 @@ def _add_run(sub) -> None:
                    help="where runs execute: worker processes, this process, or a Dask cluster")
     r.add_argument("--scheduler", help="Dask scheduler address, with --executor dask (e.g. tcp://host:8786)")
     r.add_argument("--horizon", type=opt.nonnegative_float,
-                   help=f"length (s) of the long-horizon energy study on fixed_length; 0 = off (default: "
+                   help=f"length (s) of the long-horizon energy study on the run's fixed-length scenes; 0 = off (default: "
                         f"{sweep.FULL_HORIZON:g}; --quick: {sweep.QUICK_HORIZON:g})")
     r.add_argument("--no-figures", action="store_true", help="skip the figures and the energy study")
     r.add_argument("--fresh", action="store_true", help="recompute every run, ignoring rows already in OUT/runs.csv")
@@ -523,6 +552,43 @@ def _add_reel_reversal(sub) -> None:
     rr.set_defaults(func=cmd_reel_reversal)
 
 
+def _add_orders(sub) -> None:
+    from benchmark import orders  # constants only (no JAX)
+
+    o = sub("orders", "observed orders of the fixed-step methods on a short horizon, against a reference "
+                      "100x more accurate -> OUT/orders.csv",
+            f"Each fixed-step method at {orders.HALVINGS} halvings of its step on a {orders.T_END:g} s horizon of "
+            f"each scene (N = {orders.ELEMENTS}), against constant-step {orders.REFERENCE_METHOD}; the order is the "
+            "slope of the last halving above the reference's floor, flagged when not asymptotic (see "
+            "benchmark/orders.py). Rows of other scenes and methods in OUT/orders.csv are kept.")
+    o.add_argument("--scenes", type=opt.names, help=f"comma-separated scene names or .toml paths (default: "
+                                                    f"{_csv(orders.SCENES)}, one per situation)")
+    o.add_argument("--integrators", type=opt.names, help="comma-separated fixed-step methods (default: every "
+                                                         "registered one)")
+    o.add_argument("--jobs", type=opt.nonnegative_int, help="worker processes (0: in this process; default: one "
+                                                            "per method, at most the CPU count)")
+    o.add_argument("--out", default="results", help="output directory (created if missing)")
+    o.set_defaults(func=cmd_orders)
+
+
+def _add_energy(sub) -> None:
+    from benchmark import horizon, sweep  # constants only (no JAX)
+
+    e = sub("energy", "the long-horizon energy study alone: energy error vs time, classified as bounded or "
+                      "drifting -> OUT/energy_horizon.csv and figures",
+            "The energy study of `run` on its own (benchmark/horizon.py): every method that declares "
+            f"settings for it, at N = {_csv(horizon.ELEMENTS)} and at its step and {horizon.FINER:g}x finer, on "
+            "each scene; the histories already in OUT/energy_horizon.csv for the same settings and code are kept, "
+            "rows of other methods and scenes too.")
+    e.add_argument("--scenes", type=opt.names, help=f"comma-separated scenes (default: {horizon.DEFAULT_SCENE})")
+    e.add_argument("--integrators", type=opt.names, help="comma-separated methods (default: every one that "
+                                                         "declares energy-study settings)")
+    e.add_argument("--horizon", type=opt.positive_float, default=sweep.FULL_HORIZON, help="length in s")
+    e.add_argument("--jobs", type=opt.nonnegative_int, help="worker processes (0: in this process)")
+    e.add_argument("--out", default="results", help="output directory (created if missing)")
+    e.set_defaults(func=cmd_energy)
+
+
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m benchmark", description=__doc__, formatter_class=_Help)
     commands = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -531,7 +597,7 @@ def parser() -> argparse.ArgumentParser:
         return commands.add_parser(name, help=help, description=description or help, formatter_class=_Help)
 
     for add in (_add_run, _add_check, _add_simulate, _add_figures, _add_speed, _add_stability, _add_xval,
-                _add_reel_reversal):
+                _add_reel_reversal, _add_orders, _add_energy):
         add(sub)
     sub("list", "registered integrators and shipped scenes").set_defaults(func=cmd_list)
     return p
