@@ -68,4 +68,10 @@ def test_the_words_follow_the_numbers(tmp_path, rng):
     text = properties_text(runs, path)
     assert "Symplecticity is not shown at these sizes and steps" in text and "`lgvi` at N=10 dt=0.005 is drifting" in text
     assert "shows no difference here" in text and "(not: `lgvi`)" in text
+    # bounded at N = 4, drifting at N = 10: the text says the size decides
+    study = _study(rng)
+    at_10 = (study.integrator == "lgvi") & (study.elements == 10)
+    study.loc[at_10, "energy_error"] = 1e-6 * study.loc[at_10, "t"]
+    study.to_csv(path, index=False)
+    assert "bounded at N = 4 but not at N = 10: the size of the string decides" in properties_text(runs, path)
     assert "No energy study" in properties_text(runs, tmp_path / "missing.csv")
