@@ -165,6 +165,16 @@ def slopes(dts, errors) -> np.ndarray:
     return np.log(e[:-1] / e[1:]) / np.log(np.asarray(dts[:-1], float) / np.asarray(dts[1:], float))
 
 
+def in_order(ladder: pd.DataFrame) -> pd.DataFrame:
+    """The ladder rows by scene (`SCENES` first) and method (`fixed_step_methods`' order), each
+    ladder coarsest step first: a merged table reads like a fresh one."""
+    scenes = list(dict.fromkeys([*SCENES, *ladder["scene"]]))
+    methods = list(dict.fromkeys([*fixed_step_methods(), *ladder["integrator"]]))
+    rank = ladder.assign(_s=ladder["scene"].map(scenes.index), _m=ladder["integrator"].map(methods.index))
+    return rank.sort_values(["_s", "_m", "dt"], ascending=[True, True, False], kind="stable").drop(
+        columns=["_s", "_m"]).reset_index(drop=True)
+
+
 def summarise(ladder: pd.DataFrame) -> pd.DataFrame:
     """orders.csv from the ladder rows: per scene and method, the slope of the last halving above
     the reference's floor, the one before it, and the flags (see the module's docstring)."""

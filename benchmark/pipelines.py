@@ -599,7 +599,7 @@ def run_orders(scenes=None, integrators=None, *, out: Path = Path("results"), jo
         new = pd.DataFrame([x for r in rows for x in r["ladder"]])
         path = out / "orders_errors.csv"
         earlier = pd.read_csv(path) if path.is_file() else None
-        ladder = store.merge_study_table(earlier, new, orders.LADDER_KEY)
+        ladder = orders.in_order(store.merge_study_table(earlier, new, orders.LADDER_KEY))
         summary = orders.summarise(ladder)
         store.write_table(path, ladder)
         store.write_table(out / "orders.csv", summary)

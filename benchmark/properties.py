@@ -96,7 +96,8 @@ def energy_table(horizon: pd.DataFrame | None) -> pd.DataFrame:
         return pd.DataFrame(columns=cols)
     h = horizon.assign(**{c: horizon[c] if c in horizon else d for c, d in
                           (("scene", "fixed_length"), ("elements", 10), ("status", "ok"), ("tension_min", np.nan))})
-    h = h.assign(setting=h["setting"] if "setting" in h else h["method"])
+    if "setting" not in h:  # a table from before the study had sizes: "lgvi dt=0.005" -> "dt=0.005"
+        h = h.assign(setting=h["method"].map(lambda m: str(m).split(" ", 1)[-1]))
     rows = []
     for (scene, name, n, setting), g in h.groupby(["scene", "integrator", "elements", "setting"], sort=False):
         g = g.sort_values("t")
