@@ -16,9 +16,16 @@ def test_a_linear_drift_is_drifting(rng):
 
 
 def test_a_bounded_oscillation_is_bounded(rng):
-    err = 1e-3 * (1.0 + np.sin(2.0 * np.pi * T / 7.3)) * (0.7 + 0.3 * rng.random(T.size))
+    err = 1e-3 * (1.0 + np.sin(2.0 * np.pi * T / 1.3)) * (0.7 + 0.3 * rng.random(T.size))
     c = classify(T, err)
     assert c["verdict"] == "bounded" and abs(c["slope"]) < BOUNDED_BELOW and c["slope_high"] < DRIFTING_FROM
+
+
+def test_a_band_that_fills_up_and_then_stays_is_bounded(rng):
+    # the error rises for 40 s (the motion explores its states), then stays in its band
+    err = 1e-4 * np.minimum(1.0, 0.1 + T / 40.0) * (1.0 + np.sin(2.0 * np.pi * T / 1.3)) * (0.8 + 0.2 * rng.random(T.size))
+    c = classify(T, err)
+    assert c["verdict"] == "bounded" and c["slope_all"] > 0.3  # over the whole horizon it would look like growth
 
 
 def test_what_it_cannot_decide_is_undecided_with_its_figures(rng):
@@ -35,7 +42,7 @@ def _study(rng, lgvi=None):
     rows = []
     for n in (4, 10):
         for dt in (0.005, 0.0025):
-            band = 1e-3 * (dt / 0.005) ** 2 * (1 + np.sin(t)) * (0.8 + 0.2 * rng.random(t.size))
+            band = 1e-3 * (dt / 0.005) ** 2 * (1 + np.sin(5 * t)) * (0.8 + 0.2 * rng.random(t.size))
             rows.append(pd.DataFrame({"t": t, "energy_error": band if lgvi is None else lgvi(t),
                                       "tension_min": -1.0, "method": f"lgvi dt={dt:g} N={n}", "integrator": "lgvi",
                                       "scene": "fixed_length", "elements": n, "setting": f"dt={dt:g}", "status": "ok"}))
