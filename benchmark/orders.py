@@ -31,7 +31,6 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-import pandas as pd
 
 #: One scene per situation (`integrators.base.SITUATIONS`): fixed length, and the reel retrieving.
 #: Deployment is left out by default: it starts with 3 m deployed, two 1.5 m elements with an
@@ -178,6 +177,7 @@ def in_order(ladder: pd.DataFrame) -> pd.DataFrame:
 def summarise(ladder: pd.DataFrame) -> pd.DataFrame:
     """orders.csv from the ladder rows: per scene and method, the slope of the last halving above
     the reference's floor, the one before it, and the flags (see the module's docstring)."""
+    import pandas as pd  # not at import: the command line reads this module's constants without it
     rows = []
     for (scene, name), g in ladder.groupby(list(LADDER_KEY), sort=False):
         g = g.sort_values("dt", ascending=False)
