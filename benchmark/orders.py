@@ -212,7 +212,8 @@ def summarise(ladder: pd.DataFrame) -> pd.DataFrame:
                      "finest_error_counted": float(g["error"].to_numpy()[last + 1]) if last is not None else np.nan,
                      "reference_error": float(g["reference_error"].max()),
                      "reference_check": float(g["reference_check"].max()),
-                     "within_theory": bool(np.isfinite(order) and abs(order - declared) <= THEORY_TOLERANCE),
+                     "within_theory": bool(not pd.isna(declared) and np.isfinite(order)
+                                           and abs(order - float(declared)) <= THEORY_TOLERANCE),
                      "elements": int(g["elements"].iloc[0]), "t_end": float(g["t_end"].iloc[0]),
                      "note": "; ".join(note)})
     return pd.DataFrame(rows)
