@@ -405,7 +405,8 @@ def _capability(integ, cap, runs: dict) -> Check:
                                                   "with its truncation error)")
     if cap is Capability.IMPLICIT:
         counters = ("newton_iterations", "jac_evals", "lu_decompositions")
-        seen = {k: trajs[-1].stats.get(k) for k in counters if trajs[-1].stats.get(k)}
+        tr = _counted(integ, scene, settings[-1], trajs[-1])
+        seen = {k: tr.stats.get(k) for k in counters if tr.stats.get(k)}
         return Check(name, bool(seen), ", ".join(f"{k} {v:g}" for k, v in seen.items()) if seen else
                      f"reports none of {', '.join(counters)}: its solves cannot be counted")
     return Check(name, True, "no check defined for this capability")
@@ -426,15 +427,27 @@ def _deterministic(integ, runs: dict) -> Check:
                                                         f"differ in {', '.join(differ) or 'status or steps'}"))
 
 
+def _counted(integ, scene, setting: dict, traj):
+    """``traj``, or where a plain run cannot count its work (``stats["counts_unavailable"]``) the
+    same run with the counting replay the lifecycle offers (``count_evaluations=True``), if the
+    method takes that option."""
+    if not traj.stats.get("counts_unavailable"):
+        return traj
+    try:
+        return integ.solve(scene, t_end=T_END, save_every=SAVE_EVERY, count_evaluations=True, **setting)
+    except ValueError:  # the method has no counting replay: its counts stay unavailable
+        return traj
+
+
 def _flops(integ, runs: dict) -> Check:
     from benchmark.flops import run_flops
     from models import build_model
 
     scene, settings, trajs = runs.get("fixed_length") or (None, None, None)
     if trajs is None:
-        scene = small_scene(ORDER_SCENES["fixed_length"])
+        scene, settings = small_scene(ORDER_SCENES["fixed_length"]), None
         trajs = [integ.solve(scene, t_end=T_END, save_every=SAVE_EVERY, **_setting(integ, 1))]
-    tr = trajs[-1]
+    tr = _counted(integ, scene, settings[-1] if settings else _setting(integ, 1), trajs[-1])
     flops, note = run_flops(integ.name, build_model(scene), tr.stats, tr.stats.get("rhs"))
     steps = float(tr.stats.get("steps") or 0)
     ok = bool(np.isfinite(flops) and flops > 0 and steps > 0)

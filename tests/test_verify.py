@@ -65,9 +65,12 @@ def test_a_method_that_ignores_the_contract_fails_and_says_where():
     failed = _failed(checks)
     by_name = {c.name: c for c in checks}
     print("\n".join(c.line() for c in checks))
-    # order 1, not the declared 2; max_steps ignored; the string runs out and it goes on; no work count
-    assert {"order fixed_length", "budget", "length limit", "flops"} <= failed, failed
-    assert "observed 1.0" in by_name["order fixed_length"].figure
+    # order 1, not the declared 2; a step longer than the run taken; max_steps ignored; the string runs
+    # out and it goes on; a blow-up returned as ok; no work count (measured: 9 of the 11 checks fail)
+    assert {"order fixed_length", "order reel", "arguments", "budget", "length limit", "energy guard",
+            "flops"} <= failed, failed
+    observed = float(re.search(r"observed ([\d.]+)", by_name["order fixed_length"].figure).group(1))
+    assert 0.9 < observed < 1.3, observed  # forward Euler (measured 1.12)
     assert "declarations" not in failed and "deterministic" not in failed
     assert registry._REGISTRY.get(UnguardedEuler.name) is None  # registered for the checks only
     with pytest.raises(ContractError, match=r"verify_unguarded_euler' fails \d+ of \d+ checks") as err:
