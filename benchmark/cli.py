@@ -370,10 +370,8 @@ def cmd_verify(args) -> int:
 
 
 def cmd_list(args) -> int:
-    from integrators import available, get_integrator, plugin_errors
+    from integrators import available, get_integrator, origin, plugin_errors
     from models import available_scenes
-
-    from integrators import origin
 
     print("scenes:", ", ".join(available_scenes()))
     for name in available():

@@ -193,9 +193,6 @@ def check_integrator(integrator, *, log: Callable[[str], None] | None = None, ra
 
 
 def _integrator_checks(integ) -> list[tuple[str, Callable]]:
-    from integrators import Capability
-
-    fixed, adaptive = integ.has(Capability.FIXED_STEP), integ.has(Capability.ADAPTIVE)
     runs: dict = {}  # the order runs, shared with the later checks
     steps = [("declarations", lambda: _declarations(integ))]
     for key in ORDER_SCENES:
@@ -208,7 +205,6 @@ def _integrator_checks(integ) -> list[tuple[str, Callable]]:
         steps.append((f"capability {cap.value}", functools.partial(_capability, integ, cap, runs)))
     steps += [("deterministic", lambda: _deterministic(integ, runs)),
               ("flops", lambda: _flops(integ, runs))]
-    del fixed, adaptive
     return steps
 
 
