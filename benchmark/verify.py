@@ -336,7 +336,7 @@ def _length_limit(integ) -> Check:
     ok = tr.status == "length_limit" and inside
     at = tr.stats.get("event_time")
     return Check("length limit", ok, f"status {tr.status}" + (f" at t = {at:.3g} s" if at is not None else "")
-                 + f", longest saved ℓ = {ell.max():.4g} m of {model.L - model.b:g} m"
+                 + f", longest saved ℓ {model.L - model.b - ell.max():.2g} m short of L − b = {model.L - model.b:g} m"
                  + ("" if inside else ": a saved point is outside the range"))
 
 

@@ -99,3 +99,22 @@ def test_provenance_follows_the_package_and_the_plugins_source(installed, tmp_pa
         assert source_digest(cls) != before
     finally:
         module.write_text(module.read_text().removesuffix("\n# edited\n"))
+
+
+def test_with_plugins_or_a_name_brings_them_in(installed, tmp_path, monkeypatch, capsys):
+    """What `run` hands its pipeline (stubbed: nothing runs): the plugin joins only when asked."""
+    from benchmark import cli, pipelines
+
+    seen = []
+    monkeypatch.setattr(pipelines, "run_sweep", lambda request, log: seen.append(request) or 0)
+    monkeypatch.chdir(ROOT)
+    out = str(tmp_path / "out")
+    assert cli.main(["run", "--quick", "--scenes", "fixed_length", "--out", out]) == 0
+    assert seen[-1].integrators is None  # the pipeline's default: the project's own methods
+    assert cli.main(["run", "--with-plugins", "--quick", "--scenes", "fixed_length", "--out", out]) == 0
+    assert NAME in seen[-1].integrators and "lgvi" in seen[-1].integrators
+    capsys.readouterr()
+    assert cli.main(["run", "--integrators", NAME, "--quick", "--scenes", "fixed_length", "--out", "results"]) == 0
+    note = capsys.readouterr().err.strip().splitlines()
+    assert note == ["note: results/ gets the rows of plugin(s) symplectic_euler (package my-stepper 0.1), "
+                    "as --out asks"], note
