@@ -359,14 +359,15 @@ def cmd_verify(args) -> int:
     """The plugin contract (benchmark/verify.py): exit 0 when every check holds, 1 otherwise."""
     from benchmark import verify
 
-    kind = verify.kind_of(args.name)  # an unknown name is refused (exit 2) before any work
     ov = _overrides(args.set)
-    if kind == "integrator" and (args.scene or ov):
-        raise UsageError(f"--scene/--set are for an effect; {args.name} is an integrator, checked on its own "
-                         "small scenes")
-    if kind == "effect":
-        verify.effect_scene(args.name, args.scene, ov)  # a scene without the effect, or a bad one: exit 2 now
-    return verify.verify(args.name, scene=args.scene, overrides=ov, log=print)
+    for name in args.names:  # an unknown name, a scene without the effect or a bad one: exit 2 before any work
+        kind = verify.kind_of(name)
+        if kind == "integrator" and (args.scene or ov):
+            raise UsageError(f"--scene/--set are for an effect; {name} is an integrator, checked on its own "
+                             "small scenes")
+        if kind == "effect":
+            verify.effect_scene(name, args.scene, ov)
+    return max(verify.verify(name, scene=args.scene, overrides=ov, log=print) for name in args.names)
 
 
 def cmd_list(args) -> int:
@@ -584,7 +585,7 @@ def parser() -> argparse.ArgumentParser:
             "determinism and its flop count; for an effect its gradients against autodiff, its power, the energy "
             "balance with a reference method and the validation of its scene keys. Small scenes: seconds to tens of "
             "seconds, mostly compilation.")
-    v.add_argument("name", help="a registered integrator or effect (see `list`)")
+    v.add_argument("names", nargs="+", metavar="NAME", help="registered integrators or effects (see `list`)")
     v.add_argument("--scene", help="for an effect: a scene name or .toml path that lists it (default: a small "
                                    "scene with the effect and what it needs; required when its keys have no default)")
     _add_set(v, "for an effect: a scene override, repeatable, e.g. --set stiffness=20")

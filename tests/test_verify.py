@@ -73,9 +73,6 @@ def test_a_method_that_ignores_the_contract_fails_and_says_where():
     assert 0.9 < observed < 1.3, observed  # forward Euler (measured 1.12)
     assert "declarations" not in failed and "deterministic" not in failed
     assert registry._REGISTRY.get(UnguardedEuler.name) is None  # registered for the checks only
-    with pytest.raises(ContractError, match=r"verify_unguarded_euler' fails \d+ of \d+ checks") as err:
-        check_integrator(UnguardedEuler)
-    assert err.value.checks and not all(c.ok for c in err.value.checks)
 
 
 class WrongSpring(Effect):
@@ -109,6 +106,11 @@ def test_an_effect_with_a_wrong_gradient_and_power_fails():
     print("\n".join(c.line() for c in checks))
     assert {"gradient V_wrong_spring", "power", "energy balance"} <= _failed(checks), _failed(checks)
     assert "verify_wrong_spring" not in EFFECTS  # registered for the checks only
+    # the pytest twin raises, naming every failed check
+    with pytest.raises(ContractError, match=r"effect 'verify_wrong_spring' fails \d+ of \d+ checks") as err:
+        check_effect(WrongSpring())
+    assert "FAIL  gradient V_wrong_spring" in str(err.value) and "ok " not in str(err.value)
+    assert {c.name for c in err.value.checks if not c.ok} == _failed(checks)
 
 
 @pytest.mark.parametrize("name", ["carnot"])
@@ -199,17 +201,20 @@ def test_the_documented_effect_plugin_passes_verify(tmp_path):
     work.mkdir()
     (work / "tip_spring_demo.toml").write_text(_readme_block(readme, 'name = "tip_spring_demo"', lang="toml"))
     text = " ".join(readme.read_text().split())
-    for name, term in (("tip_spring", "gradient V_tip_spring"), ("tip_damper", "power")):
-        assert f"`python -m benchmark verify {name} --scene tip_spring_demo.toml`" in text
-        proc = _benchmark(site, "verify", name, "--scene", "tip_spring_demo.toml", cwd=work)
-        print(proc.stdout)
-        assert proc.returncode == 0, proc.stdout + proc.stderr[-2000:]
-        checks = _check_lines(proc.stdout)
-        assert all(ln.startswith("ok ") for ln in checks)
+    assert "`python -m benchmark verify tip_spring tip_damper --scene tip_spring_demo.toml`" in text
+    proc = _benchmark(site, "verify", "tip_spring", "tip_damper", "--scene", "tip_spring_demo.toml", cwd=work)
+    print(proc.stdout)
+    assert proc.returncode == 0, proc.stdout + proc.stderr[-2000:]
+    reports = proc.stdout.split("verify effect ")[1:]
+    assert [r.split(":")[0] for r in reports] == ["'tip_spring'", "'tip_damper'"]
+    for report, term in zip(reports, ("gradient V_tip_spring", "power")):
+        checks = _check_lines(report)
+        assert checks and all(ln.startswith("ok ") for ln in checks)
         names = {ln.split(":")[0].split(maxsplit=1)[1] for ln in checks}
         assert {"declarations", "power", "energy balance", "scene keys", term} <= names, names
         keys = next(ln for ln in checks if ln.startswith("ok    scene keys"))
         assert re.search(r"(\d+) of \1 broken values refused", keys), keys
+    assert "Q·w = claimed power" in reports[1] and "≤ 0 (dissipative)" in reports[1]
     # without a scene, its required keys are named and the command refuses (exit 2) before any work
     bare = _benchmark(site, "verify", "tip_spring", cwd=work)
     assert bare.returncode == 2 and "tip_spring.stiffness" in bare.stderr and "--scene" in bare.stderr, bare.stderr
