@@ -461,8 +461,8 @@ def _flops(integ, runs: dict) -> Check:
 # ------------------------------------------------------------------------------------------
 def effect_scene(name: str, scene=None, overrides: dict | None = None):
     """The scene an effect is checked in: ``scene`` (a name, path or `Scene`, which must list
-    it), else the small retrieval scene with the effect, what it needs and every built-in
-    effect its needs bring; ValueError when the effect has required keys and no scene is given."""
+    it), else the small retrieval scene with the effect, what it needs, gravity and the rigid
+    body; ValueError when the effect has required keys and no scene is given."""
     from models import EFFECTS, load_scene
     from models.effects import get_effect
 
@@ -472,7 +472,8 @@ def effect_scene(name: str, scene=None, overrides: dict | None = None):
         if name not in loaded.effects:
             raise ValueError(f"scene {loaded.name!r} does not list effect {name!r} in 'effects': give a scene that does")
         return loaded
-    wanted, todo = set(), [name] + [n for n, e in EFFECTS.items() if e.required]
+    # with gravity and a rigid body, so that the effect acts on a moving, loaded string
+    wanted, todo = set(), [name, "gravity", "rigid_body"] + [n for n, e in EFFECTS.items() if e.required]
     while todo:
         n = todo.pop()
         if n not in wanted:
