@@ -76,8 +76,9 @@ ABOVE = 1.0
 ROUND_OFF = 1e-12
 #: |E − W − E0| / max T allowed of the reference on an effect's scene
 ENERGY_TOLERANCE = 1e-7
-#: an attitude kept on SO(3), and π3 kept by a variational method, to round-off
-GROUP_TOLERANCE, PI3_TOLERANCE = 1e-11, 1e-9
+#: an attitude kept on SO(3) to round-off, and π3 kept by a variational method to its solver's
+#: tolerance (measured relative drifts: the LGVIs 5e-15, RATTLE 9.1e-10 from its Newton tolerance)
+GROUP_TOLERANCE, PI3_TOLERANCE = 1e-11, 1e-8
 
 
 @dataclass(frozen=True)
@@ -401,9 +402,9 @@ def _capability(integ, cap, runs: dict) -> Check:
         # π3 is a momentum map of this scene's symmetry: a variational method keeps it exactly
         worst = max(float(np.max(np.abs(d["pi3"] - d["pi3"].iloc[0])) / max(abs(d["pi3"].iloc[0]), 1e-300))
                     for d in sums)
-        return Check(name, worst < PI3_TOLERANCE, f"relative π3 drift {worst:.2g} (round-off is below "
-                                                  f"{PI3_TOLERANCE:g}; a method that is not variational drifts "
-                                                  "with its truncation error)")
+        return Check(name, worst < PI3_TOLERANCE, f"relative π3 drift {worst:.2g} (allowed {PI3_TOLERANCE:g}, "
+                                                  "round-off and solver tolerance; a method that is not variational "
+                                                  "drifts with its truncation error)")
     if cap is Capability.IMPLICIT:
         counters = ("newton_iterations", "jac_evals", "lu_decompositions")
         tr = _counted(integ, scene, settings[-1], trajs[-1])
