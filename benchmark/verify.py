@@ -25,7 +25,8 @@ fixed length and one reeling, against a tight DOP853 solution of the model's own
   bound and finite, and a blow-up is a status other than ok;
 * ``capability <name>``: each declared capability holds (fixed step / adaptive: the setting is
   taken and the other refused unless declared; group-preserving: ‖I − RᵀR‖ at round-off;
-  variational: π3, conserved by the scene, kept to round-off; implicit: it reports iterations);
+  variational: π3, conserved by the scene, kept to round-off and solver tolerance; implicit: it
+  reports iterations);
 * ``deterministic``: the same call twice gives the same trajectory, bit for bit;
 * ``flops``: its work per step can be counted by the project's rule (`benchmark.flops`).
 
