@@ -14,6 +14,8 @@ By concern, from the command line down:
   what they conclude from: `properties` (energy growth classified, orthogonality), `cheapest` (the cost at a target, with its spread, and verdicts that
   call a tie a tie), `reproducibility` (two runs tables compared within stated tolerances),
   `styles` (one look per method in every figure);
+- the plugin contract: `verify` (`python -m benchmark verify NAME`, and `check_integrator` /
+  `check_effect` for a plugin's own tests);
 - underneath: `engine` (jobs on worker processes, this process or Dask; stop signals,
   progress with a measured ETA, crash rows), `store` (output lock, resume keys, rows checked
   before they are trusted, a run merged into the table of its --out, atomic tables and .npz files),

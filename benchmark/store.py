@@ -215,6 +215,11 @@ class StoredRuns:
         return [r for r in self.rows if r.get("status") not in RETRY_STATUSES and r.get("run_key")]
 
 
+#: Columns of a runs table read back as text (a version "1.10" or a digest "12e5" is not a number).
+TEXT_COLUMNS = ("scene", "integrator", "setting", "status", "reason", "rhs", "implementation", "run_key", "row_digest",
+                "scene_key", "traceback", "package", "package_version", "code_digest")
+
+
 def _read_csv(path: Path):
     import pandas as pd
 
@@ -228,9 +233,7 @@ def _read_csv(path: Path):
                 row[k] = np.nan
                 continue
             try:
-                row[k] = float(v) if k not in ("scene", "integrator", "setting", "status", "reason", "rhs",
-                                               "implementation", "run_key", "row_digest", "scene_key",
-                                               "traceback") else v
+                row[k] = float(v) if k not in TEXT_COLUMNS else v
             except ValueError:
                 row[k] = v  # text where a number belongs: `check_row` says so
         if "reason" in row and _missing(row["reason"]):
