@@ -19,7 +19,9 @@ with the same weight. Nothing is extrapolated:
   cross the target more than once: the cheapest crossing counts, i.e. the least the method
   was seen to need;
 - a failed run (any status but ``ok``) has no error and is not a point of the curve: the
-  neighbours of a failed setting are the finished settings on either side of it;
+  neighbours of a failed setting are the finished settings on either side of it. This includes
+  a run that finished but is no longer a solution (status ``inaccurate``, an error beyond a
+  sanity bound, `benchmark.metrics.INACCURATE`): a cost is read only between two solutions;
 - a method with a fixed-step and an adaptive sweep (``tsit5``) is represented by the cheaper
   of its two curves (column ``sweep`` says which).
 
@@ -44,6 +46,8 @@ from typing import Iterable, Sequence
 
 import numpy as np
 import pandas as pd
+
+from benchmark.metrics import INACCURATE
 
 #: Relative resolution of a work count: two work costs within 10 % of each other are a tie.
 #: A count is deterministic on one machine, but adaptive step sequences follow round-off, so the
@@ -72,9 +76,10 @@ COLUMNS = ["scene", "metric", "target", "cost_kind", "integrator", "sweep", "cos
 
 #: What fixes a cost (column ``bound``): the target, read off the curve between two settings
 #: ("accuracy"), or the coarsest finished setting already meeting it, because coarser fixed steps
-#: did not finish ("stability"), coarser tolerances did not finish ("failures"), or nothing
+#: did not finish ("stability"), coarser tolerances did not finish ("failures"), the next
+#: coarser setting finished but is no solution ("cliff": status ``inaccurate``), or nothing
 #: coarser was swept ("sweep range"): then the method may be cheaper than the cost says.
-BOUNDS = ("accuracy", "stability", "failures", "sweep range")
+BOUNDS = ("accuracy", "stability", "failures", "cliff", "sweep range")
 
 _KEY_COLUMNS = ("scene", "integrator", "setting", "dt", "rtol", "status")
 
@@ -201,7 +206,7 @@ def _curve_cost(curve: list[dict], metric: str, target: float, columns: tuple[st
                else "the sweep's coarsest setting")
         bracket, note = settings[i], f"reached at the coarsest finished setting ({why}): its own cost"
         failed = [r for r in coarser if r["status"] != "ok"]
-        bound = ("sweep range" if not failed else
+        bound = ("sweep range" if not failed else "cliff" if failed[-1]["status"] == INACCURATE else
                  "stability" if str(settings[i]).startswith("dt=") else "failures")
     else:
         bracket, note, bound = f"{settings[i]} .. {settings[j]}", "interpolated", "accuracy"
@@ -320,6 +325,7 @@ def _verdict_text(g: pd.DataFrame) -> str:
 
 _BOUND_WORDS = {"stability": "by the stability limit (coarser steps did not finish)",
                 "failures": "by failures (coarser tolerances did not finish)",
+                "cliff": "by a cliff (the next coarser setting is no longer a solution)",
                 "sweep range": "by the sweep's range (its coarsest setting already meets the target)"}
 
 
@@ -365,10 +371,13 @@ CAUSES = {
     "budget": "stopped by their step or time budget",
     "no finished run": "of a method that finished no fixed-step run of the scene",
     "within its finishing range": "failed although the same method finished the scene with a larger step",
+    "inaccurate": "finished with an error beyond a sanity bound (no longer a solution)",
     "adaptive": "adaptive runs that did not finish",
     "error": "raised an exception (a bug)",
 }
-EXPECTED_CAUSES = ("beyond the stability map's limit", "beyond its largest finishing step", "budget")
+#: An inaccurate run is expected: a method's coarsest settings may be too coarse to solve the
+#: scene (the sweep reaches beyond the accuracy range on purpose, to find where it ends).
+EXPECTED_CAUSES = ("beyond the stability map's limit", "beyond its largest finishing step", "budget", "inaccurate")
 
 
 def failure_causes(runs: pd.DataFrame, stability: pd.DataFrame | None = None) -> pd.DataFrame:
@@ -396,6 +405,8 @@ def failure_causes(runs: pd.DataFrame, stability: pd.DataFrame | None = None) ->
         key = (r.scene, r.integrator)
         if r.status in BUDGET_STATUSES:
             cause = "budget"
+        elif r.status == INACCURATE:
+            cause = "inaccurate"
         elif r.status == "error":
             cause = "error"
         elif pd.isna(r.dt):

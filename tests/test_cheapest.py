@@ -79,6 +79,27 @@ def test_failed_runs_are_no_points_of_the_curve():
     assert a["bracket"] == "dt=0.04 .. dt=0.01" and a["cost"] == pytest.approx(2.0)
 
 
+def test_an_inaccurate_run_is_no_point_of_the_curve_and_no_cost_is_read_across_it():
+    # the cliff: at dt = 0.02 the run finished but is no solution (its error, 1.2, was taken
+    # away with its status); a curve through it would put the crossing at the cheap end
+    runs = table(row("a", "dt=0.02", status="inaccurate", time=1.0), row("a", "dt=0.01", error=1e-6, time=4.0),
+                 row("b", "dt=0.04", error=1e-2, time=1.0), row("b", "dt=0.02", status="inaccurate", time=2.0),
+                 row("b", "dt=0.01", error=1e-6, time=4.0))
+    t = cheapest(runs, [("energy_error", 1e-4)], cost_kinds=["wall"])
+    a, b = one(t, "a"), one(t, "b")
+    assert a["cost"] == 4.0 and a["bracket"] == "dt=0.01" and a["bound"] == "cliff"
+    assert "dt=0.02 inaccurate" in a["note"]
+    assert b["bracket"] == "dt=0.04 .. dt=0.01" and b["bound"] == "accuracy"  # between two solutions
+    assert "bounded by a cliff (the next coarser setting is no longer a solution)" in summary_lines(t)[0]
+
+
+def test_inaccurate_runs_are_an_expected_cause_of_their_own():
+    runs = table(row("a", "dt=0.02", status="inaccurate"), row("a", "dt=0.01"))
+    assert failure_causes(runs)["cause"].tolist() == ["inaccurate"]
+    assert failure_summary(runs) == ("1 of 2 runs not ok, all expected: 1 finished with an error beyond a sanity "
+                                     "bound (no longer a solution) (inaccurate 1).")
+
+
 def test_the_coarsest_finished_setting_meeting_the_target_says_what_failed_above_it():
     t = cheapest(table(row("a", "dt=0.02", status="diverged"), row("a", "dt=0.01", error=1e-6, time=3.0)),
                  [("energy_error", 1e-4)])
