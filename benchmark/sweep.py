@@ -17,6 +17,8 @@ PAPER_SCENES = ("fixed_length", "deployment", "retrieval")
 PRESENTATION_ORDER = ("lgvi", "lgvi_sym", "lgvi_yoshida4", "lgvi_suzuki4", "rk45", "dop853", "radau", "tsit5",
                       "kvaerno5")
 SAVE_EVERY = 0.02  # s; every dt below divides it
+#: The words for a sweep axis in labels: a run with ``dt`` set, or an adaptive one (``rtol``).
+SWEEP_WORDS = {"dt": "fixed dt", "rtol": "adaptive"}
 
 # step sizes (s) and relative tolerances (atol = rtol * ATOL_FACTOR)
 FULL_DTS = (0.02, 0.01, 0.005, 0.0025, 0.00125)
