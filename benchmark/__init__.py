@@ -8,7 +8,8 @@ By concern, from the command line down:
 - `cli` parses and checks a command's input, then calls its pipeline in `pipelines`;
 - the studies, as jobs: `runner` (the runs table), `stability`, `check`, `horizon` (the energy
   study), `orders` (observed orders on a short horizon), `xval`, `lgvi_speed` (speed),
-  `reel_reversal`; what a sweep runs: `sweep`; its metrics: `metrics`;
+  `reel_reversal`; what a sweep runs: `sweep`; its metrics: `metrics`; its work: `flops` (one
+  rule for every method), checked against compiled floors by `work_rule` (results/work_rule.md);
 - their writers: `runs_report`, `stability_report`, `xval_report` (and the baseline in `check`,
   the speed tables in `lgvi_speed`), on the report layer `report` and the plot layer `plots`;
   what they conclude from: `properties` (energy growth classified, orthogonality), `cheapest` (the cost at a target, with its spread, and verdicts that
