@@ -264,8 +264,12 @@ def cmd_speed(args) -> int:
                     raise
                 raise UsageError(f"--dt {args.dt:g} x --steps {args.steps} = {horizon['t_end']:g} s per timed run: "
                                  f"{exc}; give a smaller --dt or fewer --steps") from None
-    out = opt.writable_file(args.out) if args.out is not None else None
+    out = None if args.out == "-" else opt.writable_file(args.out)  # --out -: print only
     from benchmark import lgvi_speed, pipelines
+
+    if out is not None and out.is_file() and not pipelines.speed_rows_file(out).exists():
+        raise UsageError(f"--out {out}: the file exists without its rows table {pipelines.speed_rows_file(out)}, so "
+                         "its rows could not be kept; this run would overwrite them: give another --out, or move it away")
     from integrators.rhs import check_rhs
 
     rhs = tuple(v.strip() for v in args.rhs.split(",") if v.strip())
@@ -310,10 +314,8 @@ def cmd_xval(args) -> int:
         raise UsageError(f"xval needs {', '.join(missing)}: pip install 'reelbench[xval]'")
     from benchmark import pipelines
 
-    readme = pipelines.run_xval(args.scene, ints or list(xval.DEFAULT_ELEMENTS), args.t_end or xval.DEFAULT_T_END, out,
-                                command=_command(args), log=_log)
-    _log(f"wrote {readme}")
-    return 0
+    return pipelines.run_xval(args.scene, ints or list(xval.DEFAULT_ELEMENTS), args.t_end or xval.DEFAULT_T_END, out,
+                              command=_command(args), log=_log)
 
 
 def cmd_reel_reversal(args) -> int:
@@ -482,7 +484,10 @@ def _add_speed(sub) -> None:
     sp.add_argument("--rhs", default=_csv(default.rhs), help="right-hand sides to time per call ('' = none)")
     sp.add_argument("--autodiff-max-n", type=opt.positive_int, default=default.autodiff_max_n,
                     help="largest N for the O(N^3) autodiff right-hand side")
-    sp.add_argument("--out", help="also write the tables (Markdown, with the command and machine) to this file")
+    sp.add_argument("--out", default="results/lgvi_speed.md",
+                    help="the tables (Markdown, with the command and machine): this run's rows join those of the "
+                         "rows table beside it (.csv; rows of other methods, scenes and N are kept) and the file is "
+                         "written from the whole table; - = only print them")
     sp.set_defaults(func=cmd_speed)
 
 

@@ -368,35 +368,68 @@ def run_horizon_study(t_end: float, out: Path, overrides: tuple = (), jobs: int 
 # ------------------------------------------------------------------------------------------
 # stability, check, xval, speed, reel-reversal
 # ------------------------------------------------------------------------------------------
+#: A row of the stability map: one per scene, integrator and kind (a dt ladder or one tolerance).
+STABILITY_IDENTITY = ("scene", "integrator", "kind")
+
+
 def run_stability(scenes=None, integrators=None, *, workers: int = 2, out: Path = Path("results/stability"),
                   command: str = "python -m benchmark stability", log: Callable[[str], None] = log_stderr) -> int:
     """The stability map into ``out``: stability.csv (written after every job), stability.md,
-    stability.png and README.md."""
+    stability.png and README.md. The run's rows join the map already in ``out`` (one row per
+    scene, integrator and kind, `benchmark.study_store.MergedTable`): the rows it does not
+    recompute are kept, and the table, figure and README are written from the whole map, also
+    when the run is stopped."""
+    from benchmark import stability
+    from benchmark.study_store import MergedTable
+
+    out = Path(out)
+    jobs = stability.jobs_for(scenes, integrators)  # validates names before any work
+    provenance = Provenance(command, workers=workers or 1)
+    rows: list[dict] = []
+    table = None
+
+    def on_rows(done: list[dict]) -> None:
+        rows[:] = done
+        table(done)
+
+    try:
+        with _exclusive(out, log):
+            # read under the lock (another run may have just merged into it); refuses an unreadable map
+            table = MergedTable(out / "stability.csv", STABILITY_IDENTITY, stability.to_frame)
+            log(f"stability map: {len(jobs)} jobs ({len({j.case.scene for j in jobs})} scenes) on {workers or 1} "
+                f"worker(s) -> {out}/" + (f" (merged with its {table.earlier} earlier row(s))" if table.earlier else ""))
+            df = stability.execute(jobs, workers=workers, on_rows=on_rows, log=log)
+            rows[:] = df.to_dict("records")
+            table(rows)
+            _stability_files(out, table, rows, provenance)
+            log(f"done in {provenance.wall_time():.0f} s; see {out}/README.md")
+            return 0
+    except KeyboardInterrupt as exc:
+        if table is None:
+            return engine.stopped(exc, "nothing was written", log)
+        note = table.stop_note()
+        if table.saved:
+            try:  # the table, figure and README of the whole merged map, so that they agree with its csv
+                _stability_files(out, table, rows, provenance)
+                note += f"; {out}/README.md, stability.md and stability.png are written from it"
+            except Exception as err:  # noqa: BLE001 - the stop line must come out whatever the plot does
+                note += f"; its README, table and figure were not redrawn ({type(err).__name__})"
+        return engine.stopped(exc, f"{note}; run the same command again to compute the rest", log)
+    except OSError as exc:  # a full or failing disk: what was written is intact
+        log(f"error: {exc}; {table.stop_note() if table is not None else 'nothing was written'}")
+        return 1
+
+
+def _stability_files(out: Path, table, rows: list[dict], provenance: Provenance) -> None:
+    """stability.md, stability.png and README.md of the whole merged map."""
     from benchmark import stability, stability_report
     from benchmark.report import markdown_table
     from models.io import atomic_write_text
 
-    out = Path(out)
-    table = store.TableWriter(out / "stability.csv", stability.to_frame)
-    try:
-        with _exclusive(out, log):
-            provenance = Provenance(command, workers=workers or 1)
-            jobs = stability.jobs_for(scenes, integrators)  # validates names before any work
-            log(f"stability map: {len(jobs)} jobs ({len({j.case.scene for j in jobs})} scenes) on {workers or 1} "
-                f"worker(s) -> {out}/")
-            df = stability.execute(jobs, workers=workers, on_rows=table, log=log)
-            table(df.to_dict("records"))
-            atomic_write_text(out / "stability.md", markdown_table(df))
-            stability_report.plot(df, out)
-            stability_report.write_readme(out, df, provenance=provenance)
-            log(f"done in {provenance.wall_time():.0f} s; see {out}/README.md")
-            return 0
-    except KeyboardInterrupt as exc:
-        return engine.stopped(exc, f"the rows finished so far are in {table.path}; run the same command again to "
-                                   "compute the map", log)
-    except OSError as exc:  # a full or failing disk: what was written is intact
-        log(f"error: {exc}; {table.saved} row(s) are saved in {table.path}")
-        return 1
+    merged = stability.to_frame(table.merged(rows))
+    atomic_write_text(out / "stability.md", markdown_table(merged))
+    stability_report.plot(merged, out)
+    stability_report.write_readme(out, merged, provenance=table.provenance(provenance, rows, out / "README.md"))
 
 
 def run_check(*, update: bool = False, baseline=None, integrators=None, factor: float | None = None,
@@ -440,33 +473,89 @@ def run_check(*, update: bool = False, baseline=None, integrators=None, factor: 
 
 
 def run_xval(scene_name: str, elements, t_end: float, out: Path, *, command: str = "python -m benchmark xval",
-             log: Callable[[str], None] = log_stderr) -> Path:
-    """The cross-validation against MoorDyn and MuJoCo into ``out``; returns its README."""
+             log: Callable[[str], None] = log_stderr) -> int:
+    """The cross-validation against MoorDyn and MuJoCo into ``out``; returns the exit status. The runs
+    of an earlier study in ``out`` that this one does not recompute (other N) are kept and every
+    file is written from the merged study (`benchmark.study_store.earlier_xval`, which refuses,
+    before any work, earlier runs that cannot be kept). The study writes when it ends: a stopped
+    one leaves ``out`` as it was."""
     from benchmark import xval, xval_report
+    from benchmark.report import earlier_runs
+    from benchmark.study_store import earlier_xval
     from models import load_scene
 
+    out = Path(out)
     provenance = Provenance(command)
     scene = load_scene(scene_name)
-    study = xval.study(scene, elements, t_end, log=log)  # refuses an untranslatable scene before any work
-    return xval_report.write_outputs(study, scene, Path(out), provenance)
+    xval.check_scene(scene)  # refuses an untranslatable scene before any work
+    this_run = {(c, int(n)) for c in xval.cases_of(scene) for n in elements}
+    kept, kept_settings = earlier_xval(out, scene, t_end, this_run)
+    try:
+        study = xval.study(scene, elements, t_end, log=log)
+    except KeyboardInterrupt as exc:
+        return engine.stopped(exc, f"{out}/ is as it was (the study writes its files when it ends)", log)
+    if kept:
+        log(f"xval: kept {len(kept)} earlier (case, N) run(s) of {out}/ as they were: "
+            + ", ".join(f"{c} N={n}" for c, n in sorted(kept)))
+        study = xval.Study(study.times, {**kept, **study.runs})
+        provenance = provenance.merged_into(earlier_runs(out / "README.md"))
+    log(f"wrote {xval_report.write_outputs(study, scene, out, provenance, kept=kept_settings)}")
+    return 0
 
 
 def run_speed(request, out: Path | None = None, *, command: str = "python -m benchmark speed",
               log: Callable[[str], None] = log_stderr, echo: Callable[[str], None] = print) -> int:
     """The speed tables (a `lgvi_speed.SpeedRequest`), one timing after another in this process:
-    echoed, and written to ``out`` when given."""
+    echoed, and with ``out`` (a Markdown file) merged into the rows table beside it (``.csv``,
+    written after every measurement, `benchmark.study_store.MergedTable`) and ``out`` written from
+    the whole table, also when the run is stopped."""
     from benchmark import lgvi_speed
+    from benchmark.study_store import MergedTable
     from models.io import atomic_write_text
 
     provenance = Provenance(command)
     jobs = lgvi_speed.jobs_for(request)
-    log(f"speed: {len(jobs)} measurement(s), one after another in this process")
-    rows = engine.run_jobs(lgvi_speed.run_job, jobs, workers=0, describe=lgvi_speed.describe, log=log)
-    text = lgvi_speed.document(rows, provenance)
-    echo(text)
-    if out is not None:
-        atomic_write_text(out, text)
+    table, rows = None, []
+
+    def on_row(done: list[dict]) -> None:
+        rows[:] = done
+        if table is not None:
+            table(done)
+
+    def write(done: list[dict]) -> str:
+        merged = table.merged(done) if table is not None else done
+        text = lgvi_speed.document(merged, table.provenance(provenance, done, out) if table is not None else provenance)
+        if out is not None:
+            atomic_write_text(out, text)
+        return text
+
+    with _exclusive(out.parent, log) if out is not None else contextlib.nullcontext():
+        if out is not None:
+            table = MergedTable(speed_rows_file(out), lgvi_speed.IDENTITY, lgvi_speed.to_frame,
+                                text_columns=lgvi_speed.TEXT_COLUMNS)
+        log(f"speed: {len(jobs)} measurement(s), one after another in this process"
+            + (f"; rows -> {table.path} (merged with its {table.earlier} earlier row(s)), tables -> {out}"
+               if table is not None else " (no --out: the tables are printed, not saved)"))
+        try:
+            rows[:] = engine.run_jobs(lgvi_speed.run_job, jobs, workers=0, describe=lgvi_speed.describe,
+                                      on_row=on_row, log=log)
+        except KeyboardInterrupt as exc:
+            if table is None:
+                return engine.stopped(exc, "nothing saved (without --out the tables are only printed)", log)
+            note = table.stop_note()
+            if table.saved:
+                write(rows)
+                note += f"; {out} is written from it"
+            return engine.stopped(exc, f"{note}; run the same command again to measure the rest", log)
+        if table is not None:
+            table(rows)
+        echo(write(rows))
     return 0
+
+
+def speed_rows_file(out: Path) -> Path:
+    """The rows table of the speed file ``out``: beside it, ``.csv``."""
+    return Path(out).with_suffix(".csv")
 
 
 def run_reel_reversal(scene_name: str = "reel_reversal", elements: int = 5, t_end: float = 0.96, methods=None, *,

@@ -288,20 +288,21 @@ def kept_rows(keys: list[str], previous: Iterable[dict] | None) -> dict[int, dic
 ROW_IDENTITY = ("scene", "integrator", "setting")
 
 
-def identity_of(row: dict) -> tuple:
-    return tuple(row.get(c) for c in ROW_IDENTITY)
+def identity_of(row: dict, identity: tuple = ROW_IDENTITY) -> tuple:
+    return tuple(row.get(c) for c in identity)
 
 
-def merge_rows(base: Iterable[dict], new: Iterable[dict]) -> list[dict]:
-    """The rows of ``base`` with those of ``new`` in their place (same `ROW_IDENTITY`), and the
-    other rows of ``new`` after the last base row of their scene and integrator (else at the end)."""
+def merge_rows(base: Iterable[dict], new: Iterable[dict], identity: tuple = ROW_IDENTITY) -> list[dict]:
+    """The rows of ``base`` with those of ``new`` in their place (same ``identity``, by default
+    `ROW_IDENTITY`; a study's table names its own), and the other rows of ``new`` after the last
+    base row of their scene and integrator (else at the end)."""
     new = list(new)
-    replace = {identity_of(r): r for r in new}
-    out = [replace.pop(identity_of(r), r) for r in base]
+    replace = {identity_of(r, identity): r for r in new}
+    out = [replace.pop(identity_of(r, identity), r) for r in base]
     for r in new:
-        if identity_of(r) not in replace:
+        if identity_of(r, identity) not in replace:
             continue
-        replace.pop(identity_of(r))
+        replace.pop(identity_of(r, identity))
         same = [k for k, o in enumerate(out) if o.get("scene") == r.get("scene") and o.get("integrator") == r.get("integrator")]
         out.insert(same[-1] + 1 if same else len(out), r)
     return out
