@@ -264,16 +264,69 @@ def _sweep_figures(request: SweepRequest, merged, log) -> list[tuple[str, str]]:
 
 def _sweep_readme(request: SweepRequest, runs, orders, figures, provenance: Provenance, table, failures,
                   merged_note: str = "") -> Path:
+    """README.md of the whole merged table. A run that keeps rows of earlier runs (``merged_note``)
+    keeps what it did not recompute: the header names the run that made the table and those that
+    merged into it since, and without --compare-with of its own the earlier README's comparisons
+    are made again, against the merged table (`_earlier_comparisons`)."""
     from benchmark import runs_report
+    from benchmark.report import earlier_runs
 
     import pandas as pd
 
-    compared = "".join(runs_report.changes_since(pd.read_csv(earlier), runs, f"`{earlier}`")
-                       for earlier in request.compare_with)
+    readme = request.out / "README.md"
+    history = earlier_runs(readme) if merged_note else ()
+    if history:
+        provenance = provenance.merged_into(history)
+    if request.compare_with or not history:
+        compared = "".join(runs_report.changes_since(pd.read_csv(earlier), runs, f"`{earlier}`")
+                           for earlier in request.compare_with)
+    else:
+        compared = _earlier_comparisons(history, readme, runs)
     horizons = {"sweep": request.sweep_t_end, "energy study": request.energy_horizon if request.figures else 0.0}
     return runs_report.write_readme(request.out, runs, orders, provenance=provenance, figures=figures,
                                     compared=compared, horizons=horizons, table=table, failures=failures,
                                     merged=merged_note)
+
+
+def _earlier_comparisons(history, readme: Path, runs) -> str:
+    """The "Compared with ..." sections of the earlier README, for a run that merges rows into its
+    table: each made again against the merged table when its runs.csv (named by a --compare-with
+    of an earlier run in ``history``) is still there, else kept as it was, saying so."""
+    import re
+    import shlex
+
+    import pandas as pd
+
+    from benchmark import runs_report
+
+    given = []
+    for command, _ in history:
+        try:
+            words = shlex.split(command)
+        except ValueError:
+            continue
+        given += [words[k + 1] for k, w in enumerate(words[:-1]) if w == "--compare-with"]
+        given += [w.split("=", 1)[1] for w in words if w.startswith("--compare-with=")]
+    try:
+        old = readme.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError):
+        old = ""
+    sections = {m.group(1): m.group(0) for m in re.finditer(r"^## Compared with `([^`\n]+)`\n.*?(?=^## |\Z)", old,
+                                                              flags=re.M | re.S)}
+    out = []
+    for label in dict.fromkeys(given + list(sections)):
+        path = Path(label) if Path(label).is_absolute() or Path(label).is_file() else store.ROOT / label
+        if path.is_file():
+            try:
+                out.append(runs_report.changes_since(pd.read_csv(path), runs, f"`{label}`"))
+                continue
+            except Exception:  # noqa: BLE001 - an unreadable earlier table keeps its earlier text
+                pass
+        if label in sections:
+            head, _, body = sections[label].partition("\n")
+            out.append(f"{head}\n\n_Kept from the earlier README: `{label}` is not here to compare with the merged "
+                       f"table._\n{body}")
+    return "".join(out)
 
 
 def _horizon_key(method, t_end: float, overrides: tuple) -> str:
