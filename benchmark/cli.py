@@ -171,7 +171,7 @@ def cmd_simulate(args) -> int:
     size = opt.check_size(scene, scene.t_end, args.save_every, args.dt, warn=_log,
                           what=f"{scene.name} to t_end = {scene.t_end:g} s")
     _check_setting(_check_integrator(args.integrator), args.dt, args.rtol, scene.t_end)
-    settings = {"save_every": args.save_every}
+    settings = {"save_every": args.save_every, "max_steps": args.max_steps, "time_limit": args.time_limit}
     if args.dt is not None:
         settings["dt"] = args.dt
     if args.rtol is not None:
@@ -204,11 +204,19 @@ def cmd_figures(args) -> int:
         raise UsageError(f"{src}: the trajectory has no finite point (status {getattr(traj, 'status', '?')}): "
                          "nothing to draw; give a trajectory of a run that computed something")
     from models.schema import is_safe_name
+    from models.scene import scene_from_dict
 
-    if not args.scene and not is_safe_name(traj.scene_name):  # a name read from a file is data, not a path
-        raise UsageError(f"{src} records the scene {traj.scene_name!r}, which is not a scene name: give --scene "
-                         "(the scene name or .toml path the trajectory was computed with)")
-    scene = load_scene(args.scene or traj.scene_name, **ov)
+    recorded = getattr(traj, "scene", None)
+    if not args.scene and isinstance(recorded, dict) and recorded:  # the scene the trajectory was computed with
+        try:
+            scene = scene_from_dict(recorded, source=str(src), **ov)
+        except ValueError as exc:
+            raise UsageError(f"{src}: the scene recorded in the file is not valid ({exc}); give --scene") from None
+    else:
+        if not args.scene and not is_safe_name(traj.scene_name):  # a name read from a file is data, not a path
+            raise UsageError(f"{src} records the scene {traj.scene_name!r}, which is not a scene name: give --scene "
+                             "(the scene name or .toml path the trajectory was computed with)")
+        scene = load_scene(args.scene or traj.scene_name, **ov)
     lay = StateLayout.from_scene(scene)
     nx = traj.x.shape[1] if getattr(traj.x, "ndim", 0) == 2 else None
     if nx != lay.nx or (traj.attitude is not None) != lay.has_attitude:
@@ -451,6 +459,11 @@ def _add_simulate(sub) -> None:
     s.add_argument("--atol", type=opt.positive_float, help="absolute tolerance, with --rtol (default: rtol/100)")
     s.add_argument("--t-end", type=opt.positive_float, help="horizon in s (default: the scene's t_end)")
     s.add_argument("--save-every", type=opt.positive_float, default=0.02, help="save interval in s")
+    s.add_argument("--max-steps", type=opt.positive_int, default=opt.SIMULATE_MAX_STEPS,
+                   help="step budget: the run ends with status max_steps there, its trajectory saved")
+    s.add_argument("--time-limit", type=opt.positive_float, default=opt.SIMULATE_TIME_LIMIT,
+                   help="wall-clock budget of the run in s (after compilation): it ends with status time_limit "
+                        "there, its trajectory saved (a first Ctrl-C ends it the same way, a second at once)")
     _add_set(s)
     s.add_argument("--out", help="trajectory file (.npz; default: ./simulate_SCENE_INTEGRATOR.npz)")
     s.set_defaults(func=cmd_simulate)

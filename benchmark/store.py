@@ -488,6 +488,11 @@ class OutputLock:
 # ------------------------------------------------------------------------------------------
 # Trajectory files
 # ------------------------------------------------------------------------------------------
+#: The most an .npz archive read back may expand to (bytes): a run's trajectory within the memory
+#: budgets of `benchmark.options` reads in seconds; more is refused before anything is read.
+MAX_ARCHIVE_BYTES = 2 * 2**30
+
+
 class UnreadableFile(ValueError):
     """A file that is not a readable .npz archive; the message says why."""
 
@@ -516,6 +521,16 @@ def _require_archive(path: Path) -> None:
     # an .npz is a zip archive; random bytes, a pickle or a cut file are not
     if not zipfile.is_zipfile(path):
         raise UnreadableFile("not an .npz archive: truncated or not written by reelbench")
+    # what its members expand to, from the archive's directory, before any is read (a small file
+    # may expand to gigabytes; the reader never returns more than a member declares)
+    try:
+        with zipfile.ZipFile(path) as archive:
+            expands = sum(info.file_size for info in archive.infolist())
+    except (zipfile.BadZipFile, OSError, ValueError) as exc:
+        raise _unreadable(exc) from None
+    if expands > MAX_ARCHIVE_BYTES:
+        raise UnreadableFile(f"its arrays expand to {expands / 2**30:.3g} GiB, over the {MAX_ARCHIVE_BYTES / 2**30:.3g} "
+                             "GiB that are read back (a trajectory that large: save fewer points, --save-every)")
 
 
 def read_npz(path: str | os.PathLike) -> dict:
