@@ -345,19 +345,23 @@ def cmd_list(args) -> int:
     from models import available_scenes
 
     print("scenes:", ", ".join(available_scenes()))
-    for name in available():
+    names, failed_methods = available(), plugin_errors()
+    width = max(map(len, [*names, *failed_methods]), default=10)  # one column of names, however long
+    for name in names:
         integ = get_integrator(name)
         caps = ", ".join(sorted(c.value for c in integ.capabilities))
-        print(f"  {name:10s} order {integ.order}  [{caps}]  {integ.description}")
-    for name, err in plugin_errors().items():
-        print(f"  {name:10s} FAILED TO LOAD: {err}")
+        sweep = "default" if integ.default_sweep else "extended"
+        print(f"  {name:{width}s}  order {integ.order}  {sweep:8s}  [{caps}]  {integ.description}")
+    for name, err in failed_methods.items():
+        print(f"  {name:{width}s}  FAILED TO LOAD: {err}")
+    print("  (default: in the default sweep; extended: only in the extended sweep, or when --integrators names it)")
     from models import EFFECTS
     from models.effects import plugin_errors as effect_plugin_errors
 
     failed = effect_plugin_errors()  # loads the reelbench.effects plugins first
     print("effects:", ", ".join(EFFECTS))
     for name, err in failed.items():
-        print(f"  {name:10s} FAILED TO LOAD: {err}")
+        print(f"  {name:{max(map(len, failed))}s}  FAILED TO LOAD: {err}")
     return 0
 
 
