@@ -1,7 +1,11 @@
 """Speed: time per step of every fixed-step method, and per-call cost of each right-hand side, vs N.
 
-    python -m benchmark speed                      # short: N = 10 on fixed_length, under a minute
+    python -m benchmark speed                      # short: N = 10 on fixed_length (~1.5 CPU-minutes)
     python -m benchmark speed --elements 10,40,160,640 --scenes fixed_length,deployment   # the full run
+
+Into ``--out`` (default results/lgvi_speed.md): the rows table beside it (``lgvi_speed.csv``)
+takes this run's rows in place of theirs, keeping the others (`benchmark.study_store`), and the
+Markdown file is written from the whole table.
 
 Two tables:
 

@@ -5,8 +5,10 @@ Each composes the layers below it and nothing else: the jobs of a study (`runner
 (`engine.run_jobs`), their rows go to the results store (`store`: the output lock, atomic
 tables), their words and figures through the report and plot layers (`report`, `plots` and
 the writers `runs_report`, `stability_report`, `xval_report`). A study that writes into a
-directory holds its lock and turns Ctrl-C / SIGTERM into one line saying what was saved, and
-the exit status 130 / 143.
+directory holds its lock, merges its rows into the table there (`store.merge_rows`,
+`study_store`: the rows it does not recompute are kept) and writes its other files from the
+whole table; it turns Ctrl-C / SIGTERM into one line saying what was saved, and the exit
+status 130 / 143.
 """
 
 from __future__ import annotations
@@ -315,7 +317,7 @@ def _earlier_comparisons(history, readme: Path, runs) -> str:
                                                               flags=re.M | re.S)}
     out = []
     for label in dict.fromkeys(given + list(sections)):
-        path = Path(label) if Path(label).is_absolute() or Path(label).is_file() else store.ROOT / label
+        path = Path(label)  # as the earlier --compare-with named it: from the working directory
         if path.is_file():
             try:
                 out.append(runs_report.changes_since(pd.read_csv(path), runs, f"`{label}`"))
