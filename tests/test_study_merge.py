@@ -304,3 +304,16 @@ def test_a_comparison_whose_table_is_gone_is_kept_as_it_was_and_says_so(tmp_path
     assert "_Kept from the earlier README: `results/previous/gone.csv` is not here" in new
     assert new.replace("\n\n_Kept from the earlier README: `results/previous/gone.csv` is not here to compare with the "
                        "merged table._", "", 1).strip() == old.strip()
+
+
+def test_a_quick_sweep_into_the_committed_table_is_refused_as_the_readme_says(tmp_path, monkeypatch, capsys):
+    from benchmark import runner
+
+    shutil.copytree(ROOT / "results", tmp_path / "results", ignore=shutil.ignore_patterns("cache", "*.png"))
+    before = (tmp_path / "results" / "runs.csv").read_bytes()
+    monkeypatch.setattr(runner, "execute", lambda *a, **k: pytest.fail("started work"))
+    rc = main(["run", "--quick", "--scenes", "fixed_length", "--integrators", "lgvi,tsit5", "--no-figures",
+               "--out", str(tmp_path / "results")])
+    err = _outcome(capsys)
+    assert rc == 2 and "over t_end = 10 s, this run's over 1 s" in err and "give another --out" in err, err
+    assert (tmp_path / "results" / "runs.csv").read_bytes() == before
