@@ -276,8 +276,9 @@ def cmd_speed(args) -> int:
     from benchmark import lgvi_speed, pipelines
 
     if out is not None and out.is_file() and not pipelines.speed_rows_file(out).exists():
-        raise UsageError(f"--out {out}: the file exists without its rows table {pipelines.speed_rows_file(out)}, so "
-                         "its rows could not be kept; this run would overwrite them: give another --out, or move it away")
+        raise UsageError(f"--out {out}: the file exists without its rows table {pipelines.speed_rows_file(out)}, "
+                         "so its rows could not be kept; this run would overwrite them: give another --out, or move "
+                         "it away")
     from integrators.rhs import check_rhs
 
     rhs = tuple(v.strip() for v in args.rhs.split(",") if v.strip())

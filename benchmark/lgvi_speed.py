@@ -224,7 +224,8 @@ def _step_tables(rows: list[dict]) -> tuple[list[str], list[str]]:
           "|---|---|---|---|---|---|---|---|---|---|---|"]
     md += [f"| {r['method']} | {r['scene']} | {r['N']} | {r['dt']:.3g} | {r['compile_s']:.2f} | {r['us_per_step']:.2f} "
            f"| {_num(r['us_per_eval'], '.2f', 'no RHS evaluations')} | {_num(r['flops_per_step'], '.3g', r['flops_note'])} "
-           f"| {r['steps_per_s']:.0f} | {_num(r['newton_per_step'], '.2f', 'no Newton solve')} | {r['status']} |" for r in rows]
+           f"| {r['steps_per_s']:.0f} | {_num(r['newton_per_step'], '.2f', 'no Newton solve')} | {r['status']} |"
+           for r in rows]
     summary = [f"| method | scene | µs/step at N = 10 | ratio N={RATIO_MAX_N} / N=10 | log-log slope |",
                "|---|---|---|---|---|"]
     for key in dict.fromkeys((r["method"], r["scene"]) for r in rows):

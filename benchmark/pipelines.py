@@ -452,7 +452,8 @@ def run_stability(scenes=None, integrators=None, *, workers: int = 2, out: Path 
             # read under the lock (another run may have just merged into it); refuses an unreadable map
             table = MergedTable(out / "stability.csv", STABILITY_IDENTITY, stability.to_frame)
             log(f"stability map: {len(jobs)} jobs ({len({j.case.scene for j in jobs})} scenes) on {workers or 1} "
-                f"worker(s) -> {out}/" + (f" (merged with its {table.earlier} earlier row(s))" if table.earlier else ""))
+                f"worker(s) -> {out}/"
+                + (f" (merged with its {table.earlier} earlier row(s))" if table.earlier else ""))
             df = stability.execute(jobs, workers=workers, on_rows=on_rows, log=log)
             rows[:] = df.to_dict("records")
             table(rows)
