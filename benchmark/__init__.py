@@ -20,6 +20,7 @@ By concern, from the command line down:
 - underneath: `engine` (jobs on worker processes, this process or Dask; stop signals,
   progress with a measured ETA, crash rows), `store` (output lock, resume keys, rows checked
   before they are trusted, a run merged into the table of its --out, atomic tables and .npz files),
+  `study_store` (the other studies' rows merged into the tables of their output the same way),
   `reference` (the one cached reference solution every study compares with), `options`
   (JAX-free input checks).
 

@@ -196,7 +196,7 @@ def cmd_simulate(args) -> int:
     size = opt.check_size(scene, scene.t_end, args.save_every, args.dt, warn=_log,
                           what=f"{scene.name} to t_end = {scene.t_end:g} s")
     _check_setting(_check_integrator(args.integrator), args.dt, args.rtol, scene.t_end)
-    settings = {"save_every": args.save_every}
+    settings = {"save_every": args.save_every, "max_steps": args.max_steps, "time_limit": args.time_limit}
     if args.dt is not None:
         settings["dt"] = args.dt
     if args.rtol is not None:
@@ -229,11 +229,19 @@ def cmd_figures(args) -> int:
         raise UsageError(f"{src}: the trajectory has no finite point (status {getattr(traj, 'status', '?')}): "
                          "nothing to draw; give a trajectory of a run that computed something")
     from models.schema import is_safe_name
+    from models.scene import scene_from_dict
 
-    if not args.scene and not is_safe_name(traj.scene_name):  # a name read from a file is data, not a path
-        raise UsageError(f"{src} records the scene {traj.scene_name!r}, which is not a scene name: give --scene "
-                         "(the scene name or .toml path the trajectory was computed with)")
-    scene = load_scene(args.scene or traj.scene_name, **ov)
+    recorded = getattr(traj, "scene", None)
+    if not args.scene and isinstance(recorded, dict) and recorded:  # the scene the trajectory was computed with
+        try:
+            scene = scene_from_dict(recorded, source=str(src), **ov)
+        except ValueError as exc:
+            raise UsageError(f"{src}: the scene recorded in the file is not valid ({exc}); give --scene") from None
+    else:
+        if not args.scene and not is_safe_name(traj.scene_name):  # a name read from a file is data, not a path
+            raise UsageError(f"{src} records the scene {traj.scene_name!r}, which is not a scene name: give --scene "
+                             "(the scene name or .toml path the trajectory was computed with)")
+        scene = load_scene(args.scene or traj.scene_name, **ov)
     lay = StateLayout.from_scene(scene)
     nx = traj.x.shape[1] if getattr(traj.x, "ndim", 0) == 2 else None
     if nx != lay.nx or (traj.attitude is not None) != lay.has_attitude:
@@ -289,8 +297,13 @@ def cmd_speed(args) -> int:
                     raise
                 raise UsageError(f"--dt {args.dt:g} x --steps {args.steps} = {horizon['t_end']:g} s per timed run: "
                                  f"{exc}; give a smaller --dt or fewer --steps") from None
-    out = opt.writable_file(args.out) if args.out is not None else None
+    out = None if args.out == "-" else opt.writable_file(args.out)  # --out -: print only
     from benchmark import lgvi_speed, pipelines
+
+    if out is not None and out.is_file() and not pipelines.speed_rows_file(out).exists():
+        raise UsageError(f"--out {out}: the file exists without its rows table {pipelines.speed_rows_file(out)}, "
+                         "so its rows could not be kept; this run would overwrite them: give another --out, or move "
+                         "it away")
     from integrators.rhs import check_rhs
 
     rhs = tuple(v.strip() for v in args.rhs.split(",") if v.strip())
@@ -335,10 +348,8 @@ def cmd_xval(args) -> int:
         raise UsageError(f"xval needs {', '.join(missing)}: pip install 'reelbench[xval]'")
     from benchmark import pipelines
 
-    readme = pipelines.run_xval(args.scene, ints or list(xval.DEFAULT_ELEMENTS), args.t_end or xval.DEFAULT_T_END, out,
-                                command=_command(args), log=_log)
-    _log(f"wrote {readme}")
-    return 0
+    return pipelines.run_xval(args.scene, ints or list(xval.DEFAULT_ELEMENTS), args.t_end or xval.DEFAULT_T_END, out,
+                              command=_command(args), log=_log)
 
 
 def cmd_reel_reversal(args) -> int:
@@ -403,20 +414,24 @@ def cmd_list(args) -> int:
     from models import available_scenes
 
     print("scenes:", ", ".join(available_scenes()))
-    for name in available():
+    names, failed_methods = available(), plugin_errors()
+    width = max(map(len, [*names, *failed_methods]), default=10)  # one column of names, however long
+    for name in names:
         integ = get_integrator(name)
         caps = ", ".join(sorted(c.value for c in integ.capabilities))
+        sweep = "default" if integ.default_sweep else "extended"
         guest = "" if origin(name).own else f"  ({origin(name).label()})"
-        print(f"  {name:10s} order {integ.order}  [{caps}]  {integ.description}{guest}")
-    for name, err in plugin_errors().items():
-        print(f"  {name:10s} FAILED TO LOAD: {err}")
+        print(f"  {name:{width}s}  order {integ.order}  {sweep:8s}  [{caps}]  {integ.description}{guest}")
+    for name, err in failed_methods.items():
+        print(f"  {name:{width}s}  FAILED TO LOAD: {err}")
+    print("  (default: in the default sweep; extended: only in the extended sweep, or when --integrators names it)")
     from models import EFFECTS
     from models.effects import effect_origin, plugin_errors as effect_plugin_errors
 
     failed = effect_plugin_errors()  # loads the reelbench.effects plugins first
     print("effects:", ", ".join(n if effect_origin(n).own else f"{n} ({effect_origin(n).label()})" for n in EFFECTS))
     for name, err in failed.items():
-        print(f"  {name:10s} FAILED TO LOAD: {err}")
+        print(f"  {name:{max(map(len, failed))}s}  FAILED TO LOAD: {err}")
     return 0
 
 
@@ -521,6 +536,11 @@ def _add_simulate(sub) -> None:
     s.add_argument("--atol", type=opt.positive_float, help="absolute tolerance, with --rtol (default: rtol/100)")
     s.add_argument("--t-end", type=opt.positive_float, help="horizon in s (default: the scene's t_end)")
     s.add_argument("--save-every", type=opt.positive_float, default=0.02, help="save interval in s")
+    s.add_argument("--max-steps", type=opt.positive_int, default=opt.SIMULATE_MAX_STEPS,
+                   help="step budget: the run ends with status max_steps there, its trajectory saved")
+    s.add_argument("--time-limit", type=opt.positive_float, default=opt.SIMULATE_TIME_LIMIT,
+                   help="wall-clock budget of the run in s (after compilation): it ends with status time_limit "
+                        "there, its trajectory saved (a first Ctrl-C ends it the same way, a second at once)")
     _add_set(s)
     s.add_argument("--out", help="trajectory file (.npz; default: ./simulate_SCENE_INTEGRATOR.npz)")
     s.set_defaults(func=cmd_simulate)
@@ -554,7 +574,10 @@ def _add_speed(sub) -> None:
     sp.add_argument("--rhs", default=_csv(default.rhs), help="right-hand sides to time per call ('' = none)")
     sp.add_argument("--autodiff-max-n", type=opt.positive_int, default=default.autodiff_max_n,
                     help="largest N for the O(N^3) autodiff right-hand side")
-    sp.add_argument("--out", help="also write the tables (Markdown, with the command and machine) to this file")
+    sp.add_argument("--out", default="results/lgvi_speed.md",
+                    help="the tables (Markdown, with the command and machine): this run's rows join those of the "
+                         "rows table beside it (.csv; rows of other methods, scenes and N are kept) and the file is "
+                         "written from the whole table; - = only print them")
     sp.set_defaults(func=cmd_speed)
 
 

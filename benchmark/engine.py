@@ -24,6 +24,7 @@ from __future__ import annotations
 import collections
 import concurrent.futures as cf
 import contextlib
+import math
 import multiprocessing
 import os
 import signal
@@ -241,7 +242,7 @@ class Progress:
             return
         m = self.measured.setdefault(self._class(i), [0.0, 0.0, 0])
         m[0] += took
-        m[1] += self.cost(i) if self.cost else 0.0
+        m[1] += self.cost(i) if self.cost else 0.0  # a NaN prediction: the class is estimated per job
         m[2] += 1
 
     def seconds_left(self) -> float | None:
@@ -255,8 +256,9 @@ class Progress:
         work = 0.0
         for i in left:
             seconds, predicted, jobs = self.measured.get(self._class(i), total)
-            if self.cost and predicted > 0:
-                work += self.cost(i) * seconds / predicted
+            cost = self.cost(i) if self.cost else math.nan
+            if predicted > 0 and math.isfinite(predicted) and math.isfinite(cost):
+                work += cost * seconds / predicted
             else:
                 work += seconds / jobs
         return work / min(self.workers, max(1, len(left)))
@@ -269,7 +271,8 @@ class Progress:
         self._learn(i, row)
         elapsed = time.perf_counter() - self.start
         left = self.seconds_left() if self.new < self.todo else None
-        eta = f", about {left:.0f} s left" if left is not None else ""
+        # no estimate yet (or none that is a number: a job without its time) says nothing, not "nan s"
+        eta = f", about {left:.0f} s left" if left is not None and math.isfinite(left) else ""
         self.log(f"[{len(self.rows)}/{self.total}] {self.describe(row)}  ({elapsed:.0f} s elapsed{eta})")
         self.saved()
 

@@ -1,7 +1,11 @@
 """Speed: time per step of every fixed-step method, and per-call cost of each right-hand side, vs N.
 
-    python -m benchmark speed                      # short: N = 10 on fixed_length, under a minute
+    python -m benchmark speed                      # short: N = 10 on fixed_length (~1.5 CPU-minutes)
     python -m benchmark speed --elements 10,40,160,640 --scenes fixed_length,deployment   # the full run
+
+Into ``--out`` (default results/lgvi_speed.md): the rows table beside it (``lgvi_speed.csv``)
+takes this run's rows in place of theirs, keeping the others (`benchmark.study_store`), and the
+Markdown file is written from the whole table.
 
 Two tables:
 
@@ -159,12 +163,25 @@ def jobs_for(request: SpeedRequest) -> list:
     return steps + rhs
 
 
+#: A row of the speed tables: one per kind ("step" or "rhs"), method or right-hand side, scene and N
+#: (a step row's rhs and an rhs row's method are "", so that rows read back compare equal).
+IDENTITY = ("kind", "method", "rhs", "scene", "N")
+TEXT_COLUMNS = ("kind", "method", "rhs", "scene", "skipped", "flops_note", "status")
+
+
 def run_job(job) -> dict:
     if isinstance(job, StepJob):
-        return {"kind": "step", **measure(job.scene, job.N, job.steps, job.repeats, job.dt, job.method)}
+        return {"kind": "step", "rhs": "", **measure(job.scene, job.N, job.steps, job.repeats, job.dt, job.method)}
     if job.skip:
-        return {"kind": "rhs", "scene": job.scene, "N": job.N, "rhs": job.rhs, "skipped": job.skip}
-    return {"kind": "rhs", **measure_rhs(job.scene, job.N, job.rhs)}
+        return {"kind": "rhs", "method": "", "scene": job.scene, "N": job.N, "rhs": job.rhs, "skipped": job.skip}
+    return {"kind": "rhs", "method": "", "skipped": "", **measure_rhs(job.scene, job.N, job.rhs)}
+
+
+def to_frame(rows: list[dict]):
+    """The rows table written beside the Markdown file (`benchmark.study_store`)."""
+    from benchmark.store import frame
+
+    return frame(rows, list(IDENTITY))
 
 
 def describe(r: dict) -> str:
@@ -172,7 +189,7 @@ def describe(r: dict) -> str:
         return (f"{r['method']} {r['scene']} N={r['N']} dt={r['dt']:.3g}: {r['us_per_step']:.2f} us/step, "
                 f"{r['us_per_eval']:.2f} us/eval, {r['flops_per_step']:.3g} flops/step, "
                 f"compile {r['compile_s']:.2f} s, {r['newton_per_step']:.2f} newton/step, {r['status']}")
-    if "skipped" in r:
+    if r.get("skipped"):
         return f"rhs {r['rhs']} {r['scene']} N={r['N']}: skipped ({r['skipped']})"
     return f"rhs {r['rhs']} {r['scene']} N={r['N']}: compile {r['compile_s']:.2f} s, {r['us_per_call']:.1f} us/call"
 
@@ -207,31 +224,46 @@ def _step_tables(rows: list[dict]) -> tuple[list[str], list[str]]:
           "|---|---|---|---|---|---|---|---|---|---|---|"]
     md += [f"| {r['method']} | {r['scene']} | {r['N']} | {r['dt']:.3g} | {r['compile_s']:.2f} | {r['us_per_step']:.2f} "
            f"| {_num(r['us_per_eval'], '.2f', 'no RHS evaluations')} | {_num(r['flops_per_step'], '.3g', r['flops_note'])} "
-           f"| {r['steps_per_s']:.0f} | {r['newton_per_step']:.2f} | {r['status']} |" for r in rows]
+           f"| {r['steps_per_s']:.0f} | {_num(r['newton_per_step'], '.2f', 'no Newton solve')} | {r['status']} |"
+           for r in rows]
     summary = [f"| method | scene | µs/step at N = 10 | ratio N={RATIO_MAX_N} / N=10 | log-log slope |",
                "|---|---|---|---|---|"]
     for key in dict.fromkeys((r["method"], r["scene"]) for r in rows):
         group = [r for r in rows if (r["method"], r["scene"]) == key]
         ratio, big = _ratio(group, "us_per_step")
         at10 = next((r["us_per_step"] for r in group if r["N"] == 10), np.nan)
-        summary.append(f"| {key[0]} | {key[1]} | {at10:.2f} | {ratio:.1f} (N = {big}) | {_slope(group, 'us_per_step'):.2f} |")
+        ratio_text = (f"{ratio:.1f} (N = {big})" if big is not None
+                      else f"— (needs N = 10 and an N in 11–{RATIO_MAX_N}: give --elements)")
+        slope = _slope(group, "us_per_step")
+        summary.append(f"| {key[0]} | {key[1]} | {_num(at10, '.2f', 'N = 10 not measured')} | {ratio_text} "
+                       f"| {_num(slope, '.2f', 'needs two N')} |")
     return md, summary
 
 
 def _rhs_table(rows: list[dict]) -> list[str]:
     md = ["| scene | N | right-hand side | compile (s) | µs/call | calls |", "|---|---|---|---|---|---|"]
     for r in rows:
-        if "skipped" in r:
+        if isinstance(r.get("skipped"), str) and r["skipped"]:
             md.append(f"| {r['scene']} | {r['N']} | {r['rhs']} | | skipped ({r['skipped']}) | |")
         else:
-            md.append(f"| {r['scene']} | {r['N']} | {r['rhs']} | {r['compile_s']:.2f} | {r['us_per_call']:.1f} | {r['calls']} |")
+            md.append(f"| {r['scene']} | {r['N']} | {r['rhs']} | {r['compile_s']:.2f} | {r['us_per_call']:.1f} "
+                      f"| {int(r['calls'])} |")
     return md
 
 
+def _grouped(rows: list[dict], by: tuple) -> list[dict]:
+    """``rows`` with those of one group (``by``, in order of first appearance) together, by N."""
+    first = {}
+    for r in rows:
+        first.setdefault(tuple(r[c] for c in by), len(first))
+    return sorted(rows, key=lambda r: (first[tuple(r[c] for c in by)], r["N"]))
+
+
 def document(rows: list[dict], provenance: Provenance) -> str:
-    """The speed tables as one Markdown file, under the report header."""
-    md, summary = _step_tables([r for r in rows if r["kind"] == "step"])
-    rhs = _rhs_table([r for r in rows if r["kind"] == "rhs"])
+    """The speed tables as one Markdown file, under the report header (rows of a merged table
+    come in any order: each method's and right-hand side's are put together, by N)."""
+    md, summary = _step_tables(_grouped([r for r in rows if r["kind"] == "step"], ("method", "scene")))
+    rhs = _rhs_table(_grouped([r for r in rows if r["kind"] == "rhs"], ("scene", "rhs")))
     return (f"# Speed of the fixed-step methods and of the right-hand sides\n\n{provenance.header()}\n\n"
             "Time per step: the whole `solve()` after compilation (output conversion included), divided by the "
             "steps, median of repeats; compile time apart. µs/evaluation: the same time per right-hand-side "

@@ -66,6 +66,7 @@ class Evidence:
     has_work: bool
     dpos: np.ndarray | None = None
     datt: np.ndarray | None = None
+    conserves_pi3: bool = True
 
 
 def pi3_deviation(df: pd.DataFrame) -> pd.Series:
@@ -77,7 +78,8 @@ def pi3_deviation(df: pd.DataFrame) -> pd.Series:
 
 
 def _pi3_error(ev: Evidence) -> float:
-    return float(np.max(pi3_deviation(ev.df)))
+    """NaN where the scene's forces do not conserve π3 (`models.layout.StateLayout.conserves_pi3`)."""
+    return float(np.max(pi3_deviation(ev.df))) if ev.conserves_pi3 else np.nan
 
 
 def _of(arr: str, how: str) -> Callable[[Evidence], float]:
@@ -137,7 +139,8 @@ METRICS: tuple[Metric, ...] = (
     Metric("energy_error", lambda ev: float(energy_deviation(ev.df, has_work=ev.has_work).max()),
            description="max |E − E0| / max T (E − W with non-conservative forces)",
            sanity=lambda scene: ENERGY_SANITY_BOUND),
-    Metric("pi3_error", _pi3_error, description="max |π3 − π3(0)| / |π3(0)| (absolute if π3(0) = 0)"),
+    Metric("pi3_error", _pi3_error, description="max |π3 − π3(0)| / |π3(0)| (absolute if π3(0) = 0; empty where "
+           "external forces do not conserve π3)"),
     Metric("orthogonality_error", lambda ev: float(ev.df["orthogonality_error"].max()), description="max ‖I − RᵀR‖"),
     Metric("position_error_final", _of("dpos", "final"), reference=True, description="body position error at t_end (m)"),
     Metric("position_error_max", _of("dpos", "max"), reference=True,
@@ -214,7 +217,9 @@ def run_metrics(scene, traj, ref, save_every: float, finished=("ok",)) -> dict:
     if traj.status not in finished or len(traj.t) == 0:
         return {k: np.nan for k in ACCURACY}
     dpos, datt = _distances(scene, traj, ref, save_every) if ref is not None else (None, None)
-    ev = Evidence(df=evaluate(scene, traj), has_work=build_model(scene).layout.has_work, dpos=dpos, datt=datt)
+    layout = build_model(scene).layout
+    ev = Evidence(df=evaluate(scene, traj), has_work=layout.has_work, dpos=dpos, datt=datt,
+                  conserves_pi3=layout.conserves_pi3)
     return {m.name: m.function(ev) for m in METRICS}
 
 

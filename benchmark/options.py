@@ -192,6 +192,10 @@ MEMORY_WARN = 1 * 2**30
 #: Refuse a fixed-step run with more steps than this (at the estimate below, 1e9 steps is over
 #: half an hour at N = 10 and days at N = 1000; below it the time estimate warns instead).
 STEPS_REFUSE = 1e9
+#: `simulate`'s default budgets (raised by --max-steps / --time-limit): a request that would run
+#: for hours (a tolerance near round-off over a long horizon) ends with its trajectory saved.
+SIMULATE_MAX_STEPS = 10_000_000
+SIMULATE_TIME_LIMIT = 1800.0
 #: Warn when the estimated wall time of one run exceeds this (s).
 TIME_WARN = 600.0
 #: LGVI time per step ≈ STEP_COST_10 × (N/10)^0.9 (results/lgvi_speed.md, one core: 1.07 µs on

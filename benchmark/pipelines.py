@@ -5,8 +5,10 @@ Each composes the layers below it and nothing else: the jobs of a study (`runner
 (`engine.run_jobs`), their rows go to the results store (`store`: the output lock, atomic
 tables), their words and figures through the report and plot layers (`report`, `plots` and
 the writers `runs_report`, `stability_report`, `xval_report`). A study that writes into a
-directory holds its lock and turns Ctrl-C / SIGTERM into one line saying what was saved, and
-the exit status 130 / 143.
+directory holds its lock, merges its rows into the table there (`store.merge_rows`,
+`study_store`: the rows it does not recompute are kept) and writes its other files from the
+whole table; it turns Ctrl-C / SIGTERM into one line saying what was saved, and the exit
+status 130 / 143.
 """
 
 from __future__ import annotations
@@ -281,16 +283,69 @@ def _sweep_figures(request: SweepRequest, merged, log) -> list[tuple[str, str]]:
 
 def _sweep_readme(request: SweepRequest, runs, orders, figures, provenance: Provenance, table, failures,
                   merged_note: str = "") -> Path:
+    """README.md of the whole merged table. A run that keeps rows of earlier runs (``merged_note``)
+    keeps what it did not recompute: the header names the run that made the table and those that
+    merged into it since, and without --compare-with of its own the earlier README's comparisons
+    are made again, against the merged table (`_earlier_comparisons`)."""
     from benchmark import runs_report
+    from benchmark.report import earlier_runs
 
     import pandas as pd
 
-    compared = "".join(runs_report.changes_since(pd.read_csv(earlier), runs, f"`{earlier}`")
-                       for earlier in request.compare_with)
+    readme = request.out / "README.md"
+    history = earlier_runs(readme) if merged_note else ()
+    if history:
+        provenance = provenance.merged_into(history)
+    if request.compare_with or not history:
+        compared = "".join(runs_report.changes_since(pd.read_csv(earlier), runs, f"`{earlier}`")
+                           for earlier in request.compare_with)
+    else:
+        compared = _earlier_comparisons(history, readme, runs)
     horizons = {"sweep": request.sweep_t_end, "energy study": request.energy_horizon if request.figures else 0.0}
     return runs_report.write_readme(request.out, runs, orders, provenance=provenance, figures=figures,
                                     compared=compared, horizons=horizons, table=table, failures=failures,
                                     merged=merged_note)
+
+
+def _earlier_comparisons(history, readme: Path, runs) -> str:
+    """The "Compared with ..." sections of the earlier README, for a run that merges rows into its
+    table: each made again against the merged table when its runs.csv (named by a --compare-with
+    of an earlier run in ``history``) is still there, else kept as it was, saying so."""
+    import re
+    import shlex
+
+    import pandas as pd
+
+    from benchmark import runs_report
+
+    given = []
+    for command, _ in history:
+        try:
+            words = shlex.split(command)
+        except ValueError:
+            continue
+        given += [words[k + 1] for k, w in enumerate(words[:-1]) if w == "--compare-with"]
+        given += [w.split("=", 1)[1] for w in words if w.startswith("--compare-with=")]
+    try:
+        old = readme.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError):
+        old = ""
+    sections = {m.group(1): m.group(0) for m in re.finditer(r"^## Compared with `([^`\n]+)`\n.*?(?=^## |\Z)", old,
+                                                              flags=re.M | re.S)}
+    out = []
+    for label in dict.fromkeys(given + list(sections)):
+        path = Path(label)  # as the earlier --compare-with named it: from the working directory
+        if path.is_file():
+            try:
+                out.append(runs_report.changes_since(pd.read_csv(path), runs, f"`{label}`"))
+                continue
+            except Exception:  # noqa: BLE001 - an unreadable earlier table keeps its earlier text
+                pass
+        if label in sections:
+            head, _, body = sections[label].partition("\n")
+            out.append(f"{head}\n\n_Kept from the earlier README: `{label}` is not here to compare with the merged "
+                       f"table._\n{body}")
+    return "".join(out)
 
 
 def _horizon_key(scene: str, elements: int, method, t_end: float, overrides: tuple) -> str:
@@ -441,35 +496,69 @@ def _horizon_figures(out: Path, table, scenes, redraw: bool) -> list[tuple[str, 
 # ------------------------------------------------------------------------------------------
 # stability, check, xval, speed, reel-reversal
 # ------------------------------------------------------------------------------------------
+#: A row of the stability map: one per scene, integrator and kind (a dt ladder or one tolerance).
+STABILITY_IDENTITY = ("scene", "integrator", "kind")
+
+
 def run_stability(scenes=None, integrators=None, *, workers: int = 2, out: Path = Path("results/stability"),
                   command: str = "python -m benchmark stability", log: Callable[[str], None] = log_stderr) -> int:
     """The stability map into ``out``: stability.csv (written after every job), stability.md,
-    stability.png and README.md."""
+    stability.png and README.md. The run's rows join the map already in ``out`` (one row per
+    scene, integrator and kind, `benchmark.study_store.MergedTable`): the rows it does not
+    recompute are kept, and the table, figure and README are written from the whole map, also
+    when the run is stopped."""
+    from benchmark import stability
+    from benchmark.study_store import MergedTable
+
+    out = Path(out)
+    jobs = stability.jobs_for(scenes, integrators)  # validates names before any work
+    provenance = Provenance(command, workers=workers or 1)
+    rows: list[dict] = []
+    table = None
+
+    def on_rows(done: list[dict]) -> None:
+        rows[:] = done
+        table(done)
+
+    try:
+        with _exclusive(out, log):
+            # read under the lock (another run may have just merged into it); refuses an unreadable map
+            table = MergedTable(out / "stability.csv", STABILITY_IDENTITY, stability.to_frame)
+            log(f"stability map: {len(jobs)} jobs ({len({j.case.scene for j in jobs})} scenes) on {workers or 1} "
+                f"worker(s) -> {out}/"
+                + (f" (merged with its {table.earlier} earlier row(s))" if table.earlier else ""))
+            df = stability.execute(jobs, workers=workers, on_rows=on_rows, log=log)
+            rows[:] = df.to_dict("records")
+            table(rows)
+            _stability_files(out, table, rows, provenance)
+            log(f"done in {provenance.wall_time():.0f} s; see {out}/README.md")
+            return 0
+    except KeyboardInterrupt as exc:
+        if table is None:
+            return engine.stopped(exc, "nothing was written", log)
+        note = table.stop_note()
+        if table.saved:
+            try:  # the table, figure and README of the whole merged map, so that they agree with its csv
+                _stability_files(out, table, rows, provenance)
+                note += f"; {out}/README.md, stability.md and stability.png are written from it"
+            except Exception as err:  # noqa: BLE001 - the stop line must come out whatever the plot does
+                note += f"; its README, table and figure were not redrawn ({type(err).__name__})"
+        return engine.stopped(exc, f"{note}; run the same command again to compute the rest", log)
+    except OSError as exc:  # a full or failing disk: what was written is intact
+        log(f"error: {exc}; {table.stop_note() if table is not None else 'nothing was written'}")
+        return 1
+
+
+def _stability_files(out: Path, table, rows: list[dict], provenance: Provenance) -> None:
+    """stability.md, stability.png and README.md of the whole merged map."""
     from benchmark import stability, stability_report
     from benchmark.report import markdown_table
     from models.io import atomic_write_text
 
-    out = Path(out)
-    table = store.TableWriter(out / "stability.csv", stability.to_frame)
-    try:
-        with _exclusive(out, log):
-            provenance = Provenance(command, workers=workers or 1)
-            jobs = stability.jobs_for(scenes, integrators)  # validates names before any work
-            log(f"stability map: {len(jobs)} jobs ({len({j.case.scene for j in jobs})} scenes) on {workers or 1} "
-                f"worker(s) -> {out}/")
-            df = stability.execute(jobs, workers=workers, on_rows=table, log=log)
-            table(df.to_dict("records"))
-            atomic_write_text(out / "stability.md", markdown_table(df))
-            stability_report.plot(df, out)
-            stability_report.write_readme(out, df, provenance=provenance)
-            log(f"done in {provenance.wall_time():.0f} s; see {out}/README.md")
-            return 0
-    except KeyboardInterrupt as exc:
-        return engine.stopped(exc, f"the rows finished so far are in {table.path}; run the same command again to "
-                                   "compute the map", log)
-    except OSError as exc:  # a full or failing disk: what was written is intact
-        log(f"error: {exc}; {table.saved} row(s) are saved in {table.path}")
-        return 1
+    merged = stability.to_frame(table.merged(rows))
+    atomic_write_text(out / "stability.md", markdown_table(merged))
+    stability_report.plot(merged, out)
+    stability_report.write_readme(out, merged, provenance=table.provenance(provenance, rows, out / "README.md"))
 
 
 def run_check(*, update: bool = False, baseline=None, integrators=None, factor: float | None = None,
@@ -513,33 +602,89 @@ def run_check(*, update: bool = False, baseline=None, integrators=None, factor: 
 
 
 def run_xval(scene_name: str, elements, t_end: float, out: Path, *, command: str = "python -m benchmark xval",
-             log: Callable[[str], None] = log_stderr) -> Path:
-    """The cross-validation against MoorDyn and MuJoCo into ``out``; returns its README."""
+             log: Callable[[str], None] = log_stderr) -> int:
+    """The cross-validation against MoorDyn and MuJoCo into ``out``; returns the exit status. The runs
+    of an earlier study in ``out`` that this one does not recompute (other N) are kept and every
+    file is written from the merged study (`benchmark.study_store.earlier_xval`, which refuses,
+    before any work, earlier runs that cannot be kept). The study writes when it ends: a stopped
+    one leaves ``out`` as it was."""
     from benchmark import xval, xval_report
+    from benchmark.report import earlier_runs
+    from benchmark.study_store import earlier_xval
     from models import load_scene
 
+    out = Path(out)
     provenance = Provenance(command)
     scene = load_scene(scene_name)
-    study = xval.study(scene, elements, t_end, log=log)  # refuses an untranslatable scene before any work
-    return xval_report.write_outputs(study, scene, Path(out), provenance)
+    xval.check_scene(scene)  # refuses an untranslatable scene before any work
+    this_run = {(c, int(n)) for c in xval.cases_of(scene) for n in elements}
+    kept, kept_settings = earlier_xval(out, scene, t_end, this_run)
+    try:
+        study = xval.study(scene, elements, t_end, log=log)
+    except KeyboardInterrupt as exc:
+        return engine.stopped(exc, f"{out}/ is as it was (the study writes its files when it ends)", log)
+    if kept:
+        log(f"xval: kept {len(kept)} earlier (case, N) run(s) of {out}/ as they were: "
+            + ", ".join(f"{c} N={n}" for c, n in sorted(kept)))
+        study = xval.Study(study.times, {**kept, **study.runs})
+        provenance = provenance.merged_into(earlier_runs(out / "README.md"))
+    log(f"wrote {xval_report.write_outputs(study, scene, out, provenance, kept=kept_settings)}")
+    return 0
 
 
 def run_speed(request, out: Path | None = None, *, command: str = "python -m benchmark speed",
               log: Callable[[str], None] = log_stderr, echo: Callable[[str], None] = print) -> int:
     """The speed tables (a `lgvi_speed.SpeedRequest`), one timing after another in this process:
-    echoed, and written to ``out`` when given."""
+    echoed, and with ``out`` (a Markdown file) merged into the rows table beside it (``.csv``,
+    written after every measurement, `benchmark.study_store.MergedTable`) and ``out`` written from
+    the whole table, also when the run is stopped."""
     from benchmark import lgvi_speed
+    from benchmark.study_store import MergedTable
     from models.io import atomic_write_text
 
     provenance = Provenance(command)
     jobs = lgvi_speed.jobs_for(request)
-    log(f"speed: {len(jobs)} measurement(s), one after another in this process")
-    rows = engine.run_jobs(lgvi_speed.run_job, jobs, workers=0, describe=lgvi_speed.describe, log=log)
-    text = lgvi_speed.document(rows, provenance)
-    echo(text)
-    if out is not None:
-        atomic_write_text(out, text)
+    table, rows = None, []
+
+    def on_row(done: list[dict]) -> None:
+        rows[:] = done
+        if table is not None:
+            table(done)
+
+    def write(done: list[dict]) -> str:
+        merged = table.merged(done) if table is not None else done
+        text = lgvi_speed.document(merged, table.provenance(provenance, done, out) if table is not None else provenance)
+        if out is not None:
+            atomic_write_text(out, text)
+        return text
+
+    with _exclusive(out.parent, log) if out is not None else contextlib.nullcontext():
+        if out is not None:
+            table = MergedTable(speed_rows_file(out), lgvi_speed.IDENTITY, lgvi_speed.to_frame,
+                                text_columns=lgvi_speed.TEXT_COLUMNS)
+        log(f"speed: {len(jobs)} measurement(s), one after another in this process"
+            + (f"; rows -> {table.path} (merged with its {table.earlier} earlier row(s)), tables -> {out}"
+               if table is not None else " (no --out: the tables are printed, not saved)"))
+        try:
+            rows[:] = engine.run_jobs(lgvi_speed.run_job, jobs, workers=0, describe=lgvi_speed.describe,
+                                      on_row=on_row, log=log)
+        except KeyboardInterrupt as exc:
+            if table is None:
+                return engine.stopped(exc, "nothing saved (without --out the tables are only printed)", log)
+            note = table.stop_note()
+            if table.saved:
+                write(rows)
+                note += f"; {out} is written from it"
+            return engine.stopped(exc, f"{note}; run the same command again to measure the rest", log)
+        if table is not None:
+            table(rows)
+        echo(write(rows))
     return 0
+
+
+def speed_rows_file(out: Path) -> Path:
+    """The rows table of the speed file ``out``: beside it, ``.csv``."""
+    return Path(out).with_suffix(".csv")
 
 
 def run_reel_reversal(scene_name: str = "reel_reversal", elements: int = 5, t_end: float = 0.96, methods=None, *,
@@ -611,10 +756,45 @@ def run_orders(scenes=None, integrators=None, *, out: Path = Path("results"), jo
 # ------------------------------------------------------------------------------------------
 # simulate, figures
 # ------------------------------------------------------------------------------------------
+@contextlib.contextmanager
+def _finish_on_stop(log: Callable[[str], None]):
+    """A first Ctrl-C / SIGTERM ends the running solve at its next clock check, as its time budget
+    would (`integrators.lifecycle.request_stop`): it returns what it has, to be saved; a second
+    stops at once (KeyboardInterrupt). Yields the list that receives the first signal's name."""
+    import signal
+    import threading
+
+    from integrators import lifecycle
+
+    caught: list[str] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield caught
+        return
+
+    def soft(signum, frame):
+        name = signal.Signals(signum).name
+        if caught:
+            raise KeyboardInterrupt(f"signal {name}")
+        caught.append(name)
+        lifecycle.request_stop()
+        log(f"stopping ({'Ctrl-C' if name == 'SIGINT' else name}): the run ends at its next check and what it "
+            "has is saved; stop again to quit at once, without saving")
+
+    old = {sig: signal.signal(sig, soft) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield caught
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+        lifecycle.request_stop(False)
+
+
 def simulate(scene, integrator: str, settings: dict, out: Path, *, estimate: float | None = None,
              log: Callable[[str], None] = log_stderr) -> int:
     """One run: the trajectory (.npz) and its diagnostics (.csv beside it); exit status 1 when
-    the run did not finish. ``estimate``: its expected seconds (a progress line every 30 s)."""
+    the run did not finish (its budget ran out: ``max_steps`` / ``time_limit`` in ``settings``),
+    130 / 143 when stopped by Ctrl-C / SIGTERM: a first stop ends the run where it is and saves
+    it. ``estimate``: its expected seconds (a progress line every 30 s)."""
     import json
 
     import numpy as np
@@ -625,10 +805,15 @@ def simulate(scene, integrator: str, settings: dict, out: Path, *, estimate: flo
 
     integ = get_integrator(integrator)
     try:
-        with engine.Heartbeat(f"{scene.name} / {integ.name}", estimate, log=log):
+        with _finish_on_stop(log) as caught, engine.Heartbeat(f"{scene.name} / {integ.name}", estimate, log=log):
             traj = integ.solve(scene, t_end=scene.t_end, **settings)
     except KeyboardInterrupt as exc:
-        return engine.stopped(exc, "nothing saved (a trajectory is written when the run ends)", log)
+        return engine.stopped(exc, "nothing saved (stopped twice: the run did not reach a point to save)", log)
+    stop = KeyboardInterrupt(f"signal {caught[0]}") if caught else None
+    if stop is not None:
+        reached = float(traj.t[-1]) if len(traj.t) else 0.0
+        traj.reason = f"stopped by {engine.stop_cause(stop)} at t = {reached:.6g} s (t_end = {scene.t_end:g} s)"
+    traj.scene = scene.to_dict()  # `figures` draws it without the scene file
     try:
         traj.save(out)
         atomic_write_text(out.with_suffix(".csv"), evaluate(scene, traj).to_csv(index=False))
@@ -637,6 +822,9 @@ def simulate(scene, integrator: str, settings: dict, out: Path, *, estimate: flo
         return 1
     log(f"{scene.name} / {integ.name}: status {traj.status} {traj.reason}; {len(traj.t)} saved points; "
         f"stats {json.dumps({k: v for k, v in traj.stats.items() if np.isscalar(v)}, default=str)}")
+    if stop is not None:
+        return engine.stopped(stop, f"the run up to t = {traj.t[-1] if len(traj.t) else 0:.6g} s is saved in {out} "
+                                    f"and {out.with_suffix('.csv')}", log)
     log(f"wrote {out} and {out.with_suffix('.csv')}")
     return 0 if traj.ok else 1
 

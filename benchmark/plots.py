@@ -111,11 +111,16 @@ def work_precision(runs: pd.DataFrame, scene: str, out_dir: Path) -> Path:
     for integ in sorted(set(g["integrator"])):
         if not (work in g and g.loc[g["integrator"] == integ, work].notna().any()):
             absent[integ] = f"no {'flops' if by_flops else 'work'} count (bottom row)"
+    # a method drawn in the top row keeps its one legend entry, and the caption says what the bottom
+    # row lacks; only a method drawn nowhere gets a faded legend entry with the reason
+    shown = {integ for integ, _ in drawn}
+    missing_below = sorted(i for i in absent if i in shown)
     fig.tight_layout(rect=(0, 0, 1, 0.93))
-    styles.legend_outside(fig, *styles.legend_entries(drawn, absent))
+    styles.legend_outside(fig, *styles.legend_entries(drawn, {i: why for i, why in absent.items() if i not in shown}))
     failed = sel[sel["status"] != "ok"]
     fig.suptitle(f"{scene}: work–precision" + (f"  ({len(failed)} runs failed, see runs.csv)" if len(failed) else "")
                  + f"\nbottom row: {FLOPS_DEFINITION if by_flops else WORK_DEFINITION}"
+                 + (f"; no {'flops' if by_flops else 'work'} count for {', '.join(missing_below)}" if missing_below else "")
                  + _clash_caption(set(g["integrator"])), fontsize=10)
     return save_figure(fig, path)
 
@@ -197,10 +202,13 @@ def paper_panels(scene, traj, df: pd.DataFrame, out_path: Path, n_snapshots: int
     has_work = model.layout.has_work
     dev = energy_deviation(df, has_work=has_work)
     ax.semilogy(df["t"], np.maximum(dev, 1e-17), label=("|Δ(E−W)|" if has_work else "|ΔE|") + " / max T")
-    ax.semilogy(df["t"], np.maximum(pi3_deviation(df), 1e-17), label="|Δπ3| / |π3(0)|")
+    if model.layout.conserves_pi3:  # external forces (drag) change π3: its drift would not be an error
+        ax.semilogy(df["t"], np.maximum(pi3_deviation(df), 1e-17), label="|Δπ3| / |π3(0)|")
     if model.layout.has_attitude:
         ax.semilogy(df["t"], np.maximum(df["orthogonality_error"], 1e-17), label="‖I − RᵀR‖")
-    style_axes(ax, xlabel="t (s)", title="(d) conserved quantities and orthogonality")
+    title = ("(d) conserved quantities and orthogonality" if model.layout.conserves_pi3
+             else "(d) energy balance and orthogonality (π3 not conserved: external forces)")
+    style_axes(ax, xlabel="t (s)", title=title)
     status = "" if traj.ok else f"  [stopped: {traj.status}]"
     setting = ", ".join(f"{k} = {v:g}" if isinstance(v, (int, float)) else f"{k} = {v}"
                         for k, v in traj.settings.items() if v is not None)

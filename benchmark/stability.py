@@ -17,8 +17,9 @@ so a failing run is a row with its status and reason, and an exception is a row 
 "error". One (scene, integrator, kind) row is one `Job` on the engine (`benchmark.engine`:
 the jobs of one (scene, integrator) in one worker, so it compiles once; longest groups first by
 `_cost_hint`; a dead worker's job is a "crashed" row; Ctrl-C / SIGTERM stop it and keep the rows
-done). The pipeline (`benchmark.pipelines.run_stability`) writes the rows atomically after each
-job (``stability.csv``), then the table, plot and README of `benchmark.stability_report`.
+done). The pipeline (`benchmark.pipelines.run_stability`) merges the rows into ``stability.csv``
+atomically after each job (one row per scene, integrator and kind: the map's other rows are
+kept), then writes the table, plot and README of `benchmark.stability_report` from the whole map.
 """
 
 from __future__ import annotations

@@ -292,20 +292,21 @@ def kept_rows(keys: list[str], previous: Iterable[dict] | None) -> dict[int, dic
 ROW_IDENTITY = ("scene", "integrator", "setting")
 
 
-def identity_of(row: dict) -> tuple:
-    return tuple(row.get(c) for c in ROW_IDENTITY)
+def identity_of(row: dict, identity: tuple = ROW_IDENTITY) -> tuple:
+    return tuple(row.get(c) for c in identity)
 
 
-def merge_rows(base: Iterable[dict], new: Iterable[dict]) -> list[dict]:
-    """The rows of ``base`` with those of ``new`` in their place (same `ROW_IDENTITY`), and the
-    other rows of ``new`` after the last base row of their scene and integrator (else at the end)."""
+def merge_rows(base: Iterable[dict], new: Iterable[dict], identity: tuple = ROW_IDENTITY) -> list[dict]:
+    """The rows of ``base`` with those of ``new`` in their place (same ``identity``, by default
+    `ROW_IDENTITY`; a study's table names its own), and the other rows of ``new`` after the last
+    base row of their scene and integrator (else at the end)."""
     new = list(new)
-    replace = {identity_of(r): r for r in new}
-    out = [replace.pop(identity_of(r), r) for r in base]
+    replace = {identity_of(r, identity): r for r in new}
+    out = [replace.pop(identity_of(r, identity), r) for r in base]
     for r in new:
-        if identity_of(r) not in replace:
+        if identity_of(r, identity) not in replace:
             continue
-        replace.pop(identity_of(r))
+        replace.pop(identity_of(r, identity))
         same = [k for k, o in enumerate(out) if o.get("scene") == r.get("scene") and o.get("integrator") == r.get("integrator")]
         out.insert(same[-1] + 1 if same else len(out), r)
     return out
@@ -491,6 +492,11 @@ class OutputLock:
 # ------------------------------------------------------------------------------------------
 # Trajectory files
 # ------------------------------------------------------------------------------------------
+#: The most an .npz archive read back may expand to (bytes): a run's trajectory within the memory
+#: budgets of `benchmark.options` reads in seconds; more is refused before anything is read.
+MAX_ARCHIVE_BYTES = 2 * 2**30
+
+
 class UnreadableFile(ValueError):
     """A file that is not a readable .npz archive; the message says why."""
 
@@ -519,6 +525,16 @@ def _require_archive(path: Path) -> None:
     # an .npz is a zip archive; random bytes, a pickle or a cut file are not
     if not zipfile.is_zipfile(path):
         raise UnreadableFile("not an .npz archive: truncated or not written by reelbench")
+    # what its members expand to, from the archive's directory, before any is read (a small file
+    # may expand to gigabytes; the reader never returns more than a member declares)
+    try:
+        with zipfile.ZipFile(path) as archive:
+            expands = sum(info.file_size for info in archive.infolist())
+    except (zipfile.BadZipFile, OSError, ValueError) as exc:
+        raise _unreadable(exc) from None
+    if expands > MAX_ARCHIVE_BYTES:
+        raise UnreadableFile(f"its arrays expand to {expands / 2**30:.3g} GiB, over the {MAX_ARCHIVE_BYTES / 2**30:.3g} "
+                             "GiB that are read back (a trajectory that large: save fewer points, --save-every)")
 
 
 def read_npz(path: str | os.PathLike) -> dict:

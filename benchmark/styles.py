@@ -2,9 +2,9 @@
 
 A method's style depends on its name only, never on which other methods a figure draws or in
 which order, so a method looks the same in every panel and every figure, and adding a plugin
-changes nobody else's style. The shipped methods have hand-picked styles (`SHIPPED`): ten
-distinct colours (matplotlib's "tab10", colour-blind safer than the default cycle) and ten
-distinct markers; line style by family (solid: the variational LGVIs, dashed: explicit
+changes nobody else's style. The shipped methods have hand-picked styles (`SHIPPED`), each with
+its own colour (matplotlib's "tab10", colour-blind safer than the default cycle, then dark tones
+far from it) and its own marker; line style by family (solid: the variational LGVIs, dashed: explicit
 Runge–Kutta, dash-dot: implicit). Any other name gets a colour from a second palette (none of
 the shipped colours) and a marker, both picked by a hash of the name (`style`): two plugins can
 share a look only if their names hash alike (one chance in `len(PLUGIN_COLOURS) *
@@ -55,10 +55,16 @@ SHIPPED: dict[str, Style] = {
     "rk45_projected": Style("#bcbd22", "*", _EXPLICIT),  # olive
     "radau": Style("#2ca02c", "h", _IMPLICIT),  # green
     "kvaerno5": Style("#7f7f7f", "<", _IMPLICIT),  # grey
+    # beyond tab10: dark tones far from its colours, and the remaining distinct markers
+    "lie_rk4": Style("#008080", ">", _EXPLICIT),  # teal
+    "crouch_grossman3": Style("#d4a000", "p", _EXPLICIT),  # gold
+    "dopri5": Style("#000080", "d", _EXPLICIT),  # navy
+    "dopri8": Style("#800000", "H", _EXPLICIT),  # maroon
+    "rattle": Style("#000000", "8", _VARIATIONAL),  # black
 }
 
 #: Colours for any other method: dark and light tones not among the shipped ones.
-PLUGIN_COLOURS = ("#000000", "#393b79", "#637939", "#8c6d31", "#843c39", "#7b4173", "#3182bd", "#e6550d",
+PLUGIN_COLOURS = ("#393b79", "#637939", "#8c6d31", "#843c39", "#7b4173", "#3182bd", "#e6550d",
                   "#31a354", "#756bb1", "#636363", "#a55194")
 PLUGIN_MARKERS = ("o", "s", "^", "v", "D", "p", ">", "d", "8", "H")
 PLUGIN_LINESTYLES = (":", (0, (5, 1, 1, 1, 1, 1)), (0, (3, 1, 1, 1)), (0, (1, 1)))

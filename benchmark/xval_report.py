@@ -171,9 +171,11 @@ def plot(study: Study, case: str, path: Path) -> Path:
 # ------------------------------------------------------------------------------------------
 # Files
 # ------------------------------------------------------------------------------------------
-def _write_inputs(study: Study, scene: Scene, out: Path) -> dict:
+def _write_inputs(study: Study, scene: Scene, out: Path, kept: dict | None = None) -> dict:
     """The exact inputs given to MoorDyn and MuJoCo (``inputs/``) and ``settings.json``; returns
-    the settings."""
+    the settings. ``kept``: {(case, N): settings entry} of earlier runs merged into the study,
+    whose inputs and entries are kept as they were."""
+    kept = kept or {}
     inputs = out / "inputs"
     inputs.mkdir(exist_ok=True)
     settings = {"scene": scene.name, "t_end": float(study.times[-1]), "output_interval": OUTPUT_INTERVAL,
@@ -181,6 +183,9 @@ def _write_inputs(study: Study, scene: Scene, out: Path) -> dict:
                 "runs": []}
     for case in study.cases():
         for N in study.elements(case):
+            if (case, N) in kept:
+                settings["runs"].append(kept[(case, N)])
+                continue
             r = study.runs[(case, N)]
             sc = case_scene(scene, case).with_(elements=N, mass_model="lumped", t_end=settings["t_end"])
             dt = next(v.dt for k, v in r.items() if k in OUTSIDE)
@@ -194,15 +199,16 @@ def _write_inputs(study: Study, scene: Scene, out: Path) -> dict:
     return settings
 
 
-def write_outputs(study: Study, scene: Scene, out: Path, provenance: Provenance) -> Path:
+def write_outputs(study: Study, scene: Scene, out: Path, provenance: Provenance, kept: dict | None = None) -> Path:
     """Tables (CSV + README), plots, the exact inputs given to MoorDyn and MuJoCo and the raw tip
-    trajectories (so that the tables can be recomputed without rerunning)."""
+    trajectories (so that the tables can be recomputed without rerunning). ``kept``: the settings
+    entries of the earlier runs merged into ``study`` (`benchmark.study_store.earlier_xval`)."""
     out.mkdir(parents=True, exist_ok=True)
     tabs = tables(study)
     err = pd.concat([error_vs_limit(study, c) for c in study.cases()], ignore_index=True)
     for name, df in (*tabs._asdict().items(), ("error_vs_limit", err)):
         write_table(out / f"{name}.csv", df)
-    settings = _write_inputs(study, scene, out)
+    settings = _write_inputs(study, scene, out, kept)
     write_npz(out / "tips.npz", {"times": study.times, **{f"{case}_N{N}_{code}": run.tip
                                                           for (case, N), r in study.runs.items() for code, run in r.items()}},
               compressed=True)

@@ -68,6 +68,8 @@ class Trajectory:
             ``newton_iterations``, ``rejected_steps``, ``wall_time`` (s, after compilation),
             ``compile_time`` (s) — those that apply.
         integrator / settings / scene_name: provenance.
+        scene: the scene it was computed with (TOML-shaped, `models.Scene.to_dict`; set by
+            ``simulate``, so that ``figures`` needs no scene file), or {} when not recorded.
     """
 
     t: np.ndarray
@@ -83,6 +85,7 @@ class Trajectory:
     integrator: str = ""
     settings: dict[str, Any] = field(default_factory=dict)
     scene_name: str = ""
+    scene: dict[str, Any] = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
@@ -101,7 +104,7 @@ class Trajectory:
                                      ("velocity", self.velocity), ("momentum", self.momentum),
                                      ("work", self.work)) if v is not None}
         meta = {k: getattr(self, k) for k in ("attitude_kind", "status", "reason", "stats", "integrator",
-                                              "settings", "scene_name")}
+                                              "settings", "scene_name", "scene")}
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as fh:
                 np.savez(fh, meta=np.array(json.dumps(meta, default=str)), **arrays)

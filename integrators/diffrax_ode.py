@@ -92,8 +92,10 @@ def _stop_condition(model, timed: bool):
         blowup, deadline = args
         bad = ~jnp.all(jnp.isfinite(y)) | (jnp.max(jnp.abs(y)) >= blowup)
         if timed:
-            late = io_callback(lambda d: np.bool_(time.perf_counter() >= d), jax.ShapeDtypeStruct((), jnp.bool_),
-                               deadline, ordered=False)
+            from integrators.lifecycle import STOP_REQUESTED  # a stop asked for ends the run as the deadline does
+
+            late = io_callback(lambda d: np.bool_(time.perf_counter() >= d or STOP_REQUESTED.is_set()),
+                               jax.ShapeDtypeStruct((), jnp.bool_), deadline, ordered=False)
             bad = bad | late
         return bad
 

@@ -31,6 +31,7 @@ import abc
 import functools
 import math
 import sys
+import threading
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
@@ -42,11 +43,22 @@ from integrators import rhs as _rhs
 from integrators.base import (Capability, Integrator, Status, Trajectory, build_model_timed, check_positive,
                               energy_reason, initial_energy, stamp_wall_time)
 
+
+#: Set (`request_stop`) to end every solve that has a ``time_limit`` at its next clock check, as if
+#: its budget had run out: it returns what it has (status "time_limit"). `simulate` sets it on
+#: the first Ctrl-C / SIGTERM, so that a stopped run is saved, not lost.
+STOP_REQUESTED = threading.Event()
+
+
+def request_stop(stop: bool = True) -> None:
+    (STOP_REQUESTED.set if stop else STOP_REQUESTED.clear)()
+
+
 __all__ = [
     "BLOWUP", "CompileCache", "Guards", "LibraryAdapter", "MAX_PLANNED_STEPS", "MAX_SAVED_BYTES", "ODEProblem",
-    "Outcome", "Run", "RunStats", "T_END_MAX", "blowup_reason", "check_max_steps", "check_options",
+    "Outcome", "Run", "RunStats", "STOP_REQUESTED", "T_END_MAX", "blowup_reason", "check_max_steps", "check_options",
     "check_positive", "check_tolerances", "energy_reason", "length_reason", "ode_trajectory", "resolve_scene",
-    "library_attribute", "start_run", "step_indices",
+    "library_attribute", "request_stop", "start_run", "step_indices",
 ]
 
 #: A state component beyond this magnitude counts as divergence (positions are tens of metres,
@@ -393,7 +405,8 @@ class Run:
         return time.perf_counter() - self.started - self.compile_time
 
     def out_of_time(self) -> bool:
-        return self.time_limit is not None and self.run_time() >= self.time_limit
+        """The run's wall-clock budget is spent, or a stop was asked for (`request_stop`)."""
+        return self.time_limit is not None and (self.run_time() >= self.time_limit or STOP_REQUESTED.is_set())
 
     def time_limit_reason(self, t: float, kept: str = "") -> str:
         return (f"stopped by time_limit = {self.time_limit:g} s after {self.run_time():.3g} s of run time at "

@@ -81,6 +81,11 @@ class Effect:
     forcing: bool = False
     #: its forces never add energy (power ≤ 0; checked by the tests)
     dissipative: bool = False
+    #: its energy and forces are symmetric about the vertical through the reel, so π3 (the
+    #: angular momentum about it) stays conserved: internal forces, gravity, forces on the reel
+    #: coordinate. Not declared (a drag, a spring to an anchor off that axis): π3 is not reported
+    #: (`pi3_error` empty) nor plotted for a scene that lists it.
+    conserves_pi3: bool = False
     #: scene keys it owns: {section: {key: Key}} ("" for a top-level key)
     keys: dict[str, dict[str, Key]] = {}
     #: plausible magnitudes of its keys, {"section.key": (low, high)} (see `models.scene.PLAUSIBLE`)
@@ -139,6 +144,7 @@ class Effect:
 
 class Gravity(Effect):
     name = "gravity"
+    conserves_pi3 = True
     summary = "potential of the string, the body and the reel-side string (g along +e3)"
 
     def potentials(self, m):
@@ -198,6 +204,7 @@ class Gravity(Effect):
 
 class Elasticity(Effect):
     name = "elasticity"
+    conserves_pi3 = True
     required = True
     summary = "axial strain energy (EA/2l)(stretched length − l)² of every element"
 
@@ -223,6 +230,7 @@ class Elasticity(Effect):
 
 class RigidBody(Effect):
     name = "rigid_body"
+    conserves_pi3 = True
     state = ("attitude",)
     summary = "attitude R and angular velocity Ω as state; inertia J_c and offset ρ_c"
     keys = {
@@ -268,6 +276,7 @@ class RigidBody(Effect):
 
 class Reel(Effect):
     name = "reel"
+    conserves_pi3 = True
     state = ("s_p",)
     summary = "s_p as a coordinate: drum and reel-side inertia, axial-flow coupling"
     keys = {
@@ -296,6 +305,7 @@ class Reel(Effect):
 
 class Carnot(Effect):
     name = "carnot"
+    conserves_pi3 = True
     needs = ("reel",)
     forcing = True
     dissipative = True
@@ -322,6 +332,7 @@ class Carnot(Effect):
 
 class ReelControl(Effect):
     name = "reel_control"
+    conserves_pi3 = True
     needs = ("reel",)
     forcing = True
     summary = "constant drum moment u (reel.control_moment) as the force u/d on s_p"
@@ -356,6 +367,7 @@ def _clip_compression(tension):
 
 class Slack(Effect):
     name = "slack"
+    conserves_pi3 = True
     needs = ("elasticity",)
     summary = "tension-only elasticity: max(stretch − l, 0) in V_elastic; tensions clipped at 0"
 
@@ -366,6 +378,7 @@ class Slack(Effect):
 
 class AxialDamping(Effect):
     name = "axial_damping"
+    conserves_pi3 = True
     needs = ("elasticity",)
     forcing = True
     dissipative = True

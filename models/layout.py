@@ -22,6 +22,8 @@ class StateLayout:
     has_reel: bool
     has_attitude: bool
     has_work: bool
+    #: π3 is conserved by the physics (every listed effect's `Effect.conserves_pi3`)
+    conserves_pi3: bool = True
 
     @classmethod
     def from_scene(cls, scene) -> "StateLayout":
@@ -32,6 +34,7 @@ class StateLayout:
             has_reel="s_p" in state,
             has_attitude="attitude" in state,
             has_work=any(e.forcing for e in listed),
+            conserves_pi3=all(e.conserves_pi3 for e in listed),
         )
 
     # generalized coordinates / velocities -------------------------------------------

@@ -257,8 +257,9 @@ def _apply_overrides(data: dict, overrides: Mapping, source: str) -> set[str]:
             applied.add(key)
             continue
         if section not in full or not isinstance(full[section], dict) or key not in full[section]:
-            raise SceneError(f"{source}: unknown override {name!r}; allowed: SECTION.KEY of the scene format "
-                             "(models/README.md), e.g. string.elements")
+            dotted = [f"{sec}.{k}" for sec, spec in full.items() if isinstance(spec, dict) for k in spec]
+            raise SceneError(f"{source}: unknown override {name!r}{suggest(name, dotted)}; allowed: SECTION.KEY of the "
+                             "scene format (models/README.md), e.g. string.elements")
         sec = data.setdefault(section, {})
         if not isinstance(sec, dict):
             raise SceneError(f"{source}: key '{section}' is not a table, so '{name}' cannot be overridden")

@@ -22,8 +22,12 @@ NAMES = st.text("abcdefghijklmnopqrstuvwxyz0123456789_", min_size=1, max_size=20
 def test_every_shipped_and_registered_method_has_its_own_colour_and_marker():
     from integrators import available
 
+    from integrators import get_integrator
+
     registered = [n for n in available() if not n.startswith("test_")]
     assert set(SHIPPED) <= set(registered), "a shipped style for a method that is no longer registered"
+    ours = [n for n in registered if type(get_integrator(n)).__module__.startswith("integrators.")]
+    assert set(ours) <= set(SHIPPED), "a method of this repository drawn in a plugin's hashed look"
     assert clashes([*SHIPPED, *registered]) == []
     # among the shipped ones colour and marker each tell the methods apart alone
     assert len({s.color for s in SHIPPED.values()}) == len({s.marker for s in SHIPPED.values()}) == len(SHIPPED)
