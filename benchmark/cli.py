@@ -116,6 +116,9 @@ def cmd_run(args) -> int:
             raise UsageError(f"{'--t-end' if t_end else sc.name + ': t_end'} = {t_end or sc.t_end:g} s is shorter than "
                              f"the sweep's save interval {sweep.SAVE_EVERY:g} s: give --t-end >= {sweep.SAVE_EVERY:g}")
         for dt in args.dts or (sweep.QUICK_DTS if args.quick else sweep.FULL_DTS):
+            if dt > (t_end or sc.t_end):  # any smaller step is allowed (the last one lands on t_end)
+                raise UsageError(f"--dts: dt = {dt:g} s is longer than the run ({sc.name}: t_end = {t_end or sc.t_end:g} s; "
+                                 "allowed: 0 < dt <= t_end)")
             opt.check_size(sc, t_end or sc.t_end, sweep.SAVE_EVERY, dt, warn=_log, what=f"{sc.name} at dt = {dt:g} s",
                            save_option=None)  # run saves every SAVE_EVERY: no option to raise
     out = opt.writable_dir(_run_out(args))
@@ -384,7 +387,7 @@ def _add_run(sub) -> None:
                    f"{len(sweep.QUICK_DTS)} step sizes, {len(sweep.QUICK_RTOLS)} tolerances, "
                    f"{sweep.QUICK_HORIZON:g} s energy study")
     r.add_argument("--dts", type=opt.positive_floats, help="comma-separated step sizes (s) for fixed-step methods, "
-                   f"each dividing the save interval {sweep.SAVE_EVERY:g} s (default: {_csv(sweep.FULL_DTS)}; "
+                   f"any size (saved at the step points nearest the save times; default: {_csv(sweep.FULL_DTS)}; "
                    f"--quick: {_csv(sweep.QUICK_DTS)})")
     r.add_argument("--rtols", type=opt.tolerances, help="comma-separated relative tolerances for adaptive methods, "
                    f"atol = rtol × {sweep.ATOL_FACTOR:g} (default: {_csv(sweep.FULL_RTOLS)}; implicit methods "

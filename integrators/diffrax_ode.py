@@ -48,13 +48,12 @@ The quaternion is not renormalised. No ``@register``: found through the entry-po
 
 from __future__ import annotations
 
-import math
 import time
 from typing import Any, ClassVar
 
 import numpy as np
 
-from integrators.base import Capability, Status, energy_reason, save_times
+from integrators.base import Capability, Status, energy_reason, fixed_step_grid, save_times
 from integrators.lifecycle import (CompileCache, LibraryAdapter, Outcome, Run, blowup_reason, length_reason,
                                    library_attribute, state_ok)
 
@@ -177,10 +176,11 @@ class DiffraxODE(LibraryAdapter):
         return None if constant else float(run.options.get("min_step", DEFAULT_MIN_STEP_REL * run.t_end))
 
     def _grid(self, run: Run, constant: bool):
-        """(saved times, end time, step budget): whole steps only with a constant dt, like the LGVI."""
+        """(saved times, end time, step budget): with a constant dt, the step points nearest the
+        save times and t_end (diffrax shortens the last step to land on it), like the LGVI."""
         if constant:
-            n_steps = int(math.floor(run.t_end / run.dt + 1e-9))
-            t1 = float(n_steps * run.dt)
+            n_steps, _ = fixed_step_grid(run.t_end, run.dt, run.save_every)
+            t1 = run.t_end
             t_save = save_times(run.t_end, run.save_every, run.dt)
             budget = run.max_steps if run.max_steps is not None else max(DEFAULT_MAX_STEPS, n_steps + 16)
         else:
