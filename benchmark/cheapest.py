@@ -19,9 +19,16 @@ with the same weight. Nothing is extrapolated:
   cross the target more than once: the cheapest crossing counts, i.e. the least the method
   was seen to need;
 - a failed run (any status but ``ok``) has no error and is not a point of the curve: the
-  neighbours of a failed setting are the finished settings on either side of it;
-- a method with a fixed-step and an adaptive sweep (``tsit5``) is represented by the cheaper
-  of its two curves (column ``sweep`` says which).
+  neighbours of a failed setting are the finished settings on either side of it. This includes
+  a run that finished but is no longer a solution (status ``inaccurate``, an error beyond a
+  sanity bound, `benchmark.metrics.INACCURATE`): a cost is read only between two solutions;
+- a method with a fixed-step and an adaptive sweep (``tsit5``) is two entries, ranked apart
+  like two methods (column ``entry``: ``tsit5 (fixed dt)``, ``tsit5 (adaptive)``): a fixed step
+  and an error-controlled step are two ways to use it, not one curve to pick the cheaper from;
+- two methods whose runs the table shows to be one trajectory (`identical_methods`: every
+  setting both ran agrees bit for bit, e.g. ``lgvi`` and ``lgvi_sym`` at fixed length) are one
+  entry (``lgvi = lgvi_sym``); the other's row says ``identical`` and is not ranked, so one
+  computation never appears twice in a tie.
 
 **Spread.** A wall-time cost carries the interval of its timing repeats. A work cost (the
 column given, else ``flops`` when the table has it, else ``work_evals``) is deterministic;
@@ -45,6 +52,9 @@ from typing import Iterable, Sequence
 import numpy as np
 import pandas as pd
 
+from benchmark.metrics import ACCURACY, INACCURATE
+from benchmark.sweep import PRESENTATION_ORDER, SWEEP_WORDS
+
 #: Relative resolution of a work count: two work costs within 10 % of each other are a tie.
 #: A count is deterministic on one machine, but adaptive step sequences follow round-off, so the
 #: same sweep on another CPU takes a few steps more or fewer; and 10 % is below any difference
@@ -64,19 +74,23 @@ WALL_RESOLUTION = 1.0
 WALL_COLUMNS = ("run_time", "run_time_low", "run_time_high")
 
 COST_KINDS = ("wall", "work")
-VERDICTS = ("winner", "tie", "slower", "not reached", "not measured")
+VERDICTS = ("winner", "tie", "slower", "not reached", "not measured", "identical")
 
-#: Columns of the cheapest table, in order.
-COLUMNS = ["scene", "metric", "target", "cost_kind", "integrator", "sweep", "cost", "cost_low", "cost_high",
+#: Columns of the cheapest table, in order (``entry``: what is ranked, `entry_name`).
+COLUMNS = ["scene", "metric", "target", "cost_kind", "integrator", "entry", "sweep", "cost", "cost_low", "cost_high",
            "ratio", "ratio_low", "ratio_high", "verdict", "cost_column", "bracket", "bound", "note"]
 
 #: What fixes a cost (column ``bound``): the target, read off the curve between two settings
 #: ("accuracy"), or the coarsest finished setting already meeting it, because coarser fixed steps
-#: did not finish ("stability"), coarser tolerances did not finish ("failures"), or nothing
+#: did not finish ("stability"), coarser tolerances did not finish ("failures"), the next
+#: coarser setting finished but is no solution ("cliff": status ``inaccurate``), or nothing
 #: coarser was swept ("sweep range"): then the method may be cheaper than the cost says.
-BOUNDS = ("accuracy", "stability", "failures", "sweep range")
+BOUNDS = ("accuracy", "stability", "failures", "cliff", "sweep range")
 
 _KEY_COLUMNS = ("scene", "integrator", "setting", "dt", "rtol", "status")
+#: The least settings, solutions on both sides, at which two methods' runs must agree bit for
+#: bit to be ranked as one (`identical_methods`).
+MIN_IDENTICAL_SETTINGS = 2
 
 
 def work_column(runs: pd.DataFrame) -> str:
@@ -98,6 +112,51 @@ def _curves(runs: pd.DataFrame) -> dict[tuple[str, str], dict[str, list[dict]]]:
                                                                               sort=True):
         g = g.sort_values("dt" if sweep == "dt" else "rtol", ascending=False, kind="stable")
         out.setdefault((scene, integ), {})[sweep] = g.to_dict("records")
+    return out
+
+
+def entry_name(integrator: str, sweep: str, both_sweeps: bool, twins: Sequence[str] = ()) -> str:
+    """What one row ranks: the method, with its sweep's words (``tsit5 (fixed dt)``, ``tsit5
+    (adaptive)``) when it has runs on both sweeps of the scene, and the methods ranked as it
+    (`identical_methods`) after "=" (``lgvi = lgvi_sym``)."""
+    name = f"{integrator} ({SWEEP_WORDS[sweep]})" if both_sweeps else integrator
+    return " = ".join([name, *twins])
+
+
+#: How two methods are shown to compute one trajectory on a scene, from the table alone.
+IDENTICAL_RULE = (f"every setting both ran has the same status, steps and all {len(ACCURACY)} errors bit for bit, "
+                  f"and at least {MIN_IDENTICAL_SETTINGS} of them are solutions")
+
+
+def _presentation_rank(name: str) -> tuple:
+    return (PRESENTATION_ORDER.index(name) if name in PRESENTATION_ORDER else len(PRESENTATION_ORDER), name)
+
+
+def identical_methods(runs: pd.DataFrame) -> dict[tuple[str, str, str], str]:
+    """(scene, integrator, sweep) -> the method it computes the same trajectory as, for every
+    curve the table shows to be another's (`IDENTICAL_RULE`: e.g. ``lgvi_sym`` and ``lgvi`` at
+    fixed length, where the symmetric scheme's forcing step has nothing to do). Of such a
+    group the method first in `benchmark.sweep.PRESENTATION_ORDER` (then by name) is ranked;
+    the others map to it. Equal errors at several settings cannot happen by chance: they are
+    every metric of the registry (`benchmark.metrics.ACCURACY`; a table without all of them
+    shows nothing identical), floats of a chaotic system's run."""
+    columns = ["status", "steps", *ACCURACY]
+    out: dict = {}
+    if any(c not in runs for c in columns):  # less than every error is no evidence of one trajectory
+        return out
+    for (scene, sweep), g in runs.assign(sweep=sweep_of(runs)).groupby(["scene", "sweep"], sort=True):
+        names = sorted(g["integrator"].unique(), key=_presentation_rank)
+        by = {n: g[g["integrator"] == n].set_index("setting")[columns].sort_index() for n in names}
+        for i, a in enumerate(names):
+            if (scene, a, sweep) in out:
+                continue
+            for b in names[i + 1:]:
+                if (scene, b, sweep) in out:
+                    continue
+                shared = by[a].index.intersection(by[b].index)
+                x, y = by[a].loc[shared], by[b].loc[shared]
+                if (x["status"] == "ok").sum() >= MIN_IDENTICAL_SETTINGS and x.equals(y):
+                    out[(scene, b, sweep)] = a
     return out
 
 
@@ -201,7 +260,7 @@ def _curve_cost(curve: list[dict], metric: str, target: float, columns: tuple[st
                else "the sweep's coarsest setting")
         bracket, note = settings[i], f"reached at the coarsest finished setting ({why}): its own cost"
         failed = [r for r in coarser if r["status"] != "ok"]
-        bound = ("sweep range" if not failed else
+        bound = ("sweep range" if not failed else "cliff" if failed[-1]["status"] == INACCURATE else
                  "stability" if str(settings[i]).startswith("dt=") else "failures")
     else:
         bracket, note, bound = f"{settings[i]} .. {settings[j]}", "interpolated", "accuracy"
@@ -210,7 +269,7 @@ def _curve_cost(curve: list[dict], metric: str, target: float, columns: tuple[st
 
 def _verdicts(rows: list[dict]) -> None:
     """Set verdict and ratios in place for the rows of one (scene, metric, target, cost_kind)."""
-    reached = sorted((r for r in rows if np.isfinite(r.get("cost", np.nan))), key=lambda r: (r["cost"], r["integrator"]))
+    reached = sorted((r for r in rows if np.isfinite(r.get("cost", np.nan))), key=lambda r: (r["cost"], r["entry"]))
     if not reached:
         return
     best, others = reached[0], reached[1:]
@@ -240,6 +299,7 @@ def cheapest(runs: pd.DataFrame, targets: Iterable[tuple[str, float]], *, cost_k
     columns = {"wall": WALL_COLUMNS, "work": (work, "", "")}
     _check_table(runs, [m for m, _ in targets], [c for k in cost_kinds for c in columns[k] if c])
     curves = _curves(runs)
+    same_as = identical_methods(runs)
     out = []
     for metric, target in targets:
         for kind in cost_kinds:
@@ -248,25 +308,25 @@ def cheapest(runs: pd.DataFrame, targets: Iterable[tuple[str, float]], *, cost_k
                 for (s, integ), sweeps in curves.items():
                     if s != scene:
                         continue
-                    found = [dict(_curve_cost(c, metric, target, columns[kind], resolution[kind]), sweep=sweep)
-                             for sweep, c in sweeps.items()]
-                    costed = [c for c in found if "cost" in c]
-                    if costed:
-                        pick = min(costed, key=lambda c: c["cost"])
-                    elif any(c["verdict"] == "not measured" for c in found):
-                        pick = next(c for c in found if c["verdict"] == "not measured")
-                    else:  # not reached on every curve: say why on each
-                        pick = dict(found[0], sweep="+".join(c["sweep"] for c in found),
-                                    note="; ".join(f"{c['sweep']}: {c['note']}" if len(found) > 1 else c["note"]
-                                                   for c in found))
-                    rows.append({"scene": scene, "metric": metric, "target": float(target), "cost_kind": kind,
-                                 "integrator": integ, "cost_column": columns[kind][0], **pick})
+                    for sweep, curve in sweeps.items():
+                        twins = sorted(b for (sc, b, sw), a in same_as.items() if (sc, a, sw) == (scene, integ, sweep))
+                        entry = entry_name(integ, sweep, len(sweeps) > 1, twins)
+                        kept = same_as.get((scene, integ, sweep))
+                        if kept:  # the same trajectory as another method: ranked once, as that one
+                            found = {"verdict": "identical",
+                                     "note": f"the same trajectory as `{kept}` on this scene ({IDENTICAL_RULE}): "
+                                             f"ranked once, as `{kept}`"}
+                        else:
+                            found = _curve_cost(curve, metric, target, columns[kind], resolution[kind])
+                        rows.append({"scene": scene, "metric": metric, "target": float(target), "cost_kind": kind,
+                                     "integrator": integ, "entry": entry, "sweep": sweep,
+                                     "cost_column": columns[kind][0], **found})
                 _verdicts(rows)
                 out += rows
     table = pd.DataFrame(out, columns=COLUMNS)
     order = {v: k for k, v in enumerate(VERDICTS)}
     return (table.assign(_v=table["verdict"].map(order))
-            .sort_values(["metric", "target", "cost_kind", "scene", "_v", "cost", "integrator"], kind="stable")
+            .sort_values(["metric", "target", "cost_kind", "scene", "_v", "cost", "entry"], kind="stable")
             .drop(columns="_v").reset_index(drop=True))
 
 
@@ -296,30 +356,31 @@ def _verdict_text(g: pd.DataFrame) -> str:
         w = by["winner"][0]
         if by["slower"]:
             n = by["slower"][0]
-            parts.append(f"by {what}, `{w['integrator']}` is cheapest, {_amount(w)}; the next, `{n['integrator']}`, "
+            parts.append(f"by {what}, `{w['entry']}` is cheapest, {_amount(w)}; the next, `{n['entry']}`, "
                          f"costs {_relative(n)} as much")
         else:
-            parts.append(f"by {what}, only `{w['integrator']}` reached it, {_amount(w)}")
+            parts.append(f"by {what}, only `{w['entry']}` reached it, {_amount(w)}")
     elif by["tie"]:
         first, rest = by["tie"][0], by["tie"][1:]
-        names = f"`{first['integrator']}` {_amount(first)}" + "".join(
-            f", `{r['integrator']}` {_relative(r)}" for r in rest)
+        names = f"`{first['entry']}` {_amount(first)}" + "".join(
+            f", `{r['entry']}` {_relative(r)}" for r in rest)
         parts.append(f"by {what}, a tie of {len(by['tie'])}: {names}")
         if by["slower"]:
             n = by["slower"][0]
-            parts.append(f"the next outside the tie, `{n['integrator']}`, costs {_relative(n)} as much")
+            parts.append(f"the next outside the tie, `{n['entry']}`, costs {_relative(n)} as much")
     else:
         parts.append(f"by {what}, no method reached it")
     bounded = _bounded_text(by["winner"] + by["tie"])
     if bounded:
         parts.append(bounded)
     if by["not measured"]:
-        parts.append("no cost for " + ", ".join(f"`{r['integrator']}`" for r in by["not measured"]))
+        parts.append("no cost for " + ", ".join(f"`{r['entry']}`" for r in by["not measured"]))
     return "; ".join(parts)
 
 
 _BOUND_WORDS = {"stability": "by the stability limit (coarser steps did not finish)",
                 "failures": "by failures (coarser tolerances did not finish)",
+                "cliff": "by a cliff (the next coarser setting is no longer a solution)",
                 "sweep range": "by the sweep's range (its coarsest setting already meets the target)"}
 
 
@@ -330,7 +391,7 @@ def _bounded_text(rows: list[dict]) -> str:
     for r in rows:
         b = r.get("bound")
         if isinstance(b, str) and b in _BOUND_WORDS:
-            by_bound.setdefault(b, []).append(f"`{r['integrator']}`")
+            by_bound.setdefault(b, []).append(f"`{r['entry']}`")
     return "; ".join(f"cost of {', '.join(names)} bounded {_BOUND_WORDS[b]}, not by the target"
                      for b, names in by_bound.items())
 
@@ -344,7 +405,7 @@ def summary_lines(table: pd.DataFrame, labels: dict[str, str] | None = None) -> 
     lines = []
     for (metric, target, scene), g in table.groupby(["metric", "target", "scene"], sort=False):
         texts = [_verdict_text(k) for _, k in g.groupby("cost_kind", sort=False)]
-        missed = sorted(set(g.loc[g["verdict"] == "not reached", "integrator"]))
+        missed = sorted(set(g.loc[g["verdict"] == "not reached", "entry"]))
         if missed:
             texts.append(f"not reached by {', '.join(f'`{m}`' for m in missed)}")
         lines.append(f"- **{scene}**, {labels.get(metric, metric)} ≤ {target:g}: "
@@ -365,10 +426,13 @@ CAUSES = {
     "budget": "stopped by their step or time budget",
     "no finished run": "of a method that finished no fixed-step run of the scene",
     "within its finishing range": "failed although the same method finished the scene with a larger step",
+    "inaccurate": "finished with an error beyond a sanity bound (no longer a solution)",
     "adaptive": "adaptive runs that did not finish",
     "error": "raised an exception (a bug)",
 }
-EXPECTED_CAUSES = ("beyond the stability map's limit", "beyond its largest finishing step", "budget")
+#: An inaccurate run is expected: a method's coarsest settings may be too coarse to solve the
+#: scene (the sweep reaches beyond the accuracy range on purpose, to find where it ends).
+EXPECTED_CAUSES = ("beyond the stability map's limit", "beyond its largest finishing step", "budget", "inaccurate")
 
 
 def failure_causes(runs: pd.DataFrame, stability: pd.DataFrame | None = None) -> pd.DataFrame:
@@ -396,6 +460,8 @@ def failure_causes(runs: pd.DataFrame, stability: pd.DataFrame | None = None) ->
         key = (r.scene, r.integrator)
         if r.status in BUDGET_STATUSES:
             cause = "budget"
+        elif r.status == INACCURATE:
+            cause = "inaccurate"
         elif r.status == "error":
             cause = "error"
         elif pd.isna(r.dt):

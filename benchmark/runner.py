@@ -13,7 +13,9 @@ right-hand side), ``implementation`` the method's declared kind ("jax-compiled" 
 counts (`benchmark.flops`; the one-unit work axis) and ``flops_note`` how they were counted,
 or why a row has none.
 
-A failed or diverged run becomes a row with its status; an exception inside a task becomes a row
+A failed or diverged run becomes a row with its status; a run that finished with an error
+beyond a sanity bound becomes a row with status "inaccurate" (`benchmark.metrics.INACCURATE`:
+no accuracy values, not timed again, no point of any curve); an exception inside a task becomes a row
 with status "error"; a crashed worker becomes a row with status "crashed". The sweep goes on.
 Rows of an earlier run with the same `run_key` that pass `benchmark.store.check_row` are kept,
 the rest computed.
@@ -34,7 +36,7 @@ import pandas as pd
 
 from benchmark import engine
 from benchmark.flops import run_flops
-from benchmark.metrics import ACCURACY, COLUMNS, run_metrics, work_evals
+from benchmark.metrics import ACCURACY, COLUMNS, INACCURATE, inaccurate_reason, run_metrics, work_evals
 from benchmark.reference import CACHE_DIR, ReferenceProblem, get_reference, prepare_reference
 from benchmark.report import shorten
 from benchmark.store import code_version, frame, kept_rows, row_digest, run_key
@@ -174,7 +176,10 @@ def _solved_row(task: Task, cache_dir: str, repeats: int, reference: bool, finis
     row.update(_run_columns(traj, model.layout.ny))
     row["flops"], row["flops_note"] = run_flops(task.integrator, model, traj.stats, row["rhs"])
     row.update(run_metrics(scene, traj, ref, task.save_every, finished))
-    if traj.ok and repeats > 0:  # timing pass, separate from the error computation
+    inaccurate = inaccurate_reason(row, scene) if traj.ok else ""
+    if inaccurate:  # finished, but no solution: no curve point, so not timed again
+        row.update(status=INACCURATE, reason=inaccurate)
+    if traj.ok and repeats > 0 and not inaccurate:  # timing pass, separate from the error computation
         again = lambda: integ.solve(scene, **kw).stats.get("wall_time", np.nan)  # noqa: E731
         row.update(_timing(row["run_time"], again, repeats))
     else:

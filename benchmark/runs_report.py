@@ -172,11 +172,11 @@ def _short(g: pd.DataFrame) -> str:
     slower = g[g["verdict"] == "slower"]
     if len(win):
         w = win.iloc[0]
-        nxt = (f", next `{slower.iloc[0]['integrator']}` {cheap._relative(slower.iloc[0].to_dict())}"
+        nxt = (f", next `{slower.iloc[0]['entry']}` {cheap._relative(slower.iloc[0].to_dict())}"
                if len(slower) else "")
-        return f"`{w['integrator']}`{nxt}"
+        return f"`{w['entry']}`{nxt}"
     if len(tie):
-        return "tie of " + ", ".join(f"`{n}`" for n in tie["integrator"])
+        return "tie of " + ", ".join(f"`{n}`" for n in tie["entry"])
     return "no method reached it"
 
 

@@ -87,8 +87,9 @@ def run_key(task, code: str | None = None) -> str:
 # ------------------------------------------------------------------------------------------
 #: Rows with these statuses are recomputed on resume (the cause may have been transient).
 RETRY_STATUSES = ("crashed", "error")
-#: Statuses of the runs table besides the integrators' own (`integrators.Status`).
-TABLE_STATUSES = ("time_limit", "max_steps", "error", "crashed")
+#: Statuses of the runs table besides the integrators' own (`integrators.Status`); "inaccurate":
+#: finished beyond a sanity bound (`benchmark.metrics.INACCURATE`).
+TABLE_STATUSES = ("time_limit", "max_steps", "error", "crashed", "inaccurate")
 
 #: The columns a row's digest covers: what the same code computes again for the same task
 #: (timings, the load and the task's wall time are measurements, checked by range only).

@@ -98,7 +98,7 @@ def clashes(names: Iterable[str]) -> list[tuple[str, str]]:
     return out
 
 
-SWEEP_WORDS = {"dt": "fixed dt", "rtol": "adaptive"}
+from benchmark.sweep import SWEEP_WORDS  # noqa: E402  (one wording for labels and tables)
 
 
 def legend_entries(drawn: Iterable[tuple[str, str]], absent: Mapping[str, str] | None = None

@@ -274,9 +274,10 @@ class Integrator(abc.ABC):
         orders: optional per-situation orders where they differ from ``order``, keyed by
             `SITUATIONS` (e.g. the paper's LGVI: {"fixed_length": 2, "reel": 1}); see `order_for`.
         description: one line for tables and ``python -m benchmark list``.
-        horizon_settings, paper_settings, expensive, cost_hint, sweep_dts: what the benchmark
+        horizon_settings, paper_settings, expensive, cost_hint, sweep_rtols: what the benchmark
             reads instead of method names (the long-horizon study, the paper's panels, the
-            stability map's default run and its scheduling, the default sweep's step sizes).
+            stability map's default run and its scheduling, the default sweep's tolerances; its
+            step sizes are one grid for every fixed-step method, `benchmark.sweep.FULL_DTS`).
 
     Nothing in a class definition may need JAX: the registry lists and describes methods
     without importing it (JAX is imported inside the functions that trace and compile).
@@ -298,12 +299,7 @@ class Integrator(abc.ABC):
     #: why the stability map's default run leaves this method out of the scenes where its cost
     #: is prohibitive, in words (e.g. a measured compile time per scene); None: it never is
     expensive: ClassVar[str | None] = None
-    #: the step sizes (s) of this method in the full default sweep (`benchmark run`), where the
-    #: shared ones (`benchmark.sweep.FULL_DTS`) would not reach the sweep's accuracy range or would
-    #: waste runs beyond the method's stability limit; each must divide the save interval. None:
-    #: the shared ones. (``--dts`` and ``--quick`` override it.)
-    sweep_dts: ClassVar[tuple[float, ...] | None] = None
-    #: likewise the relative tolerances of an adaptive method in the full default sweep, where the
+    #: the relative tolerances of an adaptive method in the full default sweep, where the
     #: shared ones (`benchmark.sweep.FULL_RTOLS`) reach past the method's useful range; None: the
     #: shared ones. (``--rtols`` and ``--quick`` override it.)
     sweep_rtols: ClassVar[tuple[float, ...] | None] = None

@@ -35,10 +35,6 @@ class LGVISym(LGVI):
     orders = None  # the same order at fixed length and while reeling (the paper's lgvi: 2 and 1)
     scheme = Scheme(symmetric=True)
     horizon_settings = paper_settings = None  # the paper's lgvi represents the family there
-    # Full-sweep step sizes that reach a body-position error below 1e-6 m on deployment and
-    # retrieval (N = 10, full horizons). Measured: 6.2e-6 m at 0.3125 ms on deployment, so two
-    # more halvings than the shared list.
-    sweep_dts = (0.005, 0.0025, 0.00125, 0.000625, 0.0003125, 0.00015625, 0.000078125)
     description = "symmetric LGVI: midpoint mass terms and forcing, second order while reeling"
 
 
@@ -48,7 +44,6 @@ class LGVIYoshida4(LGVISym):
     name = "lgvi_yoshida4"
     order = 4
     scheme = Scheme(symmetric=True, gammas=YOSHIDA4)
-    sweep_dts = (0.005, 0.0025, 0.00125, 0.000625, 0.0003125)  # measured: 8.7e-8 m at 0.625 ms
     cost_hint = (30.0, 0.9)
     description = "Yoshida triple-jump composition of the symmetric LGVI: order 4, 3 substeps per step"
 
@@ -58,8 +53,5 @@ class LGVISuzuki4(LGVISym):
     name = "lgvi_suzuki4"
     order = 4
     scheme = Scheme(symmetric=True, gammas=SUZUKI4)
-    # measured: 2.7e-7 m at 2.5 ms; each substep has the stability limit, so larger steps pay
-    # (it diverges at 5 ms on deployment, a status row, which the sweep shows)
-    sweep_dts = (0.01, 0.005, 0.0025, 0.00125, 0.000625)
     cost_hint = (30.0, 1.5)
     description = "Suzuki 5-stage composition of the symmetric LGVI: order 4, 5 substeps per step"

@@ -191,6 +191,26 @@ def test_a_method_s_own_sweep_tolerances_and_their_overrides():
     assert rtols(build_tasks(scenes=("fixed_length",), integrators=["rk45"], rtols=[1e-10]), "rk45") == [1e-10]
 
 
+def test_every_fixed_step_method_gets_the_one_step_grid():
+    """Like with like: the full default sweep gives every fixed-step method the same step sizes
+    (the symmetric LGVIs had their own, down to 78 µs, while Suzuki started at 10 ms); --dts
+    replaces the grid for all of them at once."""
+    from benchmark.sweep import FULL_DTS, SAVE_EVERY, build_tasks
+    from integrators import Capability, get_integrator
+
+    tasks = build_tasks(scenes=("fixed_length",))
+    grids = {}
+    for t in tasks:
+        if t.dt is not None:
+            grids.setdefault(t.integrator, []).append(t.dt)
+    fixed = {n for n in {t.integrator for t in tasks} if get_integrator(n).has(Capability.FIXED_STEP)}
+    assert set(grids) == fixed and {"lgvi", "lgvi_sym", "lgvi_suzuki4", "lie_rk4", "tsit5"} <= fixed
+    assert all(sorted(g) == sorted(FULL_DTS) for g in grids.values())
+    assert max(FULL_DTS) == SAVE_EVERY and min(FULL_DTS) == SAVE_EVERY / 2 ** 8
+    named = build_tasks(scenes=("fixed_length",), integrators=["lgvi_sym", "lie_rk4"], dts=[0.005])
+    assert sorted(t.dt for t in named) == [0.005, 0.005]
+
+
 def test_extended_sweep_methods_run_only_when_named():
     """A method declaring ``default_sweep = False`` is left out of `run` without --integrators and
     runs when named; every other registered method is in the default sweep."""

@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 
 from benchmark.cheapest import (COLUMNS, WALL_RESOLUTION, WORK_RESOLUTION, cheapest, cost_on_curve, failure_causes,
                                 failure_summary, summary_lines)
+from benchmark.metrics import ACCURACY
 
 #: Timing noise measured on the shared 2-core machine (load 2.2–2.9): 30 interleaved solves each
 #: of lgvi dt = 5 ms, tsit5 rtol 1e-6 and dop853 rtol 1e-6 on fixed_length, each solve's
@@ -79,6 +80,27 @@ def test_failed_runs_are_no_points_of_the_curve():
     assert a["bracket"] == "dt=0.04 .. dt=0.01" and a["cost"] == pytest.approx(2.0)
 
 
+def test_an_inaccurate_run_is_no_point_of_the_curve_and_no_cost_is_read_across_it():
+    # the cliff: at dt = 0.02 the run finished but is no solution (its error, 1.2, was taken
+    # away with its status); a curve through it would put the crossing at the cheap end
+    runs = table(row("a", "dt=0.02", status="inaccurate", time=1.0), row("a", "dt=0.01", error=1e-6, time=4.0),
+                 row("b", "dt=0.04", error=1e-2, time=1.0), row("b", "dt=0.02", status="inaccurate", time=2.0),
+                 row("b", "dt=0.01", error=1e-6, time=4.0))
+    t = cheapest(runs, [("energy_error", 1e-4)], cost_kinds=["wall"])
+    a, b = one(t, "a"), one(t, "b")
+    assert a["cost"] == 4.0 and a["bracket"] == "dt=0.01" and a["bound"] == "cliff"
+    assert "dt=0.02 inaccurate" in a["note"]
+    assert b["bracket"] == "dt=0.04 .. dt=0.01" and b["bound"] == "accuracy"  # between two solutions
+    assert "bounded by a cliff (the next coarser setting is no longer a solution)" in summary_lines(t)[0]
+
+
+def test_inaccurate_runs_are_an_expected_cause_of_their_own():
+    runs = table(row("a", "dt=0.02", status="inaccurate"), row("a", "dt=0.01"))
+    assert failure_causes(runs)["cause"].tolist() == ["inaccurate"]
+    assert failure_summary(runs) == ("1 of 2 runs not ok, all expected: 1 finished with an error beyond a sanity "
+                                     "bound (no longer a solution) (inaccurate 1).")
+
+
 def test_the_coarsest_finished_setting_meeting_the_target_says_what_failed_above_it():
     t = cheapest(table(row("a", "dt=0.02", status="diverged"), row("a", "dt=0.01", error=1e-6, time=3.0)),
                  [("energy_error", 1e-4)])
@@ -108,9 +130,57 @@ def test_work_is_flops_when_the_table_has_them():
     assert one(t, "b", "work")["verdict"] == "winner" and one(t, "b", "work")["cost"] == 1e6
 
 
-def test_a_method_with_a_fixed_step_and_an_adaptive_sweep_is_its_cheaper_curve():
-    t = cheapest(table(row("m", "dt=0.01", time=5.0), row("m", "rtol=1e-4", time=2.0)), [("energy_error", 1e-4)])
-    assert one(t, "m")["sweep"] == "rtol" and one(t, "m")["cost"] == 2.0
+def test_a_method_with_a_fixed_step_and_an_adaptive_sweep_is_two_entries_ranked_apart():
+    t = cheapest(table(row("m", "dt=0.01", time=3.0), row("m", "rtol=1e-4", time=2.0), row("o", "dt=0.01", time=30.0)),
+                 [("energy_error", 1e-4)], cost_kinds=["wall"])
+    m = t[t["integrator"] == "m"].set_index("entry")
+    assert m.loc["m (adaptive)", "sweep"] == "rtol" and m.loc["m (adaptive)", "cost"] == 2.0
+    assert m.loc["m (fixed dt)", "sweep"] == "dt" and m.loc["m (fixed dt)", "cost"] == 3.0
+    # the fixed-step entry is ranked against the others, not hidden behind its adaptive twin
+    assert m.loc["m (adaptive)", "verdict"] == "tie" and m.loc["m (fixed dt)", "verdict"] == "tie"
+    assert one(t, "o")["entry"] == "o" and one(t, "o")["verdict"] == "slower"
+    assert "`m (adaptive)`" in summary_lines(t)[0] and "`m (fixed dt)`" in summary_lines(t)[0]
+
+
+def twins(**b_changes):
+    """a and b at three settings; b's rows equal a's (one trajectory) unless changed."""
+    rows = []
+    for k, (dt, err) in enumerate([("0.02", 1e-3), ("0.01", 2.5e-4), ("0.005", 6.2e-5)]):
+        errors = {m: err / (i + 2) for i, m in enumerate(ACCURACY) if m != "energy_error"}
+        a = row("a", f"dt={dt}", error=err, time=1.0 + k, steps=50 * 2 ** k, **errors)
+        fast = {c: 0.9 * a[c] for c in ("run_time", "run_time_low", "run_time_high")}  # b's times differ
+        rows += [a, dict(a, integrator="b", **fast, **b_changes.get(dt, {}))]
+    return table(*rows)
+
+
+def test_two_methods_with_one_trajectory_are_ranked_once_and_the_other_says_why():
+    t = cheapest(twins(), [("energy_error", 1e-4)], cost_kinds=["wall"])
+    a, b = one(t, "a"), one(t, "b")
+    assert a["entry"] == "a = b" and a["verdict"] == "winner"  # alone: b is not its tie
+    assert b["verdict"] == "identical" and np.isnan(b["cost"]) and "the same trajectory as `a`" in b["note"]
+    assert "tie" not in summary_lines(t)[0] and "`a = b`" in summary_lines(t)[0]
+
+
+@pytest.mark.parametrize("change", [
+    {"0.005": {"energy_error": 6.2e-5 * (1 + 1e-15)}},  # one error one ulp off at one setting
+    {"0.01": {"steps": 101}},
+    {"0.02": {"status": "diverged", "energy_error": np.nan}},
+])
+def test_methods_that_differ_anywhere_are_ranked_apart(change):
+    from benchmark.cheapest import identical_methods
+
+    runs = twins(**change)
+    assert identical_methods(runs) == {}
+    assert set(cheapest(runs, [("energy_error", 1e-4)])["verdict"]) <= {"winner", "tie", "slower"}
+
+
+def test_one_shared_solution_is_not_evidence_of_one_trajectory():
+    from benchmark.cheapest import identical_methods
+
+    runs = twins()
+    assert identical_methods(runs) == {("s", "b", "dt"): "a"}
+    assert identical_methods(runs[runs["setting"] == "dt=0.01"]) == {}
+    assert identical_methods(runs.drop(columns="attitude_error_max")) == {}  # not every error: no evidence
 
 
 # ---- verdicts -----------------------------------------------------------------------------

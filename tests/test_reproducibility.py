@@ -46,7 +46,7 @@ def test_the_work_verdicts_hold_on_both_machines(measured):
     # a work winner on one CPU is the winner or in the tie on the other (adaptive counts moved ≤ 1.25 %)
     targets = [("energy_error", 1e-4), ("position_error_final", 1e-6), ("energy_error", 1e-8)]
     a, b = (cheapest(t, targets, cost_kinds=["work"]) for t in measured)
-    both = a.merge(b, on=["scene", "metric", "target", "integrator"], suffixes=("_a", "_b"))
+    both = a.merge(b, on=["scene", "metric", "target", "entry"], suffixes=("_a", "_b"))
     assert (both["verdict_a"] == "winner").sum() >= 3
     for x, y in (("a", "b"), ("b", "a")):
         won = both[both[f"verdict_{x}"] == "winner"]
