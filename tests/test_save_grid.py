@@ -37,13 +37,15 @@ def test_any_step_size_is_accepted_by_the_sweep():
             sweep.check_settings([bad])
 
 
-def test_a_run_at_any_step_ends_at_t_end_and_a_new_step_compiles_nothing():
+@pytest.mark.parametrize("name", ["lie_rk4", "tsit5"])  # the lifecycle's loop, diffrax's constant step
+def test_a_run_at_any_step_ends_at_t_end_and_a_new_step_compiles_nothing(name):
     scene = load_scene("fixed_length", elements=2)
-    integ = get_integrator("lie_rk4")
+    integ = get_integrator(name)
     first = integ.solve(scene, t_end=0.1, dt=0.005, save_every=0.02)
-    for dt in (0.003, 0.007, 0.0123):
+    for dt in (0.003, 0.007, 0.0123, 0.03):  # 0.03: longer than the save interval
         traj = integ.solve(scene, t_end=0.1, dt=dt, save_every=0.02)
         assert traj.ok and traj.t[-1] == 0.1, (dt, traj.t[-1])
+        assert np.all(np.diff(traj.t) > 0)
         assert traj.stats["steps"] == int(np.ceil(0.1 / dt))
         assert traj.stats["compile_time"] < 0.05 * first.stats["compile_time"], dt  # the same compiled loop
 
@@ -78,3 +80,17 @@ def test_the_reference_is_read_at_the_times_a_run_saved(tmp_path):
     traj = get_integrator("lie_rk4").solve(scene, t_end=0.2, dt=0.003, save_every=0.02)
     m = run_metrics(scene, traj, ref, 0.02)
     assert np.isfinite(m["position_error_final"]) and m["position_error_final"] <= m["position_error_max"]
+
+
+def test_simulate_at_a_step_that_does_not_divide_the_save_interval_ends_at_t_end(tmp_path):
+    """`simulate --dt 0.003 --t-end 1` saved every 0.021 s and ended at t = 0.999 s: now its
+    saved times are the step points nearest every 0.02 s and its last one is t_end."""
+    from benchmark.cli import main
+    from integrators import Trajectory
+
+    out = tmp_path / "t.npz"
+    assert main(["simulate", "fixed_length", "--integrator", "lie_rk4", "--dt", "0.003", "--t-end", "0.5",
+                 "--set", "elements=2", "--out", str(out)]) == 0
+    traj = Trajectory.load(out)
+    assert traj.t[-1] == 0.5 and len(traj.t) == 26
+    assert np.all(np.abs(traj.t[:-1] - np.round(traj.t[:-1] / 0.02) * 0.02) <= 0.0015 + 1e-12)
