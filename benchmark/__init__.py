@@ -2,12 +2,15 @@
 
     python -m benchmark run            # the default sweep of the paper's three scenes -> results/
     python -m benchmark run --quick --out /tmp/quick   # a reduced sweep, a few minutes on 2 cores
+    python -m benchmark answer --out results/answer    # the searched answer and paired timing
 
 By concern, from the command line down:
 
 - `cli` parses and checks a command's input, then calls its pipeline in `pipelines`;
 - the studies, as jobs: `runner` (the runs table), `stability`, `check`, `horizon`, `xval`,
-  `lgvi_speed` (speed), `reel_reversal`; what a sweep runs: `sweep`; its metrics: `metrics`;
+  `lgvi_speed` (speed), `reel_reversal`, `answer` (each method's cheapest setting at each
+  target by `search`, wall-time verdicts by `paired` timing, at N = 10 and 40); what a sweep
+  runs: `sweep`; its metrics: `metrics`;
 - their writers: `runs_report`, `stability_report`, `xval_report` (and the baseline in `check`,
   the speed tables in `lgvi_speed`), on the report layer `report` and the plot layer `plots`;
   what they conclude from: `cheapest` (the cost at a target, with its spread, and verdicts that
