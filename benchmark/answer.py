@@ -108,6 +108,8 @@ def solve_kwargs(sweep: str, setting: float, t_end: float) -> dict:
 
 #: The solves this worker ran: (scene, N, t_end, method, axis, setting) -> (status, metrics, cost, column).
 _SOLVED: dict = {}
+#: The references this worker read: (scene, N, t_end, cache) -> trajectory.
+_REFERENCES: dict = {}
 
 
 def _solve_once(job: SearchJob, setting: float, cache_dir: str) -> tuple[str, dict, float, str]:
@@ -123,7 +125,10 @@ def _solve_once(job: SearchJob, setting: float, cache_dir: str) -> tuple[str, di
 
     scene = _scene(job.scene, job.elements, job.t_end)
     t_end = scene.t_end
-    ref = get_reference(scene, t_end, SAVE_EVERY, Path(cache_dir), log=None)
+    ref_key = (job.scene, job.elements, job.t_end, cache_dir)
+    if ref_key not in _REFERENCES:  # read (and its checksum verified) once per worker
+        _REFERENCES[ref_key] = get_reference(scene, t_end, SAVE_EVERY, Path(cache_dir), log=None)
+    ref = _REFERENCES[ref_key]
     try:
         traj = get_integrator(job.integrator).solve(scene, time_limit=RUN_TIME_LIMIT,
                                                     **solve_kwargs(job.sweep, setting, t_end))

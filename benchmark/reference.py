@@ -33,7 +33,7 @@ from models.io import inside
 REFERENCE_METHOD = {"integrator": "dop853", "rtol": 1e-12, "atol": 1e-14}
 CACHE_DIR = Path("results") / "cache"
 #: Version of the file layout below; a file of another format is recomputed (3: with the dense
-#: output, `DenseSolution`).
+#: output of the compared components, `DenseSolution`).
 FORMAT = 3
 
 #: The source a reference is computed by: the model and the integrators (DOP853 through the
@@ -80,31 +80,43 @@ class DenseSolution:
     """The reference between its saved points: DOP853's own interpolant of every step (order 7,
     `scipy.integrate`'s ``Dop853DenseOutput``), so that a run is compared with the reference at
     the times the run saved, whatever its step (a fixed step saves at its step points nearest
-    the save times, `integrators.base.fixed_step_grid`).
+    the save times, `integrators.base.fixed_step_grid`). Only the components the reference
+    metrics compare are kept (the body's coordinates, the last three of x, and the attitude
+    quaternion: ``columns`` of the ODE state), which keeps the file small (the whole state of
+    N = 40 over 10 s took 256 MB).
 
-    ``t``: the step boundaries (n + 1,); ``y0``: the ODE state at each step's start (n, ny);
-    ``F``: each step's interpolation coefficients (n, 7, ny)."""
+    ``t``: the step boundaries (n + 1,); ``y0``: the kept components at each step's start
+    (n, k); ``F``: each step's interpolation coefficients of them (n, 7, k)."""
 
-    ARRAYS = ("dense_t", "dense_y0", "dense_F")
+    ARRAYS = ("dense_t", "dense_y0", "dense_F", "dense_columns")
 
-    def __init__(self, t, y0, F):
+    def __init__(self, t, y0, F, columns):
         self.t, self.y0, self.F = (np.asarray(a, dtype=float) for a in (t, y0, F))
+        self.columns = np.asarray(columns, dtype=np.int64)
+
+    @staticmethod
+    def compared_columns(layout) -> np.ndarray:
+        """The ODE state's components the reference metrics compare (`benchmark.metrics`)."""
+        x = np.arange(layout.y_x.start, layout.y_x.stop)[-3:]
+        quat = np.arange(layout.y_quat.start, layout.y_quat.stop) if layout.has_attitude else np.zeros(0, int)
+        return np.concatenate([x, quat]).astype(np.int64)
 
     @classmethod
-    def from_steps(cls, pieces) -> "DenseSolution":
+    def from_steps(cls, pieces, columns) -> "DenseSolution":
         """From the interpolants of every step in order (`Trajectory.dense` of a DOP853 solve
-        with ``dense_output=True``)."""
+        with ``dense_output=True``), kept for ``columns`` of the state."""
         if not pieces or not all(hasattr(p, "F") for p in pieces):
             raise ValueError("the reference's dense output needs DOP853's interpolants (attribute F)")
+        c = np.asarray(columns, dtype=np.int64)
         t = np.array([pieces[0].t_old] + [p.t for p in pieces])
-        return cls(t, np.stack([p.y_old for p in pieces]), np.stack([p.F for p in pieces]))
+        return cls(t, np.stack([p.y_old[c] for p in pieces]), np.stack([p.F[:, c] for p in pieces]), c)
 
     def arrays(self) -> dict:
-        return dict(zip(self.ARRAYS, (self.t, self.y0, self.F)))
+        return dict(zip(self.ARRAYS, (self.t, self.y0, self.F, self.columns)))
 
     def __call__(self, times) -> np.ndarray:
-        """The ODE states at ``times`` (inside [t_0, t_n]), (len(times), ny)."""
-        times = np.asarray(times, dtype=float)
+        """The kept components at ``times`` (inside [t_0, t_n]), (len(times), len(columns))."""
+        times = np.atleast_1d(np.asarray(times, dtype=float))
         if times.size and (times.min() < self.t[0] - 1e-12 or times.max() > self.t[-1] * (1 + 1e-12) + 1e-12):
             raise ValueError(f"reference: times {times.min():g}..{times.max():g} s leave its range "
                              f"{self.t[0]:g}..{self.t[-1]:g} s (it is never extrapolated)")
@@ -118,15 +130,21 @@ class DenseSolution:
 
 
 def reference_at(scene, ref, times):
-    """The reference trajectory at ``times`` (a run's saved times), from its dense output; the
-    trajectory ``ref`` itself where it has none (then only the saved times both share compare)."""
+    """The reference trajectory at ``times`` (a run's saved times), from its dense output: the
+    components it keeps (`DenseSolution`), every other one NaN (only the body's position and
+    attitude are compared with it); the trajectory ``ref`` itself where it has none (then only
+    the saved times both share compare)."""
     from integrators.lifecycle import ode_trajectory
     from models import build_model
 
     if ref.dense is None:
         return ref
-    return ode_trajectory(build_model(scene), scene, times, ref.dense(times), status=ref.status, reason="",
-                          stats={}, integrator=ref.integrator, settings=ref.settings)
+    model = build_model(scene)
+    times = np.asarray(times, dtype=float)
+    y = np.full((len(times), model.layout.ny), np.nan)
+    y[:, ref.dense.columns] = ref.dense(times)
+    return ode_trajectory(model, scene, times, y, status=ref.status, reason="", stats={},
+                          integrator=ref.integrator, settings=ref.settings)
 
 
 def save_reference(traj, path: Path, ident: dict) -> None:
@@ -179,6 +197,8 @@ def load_reference(path: Path, ident: dict):
 def get_reference(scene, t_end: float, save_every: float, cache_dir: Path = CACHE_DIR, log=log_stderr):
     """The cached reference for (scene, t_end, save_every), computing it on first use, or when
     the cached file cannot be trusted (reported through ``log`` by file name)."""
+    from models import build_model
+
     path = reference_path(scene, t_end, save_every, cache_dir)
     ident = identity(scene, t_end, save_every)
     if path.exists():
@@ -198,7 +218,7 @@ def get_reference(scene, t_end: float, save_every: float, cache_dir: Path = CACH
             f"{REFERENCE_METHOD['rtol']:g}) did not reach t = {t_end:g} s: {traj.status}: {traj.reason}. Check the scene's "
             "values (lengths, stiffness, masses, speeds: a scene can validate and still be too stiff to integrate), "
             "or give a shorter --t-end")
-    traj.dense = DenseSolution.from_steps(traj.dense)
+    traj.dense = DenseSolution.from_steps(traj.dense, DenseSolution.compared_columns(build_model(scene).layout))
     try:
         save_reference(traj, path, ident)
     except OSError as exc:  # a full disk costs the cache, not the study

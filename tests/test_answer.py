@@ -93,7 +93,7 @@ def test_the_study_end_to_end_resumes_without_losing_a_row(tmp_path, capsys):
     assert main(args) == 0
     table = pd.read_csv(tmp_path / "cheapest.csv")
     assert set(table["cost_kind"]) == {"work", "wall"}
-    assert table["bound"].dropna().isin(["target", "stability", "largest setting", "budget"]).all()
+    assert table["bound"].dropna().isin(["target", "stability", "largest setting", "budget"]).all(), table.to_string()
     first = pd.read_csv(tmp_path / "search.csv")
     capsys.readouterr()
     assert main(args) == 0

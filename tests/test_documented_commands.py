@@ -2,7 +2,7 @@
 user would (from a copy of the repository's results/), leaves every committed row of
 results/runs.csv in place. A sweep is cut to `--quick` on one scene (and its scratch --out sent
 to a temporary directory); the studies that never touch runs.csv and take minutes (check, speed,
-stability, xval, reel-reversal) are named, not run. The sweeps skip their figures and energy
+stability, answer, xval, reel-reversal) are named, not run. The sweeps skip their figures and energy
 study: those never touch runs.csv (tests/test_resume_merge.py runs them)."""
 
 import os
@@ -21,7 +21,8 @@ ROOT = Path(__file__).resolve().parent.parent
 DOCS = (ROOT / "README.md", ROOT / "integrators" / "README.md")
 #: Commands that write elsewhere than runs.csv and take minutes: not run here.
 NOT_RUN = {"check": "results/baseline/ only", "speed": "its --out file only", "stability": "results/stability/ only",
-           "xval": "results/xval/ only", "reel-reversal": "stdout and its cache only"}
+           "xval": "results/xval/ only", "reel-reversal": "stdout and its cache only",
+           "answer": "results/answer/ only (and the README's answer block)"}
 #: Words of a template, not a command (an option to choose, a placeholder).
 TEMPLATE = re.compile(r"\[|\]|\.\.\.|COMMAND|HOST|NAME|FILE|TRAJ|DIR\b|\bN\b")
 

@@ -71,7 +71,7 @@ def test_the_reference_is_read_at_the_times_a_run_saved(tmp_path):
     ref = get_reference(scene, 0.2, 0.02, tmp_path, log=None)
     other = get_reference(scene, 0.2, 0.0125, tmp_path, log=None)  # other saved times
     at = reference_at(scene, ref, other.t)
-    assert np.abs(at.x - other.x).max() < 1e-9
+    assert np.abs(at.x[:, -3:] - other.x[:, -3:]).max() < 1e-9  # the body's coordinates: what is compared
     assert np.abs(at.attitude - other.attitude).max() < 1e-9
     again = get_reference(scene, 0.2, 0.02, tmp_path, log=None)  # from the cache, dense output included
     assert np.array_equal(again.dense(other.t), ref.dense(other.t))
