@@ -19,7 +19,8 @@ cheaper, and less accurate or less likely to finish. The search:
 ``bound`` says what limits the answer: ``target`` (the coarser end finished but missed the
 target), ``stability`` (the coarser end did not finish: the stability boundary, located to the
 same 10 %), ``largest setting`` (the coarsest allowed setting meets it: nothing cheaper exists to
-find), ``budget`` (the runs ran out first; the row keeps the bracket reached), ``not reached``.
+find), ``budget`` (the runs ran out first, or a run hit its own step or time budget, after which
+the search goes no finer; the row keeps the bracket reached), ``not reached``.
 
 **The answer never extrapolates:** it is the cheapest *measured* setting meeting the target
 (for a fixed step, whose error falls with the step, this is the finer end of the final bracket).
@@ -40,6 +41,9 @@ from typing import Callable
 RESOLUTION = 0.10
 #: The most runs of one search (bracket and bisection together).
 MAX_RUNS = 16
+#: Statuses of a run stopped by its own budget (steps, seconds): a finer setting costs more, so
+#: the search goes no finer after one (its bound is then ``budget``).
+BUDGET_STATUSES = ("max_steps", "time_limit")
 BOUNDS = ("target", "stability", "largest setting", "budget", "not reached")
 
 
@@ -146,8 +150,8 @@ def search(run: Callable[[float], tuple[str, float, float]], target: float, star
                 break
     else:
         bad = p
-        while budget_left():  # finer until met
-            if bad.setting <= lowest:
+        while budget_left():  # finer until met, never past a run stopped by its own budget
+            if bad.setting <= lowest or bad.status in BUDGET_STATUSES:
                 break
             q = at(max(bad.setting / factor, lowest))
             if q.meets(target):
@@ -167,8 +171,10 @@ def search(run: Callable[[float], tuple[str, float, float]], target: float, star
 def _found(points: list[Point], target: float, lowest: float, highest: float, resolution: float) -> Found:
     ordered = sorted(points, key=lambda p: p.setting)
     meeting = [p for p in ordered if p.meets(target)]
-    if not meeting:  # the finest setting allowed missed it too, or the runs ran out before it
-        return Found(target, "not reached" if ordered[0].setting <= lowest else "budget",
+    if not meeting:  # the finest setting allowed missed it too, or the runs (or a run's own budget) ran out
+        finest = ordered[0]
+        return Found(target, "not reached" if finest.setting <= lowest and finest.status not in BUDGET_STATUSES
+                     else "budget",
                      setting_high=ordered[0].setting, high_status=ordered[0].status, points=points)
     # the rule: the cheapest measured setting that meets the target (the coarsest on ties)
     best = min(meeting, key=lambda p: (p.cost if _costed(p) else math.inf, -p.setting))

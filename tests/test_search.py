@@ -70,6 +70,17 @@ def test_the_budget_ends_the_search_and_the_row_says_so():
     assert f.bound == "budget" and math.isnan(f.setting) and f.setting_high == pytest.approx(0.1 / 8)
 
 
+def test_a_run_stopped_by_its_own_budget_ends_the_finer_search():
+    calls = []
+
+    def run(dt):
+        calls.append(dt)
+        return ("time_limit", float("nan"), float("nan")) if dt < 1e-3 else ("ok", 1.0, 1 / dt)
+
+    f = search(run, 1e-3, 0.01, lowest=1e-8, highest=1.0)
+    assert f.bound == "budget" and min(calls) < 1e-3 and sum(dt < 1e-3 for dt in calls) == 1
+
+
 def test_a_target_never_met_is_not_reached_and_the_coarsest_setting_is_the_largest():
     f = search(lambda dt: ("ok", 1.0, 1 / dt), 1e-3, 0.01, lowest=1e-3, highest=1.0)
     assert f.bound == "not reached" and math.isnan(f.setting)
