@@ -366,9 +366,8 @@ def _use_line(g: pd.DataFrame) -> str:
     def rel(r):
         return f"{r['ratio']:.2f}× [{r['ratio_low']:.2f}–{r['ratio_high']:.2f}]"
 
-    interval = (f"{int(best['pairs'])} pairs" if kind == "wall"
-                else f"{unit(best['cost_low'])}–{unit(best['cost_high'])}")
-    own = f"{best['setting']}, {unit(best['cost'])}, {interval}"
+    own = (f"{best['setting']}, {unit(best['cost'])}, {int(best['pairs'])} pairs" if kind == "wall"
+           else f"{best['setting']}, {unit(best['cost'])} [{best['cost_low']:.3g}–{best['cost_high']:.3g}]")
     ties = ranked[ranked["verdict"] == "tie"].iloc[1:]
     rest = ranked[ranked["verdict"] == "slower"]
     if best["verdict"] == "tie":
