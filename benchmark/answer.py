@@ -459,6 +459,21 @@ def read_rows(path: Path, log=engine.log_stderr) -> list[dict]:
     return good
 
 
+#: A row's place in search.csv / timing.csv: one row per search, one per timing.
+SEARCH_IDENTITY = ("scene", "elements", "integrator", "sweep", "metric", "target")
+TIMING_IDENTITY = ("scene", "elements", "metric", "target")
+
+
+def merged(base: list[dict], new: list[dict], identity: tuple) -> list[dict]:
+    """``base`` with ``new``'s rows in place of those of the same ``identity``, the rest after."""
+    def ident(r):
+        return tuple(str(r.get(c)) if isinstance(r.get(c), str) else float(r.get(c)) for c in identity)
+
+    replace = {ident(r): r for r in new}
+    out = [replace.pop(ident(r), r) for r in base]
+    return out + [r for r in new if ident(r) in replace]
+
+
 @dataclass(frozen=True)
 class AnswerRequest:
     """What `python -m benchmark answer` asks for (its options, checked)."""
@@ -486,8 +501,13 @@ def run_answer(request: AnswerRequest, log: Callable[[str], None] = engine.log_s
 
     out = Path(request.out)
     out.mkdir(parents=True, exist_ok=True)
-    search_csv = TableWriter(out / "search.csv", lambda rows: frame(rows, SEARCH_COLUMNS))
-    timing_csv = TableWriter(out / "timing.csv", lambda rows: frame(rows, TIMING_COLUMNS))
+    # a run joins the rows already there: rows of other scenes, sizes, methods or targets are kept
+    # (`merged`), this run's replace theirs (so N = 10 and N = 40 may run one after the other)
+    earlier = {name: read_rows(out / name, log) for name in ("search.csv", "timing.csv")}
+    search_csv = TableWriter(out / "search.csv",
+                             lambda rows: frame(merged(earlier["search.csv"], rows, SEARCH_IDENTITY), SEARCH_COLUMNS))
+    timing_csv = TableWriter(out / "timing.csv",
+                             lambda rows: frame(merged(earlier["timing.csv"], rows, TIMING_IDENTITY), TIMING_COLUMNS))
     started = time.perf_counter()
     try:
         with _exclusive(out, log):
@@ -499,14 +519,16 @@ def run_answer(request: AnswerRequest, log: Callable[[str], None] = engine.log_s
                 f"{len(targets)} target(s); results -> {out}/")
             workers = request.jobs or min(len(jobs), os.cpu_count() or 1)
             searched = run_search_stage(jobs, workers=workers, cache_dir=str(out / "cache"),
-                                        previous=[] if request.fresh else read_rows(search_csv.path, log),
+                                        previous=[] if request.fresh else earlier["search.csv"],
                                         on_row=search_csv, log=log)
             search_csv(searched.to_dict("records"))
+            searched = search_csv.to_table(searched.to_dict("records"))  # with the rows kept from earlier runs
             tjobs = timing_jobs(searched, request.t_end, request.timing_budget)
             log(f"{len(tjobs)} paired timings (at most {request.timing_budget:g} s each, on one pinned core)")
-            timed = run_timing_stage(tjobs, previous=[] if request.fresh else read_rows(timing_csv.path, log),
+            timed = run_timing_stage(tjobs, previous=[] if request.fresh else earlier["timing.csv"],
                                      on_row=timing_csv, log=log)
             timing_csv(timed.to_dict("records"))
+            timed = timing_csv.to_table(timed.to_dict("records"))
             table = answer_table(searched, timed)
             write_table(out / "cheapest.csv", table)
             labels = {m: label for m, _, label in TARGETS}

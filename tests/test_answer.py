@@ -109,3 +109,11 @@ def test_a_method_on_two_axes_is_two_entries(tables):
     entries = set(table.loc[table["integrator"] == "tsit5", "entry"])
     assert entries == {"tsit5 (fixed dt)", "tsit5 (adaptive)"}
     assert len(answer.timing_jobs(pd.concat([searched, both]))[0].candidates) == 4
+
+
+def test_a_run_keeps_the_rows_of_other_sizes_and_replaces_its_own():
+    base = [_search_row("lgvi", 10, "energy_error", 1e-4, 0.0088, 1e6), _search_row("lgvi", 40, "energy_error", 1e-4, 0.002, 9e6)]
+    new = [_search_row("lgvi", 40, "energy_error", 1e-4, 0.0021, 8e6), _search_row("rattle", 40, "energy_error", 1e-4, 0.003, 7e6)]
+    out = answer.merged(base, new, answer.SEARCH_IDENTITY)
+    assert [(r["integrator"], r["elements"], r["cost"]) for r in out] == [("lgvi", 10, 1e6), ("lgvi", 40, 8e6),
+                                                                          ("rattle", 40, 7e6)]
