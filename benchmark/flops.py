@@ -1,22 +1,37 @@
 """The work of a run in one unit: floating-point operations (the ``flops`` column of runs.csv).
 
-A run's flops are its counts times what XLA's cost model (``compiled.cost_analysis()``) says
-one counted unit costs, so that one Newton iteration of the LGVI and one right-hand side of a
-Runge–Kutta method are no longer both "1":
+**One rule for every method:** a run's flops are its (attempted) steps × the flops of its
+**whole compiled step** by XLA's cost model (``compiled.cost_analysis()``): the stage
+arithmetic, the right-hand sides inside it, Lie group exponentials, the error estimator and the
+step-size controller, as one compiled function, so that every method is charged what its step
+computes and nothing is summed from pieces counted apart (XLA's count is not additive: one
+right-hand side alone is 1,380 flops at N = 10, but its cost in a step follows from the fusion
+around it). XLA counts the body of a loop once, so the step's loops are multiplied by their
+trip counts here: a ``scan`` by its length, a ``while_loop`` by its measured trips (the Newton
+iteration at the run's mean Newton iterations per (sub)step; the stage loop of diffrax's
+Runge–Kutta step at its stages evaluated per step). By kind of method:
 
-* a method that counts right-hand-side evaluations: ``rhs_evals`` × the flops of one compiled
-  evaluation of the right-hand side it ran (``rhs`` column), plus ``jac_evals`` × one compiled
-  forward-mode Jacobian, plus ``lu_decompositions`` × (2/3) ny³ (a dense LU, counted, since
-  scipy factors outside XLA);
-* a fixed-step method that counts no evaluations (the LGVI family, RATTLE): ``steps`` × the
-  flops of one compiled step. XLA's cost model counts the body of a loop once, so the step's loops are
-  multiplied by their trip counts here: a ``scan`` by its length, a ``while_loop`` (the Newton
-  iteration, the symmetric scheme's forcing fixed point) by the run's mean Newton iterations
-  per (sub)step, which is exact for the one Newton loop of the paper's LGVI (a method that
-  reports no iteration count gets its while loops once per step, and its note says so).
+* a fixed-step method with a compiled step (``init`` / ``step``: the LGVI family, RATTLE,
+  ``lie_rk4``, ``crouch_grossman3``, plugins): ``steps`` × that step (`step_cost`), `FROM_STEP`;
+* diffrax's explicit pairs (``tsit5``, ``dopri5``, ``dopri8``): attempted steps × diffrax's
+  ``solver.step`` plus, adaptive, its PID controller's ``adapt_step_size`` (`diffrax_step_cost`),
+  and the start's extra evaluations (first stage, initial step size) × one right-hand side,
+  `FROM_DIFFRAX`;
+* scipy's explicit pairs (``rk45``, ``dop853``, ``rk45_projected``): their **compiled twin**
+  (`scipy_twin_step`): scipy's ``rk_step``, error norm and step-factor update written in JAX
+  with scipy's own tableau arrays (``A``, ``B``, ``C``, ``E`` / ``E3``, ``E5``) and the same
+  right-hand side, so the Python interpreter between scipy's calls (not arithmetic) is left out
+  and the arithmetic is counted like every other step's; attempted steps × that step, + the
+  start's evaluations, `FROM_TWIN`;
+* the rest (``radau``; ``kvaerno5`` when counted), whose step is a Newton iteration of
+  library code outside one compiled function: ``rhs_evals`` × one compiled right-hand side +
+  ``jac_evals`` × one compiled Jacobian + ``lu_decompositions`` × (2/3) ny³, `FROM_RHS`, which
+  the note says is not the whole-step rule.
 
-Where a count cannot be had the row gets no number and ``flops_note`` says why (never a zero).
-Compiled pieces are cached per process (model, method, right-hand side).
+The rule is checked against compiled floors (numba implementations of the same steps):
+`benchmark.work_rule`, results/work_rule.md. Where a count cannot be had the row gets no
+number and ``flops_note`` says why (never a zero). Compiled pieces are cached per process
+(model, method, right-hand side).
 """
 
 from __future__ import annotations
@@ -26,8 +41,13 @@ import functools
 import numpy as np
 
 #: What ``flops_note`` says for each way of counting.
-FROM_RHS = "XLA cost_analysis of one right-hand side x rhs_evals (+ Jacobians, + (2/3) ny^3 per LU)"
-FROM_STEP = "XLA cost_analysis of one step, loops x trip counts (Newton loops at the run's mean iterations)"
+FROM_RHS = ("XLA cost_analysis of one right-hand side x rhs_evals (+ Jacobians, + (2/3) ny^3 per LU): "
+            "not the whole-step rule (a library's implicit step)")
+FROM_STEP = "XLA cost_analysis of one whole step, loops x trip counts (Newton loops at the run's mean iterations)"
+FROM_DIFFRAX = ("XLA cost_analysis of one whole diffrax step (solver.step, + the PID controller when adaptive; "
+                "stage loop x its stages) x attempted steps, + the start's evaluations x one right-hand side")
+FROM_TWIN = ("XLA cost_analysis of the compiled twin of scipy's step (its tableau, error norm and step factor in "
+             "JAX) x attempted steps, + the start's evaluations x one right-hand side")
 
 
 def xla_flops(fn, *args) -> float:
@@ -163,37 +183,156 @@ def _has_while(terms) -> bool:
     return any(kind == "while" or _has_while(nested) for kind, _, _, nested in terms)
 
 
-def run_flops(integrator: str, model, stats: dict, rhs: str | None) -> tuple[float, str]:
-    """(flops of a run, how they were counted or why there are none) from its stats."""
+def _ode_term_and_state(model, rhs: str):
+    from models._jax import jnp
+
+    from integrators.rhs import ode_rhs
+
+    return ode_rhs(model, rhs), jnp.asarray(model.initial_ode_state(), dtype=float)
+
+
+@functools.lru_cache(maxsize=64)
+def diffrax_step_cost(name: str, model, rhs: str, adaptive: bool) -> float:
+    """Flops of one attempted step of the diffrax explicit pair ``name``: diffrax's
+    ``solver.step`` (its stage loop, a while loop, at the stages it evaluates per step) plus,
+    when ``adaptive``, the PID controller's ``adapt_step_size`` (error norm, factor)."""
+    import diffrax as dfx
+
+    from models._jax import jax
+    from integrators import get_integrator
+
+    integ = get_integrator(name)
+    f, y0 = _ode_term_and_state(model, rhs)
+    term = dfx.ODETerm(lambda t, y, args: f(t, y))
+    solver = integ.make_solver(1e-6, 1e-8)
+    state0 = solver.init(term, 0.0, 1e-3, y0, None)
+    controller = dfx.PIDController(rtol=1e-6, atol=1e-8)
+    order = solver.order(term)
+    ctrl0 = controller.init(term, 0.0, 1e-3, y0, 1e-3, None, solver.func, order)[1]
+
+    def step(y, state, h, ctrl):
+        y1, y_error, _, state1, _ = solver.step(term, 0.0, h, y, None, state, made_jump=False)
+        if not adaptive:
+            return y1, state1
+        return y1, state1, controller.adapt_step_size(0.0, h, y, y1, None, y_error, order, ctrl)
+
+    closed = jax.make_jaxpr(step)(y0, state0, 1e-3, ctrl0)
+    stages = integ.fsal_stages - 1  # the stage loop's trips: the evaluations of one step
+    return _body_flops(closed) + extra_flops(loop_terms(closed), float(stages))
+
+
+#: scipy's step-size update (scipy.integrate._ivp.rk): factor = min(MAX, SAFETY × norm^exponent)
+_SAFETY, _MAX_FACTOR = 0.9, 10.0
+
+
+@functools.lru_cache(maxsize=64)
+def scipy_twin_step(name: str, model, rhs: str) -> float:
+    """Flops of one attempted step of scipy's explicit pair behind ``name`` (RK45, DOP853),
+    as its compiled twin: scipy's ``rk_step`` (stages from the tableau ``A``, ``B``, ``C``,
+    FSAL), the error norm (``E``; DOP853: ``E3`` and ``E5``) and the step factor, in JAX with
+    scipy's own arrays and the same right-hand side."""
+    from models._jax import jax, jnp
+
+    from integrators import get_integrator
+
+    cls = get_integrator(name).solver_class
+    A, B, C, n = np.asarray(cls.A), np.asarray(cls.B), np.asarray(cls.C), int(cls.n_stages)
+    exponent = -1.0 / (cls.error_estimator_order + 1)
+    two_estimates = hasattr(cls, "E5")
+    f, y0 = _ode_term_and_state(model, rhs)
+
+    def step(t, y, f0, h, rtol, atol):
+        K = [f0]
+        for s_ in range(1, n):
+            K.append(f(t + C[s_] * h, y + jnp.dot(jnp.stack(K).T, A[s_, :s_]) * h))
+        y_new = y + h * jnp.dot(jnp.stack(K).T, B)
+        K.append(f(t + h, y_new))
+        Kt = jnp.stack(K).T
+        scale = atol + jnp.maximum(jnp.abs(y), jnp.abs(y_new)) * rtol
+        if two_estimates:  # DOP853._estimate_error_norm
+            e5, e3 = jnp.dot(Kt, cls.E5) / scale, jnp.dot(Kt, cls.E3) / scale
+            n5, n3 = jnp.sum(e5 ** 2), jnp.sum(e3 ** 2)
+            norm = jnp.abs(h) * n5 / jnp.sqrt((n5 + 0.01 * n3) * y.size)
+        else:  # RungeKutta._estimate_error_norm: rms of (K^T E h) / scale
+            norm = jnp.sqrt(jnp.mean((jnp.dot(Kt, cls.E) * h / scale) ** 2))
+        return y_new, K[-1], jnp.minimum(_MAX_FACTOR, _SAFETY * norm ** exponent)
+
+    f0 = f(0.0, y0)
+    return xla_flops(step, 0.0, y0, f0, 1e-3, 1e-6, 1e-8)
+
+
+#: Flops of renormalising a quaternion (4 squares, 3 adds, a square root, 4 divisions): the
+#: projection ``rk45_projected`` adds after every accepted step, beside one more evaluation.
+QUATERNION_PROJECTION_FLOPS = 12.0
+
+
+def _is_scipy_pair(integ) -> bool:
+    try:
+        from scipy.integrate._ivp.rk import RungeKutta
+
+        cls = getattr(integ, "solver_class", None)
+        return isinstance(cls, type) and issubclass(cls, RungeKutta)
+    except Exception:  # not scipy's, or scipy's layout changed: the evaluation rule
+        return False
+
+
+def run_flops(integrator: str, model, stats: dict, rhs: str | None, adaptive: bool | None = None
+              ) -> tuple[float, str]:
+    """(flops of a run, how they were counted or why there are none) from its stats, by the
+    one rule of the module's docstring. ``adaptive``: whether the run was adaptive (a diffrax
+    pair's controller is in its step then); None: from the stats (its extra start evaluations)."""
     def count(key):
         v = stats.get(key)
         return float(v) if v is not None and np.isfinite(v) else None
 
     evals, steps = count("rhs_evals"), count("steps")
     try:
-        if evals is not None and rhs:
-            ny, jacs = model.layout.ny, count("jac_evals") or 0.0
-            total = evals * rhs_flops(model, rhs) + (jacs * rhs_flops(model, rhs, True) if jacs else 0.0)
-            total += (count("lu_decompositions") or 0.0) * (2.0 / 3.0) * ny ** 3
-            return total, FROM_RHS
         if stats.get("counts_unavailable"):
             return np.nan, f"no flops: {stats['counts_unavailable']}"
         from integrators import get_integrator
 
         integ = get_integrator(integrator)
-        if steps is None or not (hasattr(integ, "step") and hasattr(integ, "init")):
-            return np.nan, "no flops: the method reports neither RHS evaluations nor a compiled step"
-        base, terms, uneven = step_cost(integrator, model, rhs if getattr(integ, "uses_rhs", False) else None)
-        scheme = getattr(integ, "scheme", None)
-        substeps = scheme.substeps if scheme is not None else 1
-        newton = count("newton_iterations")
-        per_solve = (newton or steps * substeps) / max(steps * substeps, 1.0)
-        note = FROM_STEP
-        if newton is None and _has_while(terms):
-            note += "; this method reports no iteration count: its while loops counted once per step (a lower bound)"
-        if uneven:
-            note += ("; a branch taken only on some steps or iterations (a fallback solve, a Jacobian refresh) is counted "
-                     "every time: an upper bound")
-        return steps * (base + extra_flops(terms, per_solve)), note
+        if hasattr(integ, "step") and hasattr(integ, "init"):
+            if steps is None:
+                return np.nan, "no flops: the method reports no step count"
+            return _compiled_step_flops(integrator, integ, model, stats, rhs, steps)
+        attempted = count("attempted_steps")
+        if attempted is None and steps is not None and count("rejected_steps") is not None:
+            attempted = steps + count("rejected_steps")
+        stages = getattr(integ, "fsal_stages", 0)
+        if stages and rhs and evals is not None and attempted is not None:
+            start = evals - (stages - 1) * attempted  # 1 (first stage), + 2 (initial step size) when adaptive
+            per_step = diffrax_step_cost(integrator, model, rhs, bool(start > 1) if adaptive is None else adaptive)
+            return attempted * per_step + max(start, 0.0) * rhs_flops(model, rhs), FROM_DIFFRAX
+        if _is_scipy_pair(integ) and rhs and evals is not None and attempted is not None:
+            start = evals - integ.solver_class.n_stages * attempted  # the first f and the initial step's
+            total = attempted * scipy_twin_step(integrator, model, rhs) + max(start, 0.0) * rhs_flops(model, rhs)
+            if getattr(integ, "projected", False) and model.layout.has_attitude:
+                total += steps * (rhs_flops(model, rhs) + QUATERNION_PROJECTION_FLOPS)
+            return total, FROM_TWIN
+        if evals is not None and rhs:
+            ny, jacs = model.layout.ny, count("jac_evals") or 0.0
+            total = evals * rhs_flops(model, rhs) + (jacs * rhs_flops(model, rhs, True) if jacs else 0.0)
+            total += (count("lu_decompositions") or 0.0) * (2.0 / 3.0) * ny ** 3
+            return total, FROM_RHS
+        return np.nan, "no flops: the method reports neither RHS evaluations nor a compiled step"
     except Exception as exc:  # a count that fails must not lose the row
         return np.nan, f"no flops: counting failed ({type(exc).__name__}: {str(exc).splitlines()[0][:120]})"
+
+
+def _compiled_step_flops(integrator: str, integ, model, stats: dict, rhs: str | None, steps: float
+                         ) -> tuple[float, str]:
+    """steps × the whole compiled step, its while loops at the run's mean Newton iterations."""
+    newton = stats.get("newton_iterations")
+    newton = float(newton) if newton is not None and np.isfinite(newton) else None
+    base, terms, uneven = step_cost(integrator, model, rhs if getattr(integ, "uses_rhs", False) else None)
+    scheme = getattr(integ, "scheme", None)
+    substeps = scheme.substeps if scheme is not None else 1
+    per_solve = (newton or steps * substeps) / max(steps * substeps, 1.0)
+    note = FROM_STEP
+    if newton is None and _has_while(terms):
+        note += "; this method reports no iteration count: its while loops counted once per step (a lower bound)"
+    if uneven:
+        note += ("; a branch taken only on some steps or iterations (a fallback solve, a Jacobian refresh) is counted "
+                 "every time: an upper bound")
+    return steps * (base + extra_flops(terms, per_solve)), note

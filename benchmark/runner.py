@@ -174,7 +174,7 @@ def _solved_row(task: Task, cache_dir: str, repeats: int, reference: bool, finis
     traj = integ.solve(scene, **kw)
     model = build_model(scene)
     row.update(_run_columns(traj, model.layout.ny))
-    row["flops"], row["flops_note"] = run_flops(task.integrator, model, traj.stats, row["rhs"])
+    row["flops"], row["flops_note"] = run_flops(task.integrator, model, traj.stats, row["rhs"], adaptive=task.dt is None)
     row.update(run_metrics(scene, traj, ref, task.save_every, finished))
     inaccurate = inaccurate_reason(row, scene) if traj.ok else ""
     if inaccurate:  # finished, but no solution: no curve point, so not timed again

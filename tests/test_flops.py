@@ -14,9 +14,90 @@ def model():
     return build_model(load_scene("fixed_length", elements=3))
 
 
+# ---- the rule on hand-countable methods -----------------------------------------------------
+# XLA's convention: a matrix-vector product of n × n by n is 2n² flops (a multiply and an add per
+# entry), an elementwise vector operation n, a scalar one 1.
+def _linear_methods(n):
+    """Explicit Euler, classical RK4 and a 3-iteration fixed-point implicit Euler on y' = A y
+    (A a fixed n × n matrix), as fixed-step methods with their own equations."""
+    from integrators import FixedStepMethod
+    from models._jax import jax, jnp
+
+    A = jnp.asarray(np.random.default_rng(0).normal(size=(n, n)))
+
+    class Base(FixedStepMethod):
+        order, uses_rhs, rhs_label, description = 1, False, "linear", "a linear test field"
+
+    class Euler(Base):
+        name = "test_linear_euler"
+
+        def step(self, ode, y, t, h):
+            return y + h * (A @ y)
+
+    class RK4(Base):
+        name = "test_linear_rk4"
+
+        def step(self, ode, y, t, h):
+            k1 = A @ y
+            k2 = A @ (y + 0.5 * h * k1)
+            k3 = A @ (y + 0.5 * h * k2)
+            k4 = A @ (y + h * k3)
+            return y + (h / 6) * (k1 + 2 * k2 + 2 * k3 + k4)
+
+    class FixedPoint(Base):
+        name = "test_linear_fixed_point"
+
+        def step(self, ode, y, t, h):  # z <- y + h A z, a Newton-like loop of 3 trips
+            return jax.lax.while_loop(lambda c: c[0] < 3, lambda c: (c[0] + 1, y + h * (A @ c[1])), (0, y))[1]
+
+    return Euler, RK4, FixedPoint
+
+
+def test_the_flop_rule_equals_the_hand_count_of_euler_rk4_and_a_newton_like_loop(model):
+    from integrators import registry
+
+    n = model.layout.ny
+    classes = _linear_methods(n)
+    for cls in classes:
+        registry.register(cls)
+    try:
+        euler, _ = flops.run_flops("test_linear_euler", model, {"steps": 100}, None)
+        assert euler == 100 * (2 * n * n + 2 * n)  # A y; h × it; y + it
+        # 4 products A(.), 3 stage inputs (scale, add), the combination (2k2, 2k3, 3 adds,
+        # scale, add), and the scalars 0.5 h (twice) and h / 6
+        rk4, _ = flops.run_flops("test_linear_rk4", model, {"steps": 100}, None)
+        assert rk4 == 100 * (4 * 2 * n * n + 3 * 2 * n + 7 * n + 3)
+        # a while loop at its measured trips (3 per step from the run's iteration count): each
+        # trip a product, a scale, an add and the counter's increment; the loop's condition
+        # (one comparison) counted once, as XLA does
+        loop, note = flops.run_flops("test_linear_fixed_point", model, {"steps": 10, "newton_iterations": 30}, None)
+        assert loop == 10 * (3 * (2 * n * n + 2 * n + 1) + 1) and note == flops.FROM_STEP
+    finally:
+        for cls in classes:
+            registry.unregister(cls.name)
+
+
+@pytest.mark.slow  # compiles a diffrax step twice and scipy's twin: over a minute on a loaded machine
+def test_every_rhs_method_is_charged_its_whole_step_not_its_evaluations(model):
+    """lie_rk4: its whole compiled step is charged (at N = 10 14,993 flops by XLA), not 4 × one
+    isolated right-hand side (the old rule's 5,520); the diffrax and scipy pairs likewise per
+    attempted step, Tsit5's controller included when adaptive."""
+    m = model
+    rk4, note = flops.run_flops("lie_rk4", m, {"steps": 10, "rhs_evals": 40}, "closed_form")
+    assert note == flops.FROM_STEP and rk4 / 10 == flops.step_cost("lie_rk4", m, "closed_form")[0]
+    assert rk4 / 10 > 4 * flops.rhs_flops(m, "closed_form")
+    fixed, note = flops.run_flops("tsit5", m, {"steps": 10, "attempted_steps": 10, "rhs_evals": 61}, "closed_form")
+    adaptive, _ = flops.run_flops("tsit5", m, {"steps": 10, "attempted_steps": 10, "rhs_evals": 63}, "closed_form")
+    assert note == flops.FROM_DIFFRAX and adaptive - 2 * flops.rhs_flops(m, "closed_form") > fixed  # + controller
+    twin, note = flops.run_flops("rk45", m, {"steps": 8, "rejected_steps": 2, "rhs_evals": 63}, "closed_form")
+    assert note == flops.FROM_TWIN
+    assert twin == pytest.approx(10 * flops.scipy_twin_step("rk45", m, "closed_form")
+                                 + 3 * flops.rhs_flops(m, "closed_form"))
+
+
 def test_rhs_flops_scale_with_the_evaluations(model):
-    one, note = flops.run_flops("rk45", model, {"rhs_evals": 100, "steps": 16}, "closed_form")
-    two, _ = flops.run_flops("rk45", model, {"rhs_evals": 200, "steps": 32}, "closed_form")
+    one, note = flops.run_flops("radau", model, {"rhs_evals": 100, "steps": 16}, "closed_form")
+    two, _ = flops.run_flops("radau", model, {"rhs_evals": 200, "steps": 32}, "closed_form")
     assert one > 0 and two == pytest.approx(2 * one) and note == flops.FROM_RHS
     f_eval, f_jac = flops.rhs_flops(model, "closed_form"), flops.rhs_flops(model, "closed_form", True)
     assert one == pytest.approx(100 * f_eval) and f_jac > f_eval > 0
