@@ -141,7 +141,8 @@ def _solve_once(job: SearchJob, setting: float, cache_dir: str) -> tuple[str, di
     status = traj.status
     if status == "ok" and inaccurate_reason(metrics, scene):  # finished, but no solution: not a point
         status = INACCURATE
-    flops, _ = run_flops(job.integrator, model, traj.stats, traj.stats.get("rhs", traj.settings.get("rhs")))
+    flops, _ = run_flops(job.integrator, model, traj.stats, traj.stats.get("rhs", traj.settings.get("rhs")),
+                         adaptive=job.sweep == "rtol")
     cost, column = (flops, "flops") if np.isfinite(flops) else (float(traj.stats.get("steps", math.nan)), "steps")
     out = (status, metrics, float(cost), column)
     _SOLVED[key] = out
