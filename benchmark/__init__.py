@@ -2,14 +2,16 @@
 
     python -m benchmark run            # the default sweep of the paper's three scenes -> results/
     python -m benchmark run --quick --out /tmp/quick   # a reduced sweep, a few minutes on 2 cores
+    python -m benchmark answer --out results/answer    # the searched answer and paired timing
 
 By concern, from the command line down:
 
 - `cli` parses and checks a command's input, then calls its pipeline in `pipelines`;
 - the studies, as jobs: `runner` (the runs table), `stability`, `check`, `horizon` (the energy
   study), `orders` (observed orders on a short horizon), `xval`, `lgvi_speed` (speed),
-  `reel_reversal`; what a sweep runs: `sweep`; its metrics: `metrics`; its work: `flops` (one
-  rule for every method), checked against compiled floors by `work_rule` (results/work_rule.md);
+  `reel_reversal`, `answer` (each method's cheapest setting at each target by `search`,
+  wall-time verdicts by `paired` timing, at N = 10 and 40); what a sweep runs: `sweep`; its
+  metrics: `metrics`; its work: `flops` (one rule for every method), checked against compiled floors by `work_rule` (results/work_rule.md);
 - their writers: `runs_report`, `stability_report`, `xval_report` (and the baseline in `check`,
   the speed tables in `lgvi_speed`), on the report layer `report` and the plot layer `plots`;
   what they conclude from: `properties` (energy growth classified, orthogonality), `cheapest` (the cost at a target, with its spread, and verdicts that

@@ -1,4 +1,4 @@
-"""Command line: ``python -m benchmark {run,check,simulate,figures,speed,stability,xval,reel-reversal,orders,energy,list,verify}``
+"""Command line: ``python -m benchmark {run,check,simulate,figures,speed,stability,answer,xval,reel-reversal,orders,energy,list,verify}``
 (also ``reelbench``).
 
 Every command checks all of its input first -- option types and ranges, conflicting options,
@@ -125,6 +125,9 @@ def cmd_run(args) -> int:
             raise UsageError(f"{'--t-end' if t_end else sc.name + ': t_end'} = {t_end or sc.t_end:g} s is shorter than "
                              f"the sweep's save interval {sweep.SAVE_EVERY:g} s: give --t-end >= {sweep.SAVE_EVERY:g}")
         for dt in args.dts or (sweep.QUICK_DTS if args.quick else sweep.FULL_DTS):
+            if dt > (t_end or sc.t_end):  # any smaller step is allowed (the last one lands on t_end)
+                raise UsageError(f"--dts: dt = {dt:g} s is longer than the run ({sc.name}: t_end = {t_end or sc.t_end:g} s; "
+                                 "allowed: 0 < dt <= t_end)")
             opt.check_size(sc, t_end or sc.t_end, sweep.SAVE_EVERY, dt, warn=_log, what=f"{sc.name} at dt = {dt:g} s",
                            save_option=None)  # run saves every SAVE_EVERY: no option to raise
     out = opt.writable_dir(_run_out(args))
@@ -328,6 +331,27 @@ def cmd_stability(args) -> int:
                                    log=_log)
 
 
+def cmd_answer(args) -> int:
+    """The cheapest setting of every method at every target by search, and paired timing."""
+    from benchmark import sweep
+    from benchmark.answer import AnswerRequest
+    from models import load_scene
+
+    for name in args.integrators or ():
+        _check_integrator(name)
+    scenes = tuple(args.scenes or sweep.PAPER_SCENES)
+    for sc in scenes:
+        for n in args.elements:
+            load_scene(sc, elements=n, **({"t_end": args.t_end} if args.t_end else {}))  # validated before work
+    out = opt.writable_dir(args.out)
+    from benchmark import answer
+
+    names = tuple(args.integrators or sweep.default_names())
+    return answer.run_answer(AnswerRequest(out=out, scenes=scenes, integrators=names, elements=tuple(args.elements),
+                                           t_end=args.t_end, max_runs=args.max_runs, timing_budget=args.timing_budget,
+                                           jobs=args.jobs, fresh=args.fresh), log=_log)
+
+
 def cmd_xval(args) -> int:
     """Cross-validation against MoorDyn and MuJoCo; exit 2 on a scene it cannot translate."""
     import importlib.util
@@ -471,7 +495,7 @@ def _add_run(sub) -> None:
                    f"{len(sweep.QUICK_DTS)} step sizes, {len(sweep.QUICK_RTOLS)} tolerances, "
                    f"{sweep.QUICK_HORIZON:g} s energy study")
     r.add_argument("--dts", type=opt.positive_floats, help="comma-separated step sizes (s) for fixed-step methods, "
-                   f"each dividing the save interval {sweep.SAVE_EVERY:g} s (default: {_csv(sweep.FULL_DTS)}; "
+                   f"any size (saved at the step points nearest the save times; default: {_csv(sweep.FULL_DTS)}; "
                    f"--quick: {_csv(sweep.QUICK_DTS)})")
     r.add_argument("--rtols", type=opt.tolerances, help="comma-separated relative tolerances for adaptive methods, "
                    f"atol = rtol × {sweep.ATOL_FACTOR:g} (default: {_csv(sweep.FULL_RTOLS)}; implicit methods "
@@ -592,6 +616,27 @@ def _add_stability(sub) -> None:
     st.set_defaults(func=cmd_stability)
 
 
+def _add_answer(sub) -> None:
+    from benchmark import answer, paired, search  # constants only (no JAX)
+
+    an = sub("answer", "each method's cheapest setting at each target by search, wall-time verdicts by paired "
+                       "timing, at N = 10 and 40 -> --out/cheapest.csv, answer.md",
+             "For every scene x N x method x target, search the cheapest setting meeting the target (bracket, then "
+             "bisect to 10 %% in cost; benchmark/search.py), then time the compiled methods at their settings paired "
+             "and interleaved on one pinned core (benchmark/paired.py). Resumable: rerun to continue.")
+    an.add_argument("--scenes", type=opt.names, help="comma-separated scene names (default: the paper's three)")
+    an.add_argument("--integrators", type=opt.names, help="comma-separated integrator names (default: the sweep's)")
+    an.add_argument("--elements", type=opt.positive_ints, default=list(answer.ELEMENTS), help="comma-separated N")
+    an.add_argument("--t-end", type=opt.positive_float, help="horizon in s (default: each scene's t_end)")
+    an.add_argument("--max-runs", type=opt.positive_int, default=search.MAX_RUNS, help="runs per search at most")
+    an.add_argument("--timing-budget", type=opt.positive_float, default=paired.BUDGET,
+                    help="seconds of paired timing per scene x N x target at most")
+    an.add_argument("--jobs", type=opt.positive_int, help="worker processes for the search (default: one per CPU)")
+    an.add_argument("--fresh", action="store_true", help="recompute every row (default: keep the finished ones)")
+    an.add_argument("--out", default="results/answer", help="output directory (created if missing)")
+    an.set_defaults(func=cmd_answer)
+
+
 def _add_xval(sub) -> None:
     xv = sub("xval", "cross-validation against MoorDyn and MuJoCo at equal N -> --out (needs the [xval] extra)")
     xv.add_argument("--scene", default="fixed_length", help="fixed-length scene name or path")
@@ -662,7 +707,7 @@ def parser() -> argparse.ArgumentParser:
     def sub(name: str, help: str, description: str | None = None) -> argparse.ArgumentParser:
         return commands.add_parser(name, help=help, description=description or help, formatter_class=_Help)
 
-    for add in (_add_run, _add_check, _add_simulate, _add_figures, _add_speed, _add_stability, _add_xval,
+    for add in (_add_run, _add_check, _add_simulate, _add_figures, _add_speed, _add_stability, _add_answer, _add_xval,
                 _add_reel_reversal, _add_orders, _add_energy):
         add(sub)
     sub("list", "registered integrators and shipped scenes").set_defaults(func=cmd_list)

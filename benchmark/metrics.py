@@ -198,11 +198,19 @@ def body_positions(model, traj) -> np.ndarray:
 
 
 def _distances(scene, traj, ref, save_every: float):
-    """(dpos, datt) at the saved times ``traj`` and ``ref`` share, or (None, None) if none."""
+    """(dpos, datt) at every saved time of ``traj``, the reference read there by its dense output
+    (`benchmark.reference.reference_at`); a reference without one is compared at the saved times
+    both share; (None, None) if none."""
+    from benchmark.reference import reference_at
+
     model = build_model(scene)
-    k_traj = np.round(np.asarray(traj.t) / save_every).astype(int)
-    k_ref = np.round(np.asarray(ref.t) / save_every).astype(int)
-    common, i, j = np.intersect1d(k_traj, k_ref, return_indices=True)
+    if ref.dense is not None:
+        ref = reference_at(scene, ref, traj.t)
+        common = i = j = np.arange(len(traj.t))
+    else:
+        k_traj = np.round(np.asarray(traj.t) / save_every).astype(int)
+        k_ref = np.round(np.asarray(ref.t) / save_every).astype(int)
+        common, i, j = np.intersect1d(k_traj, k_ref, return_indices=True)
     if len(common) == 0:
         return None, None
     dpos = np.linalg.norm(body_positions(model, traj)[i] - body_positions(model, ref)[j], axis=1)

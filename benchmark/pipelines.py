@@ -185,7 +185,9 @@ def _sweep(request: SweepRequest, runs_csv: store.TableWriter, log) -> int:
     figures = _sweep_figures(request, merged, log) if request.figures else []
     _sweep_readme(request, merged, orders, figures, provenance, table, failures,
                   merged_note=_merged_note(runs, merged))
-    if is_committed_results(out):
+    if is_committed_results(out) and (out / "answer" / "cheapest.csv").exists():  # the searched answer's block
+        log("README.md: the answer block is the searched one (python -m benchmark answer --out results/answer)")
+    elif is_committed_results(out):
         log(runs_report.write_answer(store.ROOT / "README.md", runs_report.answer_block(merged, table, failures)))
     log(f"done in {provenance.wall_time():.0f} s: {len(runs)} runs in this run, {len(merged)} in {out}/runs.csv; "
         f"{failures} See {out}/README.md")

@@ -86,6 +86,10 @@ class Trajectory:
     settings: dict[str, Any] = field(default_factory=dict)
     scene_name: str = ""
     scene: dict[str, Any] = field(default_factory=dict)
+    #: the solution between saved points, where a method records it on request (scipy's
+    #: adapters with ``dense_output=True``: the reference's, `benchmark.reference.DenseSolution`);
+    #: not a field: never saved with the trajectory
+    dense: ClassVar[Any] = None
 
     @property
     def ok(self) -> bool:
@@ -143,16 +147,42 @@ def build_model_timed(scene):
 
 
 def save_times(t_end: float, save_every: float | None, dt: float | None = None) -> np.ndarray:
-    """Saved times 0, Δ, 2Δ, ..., t_end. For a fixed step, Δ is a multiple of dt."""
+    """Saved times 0, Δ, 2Δ, ..., t_end. For a fixed step ``dt``: the step points nearest those
+    times (`fixed_step_grid`), t_end last (the last step is shortened to land on it)."""
+    if dt is not None:
+        _, idx = fixed_step_grid(t_end, dt, save_every)
+        return step_times(idx, dt, t_end)
     if save_every is None:
         save_every = t_end / 200.0
-    if dt is not None:
-        stride = max(1, int(round(save_every / dt)))
-        n = int(math.floor(t_end / dt + 1e-9))
-        return np.arange(0, n + 1, stride) * dt
     n = int(math.floor(t_end / save_every + 1e-9))
     t = np.minimum(np.arange(n + 1) * save_every, t_end)  # no rounding overshoot past t_end
     return t if abs(t[-1] - t_end) < 1e-12 * max(1.0, t_end) else np.append(t, t_end)
+
+
+#: A step count within this relative distance of t_end / dt is whole: dt divides t_end.
+WHOLE_STEPS_TOL = 1e-9
+
+
+def fixed_step_grid(t_end: float, dt: float, save_every: float | None = None) -> tuple[int, np.ndarray]:
+    """(n, idx): ``n`` steps reach t_end, n - 1 of size dt and the last one t_end - (n - 1) dt
+    (dt itself when dt divides t_end), so that any step size ends at t_end; ``idx``: the step
+    indices saved, 0, the step point nearest each saved time of `save_times` (any dt: nothing
+    needs to divide the save interval), n last, in order and without repeats."""
+    n = max(1, int(math.ceil(t_end / dt - WHOLE_STEPS_TOL)))
+    grid = save_times(t_end, save_every)[:-1]  # its last time is t_end: step n
+    idx = np.unique(np.minimum(np.rint(grid / dt), n).astype(np.int64))
+    return n, (idx if idx[-1] == n else np.append(idx, n))
+
+
+def last_step(t_end: float, dt: float, n: int) -> float:
+    """The size of step n of `fixed_step_grid`: dt, or the shorter step that lands on t_end."""
+    h = t_end - (n - 1) * dt
+    return float(dt) if abs(h - dt) <= WHOLE_STEPS_TOL * dt else float(h)
+
+
+def step_times(idx, dt: float, t_end: float) -> np.ndarray:
+    """Times of fixed-step points ``idx`` (k dt; the last step point is t_end)."""
+    return np.minimum(np.asarray(idx, dtype=float) * dt, t_end)
 
 
 # --------------------------------------------------------------------------------------------
@@ -309,8 +339,9 @@ class Integrator(abc.ABC):
         Fixed-step methods need ``dt`` and refuse tolerances; adaptive methods need ``rtol``
         and ``atol`` (and take ``dt`` as the initial step); a method that is both takes ``dt``
         alone (constant step) or ``rtol`` and ``atol`` (adaptive), never both. ``save_every``
-        is the interval between saved times in seconds (default t_end/200; rounded to a
-        multiple of dt for fixed steps). ``max_steps`` bounds the steps, ``time_limit`` the
+        is the interval between saved times in seconds (default t_end/200; a fixed step
+        saves at the step points nearest those times, any dt allowed, and its last step is
+        shortened to end at t_end). ``max_steps`` bounds the steps, ``time_limit`` the
         run's wall-clock seconds (after compilation); running out of either ends the run with
         status ``max_steps`` / ``time_limit``. Returns a `Trajectory`.
         """

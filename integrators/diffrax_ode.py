@@ -48,13 +48,12 @@ The quaternion is not renormalised. No ``@register``: found through the entry-po
 
 from __future__ import annotations
 
-import math
 import time
 from typing import Any, ClassVar
 
 import numpy as np
 
-from integrators.base import Capability, Status, energy_reason, save_times
+from integrators.base import Capability, Status, energy_reason, fixed_step_grid, save_times
 from integrators.lifecycle import (CompileCache, LibraryAdapter, Outcome, Run, blowup_reason, length_reason,
                                    library_attribute, state_ok)
 
@@ -179,11 +178,16 @@ class DiffraxODE(LibraryAdapter):
         return None if constant else float(run.options.get("min_step", DEFAULT_MIN_STEP_REL * run.t_end))
 
     def _grid(self, run: Run, constant: bool):
-        """(saved times, end time, step budget): whole steps only with a constant dt, like the LGVI."""
+        """(saved times, end time, step budget): with a constant dt, the step points nearest the
+        save times and t_end (diffrax shortens the last step to land on it), like the LGVI."""
         if constant:
-            n_steps = int(math.floor(run.t_end / run.dt + 1e-9))
-            t1 = float(n_steps * run.dt)
+            n_steps, _ = fixed_step_grid(run.t_end, run.dt, run.save_every)
+            t1 = run.t_end
             t_save = save_times(run.t_end, run.save_every, run.dt)
+            # as many saved times for every dt (t_end repeated; `_ending` keeps one), so that a new
+            # step size compiles nothing: the compiled solve is keyed by their number
+            full = len(save_times(run.t_end, run.save_every))
+            t_save = np.append(t_save, np.full(max(0, full - len(t_save)), t1))
             budget = run.max_steps if run.max_steps is not None else max(DEFAULT_MAX_STEPS, n_steps + 16)
         else:
             t1, t_save = run.t_end, save_times(run.t_end, run.save_every)
@@ -243,6 +247,8 @@ class DiffraxODE(LibraryAdapter):
         n_valid = int(np.sum(np.isfinite(ts)))
         t_final, y_final = float(ts[n_valid - 1]), ys[n_valid - 1]
         ts, ys, errs = ts[: n_valid - 1], ys[: n_valid - 1], errs[: n_valid - 1]
+        once = np.r_[True, np.diff(ts) > 0] if len(ts) else np.ones(0, bool)  # a repeated t_end saved once
+        ts, ys, errs = ts[once], ys[once], errs[once]
         if len(ts) == 0:  # stopped before the first saved time after 0: keep the initial state
             ts, ys, errs = np.zeros(1), np.asarray(run.model.initial_ode_state(), dtype=float)[None, :], np.zeros(1)
         status, reason = _result_status(run, out["result"], y_final, t_final)

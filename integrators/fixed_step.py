@@ -26,7 +26,8 @@ from typing import Any, ClassVar, NamedTuple
 import numpy as np
 
 from integrators import rhs as _rhs
-from integrators.base import Capability, Integrator, Status, Trajectory, energy_reason
+from integrators.base import (Capability, Integrator, Status, Trajectory, energy_reason, fixed_step_grid, last_step,
+                              step_times)
 from integrators.lifecycle import (CompileCache, ODEProblem, Run, blowup_reason, bucket, length_reason,
                                    ode_trajectory, start_run, step_indices)
 
@@ -258,9 +259,11 @@ def _keep_saved_if_failed(method, ode, good, carry1, carry):
     return jax.tree_util.tree_map(lambda a, b: jnp.where(good, a, b) if id(a) in saved_ids else a, carry1, carry)
 
 
-def _steps_until(method, ode, h, blowup, seen: dict):
-    """The inner loop: steps until a target step index or a failure. ``seen["result"]`` records
-    (at trace time) whether the step returns a `StepResult`."""
+def _steps_until(method, ode, h, k_last, h_last, blowup, seen: dict):
+    """The inner loop: steps until a target step index or a failure; step ``k_last`` has size
+    ``h_last`` (the one that lands on t_end), every other ``h`` (run-time values: a new step size
+    compiles nothing). ``seen["result"]`` records (at trace time) whether the step returns a
+    `StepResult`."""
     from models._jax import jax, jnp
 
     def cond(c):
@@ -269,7 +272,7 @@ def _steps_until(method, ode, h, blowup, seen: dict):
 
     def body(c):
         s, target = c
-        carry1, result = _take_step(method, ode, s.carry, s.k * h, h)
+        carry1, result = _take_step(method, ode, s.carry, s.k * h, jnp.where(s.k == k_last, h_last, h))
         seen["result"] = result is not None
         code, ell = _guard(method, ode, carry1, result, blowup)
         it = jnp.zeros((), jnp.int32) if result is None else jnp.asarray(result.iterations, jnp.int32)
@@ -291,8 +294,8 @@ def _fresh(method, ode, y0):
 
 
 def _make_loop(method: FixedStepMethod, ode: ODEProblem, n_buf: int, seen: dict):
-    """The run as one function of (y0, state, j0, k_stop, h, save_idx, n_save, E0, bound, blowup,
-    params): from saved slot j0 (0: a fresh start from y0) until every slot is saved, a step or
+    """The run as one function of (y0, state, j0, k_stop, h, k_last, h_last, save_idx, n_save, E0,
+    bound, blowup, params): from saved slot j0 (0: a fresh start from y0) until every slot is saved, a step or
     guard fails, or step k_stop (the end of a chunk) is reached. Returns (state, the next slot,
     this call's saved buffers (step index, saved state): slot j at index j - j0).
 
@@ -300,10 +303,10 @@ def _make_loop(method: FixedStepMethod, ode: ODEProblem, n_buf: int, seen: dict)
     one more slot (off the grid unless it is on it), within the energy bound."""
     from models._jax import jax, jnp
 
-    def run(y0, state, j0, k_stop, h, save_idx, n_save, E0, e_bound, blowup, params):
+    def run(y0, state, j0, k_stop, h, k_last, h_last, save_idx, n_save, E0, e_bound, blowup, params):
         ode_t = dataclasses.replace(ode, params=params)
         state = jax.lax.cond(j0 == 0, lambda s: _fresh(method, ode_t, y0), lambda s: s, state)
-        steps = _steps_until(method, ode_t, h, blowup, seen)
+        steps = _steps_until(method, ode_t, h, k_last, h_last, blowup, seen)
         first = (state.k, method.saved(ode_t, state.carry))
         bufs = jax.tree_util.tree_map(lambda a: jnp.zeros((n_buf,) + a.shape, a.dtype).at[0].set(a), first)
 
@@ -421,27 +424,28 @@ def _saved_buffers(prog: _Progress, n_buf: int):
     return jax.tree_util.tree_map(join, *[b for b, _ in prog.pieces]), n
 
 
-def _where(k: int, dt: float) -> str:
-    return f"step {k + 1} (t = {k * dt:.6g} s -> {(k + 1) * dt:.6g} s)"
+def _where(k: int, dt: float, t_end: float) -> str:
+    return f"step {k + 1} (t = {k * dt:.6g} s -> {min((k + 1) * dt, t_end):.6g} s)"
 
 
 def _ending(method, run: Run, prog: _Progress, traj: Trajectory, truncated: bool, n_run: int):
     """(status, reason, extra stats) of a finished fixed-step run."""
     dt, k, code, state = run.dt, prog.k, prog.code, prog.scalars
+    where = _where(k, dt, run.t_end)
     kept = f"; trajectory kept up to the saved point t = {traj.t[-1]:.6g} s"
     if code == StepCode.NON_FINITE:
-        return Status.DIVERGED, blowup_reason(_where(k, dt), run.guards.blowup) + kept, {}
+        return Status.DIVERGED, blowup_reason(where, run.guards.blowup) + kept, {}
     if code == StepCode.LENGTH_LIMIT:
-        reason = length_reason(run.model, float(state.fail_ell), f"in {_where(k, dt)}") + kept
-        return Status.LENGTH_LIMIT, reason, {"event_time": (k + 1) * dt}
+        reason = length_reason(run.model, float(state.fail_ell), f"in {where}") + kept
+        return Status.LENGTH_LIMIT, reason, {"event_time": min((k + 1) * dt, run.t_end)}
     if code == StepCode.ENERGY:
-        return Status.DIVERGED, energy_reason(float(state.fail_err), run.guards.energy_bound, k * dt, kept), {}
+        return Status.DIVERGED, energy_reason(float(state.fail_err), run.guards.energy_bound, min(k * dt, run.t_end), kept), {}
     if code:
-        return StepCode.failure(code).status, f"{_where(k, dt)}: {method.failure_reason(run, code, traj)}{kept}", {}
+        return StepCode.failure(code).status, f"{where}: {method.failure_reason(run, code, traj)}{kept}", {}
     if prog.timed_out:
-        return Status.TIME_LIMIT, run.time_limit_reason(k * dt, kept), {}
+        return Status.TIME_LIMIT, run.time_limit_reason(min(k * dt, run.t_end), kept), {}
     if truncated:
-        return Status.MAX_STEPS, (f"stopped after max_steps = {run.max_steps} steps at t = {n_run * dt:.6g} s "
+        return Status.MAX_STEPS, (f"stopped after max_steps = {run.max_steps} steps at t = {min(n_run * dt, run.t_end):.6g} s "
                                   f"(t_end = {run.t_end:g} s)"), {}
     return Status.OK, "", {}
 
@@ -469,7 +473,8 @@ def run_fixed_step(method: FixedStepMethod, scene, t_end=None, *, dt=None, rtol=
     idx_buf = np.full(n_buf, idx[-1], dtype=np.int32)
     idx_buf[: len(idx)] = idx
     params = method.run_parameters(checked)
-    rest = (np.float64(run.dt), idx_buf, np.int32(len(idx)), np.float64(guards.E0),
+    n_grid, _ = fixed_step_grid(run.t_end, run.dt, save_every)
+    rest = (np.float64(run.dt), np.int32(n_grid - 1), np.float64(last_step(run.t_end, run.dt, n_grid)), idx_buf, np.int32(len(idx)), np.float64(guards.E0),
             np.float64(guards.energy_bound), np.float64(guards.blowup))
     key = (method.loop_key(), run.model, rhs, n_buf)
     loop = run.compiled(_LOOPS, key, lambda: _compile_loop(method, ode, n_buf, y0, params,
@@ -477,7 +482,7 @@ def run_fixed_step(method: FixedStepMethod, scene, t_end=None, *, dt=None, rtol=
     prog = _run_chunks(run, loop, y0, n_run, len(idx), rest, params)
     prog.scalars = _device_get(prog.state._replace(carry=None))  # the counters, in one transfer
     (K, saved), n = _saved_buffers(prog, n_buf)
-    traj = method.trajectory(run, ode, K[:n] * run.dt, saved, n)
+    traj = method.trajectory(run, ode, step_times(K[:n], run.dt, run.t_end), saved, n)
     status, reason, extra = _ending(method, run, prog, traj, truncated, n_run)
     stats = {"steps": prog.k, "rhs": rhs or method.rhs_label, **extra}
     if method.evals_per_step is not None:

@@ -5,7 +5,8 @@ What every ``solve()`` must do apart from taking steps lives here, once:
 * **validation** of the arguments, before any work (`start_run`: the step mode a method's
   capabilities allow, the horizon and its plausibility, the save interval, the budgets, the
   options a method declares);
-* the **save grid** (`integrators.base.save_times`, `step_indices` for a fixed step);
+* the **save grid** (`integrators.base.save_times`, `step_indices` for a fixed step: any dt,
+  saved at the step points nearest the save times, the last step shortened to end at t_end);
 * the **guards** (`Guards`): the energy balance bound (from the model's own energy scale,
   `StringPendulum.energy_scale`), the blow-up / non-finite state, the deployed-length limits.
   Their thresholds are run-time values (arguments of the compiled loops), not constants baked
@@ -189,11 +190,12 @@ def check_time_limit(time_limit) -> None:
 
 
 def step_indices(t_end, dt, save_every, max_steps):
-    """Step indices to save (0 first, the last step run last) and the number of steps run."""
-    from integrators.base import save_times
+    """Step indices to save (0 first, the last step run last), the number of steps run and
+    whether max_steps cut the run short (`integrators.base.fixed_step_grid`: any dt, the last
+    step shortened to end at t_end)."""
+    from integrators.base import fixed_step_grid
 
-    n = int(np.floor(t_end / dt + 1e-9))
-    idx = np.rint(save_times(t_end, save_every, dt) / dt).astype(np.int64)
+    n, idx = fixed_step_grid(t_end, dt, save_every)
     truncated = max_steps is not None and n > max_steps
     n_run = min(n, max_steps) if max_steps is not None else n
     idx = idx[idx <= n_run]
@@ -521,6 +523,8 @@ class Outcome:
     reason: str = ""
     stats: dict = field(default_factory=dict)
     settings: dict = field(default_factory=dict)
+    #: the solution between the saved points where the adapter records one (`Trajectory.dense`)
+    dense: Any = None
 
 
 class LibraryAdapter(Integrator):
@@ -561,4 +565,5 @@ class LibraryAdapter(Integrator):
         stats = {**out.stats, "rhs": run.rhs}
         traj = ode_trajectory(run.model, run.scene, np.asarray(out.t)[:n], y[:n], status=status, reason=reason,
                               stats=stats, integrator=self.name, settings=run.settings(**out.settings))
+        traj.dense = out.dense
         return run.finish(traj)

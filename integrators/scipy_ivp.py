@@ -101,9 +101,16 @@ class ScipyIVP(LibraryAdapter):
     """One adapter for scipy's ``OdeSolver`` classes; subclasses pick the method."""
 
     implementation = "scipy-python"
+    #: ``dense_output=True``: record every step's interpolant (`Trajectory.dense`, the pieces
+    #: (t_old, t, interpolant) in order; the reference's evaluation at any saved time)
+    option_names = ("dense_output",)
     solver_class: ClassVar[Any] = library_attribute("scipy.integrate", "RK45")
     uses_jacobian: ClassVar[bool] = False
     projected: ClassVar[bool] = False
+
+    def check_option_values(self, options: dict, mode: str) -> None:
+        if not isinstance(options.get("dense_output", False), bool):
+            raise ValueError(f"dense_output = {options['dense_output']!r} is invalid (allowed: True or False)")
 
     def integrate(self, run: Run) -> Outcome:
         model = run.model
@@ -117,7 +124,9 @@ class ScipyIVP(LibraryAdapter):
             kwargs["jac"] = jac
         solver = solver_class(fun, 0.0, y0.copy(), run.t_end, **kwargs)
         budget = run.max_steps if run.max_steps is not None else DEFAULT_MAX_STEPS
-        out = self._drive(run, solver, fun, _Saver(run, y0), budget)
+        dense = [] if run.options.get("dense_output", False) else None
+        out = self._drive(run, solver, fun, _Saver(run, y0), budget, dense)
+        out.dense = dense
         out.stats.update(rhs_evals=int(solver.nfev), jac_evals=int(solver.njev), lu_decompositions=int(solver.nlu))
         out.settings.update(max_steps=budget, method=solver_class.__name__, projected=self.projected)
         return out
@@ -141,8 +150,9 @@ class ScipyIVP(LibraryAdapter):
         # float(t): scipy passes numpy scalars, which would trace a second (strongly typed) version
         return (lambda t, y: np.asarray(f_jit(float(t), y))), jac
 
-    def _drive(self, run: Run, solver, fun, saver: _Saver, budget: int) -> Outcome:
-        """Step the solver to the end, a budget, a guard or a failure; save on the way."""
+    def _drive(self, run: Run, solver, fun, saver: _Saver, budget: int, dense: list | None = None) -> Outcome:
+        """Step the solver to the end, a budget, a guard or a failure; save on the way (and
+        append each accepted step's interpolant to ``dense`` when it is a list)."""
         from scipy import integrate
 
         steps, sizes, rejected = 0, [], 0
@@ -167,6 +177,8 @@ class ScipyIVP(LibraryAdapter):
                 break
             steps += 1
             sizes.append(solver.t - solver.t_old)
+            if dense is not None:
+                dense.append(solver.dense_output())
             status, reason, event_time = self._after_step(run, solver, fun, saver)
             if status is not Status.OK:
                 break

@@ -77,8 +77,9 @@ def test_tiny_sweep_rows_statuses_and_orders(tmp_path, flaky_integrators):
 
 
 def test_bad_sweep_input_is_refused_before_work():
-    with pytest.raises(ValueError, match="dt = 0.003"):
-        sweep.build_tasks(["fixed_length"], ["lgvi"], dts=[0.003])
+    with pytest.raises(ValueError, match="dt = -0.003"):
+        sweep.build_tasks(["fixed_length"], ["lgvi"], dts=[-0.003])
+    assert sweep.build_tasks(["fixed_length"], ["lgvi"], dts=[0.003])[0].dt == 0.003  # any step size
     with pytest.raises(ValueError, match="rtol"):
         sweep.build_tasks(["fixed_length"], ["rk45"], rtols=[2.0])
     with pytest.raises(ValueError, match="unknown integrator"):
@@ -121,8 +122,8 @@ def test_trajectory_save_load_round_trip(tmp_path):
 def test_cli_refuses_bad_input_before_work(tmp_path, capsys):
     from benchmark.cli import main
 
-    assert main(["run", "--dts", "0.003", "--out", str(tmp_path)]) == 2
-    assert "dt = 0.003" in capsys.readouterr().err
+    assert main(["run", "--dts", "20", "--out", str(tmp_path)]) == 2
+    assert "dt = 20 s is longer than the run" in capsys.readouterr().err
     assert main(["run", "--set", "elements=0", "--out", str(tmp_path)]) == 2
     assert "string.elements" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())  # nothing was written

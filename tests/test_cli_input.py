@@ -38,7 +38,7 @@ CASES = [
     (["run", "--repeats", "-1"], ["argument --repeats", "integer >= 1"]),
     (["run", "--horizon", "-5"], ["argument --horizon", ">= 0"]),
     (["run", "--dts", "abc"], ["argument --dts", "'abc' is not a number"]),
-    (["run", "--dts", "0.003", "--out", "{d}/o"], ["dt = 0.003", "dividing the save interval"]),
+    (["run", "--dts", "11", "--out", "{d}/o"], ["dt = 11 s is longer than the run", "allowed: 0 < dt <= t_end"]),
     (["run", "--rtols", "2"], ["argument --rtols", "1e-14 <= tolerance < 1"]),
     (["run", "--t-end", "-1"], ["argument --t-end", "> 0"]),
     (["run", "--t-end", "nan"], ["argument --t-end", "not a finite number"]),
@@ -147,7 +147,7 @@ PROBE = textwrap.dedent("""
 
 
 @pytest.mark.parametrize("args", [["--help"], ["run", "--help"], ["run", "--jobs", "0"],
-                                  ["run", "--set", "mass=1e300"], ["run", "--dts", "0.003"],
+                                  ["run", "--set", "mass=1e300"], ["run", "--dts", "11"],
                                   ["simulate", "fixed_length", "--dt", "1e-300"], ["simulate", "/tmp"],
                                   ["figures", "missing.npz"], ["speed", "--elements", "0"],
                                   ["run", "--out", "/dev/null/x"]])
@@ -205,8 +205,7 @@ def no_pipeline(monkeypatch):
 
 
 NOTHING = [
-    (["run", "--scenes", "fixed_length", "--dts", "1e308", "--out", "{d}/o"], ["--dts", "1e+308", "dividing"]),
-    (["run", "--scenes", "fixed_length", "--dts", "0.04", "--out", "{d}/o"], ["--dts", "0.04", "dividing"]),
+    (["run", "--scenes", "fixed_length", "--dts", "1e308", "--out", "{d}/o"], ["--dts", "1e+308", "longer than the run"]),
     (["run", "--scenes", "fixed_length", "--dts", "0.02", "--t-end", "0.01", "--out", "{d}/o"],
      ["--t-end = 0.01 s is shorter than", "give --t-end >= 0.02"]),
     (["run", "--scenes", "fixed_length", "--rtols", "1e-300", "--out", "{d}/o"], ["--rtols", "1e-14 <= tolerance"]),
@@ -268,7 +267,7 @@ OPTIONS = [
     (["run", "--quick", "--out", "{d}/o"], "--jobs", POSITIVE_INT),
     (["run", "--quick", "--out", "{d}/o"], "--repeats", POSITIVE_INT),
     (["run", "--quick", "--out", "{d}/o"], "--horizon", ["-1", "nan", "inf", "x", ""]),
-    (["run", "--quick", "--out", "{d}/o"], "--dts", POSITIVE_FLOAT + ["0.003", "1e308", "0.04", ","]),
+    (["run", "--quick", "--out", "{d}/o"], "--dts", POSITIVE_FLOAT + ["1e308", ","]),
     (["run", "--quick", "--out", "{d}/o"], "--rtols", TOLERANCE + [","]),
     (["run", "--quick", "--out", "{d}/o"], "--t-end", POSITIVE_FLOAT + ["1e12", "0.001"]),
     (["simulate", "fixed_length", "--out", "{d}/o/t.npz"], "--dt", POSITIVE_FLOAT + ["1e-300"]),

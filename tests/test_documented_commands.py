@@ -32,6 +32,7 @@ DOCS = (ROOT / "README.md", ROOT / "integrators" / "README.md", ROOT / "models" 
 #: Commands that write elsewhere than runs.csv and take minutes: not run here.
 NOT_RUN = {"check": "results/baseline/ only", "speed": "its --out file only", "stability": "results/stability/ only",
            "xval": "results/xval/ only", "reel-reversal": "stdout and its cache only",
+           "answer": "results/answer/ only (and the README's answer block)",
            "verify": "writes nothing; tests/test_verify.py runs each documented verify"}
 #: Words of a template, not a command (an option to choose, a placeholder).
 TEMPLATE = re.compile(r"\[|\]|\(|\.\.\.|COMMAND|HOST|NAME|FILE|TRAJ|SCENE|DIR\b|\bN\b|\bH\b|\bR\b")

@@ -1,0 +1,149 @@
+"""Wall-time verdicts from paired, interleaved timing.
+
+Single run times of a few ms move by a factor 2 between sweeps on a shared machine, but the ratio
+of two methods timed *in turn*, round after round on one core, is far steadier: the load that
+slows one solve slows its neighbour in the same round too. So the candidates at a target (each at
+its own setting there) are timed round-robin: every round runs each method once, in an order
+that rotates from round to round; the ratio of a method to the reference (the fastest by median
+time) is the median over rounds of its time / the reference's time in the same round; its 90 %
+interval is a bootstrap over rounds (rounds resampled with replacement, the pairing kept). The
+reference is the fastest by paired ratio.
+
+Rounds are added until every ratio's interval lies within ±``precision`` (10 %) of the ratio, or
+the time budget of the target (`BUDGET`, 20 s of timing) ends. The verdict comes from the
+intervals: the fastest method is the ``winner`` only when every other method's interval lies
+above 1; otherwise it and every method whose interval reaches 1 are a ``tie``; the rest are
+``slower``.
+
+Pure apart from the clock and the callables it is given: each ``solve()`` returns the seconds
+of one whole solve (compilation excluded: `integrators.base.stamp_wall_time`). `pinned` puts
+the calling process on one core for the duration.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+#: Seconds of timing per target (all methods' solves together, the setup excluded).
+BUDGET = 20.0
+#: The interval must lie within this relative distance of the ratio for timing to stop early.
+PRECISION = 0.10
+#: The interval's coverage (two-sided), and the bootstrap's resamples.
+LEVEL = 0.90
+RESAMPLES = 2000
+#: Rounds before the first stop check (a bootstrap of fewer is not an interval), and at most.
+MIN_ROUNDS = 8
+MAX_ROUNDS = 2000
+VERDICTS = ("winner", "tie", "slower")
+
+
+@dataclass
+class Ratio:
+    """One method against the reference: the median of paired ratios, its bootstrap interval,
+    the number of pairs and the verdict."""
+
+    method: str
+    time: float  # median seconds of one solve
+    ratio: float
+    low: float
+    high: float
+    pairs: int
+    verdict: str = ""
+
+
+def ratio_interval(mine: np.ndarray, ref: np.ndarray, rng: np.random.Generator, level: float = LEVEL,
+                   resamples: int = RESAMPLES) -> tuple[float, float, float]:
+    """(median of mine / ref per round, the bootstrap interval of that median at ``level``)."""
+    r = np.asarray(mine, float) / np.asarray(ref, float)
+    if len(r) < 2:
+        return float(np.median(r)), 0.0, np.inf
+    idx = rng.integers(0, len(r), size=(resamples, len(r)))
+    meds = np.median(r[idx], axis=1)
+    a = (1.0 - level) / 2.0
+    return float(np.median(r)), float(np.quantile(meds, a)), float(np.quantile(meds, 1.0 - a))
+
+
+def verdicts(ratios: list[Ratio]) -> list[Ratio]:
+    """Set each `Ratio`'s verdict in place (module docstring) and return them, fastest first."""
+    ratios = sorted(ratios, key=lambda r: (r.ratio, r.method))
+    best, others = ratios[0], ratios[1:]
+    alone = all(o.low > 1.0 for o in others)
+    best.verdict = "winner" if alone else "tie"
+    for o in others:
+        o.verdict = "slower" if o.low > 1.0 else "tie"
+    return ratios
+
+
+def compare(ratios_of: dict[str, np.ndarray], rng: np.random.Generator, level: float = LEVEL) -> list[Ratio]:
+    """The ratios of every method to the fastest (by median) from the rounds' times."""
+    times = {m: np.asarray(t, float) for m, t in ratios_of.items()}
+    base = min(times)
+    # the reference: the fastest by paired ratio (to any one method), not by median time, so that
+    # no other method's median ratio to it falls below 1 where the pairing says otherwise
+    ref = min(times, key=lambda m: (float(np.median(times[m] / times[base])), m))
+    out = []
+    for m, t in times.items():
+        ratio, lo, hi = (1.0, 1.0, 1.0) if m == ref else ratio_interval(t, times[ref], rng, level)
+        out.append(Ratio(m, float(np.median(t)), ratio, lo, hi, len(t)))
+    return verdicts(out)
+
+
+def resolved(ratios: list[Ratio], precision: float = PRECISION) -> bool:
+    """Every ratio's interval lies within ±precision of the ratio."""
+    return all(r.low >= r.ratio * (1 - precision) and r.high <= r.ratio * (1 + precision) for r in ratios)
+
+
+def time_paired(solves: dict[str, Callable[[], float]], *, budget: float = BUDGET, precision: float = PRECISION,
+                level: float = LEVEL, min_rounds: int = MIN_ROUNDS, max_rounds: int = MAX_ROUNDS, seed: int = 0,
+                clock: Callable[[], float] = time.perf_counter,
+                progress: Callable[[int, float, list[Ratio]], None] | None = None) -> list[Ratio]:
+    """Time ``solves`` (method -> a callable returning one solve's seconds) round-robin until
+    `resolved` or ``budget`` seconds of timing have passed (``max_rounds`` at most); the
+    ratios and verdicts, fastest first. One method alone is its own ``winner`` (ratio 1).
+    ``progress(rounds, seconds, ratios)`` is called after every stop check."""
+    if not solves:
+        raise ValueError("time_paired: no methods to time")
+    names = sorted(solves)
+    rng = np.random.default_rng(seed)
+    times: dict[str, list[float]] = {m: [] for m in names}
+    started = clock()
+    rounds = 0
+    ratios: list[Ratio] = []
+    while rounds < max_rounds:
+        for k in range(len(names)):  # rotate who goes first: no method always follows another
+            m = names[(rounds + k) % len(names)]
+            times[m].append(float(solves[m]()))
+        rounds += 1
+        if rounds >= min_rounds or len(names) == 1:
+            ratios = compare(times, rng, level)
+            if progress:
+                progress(rounds, clock() - started, ratios)
+            if len(names) == 1 or resolved(ratios, precision) or clock() - started >= budget:
+                break
+    return ratios or compare(times, rng, level)
+
+
+@contextlib.contextmanager
+def pinned(core: int | None = None):
+    """This process on one core (the last one it may use, or ``core``) for the duration, where
+    the platform allows it; the old affinity restored after."""
+    if not hasattr(os, "sched_setaffinity"):
+        yield None
+        return
+    old = os.sched_getaffinity(0)
+    core = max(old) if core is None else core
+    try:
+        os.sched_setaffinity(0, {core})
+    except OSError:
+        yield None
+        return
+    try:
+        yield core
+    finally:
+        os.sched_setaffinity(0, old)

@@ -1,0 +1,119 @@
+"""The answer study (`benchmark.answer`): cheapest.csv and the answer block from search and
+paired-timing rows; end to end on a tiny case, stopped and resumed without losing a row."""
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from benchmark import answer
+
+
+def _search_row(integ, n, metric, target, setting, cost, bound="target", spread=0.08, impl="jax-compiled"):
+    return dict(scene="fixed_length", elements=n, integrator=integ, sweep="dt", metric=metric, target=target,
+                setting=setting, cost=cost, cost_column="flops", error=target / 2, setting_low=setting,
+                setting_high=setting * (1 + spread) if np.isfinite(setting) else np.nan, setting_finer=np.nan,
+                high_status="ok", bound=bound, runs=8, spread=spread, implementation=impl, note="")
+
+
+def _timing_row(n, metric, target, ratios):
+    return dict(scene="fixed_length", elements=n, metric=metric, target=target, rounds=ratios[0]["pairs"],
+                ratios=json.dumps(ratios), note="")
+
+
+def _ratio(m, t, r, lo, hi, verdict, pairs=40):
+    return dict(method=m, time=t, ratio=r, low=lo, high=hi, pairs=pairs, verdict=verdict)
+
+
+@pytest.fixture
+def tables():
+    searched = pd.DataFrame([
+        _search_row("lgvi", 10, "energy_error", 1e-4, 0.0088, 1e6),
+        _search_row("lie_rk4", 10, "energy_error", 1e-4, 0.0102, 1.3e6),
+        _search_row("rk45", 10, "energy_error", 1e-4, np.nan, np.nan, bound="not reached", impl="scipy-python"),
+        _search_row("lgvi", 40, "energy_error", 1e-4, 0.002, 9e6),
+        _search_row("lie_rk4", 40, "energy_error", 1e-4, 0.0025, 9.5e6),
+    ])
+    timed = pd.DataFrame([
+        _timing_row(10, "energy_error", 1e-4, [_ratio("lgvi", 0.006, 1.0, 1.0, 1.0, "winner"),
+                                               _ratio("lie_rk4", 0.01, 1.66, 1.5, 1.8, "slower")]),
+        _timing_row(40, "energy_error", 1e-4, [_ratio("lie_rk4", 0.03, 1.0, 1.0, 1.0, "tie"),
+                                               _ratio("lgvi", 0.031, 1.02, 0.97, 1.08, "tie")]),
+    ])
+    return searched, timed
+
+
+def test_cheapest_csv_has_the_bracket_the_bound_and_the_paired_ratios(tables):
+    table = answer.answer_table(*tables)
+    assert list(table.columns) == answer.COLUMNS
+    work10 = table[(table["elements"] == 10) & (table["cost_kind"] == "work")].set_index("integrator")
+    assert work10.loc["lgvi", "verdict"] == "winner" and work10.loc["lie_rk4", "verdict"] == "slower"
+    assert work10.loc["rk45", "verdict"] == "not reached"
+    assert work10.loc["lgvi", "setting_low"] == 0.0088 and work10.loc["lgvi", "bound"] == "target"
+    assert work10.loc["lgvi", "setting_high"] == pytest.approx(0.0088 * 1.08)
+    work40 = table[(table["elements"] == 40) & (table["cost_kind"] == "work")].set_index("integrator")
+    assert set(work40["verdict"]) == {"tie"}  # 9.0e6 and 9.5e6 overlap within their 10 % brackets
+    wall10 = table[(table["elements"] == 10) & (table["cost_kind"] == "wall")].set_index("integrator")
+    assert wall10.loc["lie_rk4", "ratio_low"] == 1.5 and wall10.loc["lie_rk4", "pairs"] == 40
+    assert wall10.loc["lgvi", "verdict"] == "winner" and wall10.loc["lgvi", "setting"] == "dt=0.0088"
+    assert "rk45" not in set(table.loc[table["cost_kind"] == "wall", "integrator"])
+
+
+def test_the_answer_block_says_one_thing_per_scene_and_target(tables):
+    lines = answer.answer_lines(answer.answer_table(*tables), {"energy_error": "energy error"})
+    assert lines[0].startswith("- **fixed_length**, N = 10, energy error ≤ 0.0001: by wall time: use `lgvi` "
+                               "(dt=0.0088, 6 ms, 40 pairs); next `lie_rk4` at 1.66× [1.50–1.80]")
+    assert "by wall time: tie: `lie_rk4`" in lines[1] and "`lgvi` at 1.02× [0.97–1.08]" in lines[1]
+    assert lines[2] == "  - from N = 10 to N = 40: fastest `lgvi` → `lie_rk4`"
+
+
+def test_timing_jobs_take_the_compiled_methods_that_met_the_target(tables):
+    jobs = answer.timing_jobs(tables[0])
+    assert [j.elements for j in jobs] == [10, 40]
+    assert jobs[0].candidates == (("lgvi", "dt", 0.0088), ("lie_rk4", "dt", 0.0102))
+
+
+def test_a_row_digest_survives_the_csv_and_a_changed_row_is_recomputed(tmp_path):
+    row = answer._finish(_search_row("lgvi", 10, "energy_error", 1e-4, 0.0088, 1e6), "k1")
+    path = tmp_path / "search.csv"
+    pd.DataFrame([row]).to_csv(path, index=False)
+    assert len(answer.read_rows(path, log=lambda m: None)) == 1
+    pd.DataFrame([dict(row, cost=1.0)]).to_csv(path, index=False)
+    said = []
+    assert answer.read_rows(path, log=said.append) == [] and "fail their digest" in said[0]
+
+
+@pytest.mark.slow
+def test_the_study_end_to_end_resumes_without_losing_a_row(tmp_path, capsys):
+    from benchmark.cli import main
+
+    args = ["answer", "--scenes", "fixed_length", "--integrators", "lie_rk4,lgvi", "--elements", "2",
+            "--t-end", "0.2", "--timing-budget", "1", "--out", str(tmp_path)]
+    assert main(args) == 0
+    table = pd.read_csv(tmp_path / "cheapest.csv")
+    assert set(table["cost_kind"]) == {"work", "wall"}
+    assert table["bound"].dropna().isin(["target", "stability", "largest setting", "budget"]).all(), table.to_string()
+    first = pd.read_csv(tmp_path / "search.csv")
+    capsys.readouterr()
+    assert main(args) == 0
+    assert "resuming: 4 of 4 searches already done" in capsys.readouterr().err
+    pd.testing.assert_frame_equal(first, pd.read_csv(tmp_path / "search.csv"))
+
+
+def test_a_method_on_two_axes_is_two_entries(tables):
+    searched = tables[0]
+    both = pd.DataFrame([dict(_search_row("tsit5", 10, "energy_error", 1e-4, 0.01, 2e6), sweep="dt"),
+                         dict(_search_row("tsit5", 10, "energy_error", 1e-4, 1e-6, 3e6), sweep="rtol")])
+    table = answer.answer_table(pd.concat([searched, both]), tables[1].iloc[:0])
+    entries = set(table.loc[table["integrator"] == "tsit5", "entry"])
+    assert entries == {"tsit5 (fixed dt)", "tsit5 (adaptive)"}
+    assert len(answer.timing_jobs(pd.concat([searched, both]))[0].candidates) == 4
+
+
+def test_a_run_keeps_the_rows_of_other_sizes_and_replaces_its_own():
+    base = [_search_row("lgvi", 10, "energy_error", 1e-4, 0.0088, 1e6), _search_row("lgvi", 40, "energy_error", 1e-4, 0.002, 9e6)]
+    new = [_search_row("lgvi", 40, "energy_error", 1e-4, 0.0021, 8e6), _search_row("rattle", 40, "energy_error", 1e-4, 0.003, 7e6)]
+    out = answer.merged(base, new, answer.SEARCH_IDENTITY)
+    assert [(r["integrator"], r["elements"], r["cost"]) for r in out] == [("lgvi", 10, 1e6), ("lgvi", 40, 8e6),
+                                                                          ("rattle", 40, 7e6)]
