@@ -23,6 +23,7 @@ import dataclasses
 import hashlib
 import json
 import os
+import sys
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -224,6 +225,9 @@ def _read(path: Path) -> dict:
         raise SceneError(f"{path}: not valid TOML: {exc}") from None
     except RecursionError:  # arrays or inline tables nested hundreds deep
         raise SceneError(f"{path}: {NESTED_TOO_DEEPLY}") from None
+    except ValueError:  # an integer of more digits than Python converts (int_max_str_digits)
+        raise SceneError(f"{path}: not a scene: an integer in it has more than {sys.get_int_max_str_digits()} "
+                         f"digits; a scene's values are finite numbers of a plausible size") from None
 
 
 def _apply_overrides(data: dict, overrides: Mapping, source: str) -> set[str]:
@@ -274,7 +278,9 @@ def _drop_keys_of_removed_effects(data: dict, new: Any) -> None:
     old = data.get("effects")
     if not (isinstance(old, list) and isinstance(new, (list, tuple))):
         return  # the validation of `effects` reports what is wrong
-    for name in set(old) - set(new):
+    # names only: a list such as [[1.0, 2.0], [3.0]] is unhashable, and validation refuses it
+    removed = {e for e in old if isinstance(e, str)} - {e for e in new if isinstance(e, str)}
+    for name in removed:
         effect = EFFECTS.get(name) if isinstance(name, str) else None
         for section, keys in (effect.keys.items() if effect else ()):
             table = data.get(section) if section else data
