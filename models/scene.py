@@ -35,7 +35,7 @@ from models import effects as _effects
 from models import io as _io
 from models.effects import EFFECTS, body_inertia
 from models.schema import (BASE_SCHEMA, MASS_MODELS, MAX_DEPTH, NESTED_TOO_DEEPLY, PLAUSIBLE, STRETCH_RANGE,
-                           SceneError, Validator, full_schema, is_safe_name, nesting_depth, suggest)
+                           SceneError, Validator, full_schema, is_safe_name, nesting_depth, suggest, too_deep)
 from models.schema import plausible_ranges as _plausible_ranges
 
 __all__ = ["BASE_SCHEMA", "EFFECTS", "MASS_MODELS", "MAX_SCENE_BYTES", "PLAUSIBLE", "SCENE_DIR", "STRETCH_RANGE",
@@ -293,9 +293,13 @@ def _drop_keys_of_removed_effects(data: dict, new: Any) -> None:
 def _build(data: Mapping, source: str, overrides: Mapping) -> Scene:
     if not isinstance(data, Mapping):
         raise SceneError(f"{source}: a scene is a table of keys, not {type(data).__name__}")
-    for part in (data, *overrides.values()):
-        if nesting_depth(part) > MAX_DEPTH:  # before anything walks it recursively (deepcopy, json)
-            raise SceneError(f"{source}: {NESTED_TOO_DEEPLY}")
+    # before anything walks them recursively (deepcopy, json)
+    for name, part in overrides.items():
+        if nesting_depth(part) > MAX_DEPTH:
+            raise SceneError(f"{source}: override {name!r} is {NESTED_TOO_DEEPLY}")
+    if nesting_depth(data) > MAX_DEPTH:
+        deep = too_deep(data)
+        raise SceneError(f"{source}: key {deep!r} is {NESTED_TOO_DEEPLY}" if deep else f"{source}: {NESTED_TOO_DEEPLY}")
     data = copy.deepcopy(dict(data))
     listed = [e for part in (data.get("effects"), overrides.get("effects")) if isinstance(part, (list, tuple))
               for e in part]

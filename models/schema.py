@@ -207,6 +207,19 @@ def nesting_depth(value: Any) -> int:
     return deepest
 
 
+def too_deep(data: Mapping) -> str | None:
+    """The dotted key of the first entry of a scene mapping nested beyond `MAX_DEPTH` (None: the
+    mapping itself is, e.g. a table in a section's table)."""
+    for key, value in data.items():
+        if isinstance(value, dict):
+            for sub, item in value.items():
+                if nesting_depth(item) > MAX_DEPTH - 2:
+                    return f"{key}.{sub}"
+        elif nesting_depth(value) > MAX_DEPTH - 1:
+            return str(key)
+    return None
+
+
 def suggest(word: str, options) -> str:
     close = difflib.get_close_matches(word, list(options), n=1, cutoff=0.5)
     return f" (did you mean {close[0]!r}?)" if close else ""
@@ -365,7 +378,8 @@ class Validator(SceneChecks):
         if not isinstance(data, Mapping):
             raise self.refuse(f"a scene is a table of keys, not {type(data).__name__}")
         if nesting_depth(data) > MAX_DEPTH:
-            raise self.refuse(NESTED_TOO_DEEPLY)
+            deep = too_deep(data)
+            raise self.refuse(f"key {shown_key(deep)} is {NESTED_TOO_DEEPLY}" if deep else NESTED_TOO_DEEPLY, deep)
         effects = self.effects(data.get("effects"))
         for key in data:
             if key not in self.schema:
