@@ -191,6 +191,9 @@ def _resolve(name_or_path: str | Path) -> Path:
     if not isinstance(name_or_path, (str, os.PathLike)):
         raise SceneError(f"a scene is given by name or path, not {type(name_or_path).__name__} {name_or_path!r}")
     text = os.fspath(name_or_path)
+    if isinstance(text, bytes) or "\0" in text or not _encodable(text):
+        raise SceneError(f"{text!r} is not a scene name or a path: a path is text without NUL bytes that the "
+                         f"file system can encode")
     if text.endswith(".toml") or os.path.lexists(text):
         return Path(text)  # a path: `_read` says what is wrong with it, if anything
     candidate = SCENE_DIR / f"{text}.toml"
@@ -200,6 +203,14 @@ def _resolve(name_or_path: str | Path) -> Path:
         f"unknown scene {text!r}{suggest(text, available_scenes())}; "
         f"shipped scenes: {', '.join(available_scenes())}, or give a path to a .toml file"
     )
+
+
+def _encodable(text: str) -> bool:
+    try:
+        os.fsencode(text)  # an unpaired surrogate (from a JSON \ud800 escape) names no file
+        return True
+    except UnicodeError:
+        return False
 
 
 def _read(path: Path) -> dict:

@@ -23,7 +23,13 @@ import numpy as np
 
 
 class SceneError(ValueError):
-    """A scene file or override is invalid; the message names file, key and allowed range."""
+    """A scene file or override is invalid; the message names file, key and allowed range.
+
+    The message is one printable line whatever the input held: control characters, line
+    breaks and unpaired surrogates (in a file name, a key, a value) are written as \\uXXXX."""
+
+    def __init__(self, message: str):
+        super().__init__(_escaped(str(message)))
 
 
 @dataclass(frozen=True)
@@ -303,7 +309,7 @@ def shown(value: Any) -> str:
         more = f", ... ({len(value)} items)" if len(value) > MAX_SHOWN_ITEMS else ""
         return "[" + ", ".join(items) + more + "]"
     if isinstance(value, dict):
-        items = [f"{k} = {shown(v)}" for k, v in list(value.items())[:MAX_SHOWN_ITEMS]]
+        items = [f"{_escaped(str(k))} = {shown(v)}" for k, v in list(value.items())[:MAX_SHOWN_ITEMS]]
         more = f", ... ({len(value)} keys)" if len(value) > MAX_SHOWN_ITEMS else ""
         return "{" + ", ".join(items) + more + "}"
     if isinstance(value, bool):

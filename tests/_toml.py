@@ -30,7 +30,8 @@ def toml_value(value) -> str:
     if isinstance(value, float):
         return repr(value)
     if isinstance(value, int):
-        return str(value)
+        # str() refuses beyond 4,300 digits; such a number is written as one of its size
+        return str(value) if value.bit_length() < 14_000 else "9" * (int(value.bit_length() * 0.30103) + 1)
     if isinstance(value, str):
         return json.dumps(value, ensure_ascii=False)
     if isinstance(value, (list, tuple)):

@@ -7,8 +7,9 @@ hostile one: huge, tiny, NaN, infinite, huge integers, wrong types, nested lists
 lengths, tables, and, where Python objects can go, None, complex, Decimal, numpy arrays.
 Keys are dropped, unknown keys added, sections replaced and effects toggled. Each scene is fed
 to `load_scene` in one of five ways: as a TOML file, as raw bytes (the file's text cut short,
-with junk, a flipped byte, a BOM, or not UTF-8), as overrides of a shipped scene, as a mapping
-(`scene_from_dict`), and as the scene argument itself. The property:
+with junk, a flipped byte, a BOM, or not UTF-8), as overrides of a shipped scene (its name or
+its loaded `Scene`), as a mapping (`scene_from_dict`), and as the scene argument itself. The
+property:
 
 * the only exception is `SceneError`, its message one line; a RuntimeWarning (an overflow in
   numpy) during validation is an error too;
@@ -66,10 +67,11 @@ SCHEMA = schema()
 KEYS = _keys(SCHEMA)
 SECTIONS = [name for name, spec in SCHEMA.items() if isinstance(spec, dict)]
 RANGES = plausible_ranges()
-#: the shipped scenes as validated mappings, with few elements (see `ELEMENTS`)
+#: the shipped scenes, and as validated mappings with few elements (see `ELEMENTS`)
+SHIPPED = {name: load_scene(name) for name in available_scenes()}
 BASES = {}
 for _name in available_scenes():
-    _d = load_scene(_name).to_dict()
+    _d = SHIPPED[_name].to_dict()
     _d["string"]["elements"] = min(_d["string"]["elements"], ELEMENTS[-1])
     BASES[_name] = _d
 #: an override's bare name where it is unambiguous (`load_scene(name, elements=3)`)
@@ -187,7 +189,7 @@ DROP = object()
 def edits(draw, base, python):
     """[(path, value)]: changes to ``base``, a path being (key,) or (section, key); DROP removes."""
     out = []
-    for _ in range(draw(st.integers(0, 4))):
+    for _ in range(draw(st.integers(0, 6))):
         what = draw(st.sampled_from(["key", "key", "key", "key", "drop", "unknown", "section", "effects"]))
         if what in ("key", "drop"):
             key = draw(st.sampled_from(sorted(KEYS)))
@@ -262,7 +264,9 @@ def cases(draw):
     changes = draw(edits(base, python))
     if mode == "override":
         bare = draw(st.lists(st.booleans(), min_size=len(changes), max_size=len(changes)))
-        return mode, (name, overrides_of(changes, base["string"]["elements"], bare))
+        # of the shipped file, or of its loaded `Scene` (`Scene.with_`, which starts from `to_dict`)
+        start = draw(st.sampled_from([name, SHIPPED[name]]))
+        return mode, (start, overrides_of(changes, base["string"]["elements"], bare))
     if mode == "argument":
         return mode, draw(st.one_of(texts, st.binary(max_size=16), st.integers(), st.none(),
                                     st.sampled_from([Path("/dev/null"), Path("."), "nosuch.toml", name + ".toml"])))
