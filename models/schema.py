@@ -596,12 +596,14 @@ class Validator(SceneChecks):
             if np.abs(m.T @ m - np.eye(3)).max() > 1e-9 or abs(np.linalg.det(m) - 1.0) > 1e-9:
                 raise self.fail(key, value, allowed)
         if rule == "spd":
-            # judged on m / max|m| (symmetry and definiteness do not change with a positive
-            # factor), so that entries near 1e308 do not overflow m - m^T
-            scale = np.abs(m).max()
-            unit = m / scale if scale > 0 else m
-            if (scale == 0 or np.abs(unit - unit.T).max() > 1e-12 * max(1.0, scale) / scale
-                    or np.linalg.eigvalsh(unit).min() <= 0):
+            # judged on m / max|m| (definiteness does not change with a positive factor), so that
+            # entries near 1e308 do not overflow m - m^T; asymmetry up to 1e-12 max(1, max|m|)
+            scale = float(np.abs(m).max())
+            if scale == 0:
+                raise self.fail(key, value, allowed)
+            unit = m / scale
+            asymmetry = np.abs(unit - unit.T).max() if scale >= 1 else np.abs(m - m.T).max()
+            if asymmetry > 1e-12 or np.linalg.eigvalsh(unit).min() <= 0:
                 raise self.fail(key, value, allowed)
         return tuple(tuple(float(x) for x in row) for row in value)
 

@@ -118,6 +118,10 @@ def rotations():
     return q.map(rotation)
 
 
+def diagonal(j):
+    return [[j[0], 0.0, 0.0], [0.0, j[1], 0.0], [0.0, 0.0, j[2]]]
+
+
 def valid_values(key, spec):
     """Values of the key's kind, mostly within its rule and plausible range."""
     if spec.kind == "float":
@@ -132,8 +136,8 @@ def valid_values(key, spec):
     if spec.kind == "mat3" and spec.rule == "rotation":
         return rotations()
     if spec.kind == "mat3":
-        moments = st.lists(_log_uniform(1e-3, 1e3), min_size=3, max_size=3)
-        return moments.map(lambda j: [[j[0], 0.0, 0.0], [0.0, j[1], 0.0], [0.0, 0.0, j[2]]])
+        moment = st.one_of(_log_uniform(1e-3, 1e3), _log_uniform(1e-320, 1e308))
+        return st.lists(moment, min_size=3, max_size=3).map(diagonal)
     if spec.kind == "str" and spec.rule == "name":
         return st.from_regex(NAME_PATTERN, fullmatch=True)
     if spec.kind == "str" and spec.rule == "mass_model":
@@ -153,6 +157,7 @@ def hostile_data():
         st.lists(numbers, max_size=5),  # wrong lengths, and 3-vectors of edge numbers
         st.lists(edge_numbers, min_size=3, max_size=3),
         st.lists(st.lists(numbers, min_size=3, max_size=3), min_size=3, max_size=3),  # 3x3 of edge numbers
+        st.lists(edge_numbers, min_size=3, max_size=3).map(diagonal),
         st.lists(st.lists(numbers, max_size=4), max_size=4),  # ragged: [[1.0, 2.0], [3.0]]
         rotations().map(lambda r: (np.array(r) * 1e200).tolist()),
         st.lists(st.one_of(texts, st.booleans()), min_size=1, max_size=3),
@@ -186,8 +191,10 @@ DROP = object()
 
 
 @st.composite
-def edits(draw, base, python):
-    """[(path, value)]: changes to ``base``, a path being (key,) or (section, key); DROP removes."""
+def edits(draw, base, mode):
+    """[(path, value)]: changes to ``base``, a path being (key,) or (section, key); DROP removes.
+    Python objects as values in overrides and mappings, and keys that are not strings in a mapping."""
+    python = mode in ("override", "mapping")
     out = []
     for _ in range(draw(st.integers(0, 6))):
         what = draw(st.sampled_from(["key", "key", "key", "key", "drop", "unknown", "section", "effects"]))
@@ -196,7 +203,8 @@ def edits(draw, base, python):
             value = DROP if what == "drop" else draw(values_for(key, python))
             out.append((tuple(key.split(".")), value))
         elif what == "unknown":
-            name = draw(st.one_of(texts, st.sampled_from(sorted(KEYS)).map(lambda k: k.split(".")[-1] + "s")))
+            name = draw(st.one_of(texts, st.sampled_from(sorted(KEYS)).map(lambda k: k.split(".")[-1] + "s"),
+                                  *([st.integers(), st.none(), st.just((1, 2))] if mode == "mapping" else [])))
             where = draw(st.sampled_from([None, *SECTIONS]))
             out.append(((name,) if where is None else (where, name), draw(values_for(None, python))))
         elif what == "section":
@@ -260,8 +268,7 @@ def cases(draw):
     mode = draw(st.sampled_from(["file", "file", "bytes", "override", "override", "mapping", "argument"]))
     name = draw(st.sampled_from(sorted(BASES)))
     base = BASES[name]
-    python = mode in ("override", "mapping")
-    changes = draw(edits(base, python))
+    changes = draw(edits(base, mode))
     if mode == "override":
         bare = draw(st.lists(st.booleans(), min_size=len(changes), max_size=len(changes)))
         # of the shipped file, or of its loaded `Scene` (`Scene.with_`, which starts from `to_dict`)
@@ -377,6 +384,7 @@ def test_the_schema_keys_are_all_fuzzed():
      ["'body.inertia'", "radius of gyration"]),
     ({"body.inertia": [[1e308, -1e308, 0], [-1e308, 1e308, 0], [0, 0, 1]]},
      ["'body.inertia'", "positive-definite"]),
+    ({"body.inertia": [[5e-324, 0, 0], [0, 5e-324, 0], [0, 0, 5e-324]]}, ["'body.inertia'", "radius of gyration"]),
     ({"body.box": [1e300, 1e300, 1e300]}, ["'body.box'", "implausible"]),
     ({"reel.exit_direction": [-1.7e308, 1.7e308, 0]}, ["'reel.exit_direction'", "its length overflows a float64",
                                                        "length is in [1e-150, 1e+150]"]),
