@@ -101,7 +101,8 @@ RULE_TEXT = {
                f"(stretched / unstretched initial length)",
     "mass_model": "one of " + ", ".join(repr(m) for m in MASS_MODELS),
     "name": NAME_RULE,
-    "line": f"one line of at most {MAX_DESCRIPTION} characters, without control characters, line breaks or unpaired surrogates",
+    "line": f"one line of at most {MAX_DESCRIPTION} characters, without control characters, line breaks or "
+            f"unpaired surrogates",
 }
 
 #: The structural keys (owned by no effect). The full schema is these plus every registered
