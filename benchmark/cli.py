@@ -47,6 +47,13 @@ def _overrides(items: list[str] | None) -> dict:
             out[k.strip()] = json.loads(v)
         except json.JSONDecodeError:
             out[k.strip()] = v
+        except RecursionError:  # [[[[... thousands deep
+            raise UsageError(f"--set {k.strip()}: the value is nested too deeply: a scene value is a number, "
+                             f"a string or a list of at most two levels, e.g. --set direction=[0,0,1]") from None
+        except ValueError:  # an integer of more digits than Python converts (int_max_str_digits)
+            raise UsageError(f"--set {k.strip()}: the value holds an integer of more than "
+                             f"{sys.get_int_max_str_digits()} digits: allowed a finite number of a plausible size "
+                             f"(see models/README.md)") from None
     return out
 
 

@@ -256,7 +256,8 @@ class RigidBody(Effect):
             raise checks.refuse("missing key 'body.box' or 'body.inertia' (needed by effect rigid_body)")
         key = "body.box" if b["box"] is not None else "body.inertia"
         moments = np.linalg.eigvalsh(body_inertia(b))
-        radius = np.sqrt(np.maximum(moments, 0.0) / b["mass"])
+        # roots first: moments near 1e308 over a mass of 1e-9 kg would overflow the quotient
+        radius = np.sqrt(np.maximum(moments, 0.0)) / np.sqrt(b["mass"])
         lo, hi = GYRATION_RADIUS
         if not (lo <= radius.min() and radius.max() <= hi):
             raise checks.refuse(

@@ -23,6 +23,7 @@ import dataclasses
 import hashlib
 import json
 import os
+import sys
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,7 +35,7 @@ from models import effects as _effects
 from models import io as _io
 from models.effects import EFFECTS, body_inertia
 from models.schema import (BASE_SCHEMA, MASS_MODELS, MAX_DEPTH, NESTED_TOO_DEEPLY, PLAUSIBLE, STRETCH_RANGE,
-                           SceneError, Validator, full_schema, is_safe_name, nesting_depth, suggest)
+                           SceneError, Validator, full_schema, is_safe_name, nesting_depth, suggest, too_deep)
 from models.schema import plausible_ranges as _plausible_ranges
 
 __all__ = ["BASE_SCHEMA", "EFFECTS", "MASS_MODELS", "MAX_SCENE_BYTES", "PLAUSIBLE", "SCENE_DIR", "STRETCH_RANGE",
@@ -190,6 +191,9 @@ def _resolve(name_or_path: str | Path) -> Path:
     if not isinstance(name_or_path, (str, os.PathLike)):
         raise SceneError(f"a scene is given by name or path, not {type(name_or_path).__name__} {name_or_path!r}")
     text = os.fspath(name_or_path)
+    if isinstance(text, bytes) or "\0" in text or not _encodable(text):
+        raise SceneError(f"{text!r} is not a scene name or a path: a path is text without NUL bytes that the "
+                         f"file system can encode")
     if text.endswith(".toml") or os.path.lexists(text):
         return Path(text)  # a path: `_read` says what is wrong with it, if anything
     candidate = SCENE_DIR / f"{text}.toml"
@@ -199,6 +203,14 @@ def _resolve(name_or_path: str | Path) -> Path:
         f"unknown scene {text!r}{suggest(text, available_scenes())}; "
         f"shipped scenes: {', '.join(available_scenes())}, or give a path to a .toml file"
     )
+
+
+def _encodable(text: str) -> bool:
+    try:
+        os.fsencode(text)  # an unpaired surrogate (from a JSON \ud800 escape) names no file
+        return True
+    except UnicodeError:
+        return False
 
 
 def _read(path: Path) -> dict:
@@ -224,6 +236,9 @@ def _read(path: Path) -> dict:
         raise SceneError(f"{path}: not valid TOML: {exc}") from None
     except RecursionError:  # arrays or inline tables nested hundreds deep
         raise SceneError(f"{path}: {NESTED_TOO_DEEPLY}") from None
+    except ValueError:  # an integer of more digits than Python converts (int_max_str_digits)
+        raise SceneError(f"{path}: not a scene: an integer in it has more than {sys.get_int_max_str_digits()} "
+                         f"digits; a scene's values are finite numbers of a plausible size") from None
 
 
 def _apply_overrides(data: dict, overrides: Mapping, source: str) -> set[str]:
@@ -275,7 +290,9 @@ def _drop_keys_of_removed_effects(data: dict, new: Any) -> None:
     old = data.get("effects")
     if not (isinstance(old, list) and isinstance(new, (list, tuple))):
         return  # the validation of `effects` reports what is wrong
-    for name in set(old) - set(new):
+    # names only: a list such as [[1.0, 2.0], [3.0]] is unhashable, and validation refuses it
+    removed = {e for e in old if isinstance(e, str)} - {e for e in new if isinstance(e, str)}
+    for name in removed:
         effect = EFFECTS.get(name) if isinstance(name, str) else None
         for section, keys in (effect.keys.items() if effect else ()):
             table = data.get(section) if section else data
@@ -288,9 +305,13 @@ def _drop_keys_of_removed_effects(data: dict, new: Any) -> None:
 def _build(data: Mapping, source: str, overrides: Mapping) -> Scene:
     if not isinstance(data, Mapping):
         raise SceneError(f"{source}: a scene is a table of keys, not {type(data).__name__}")
-    for part in (data, *overrides.values()):
-        if nesting_depth(part) > MAX_DEPTH:  # before anything walks it recursively (deepcopy, json)
-            raise SceneError(f"{source}: {NESTED_TOO_DEEPLY}")
+    # before anything walks them recursively (deepcopy, json)
+    for name, part in overrides.items():
+        if nesting_depth(part) > MAX_DEPTH:
+            raise SceneError(f"{source}: override {name!r} is {NESTED_TOO_DEEPLY}")
+    if nesting_depth(data) > MAX_DEPTH:
+        deep = too_deep(data)
+        raise SceneError(f"{source}: key {deep!r} is {NESTED_TOO_DEEPLY}" if deep else f"{source}: {NESTED_TOO_DEEPLY}")
     data = copy.deepcopy(dict(data))
     listed = [e for part in (data.get("effects"), overrides.get("effects")) if isinstance(part, (list, tuple))
               for e in part]

@@ -23,7 +23,13 @@ import numpy as np
 
 
 class SceneError(ValueError):
-    """A scene file or override is invalid; the message names file, key and allowed range."""
+    """A scene file or override is invalid; the message names file, key and allowed range.
+
+    The message is one printable line whatever the input held: control characters, line
+    breaks and unpaired surrogates (in a file name, a key, a value) are written as \\uXXXX."""
+
+    def __init__(self, message: str):
+        super().__init__(_escaped(str(message)))
 
 
 @dataclass(frozen=True)
@@ -60,6 +66,8 @@ NAME_RULE = ("1 to 64 characters from A-Z a-z 0-9 _ . - , starting with a letter
              "without '..' (the name becomes part of file names)")
 #: `description` is one line of a table.
 MAX_DESCRIPTION = 500
+#: Items of a list or table a message shows before it says how many there are.
+MAX_SHOWN_ITEMS = 9
 
 #: Values of `string.mass_model`; the first is the default.
 MASS_MODELS = ("consistent", "lumped")
@@ -71,9 +79,10 @@ STRETCH_RANGE = (0.01, 100.0)
 #: takes steps without end and the squared node offsets underflow (1e-300 m gives a Newton
 #: failure at the first step and a reference solve that never ends).
 MIN_ELEMENT_LENGTH = 1e-3
-#: Lengths a direction vector may have before it is normalised: its squared length must be a
-#: normal float64 (1e200 squared overflows, 1e-200 squared underflows, and the "unit" vector
-#: would be (0, 0, 0) or made of rounding). The length itself carries no meaning.
+#: Lengths a direction vector may have before it is normalised. The length itself carries no
+#: meaning, but one far outside is a typo, and near the ends of float64 the "unit" vector is
+#: made of rounding (subnormal entries) or its length overflows (`Validator.direction`
+#: computes it without squaring and names an overflow).
 DIRECTION_LENGTH = (1e-150, 1e150)
 #: Radius of gyration sqrt(J/m_b) of every principal moment of the body's inertia, m: the
 #: span of the body sizes `body.box` admits (a 1e-6 m cube has 4e-7 m, a 1e4 m one 4e3 m).
@@ -92,7 +101,8 @@ RULE_TEXT = {
                f"(stretched / unstretched initial length)",
     "mass_model": "one of " + ", ".join(repr(m) for m in MASS_MODELS),
     "name": NAME_RULE,
-    "line": f"one line of at most {MAX_DESCRIPTION} characters, without control characters",
+    "line": f"one line of at most {MAX_DESCRIPTION} characters, without control characters, line breaks or "
+            f"unpaired surrogates",
 }
 
 #: The structural keys (owned by no effect). The full schema is these plus every registered
@@ -204,6 +214,19 @@ def nesting_depth(value: Any) -> int:
     return deepest
 
 
+def too_deep(data: Mapping) -> str | None:
+    """The dotted key of the first entry of a scene mapping nested beyond `MAX_DEPTH` (None: the
+    mapping itself is, e.g. a table in a section's table)."""
+    for key, value in data.items():
+        if isinstance(value, dict):
+            for sub, item in value.items():
+                if nesting_depth(item) > MAX_DEPTH - 2:
+                    return f"{key}.{sub}"
+        elif nesting_depth(value) > MAX_DEPTH - 1:
+            return str(key)
+    return None
+
+
 def suggest(word: str, options) -> str:
     close = difflib.get_close_matches(word, list(options), n=1, cutoff=0.5)
     return f" (did you mean {close[0]!r}?)" if close else ""
@@ -227,6 +250,39 @@ def _finite_number(x: Any) -> bool:
     return isinstance(x, float) and math.isfinite(x)
 
 
+def vector_length(values) -> float:
+    """Euclidean length of finite numbers without overflow or underflow in the squares
+    (`math.hypot` scales before squaring): inf only when the length itself exceeds the largest
+    float64, never an OverflowError ([-1e308, 0, 0] has length 1e308)."""
+    return math.hypot(*(float(x) for x in values))
+
+
+def _flat_numbers(value: Any) -> list:
+    """The numbers of a validated vector or matrix, row by row."""
+    if isinstance(value, (list, tuple)):
+        return [x for item in value for x in _flat_numbers(item)]
+    return [value]
+
+
+def _is_plain_data(value: Any) -> bool:
+    """Built of str, bool, int, float, list, tuple and dict only (what TOML, JSON and --set
+    give): only such values are compared with a default (a numpy array's == has no truth value)."""
+    todo = [value]
+    while todo:
+        item = todo.pop()
+        if isinstance(item, (list, tuple)):
+            todo.extend(item)
+        elif isinstance(item, dict):
+            todo.extend(item.values())
+        elif type(item) not in (str, bool, int, float):
+            return False
+    return True
+
+
+def _is_default(value: Any, default: Any) -> bool:
+    return default is not None and _is_plain_data(value) and value == _plain(default)
+
+
 def _plain(value: Any) -> Any:
     """A default as the validated dict holds it (tuples as lists, as TOML and JSON have them)."""
     if isinstance(value, (list, tuple)):
@@ -234,18 +290,36 @@ def _plain(value: Any) -> Any:
     return value
 
 
+#: Characters a message never holds as they are: control characters and line breaks would
+#: split its one line, an unpaired surrogate cannot be written as UTF-8.
+_UNPRINTABLE = ("Cc", "Cs", "Zl", "Zp")
+
+
+def _escaped(text: str) -> str:
+    """``text`` with `_UNPRINTABLE` characters written as TOML's \\uXXXX escapes."""
+    return "".join(f"\\u{ord(c):04x}" if unicodedata.category(c) in _UNPRINTABLE else c for c in text)
+
+
 def shown(value: Any) -> str:
     """A value as the file wrote it: strings quoted TOML-style, numbers exactly (repr)."""
     if isinstance(value, str):
         text = value if len(value) <= 100 else value[:60] + f"... ({len(value)} characters)"
-        return '"' + text.replace("\\", "\\\\").replace('"', '\\"') + '"'
+        return '"' + _escaped(text.replace("\\", "\\\\").replace('"', '\\"')) + '"'
     if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(shown(v) for v in value) + "]"
+        items = [shown(v) for v in value[:MAX_SHOWN_ITEMS]]
+        more = f", ... ({len(value)} items)" if len(value) > MAX_SHOWN_ITEMS else ""
+        return "[" + ", ".join(items) + more + "]"
     if isinstance(value, dict):
-        return "{" + ", ".join(f"{k} = {shown(v)}" for k, v in value.items()) + "}"
+        items = [f"{_escaped(str(k))} = {shown(v)}" for k, v in list(value.items())[:MAX_SHOWN_ITEMS]]
+        more = f", ... ({len(value)} keys)" if len(value) > MAX_SHOWN_ITEMS else ""
+        return "{" + ", ".join(items) + more + "}"
     if isinstance(value, bool):
         return "true" if value else "false"
-    return repr(value)
+    if isinstance(value, int) and abs(value) >= 10**30:
+        # repr of an integer beyond 4,300 digits raises; a message needs its size only
+        return f"an integer of about {int(value.bit_length() * math.log10(2)) + 1} digits"
+    text = repr(value)
+    return text if len(text) <= 100 else text[:60] + f"... ({len(text)} characters)"
 
 
 # --------------------------------------------------------------------------------------------
@@ -257,8 +331,9 @@ class SceneChecks:
     """What an effect's `check` receives: where the scene comes from, and how to refuse it.
 
     * ``source``: the file (or ``"<dict>"``) being validated, for messages;
-    * ``fail(key, value, allowed)``: the `SceneError` for a key whose value breaks a rule,
-      worded like every other ("<file>: key 'section.key' = <value> is invalid: allowed ...");
+    * ``fail(key, value, allowed, why="")``: the `SceneError` for a key whose value breaks a
+      rule, worded like every other ("<file>: key 'section.key' = <value> is invalid: [why; ]
+      allowed ...");
     * ``refuse(message)``: a `SceneError` for anything else, prefixed with the file.
 
     Raise what they return. A key set by an override (`load_scene(..., key=value)`,
@@ -272,11 +347,12 @@ class SceneChecks:
     def where(self, key: str) -> str:
         return f"{self.source} (overridden)" if key in self.overridden else self.source
 
-    def fail(self, key: str, value: Any, allowed: str) -> SceneError:
+    def fail(self, key: str, value: Any, allowed: str, why: str = "") -> SceneError:
         # a quoted number is a string in TOML: `mass = "1.0"` must not read as the number 1.0
         if isinstance(value, str) and _looks_numeric(value):
             allowed += " (a quoted value is a string in TOML: write the number without quotes)"
-        return SceneError(f"{self.where(key)}: key '{key}' = {shown(value)} is invalid: allowed {allowed}")
+        because = f"{why}; " if why else ""
+        return SceneError(f"{self.where(key)}: key '{key}' = {shown(value)} is invalid: {because}allowed {allowed}")
 
     def refuse(self, message: str, key: str | None = None) -> SceneError:
         return SceneError(f"{self.where(key) if key else self.source}: {message}")
@@ -309,7 +385,8 @@ class Validator(SceneChecks):
         if not isinstance(data, Mapping):
             raise self.refuse(f"a scene is a table of keys, not {type(data).__name__}")
         if nesting_depth(data) > MAX_DEPTH:
-            raise self.refuse(NESTED_TOO_DEEPLY)
+            deep = too_deep(data)
+            raise self.refuse(f"key {shown_key(deep)} is {NESTED_TOO_DEEPLY}" if deep else NESTED_TOO_DEEPLY, deep)
         effects = self.effects(data.get("effects"))
         for key in data:
             if key not in self.schema:
@@ -359,7 +436,7 @@ class Validator(SceneChecks):
     def section(self, name: str, section: dict, spec: dict[str, Key], effects) -> dict:
         for key in section:
             if key not in spec:
-                raise self.refuse(f"unknown key '{name}.{key}'{suggest(str(key), spec)}; "
+                raise self.refuse(f"unknown key {shown_key(f'{name}.{key}')}{suggest(str(key), spec)}; "
                                   f"allowed in [{name}]: {', '.join(spec)}")
         out = {}
         for key, s in spec.items():
@@ -397,13 +474,12 @@ class Validator(SceneChecks):
 
     def plausible(self, key: str, raw: Any, value: Any) -> None:
         lo, hi = self.ranges[key]
-        if isinstance(raw, (list, tuple)):  # a vector: its length (nonzero rules normalise `value`)
-            mag = math.sqrt(sum(float(x) ** 2 for x in raw))
-        else:
-            mag = abs(float(value))
+        # a vector's length from the numbers as given (a nonzero rule has normalised `value`)
+        mag = vector_length(_flat_numbers(raw)) if isinstance(raw, (list, tuple)) else abs(float(value))
         if mag != 0.0 and not lo <= mag <= hi:
+            size = " (its length is beyond the largest float64, 1.8e308)" if math.isinf(mag) else ""
             raise SceneError(
-                f"{self.where(key)}: key '{key}' = {shown(raw)} is implausible: allowed a magnitude in "
+                f"{self.where(key)}: key '{key}' = {shown(raw)} is implausible{size}: allowed a magnitude in "
                 f"[{lo:g}, {hi:g}] (SI units; see models/README.md). Check the units and the exponent")
 
     def _value(self, key: str, value: Any, spec: Key, effects) -> Any:
@@ -415,7 +491,7 @@ class Validator(SceneChecks):
                 raise self.refuse(f"missing key '{key}'{why}: allowed {allowed}")
             return _plain(spec.default)
         if (spec.required_by is not None and not all(e in effects for e in spec.required_by)
-                and spec.default is not None and value == _plain(spec.default)):
+                and _is_default(value, spec.default)):
             # the default of a key whose effect is not listed, as `Scene.to_dict` writes it back
             # for a file without that key: `with_` must accept the scene it was given (a reel
             # key's default, e.g. guide_length = 0, need not meet the rule it has with a reel)
@@ -439,14 +515,14 @@ class Validator(SceneChecks):
 
     # -- scalars, strings, vectors, matrices ---------------------------------------------
     def text(self, key: str, value: Any, rule: str) -> str:
-        if rule == "mass_model" and value not in MASS_MODELS:
+        if rule == "mass_model" and not (isinstance(value, str) and value in MASS_MODELS):
             raise self.fail(key, value, RULE_TEXT["mass_model"])
         if not isinstance(value, str):
             raise self.fail(key, value, "a string")
         if rule == "name" and not is_safe_name(value):
             raise self.fail(key, value, f"a name of {NAME_RULE}")
         if rule == "line" and (len(value) > MAX_DESCRIPTION
-                               or any(unicodedata.category(c) == "Cc" for c in value)):
+                               or any(unicodedata.category(c) in _UNPRINTABLE for c in value)):
             raise self.fail(key, value, RULE_TEXT["line"])
         return value
 
@@ -480,14 +556,29 @@ class Validator(SceneChecks):
         if rule == "positive" and not all(x > 0 for x in out):
             raise self.fail(key, value, allowed)
         if rule == "nonzero":
-            # the squared length must be a normal number before dividing by its root: [1e200, 0, 1e200]
-            # would otherwise become (0, 0, 0), and [1e-200, 0, 0] a division by zero
-            squared = sum(x * x for x in out)
-            if not DIRECTION_LENGTH[0] ** 2 <= squared <= DIRECTION_LENGTH[1] ** 2:
-                raise self.fail(key, value, allowed)
-            n = math.sqrt(squared)
-            out = [x / n for x in out]
+            out = self.direction(key, value, out, allowed)
         return tuple(out)
+
+    def direction(self, key: str, value: Any, numbers: list[float], allowed: str) -> list[float]:
+        """``numbers`` divided by their length, which must lie in `DIRECTION_LENGTH`. The length is
+        taken without squaring (`vector_length`): summed squares overflow past 1.3e154 and made
+        [1e200, 0, 1e200] the "unit" vector (0, 0, 0); an overflowing length has its own message."""
+        n = vector_length(numbers)
+        lo, hi = DIRECTION_LENGTH
+        if math.isinf(n):
+            raise self.fail(key, value, allowed, "its length overflows a float64 (it is beyond 1.8e308), so it "
+                                                 "cannot be normalised")
+        if n == 0.0:
+            raise self.fail(key, value, allowed, "a zero vector has no direction")
+        if not lo <= n <= hi:
+            raise self.fail(key, value, allowed, f"its length {n:.3g} is outside [{lo:g}, {hi:g}]")
+        # inside the range the squares are normal numbers: normalised as always (bit for bit,
+        # so that the shipped scenes keep their `Scene.key()`)
+        n = math.sqrt(sum(x * x for x in numbers))
+        unit = [x / n for x in numbers]
+        if not abs(vector_length(unit) - 1.0) <= 1e-12:  # never store a vector that is not a direction
+            raise self.fail(key, value, allowed, "it does not normalise to a unit vector")
+        return unit
 
     def matrix(self, key: str, value: Any, rule: str) -> tuple:
         allowed = RULE_TEXT[rule]
@@ -499,10 +590,21 @@ class Validator(SceneChecks):
             raise self.fail(key, value, allowed + ", of finite numbers")
         m = np.array(value, dtype=float)
         if rule == "rotation":
+            # a rotation's entries are direction cosines: bounding them first keeps m^T m finite
+            # (entries near 1e200 overflowed it)
+            if np.abs(m).max() > 1.0 + 1e-9:
+                raise self.fail(key, value, allowed, "an entry lies outside [-1, 1], where a rotation's entries are")
             if np.abs(m.T @ m - np.eye(3)).max() > 1e-9 or abs(np.linalg.det(m) - 1.0) > 1e-9:
                 raise self.fail(key, value, allowed)
         if rule == "spd":
-            if np.abs(m - m.T).max() > 1e-12 * max(1.0, np.abs(m).max()) or np.linalg.eigvalsh(m).min() <= 0:
+            # judged on m / max|m| (definiteness does not change with a positive factor), so that
+            # entries near 1e308 do not overflow m - m^T; asymmetry up to 1e-12 max(1, max|m|)
+            scale = float(np.abs(m).max())
+            if scale == 0:
+                raise self.fail(key, value, allowed)
+            unit = m / scale
+            asymmetry = np.abs(unit - unit.T).max() if scale >= 1 else np.abs(m - m.T).max()
+            if asymmetry > 1e-12 or np.linalg.eigvalsh(unit).min() <= 0:
                 raise self.fail(key, value, allowed)
         return tuple(tuple(float(x) for x in row) for row in value)
 
@@ -529,4 +631,4 @@ class Validator(SceneChecks):
 
 
 def shown_key(key: Any) -> str:
-    return f"'{key}'" if isinstance(key, str) else shown(key)
+    return f"'{_escaped(key)}'" if isinstance(key, str) else shown(key)

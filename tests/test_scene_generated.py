@@ -16,7 +16,6 @@ cut short or followed by junk bytes. For every file:
 
 import json
 import math
-import re
 import time
 import tomllib
 
@@ -24,6 +23,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from _toml import Deep, to_toml
 from models import EFFECTS, SceneError, load_scene
 from models.scene import SCENE_DIR, schema
 
@@ -31,50 +31,6 @@ BASES = {name: tomllib.loads((SCENE_DIR / f"{name}.toml").read_text()) for name 
                                                                                       "retrieval")}
 HANG_GUARD_S = 10.0
 SLOWEST = [0.0]  # the slowest call seen, printed with -s
-
-BARE_KEY = re.compile(r"[A-Za-z0-9_-]+")
-
-
-# ------------------------------------------------------------------------------------------
-# TOML text of a generated mapping
-# ------------------------------------------------------------------------------------------
-def toml_key(key: str) -> str:
-    return key if BARE_KEY.fullmatch(key) else json.dumps(key, ensure_ascii=False)
-
-
-class Deep:
-    """A value nested ``depth`` arrays deep, written out without recursion."""
-
-    def __init__(self, depth):
-        self.depth = depth
-
-
-def toml_value(value) -> str:
-    if isinstance(value, Deep):
-        return "[" * value.depth + "1.0" + "]" * value.depth
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, float):
-        return repr(value)  # 'inf', '-inf', 'nan', '1e+300' are TOML floats too
-    if isinstance(value, int):
-        return str(value)
-    if isinstance(value, str):
-        return json.dumps(value, ensure_ascii=False)  # JSON's escapes are TOML's
-    if isinstance(value, list):
-        return "[" + ", ".join(toml_value(v) for v in value) + "]"
-    if isinstance(value, dict):
-        return "{" + ", ".join(f"{toml_key(k)} = {toml_value(v)}" for k, v in value.items()) + "}"
-    raise TypeError(value)
-
-
-def to_toml(data: dict) -> str:
-    lines = [f"{toml_key(k)} = {toml_value(v)}" for k, v in data.items() if not isinstance(v, dict)]
-    for section, table in data.items():
-        if isinstance(table, dict):
-            lines.append(f"[{toml_key(section)}]")
-            lines += [f"{toml_key(k)} = {toml_value(v)}" for k, v in table.items()]
-    return "\n".join(lines) + "\n"
-
 
 # ------------------------------------------------------------------------------------------
 # Perturbations
