@@ -75,6 +75,9 @@ class StringParams:
     elements: int  # N
     axial_damping: float | None = None  # c, N s (only with effect `axial_damping`)
     mass_model: str = "consistent"  # the string's element mass matrix (models.model.STRING_MASS)
+    diameter: float | None = None  # d, m (only with effect `buoyancy`)
+    normal_drag: float | None = None  # C_n (only with effect `drag`)
+    tangential_drag: float | None = None  # C_t (only with effect `drag`)
 
 
 @dataclass(frozen=True)
