@@ -105,7 +105,9 @@ def cmd_run(args) -> int:
         raise UsageError(f"--scheduler is only used with --executor dask (got --executor {args.executor})")
     for name in args.integrators or ():
         _check_integrator(name)  # an unknown name is refused before any work
-    scene_names = args.scenes or list(sweep.PAPER_SCENES)
+    if args.extended and args.scenes:
+        raise UsageError("--extended and --scenes are alternatives: give one")
+    scene_names = args.scenes or list(sweep.EXTENDED_SCENES if args.extended else sweep.PAPER_SCENES)
     ov = _overrides(args.set)
     with_t_end = {"t_end": args.t_end, **ov} if args.t_end is not None else ov  # validated with the scene
     scenes = [load_scene(s, **with_t_end) for s in scene_names]
@@ -133,7 +135,7 @@ def cmd_run(args) -> int:
 
 #: The options of `run` that make it something other than the default sweep (other rows).
 _SWEEP_OPTIONS = (("scenes", "--scenes"), ("integrators", "--integrators"), ("quick", "--quick"), ("dts", "--dts"),
-                  ("rtols", "--rtols"), ("t_end", "--t-end"), ("set", "--set"))
+                  ("rtols", "--rtols"), ("t_end", "--t-end"), ("set", "--set"), ("extended", "--extended"))
 
 
 def _run_out(args) -> str:
@@ -378,6 +380,8 @@ def _add_run(sub) -> None:
             "recomputes this run's rows). Ctrl-C stops cleanly.")
     r.add_argument("--scenes", type=opt.names, help="comma-separated scene names or .toml paths "
                                                     f"(default: {_csv(sweep.PAPER_SCENES)})")
+    r.add_argument("--extended", action="store_true", help="the paper's scenes and the fluid scenes "
+                                                           f"({_csv(sweep.FLUID_SCENES)}: buoyancy and drag)")
     r.add_argument("--integrators", type=opt.names, help="comma-separated integrator names (default: every "
                                                          "registered one; see `list`)")
     r.add_argument("--quick", action="store_true", help=f"reduced sweep: {sweep.QUICK_T_END:g} s horizon, "
@@ -489,7 +493,7 @@ def _add_speed(sub) -> None:
 def _add_stability(sub) -> None:
     st = sub("stability", "stability map of the hard scenes: largest stable dt (fixed step), step statistics "
                           "(adaptive) -> --out")
-    st.add_argument("--scenes", type=opt.names, help="comma-separated hard scenes (default: all seven)")
+    st.add_argument("--scenes", type=opt.names, help="comma-separated hard scenes (default: all eight)")
     st.add_argument("--integrators", type=opt.names, help="comma-separated names (default: every method of the "
                                                           "sweep, registered plugins included, implicit baselines last)")
     st.add_argument("--jobs", type=opt.nonnegative_int, default=2, help="worker processes (0: run in this process)")
