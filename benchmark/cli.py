@@ -303,6 +303,9 @@ def cmd_xval(args) -> int:
     from models import load_scene
 
     scene = load_scene(args.scene, **({"t_end": args.t_end} if args.t_end else {}))  # plausible horizon
+    unknown = [c for c in args.cases or () if c not in xval.CASES]
+    if unknown:
+        raise UsageError(f"--cases {_csv(unknown)}: allowed {_csv(xval.CASES)}")
     xval.check_scene(scene)  # names what cannot be translated, before any work
     opt.check_size(scene, args.t_end or xval.DEFAULT_T_END, xval.OUTPUT_INTERVAL, what=f"xval of {scene.name}",
                    save_option=None)
@@ -313,7 +316,7 @@ def cmd_xval(args) -> int:
     from benchmark import pipelines
 
     readme = pipelines.run_xval(args.scene, ints or list(xval.DEFAULT_ELEMENTS), args.t_end or xval.DEFAULT_T_END, out,
-                                command=_command(args), log=_log)
+                                command=_command(args), log=_log, cases=args.cases)
     _log(f"wrote {readme}")
     return 0
 
@@ -507,6 +510,8 @@ def _add_xval(sub) -> None:
     xv.add_argument("--elements", type=opt.positive_ints, help="comma-separated N >= 2 (default 5,10,20,40,80; "
                                                                "5,10,20,40,80,160 takes about 4x longer)")
     xv.add_argument("--t-end", type=opt.positive_float, help="horizon in s (default 5)")
+    xv.add_argument("--cases", type=opt.names, help="comma-separated cases of point_mass, rigid_body, in_water "
+                                                    "(default: every case the scene has)")
     xv.add_argument("--out", default="results/xval", help="output directory (created if missing)")
     xv.set_defaults(func=cmd_xval)
 

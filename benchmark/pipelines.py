@@ -440,14 +440,14 @@ def run_check(*, update: bool = False, baseline=None, integrators=None, factor: 
 
 
 def run_xval(scene_name: str, elements, t_end: float, out: Path, *, command: str = "python -m benchmark xval",
-             log: Callable[[str], None] = log_stderr) -> Path:
+             log: Callable[[str], None] = log_stderr, cases=None) -> Path:
     """The cross-validation against MoorDyn and MuJoCo into ``out``; returns its README."""
     from benchmark import xval, xval_report
     from models import load_scene
 
     provenance = Provenance(command)
     scene = load_scene(scene_name)
-    study = xval.study(scene, elements, t_end, log=log)  # refuses an untranslatable scene before any work
+    study = xval.study(scene, elements, t_end, cases=cases, log=log)  # refuses an untranslatable scene before any work
     return xval_report.write_outputs(study, scene, Path(out), provenance)
 
 

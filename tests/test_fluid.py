@@ -152,7 +152,7 @@ def test_uniform_current_past_a_string_at_rest_loads_it_uniformly(mass_model):
 # ------------------------------------------------------------------------------------------
 # Terminal velocity
 # ------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("mass_model", ["lumped", "consistent"])
+@pytest.mark.parametrize("mass_model", ["lumped", pytest.param("consistent", marks=pytest.mark.slow)])
 def test_body_released_at_rest_reaches_hand_computed_terminal_velocity(mass_model):
     """One slack element (30 m unstretched, 0.3 m long): no tension, the body falls freely in
     still water. At the end node: weight − buoyancy of the body and of its share of the string,
@@ -207,6 +207,7 @@ def test_energy_balance_closes_to_the_methods_order(deployment_in_water):
     assert np.all(orders > 1.9), orders
 
 
+@pytest.mark.slow  # ~45 s: two runs saved at every step
 def test_a_trajectory_that_ignores_the_drag_fails_the_balance(deployment_in_water):
     """A method that does not know the drag carries no work for it: its trajectory's balance is
     taken with the work along its path (`work_path`), and fails; the drag run's passes."""
@@ -245,7 +246,7 @@ def trail_angle_by_hand(scene) -> float:
                   0.0, np.pi / 2, xtol=1e-14)
 
 
-@pytest.mark.parametrize("elements", [1, 5])
+@pytest.mark.parametrize("elements", [1, pytest.param(5, marks=pytest.mark.slow)])
 def test_towed_body_trails_at_the_hand_worked_angle(elements):
     scene = load_scene("towed", elements=elements)
     theta = trail_angle_by_hand(scene)
@@ -291,7 +292,7 @@ def _errors(scene, tr, ref, e0):
 
 
 @pytest.mark.parametrize("method, hs, low", [
-    ("lgvi_sym", (0.004, 0.002, 0.001), 1.9),
+    pytest.param("lgvi_sym", (0.004, 0.002, 0.001), 1.9, marks=pytest.mark.slow),  # the default run: the step = autodiff
     pytest.param("lgvi_suzuki4", (0.008, 0.004, 0.002), 3.5, marks=pytest.mark.slow),
     pytest.param("lgvi_yoshida4", (0.002, 0.001, 0.0005), 3.5, marks=pytest.mark.slow),
 ])
@@ -319,6 +320,7 @@ def test_drag_orders_while_reeling(drag_reel, method, hs, low):
     assert np.all(orders[resolved] >= low), orders
 
 
+@pytest.mark.slow  # 20 to 45 s each
 @pytest.mark.parametrize("method, h, tol", [("rattle", 0.001, 1e-4), ("lie_rk4", 0.002, 1e-7),
                                             ("lgvi", 0.001, 1e-3)])
 def test_other_methods_take_the_drag(drag_reel, method, h, tol):
