@@ -215,6 +215,11 @@ class StoredRuns:
         return [r for r in self.rows if r.get("status") not in RETRY_STATUSES and r.get("run_key")]
 
 
+#: Columns of a runs table read back as text (a version "1.10" or a digest "12e5" is not a number).
+TEXT_COLUMNS = ("scene", "integrator", "setting", "status", "reason", "rhs", "implementation", "run_key", "row_digest",
+                "scene_key", "traceback", "package", "package_version", "code_digest")
+
+
 def _read_csv(path: Path):
     import pandas as pd
 
@@ -228,9 +233,7 @@ def _read_csv(path: Path):
                 row[k] = np.nan
                 continue
             try:
-                row[k] = float(v) if k not in ("scene", "integrator", "setting", "status", "reason", "rhs",
-                                               "implementation", "run_key", "row_digest", "scene_key",
-                                               "traceback") else v
+                row[k] = float(v) if k not in TEXT_COLUMNS else v
             except ValueError:
                 row[k] = v  # text where a number belongs: `check_row` says so
         if "reason" in row and _missing(row["reason"]):
@@ -556,3 +559,23 @@ def trajectory_from(arrays: dict, meta: dict):
     from integrators import Trajectory
 
     return Trajectory(**{k: arrays.get(k) for k in TRAJECTORY_ARRAYS}, **meta)
+
+
+def merge_study_table(earlier, new, key: Iterable[str]):
+    """A study's table (a DataFrame) with the rows of ``new`` in place of every row of
+    ``earlier`` that has the same values in the columns ``key`` (a run's rows replace that run's
+    rows as a whole), and ``earlier``'s other rows kept as they were, first: a study that
+    recomputes a few of its runs never drops the others. ``earlier`` may be None."""
+    import pandas as pd
+
+    key = list(key)
+    if earlier is None or earlier.empty:
+        return new.reset_index(drop=True)
+    if new is None or new.empty:
+        return earlier.reset_index(drop=True)
+    missing = [c for c in key if c not in earlier or c not in new]
+    if missing:
+        raise ValueError(f"merge_study_table: key column(s) {missing} missing")
+    replaced = pd.MultiIndex.from_frame(new[key].astype(str).drop_duplicates())
+    keep = ~pd.MultiIndex.from_frame(earlier[key].astype(str)).isin(replaced)
+    return pd.concat([earlier[keep], new], ignore_index=True)
