@@ -121,7 +121,9 @@ def cmd_run(args) -> int:
         every = [n for n in sweep.default_names(plugins=True) if get_integrator(n).default_sweep]
         if sweep.plugin_names(every):  # none installed: this is the default sweep
             args.integrators = every
-    scene_names = args.scenes or list(sweep.PAPER_SCENES)
+    if args.extended and args.scenes:
+        raise UsageError("--extended and --scenes are alternatives: give one")
+    scene_names = args.scenes or list(sweep.EXTENDED_SCENES if args.extended else sweep.PAPER_SCENES)
     ov = _overrides(args.set)
     with_t_end = {"t_end": args.t_end, **ov} if args.t_end is not None else ov  # validated with the scene
     scenes = [load_scene(s, **with_t_end) for s in scene_names]
@@ -152,7 +154,7 @@ def cmd_run(args) -> int:
 
 #: The options of `run` that make it something other than the default sweep (other rows).
 _SWEEP_OPTIONS = (("scenes", "--scenes"), ("integrators", "--integrators"), ("quick", "--quick"), ("dts", "--dts"),
-                  ("rtols", "--rtols"), ("t_end", "--t-end"), ("set", "--set"))
+                  ("rtols", "--rtols"), ("t_end", "--t-end"), ("set", "--set"), ("extended", "--extended"))
 
 
 def _run_out(args) -> str:
@@ -370,6 +372,9 @@ def cmd_xval(args) -> int:
     from models import load_scene
 
     scene = load_scene(args.scene, **({"t_end": args.t_end} if args.t_end else {}))  # plausible horizon
+    unknown = [c for c in args.cases or () if c not in xval.CASES]
+    if unknown:
+        raise UsageError(f"--cases {_csv(unknown)}: allowed {_csv(xval.CASES)}")
     xval.check_scene(scene)  # names what cannot be translated, before any work
     opt.check_size(scene, args.t_end or xval.DEFAULT_T_END, xval.OUTPUT_INTERVAL, what=f"xval of {scene.name}",
                    save_option=None)
@@ -380,7 +385,7 @@ def cmd_xval(args) -> int:
     from benchmark import pipelines
 
     return pipelines.run_xval(args.scene, ints or list(xval.DEFAULT_ELEMENTS), args.t_end or xval.DEFAULT_T_END, out,
-                              command=_command(args), log=_log)
+                              command=_command(args), log=_log, cases=args.cases)
 
 
 def cmd_reel_reversal(args) -> int:
@@ -493,6 +498,8 @@ def _add_run(sub) -> None:
             "recomputes this run's rows). Ctrl-C stops cleanly.")
     r.add_argument("--scenes", type=opt.names, help="comma-separated scene names or .toml paths "
                                                     f"(default: {_csv(sweep.PAPER_SCENES)})")
+    r.add_argument("--extended", action="store_true", help="the paper's scenes and the fluid scenes "
+                                                           f"({_csv(sweep.FLUID_SCENES)}: buoyancy and drag)")
     r.add_argument("--integrators", type=opt.names, help="comma-separated integrator names (default: the "
                                                          "project's own methods; installed plugins join when named "
                                                          "here or with --with-plugins; see `list`)")
@@ -615,7 +622,7 @@ def _add_speed(sub) -> None:
 def _add_stability(sub) -> None:
     st = sub("stability", "stability map of the hard scenes: largest stable dt (fixed step), step statistics "
                           "(adaptive) -> --out")
-    st.add_argument("--scenes", type=opt.names, help="comma-separated hard scenes (default: all seven)")
+    st.add_argument("--scenes", type=opt.names, help="comma-separated hard scenes (default: all eight)")
     st.add_argument("--integrators", type=opt.names, help="comma-separated names (default: the project's own "
                                                           "methods, implicit baselines last; a plugin runs when named)")
     st.add_argument("--jobs", type=opt.nonnegative_int, default=2, help="worker processes (0: run in this process)")
@@ -650,6 +657,8 @@ def _add_xval(sub) -> None:
     xv.add_argument("--elements", type=opt.positive_ints, help="comma-separated N >= 2 (default 5,10,20,40,80; "
                                                                "5,10,20,40,80,160 takes about 4x longer)")
     xv.add_argument("--t-end", type=opt.positive_float, help="horizon in s (default 5)")
+    xv.add_argument("--cases", type=opt.names, help="comma-separated cases of point_mass, rigid_body, in_water "
+                                                    "(default: every case the scene has)")
     xv.add_argument("--out", default="results/xval", help="output directory (created if missing)")
     xv.set_defaults(func=cmd_xval)
 

@@ -604,7 +604,7 @@ def run_check(*, update: bool = False, baseline=None, integrators=None, factor: 
 
 
 def run_xval(scene_name: str, elements, t_end: float, out: Path, *, command: str = "python -m benchmark xval",
-             log: Callable[[str], None] = log_stderr) -> int:
+             log: Callable[[str], None] = log_stderr, cases=None) -> int:
     """The cross-validation against MoorDyn and MuJoCo into ``out``; returns the exit status. The runs
     of an earlier study in ``out`` that this one does not recompute (other N) are kept and every
     file is written from the merged study (`benchmark.study_store.earlier_xval`, which refuses,
@@ -619,10 +619,10 @@ def run_xval(scene_name: str, elements, t_end: float, out: Path, *, command: str
     provenance = Provenance(command)
     scene = load_scene(scene_name)
     xval.check_scene(scene)  # refuses an untranslatable scene before any work
-    this_run = {(c, int(n)) for c in xval.cases_of(scene) for n in elements}
+    this_run = {(c, int(n)) for c in (cases or xval.cases_of(scene)) for n in elements}
     kept, kept_settings = earlier_xval(out, scene, t_end, this_run)
     try:
-        study = xval.study(scene, elements, t_end, log=log)
+        study = xval.study(scene, elements, t_end, cases=cases, log=log)
     except KeyboardInterrupt as exc:
         return engine.stopped(exc, f"{out}/ is as it was (the study writes its files when it ends)", log)
     if kept:

@@ -19,7 +19,7 @@ from benchmark import styles
 from benchmark.plots import log_ticks, plt, save_figure, style_axes
 from benchmark.report import Provenance, fmt
 from benchmark.store import write_npz, write_table
-from benchmark.xval import CFL, DT_MAX, OURS_REFINE, OUTPUT_INTERVAL, Study, case_scene, moordyn_input, mujoco_xml
+from benchmark.xval import CFL, DT_MAX, OURS_REFINE, OUTPUT_INTERVAL, WATER, Study, case_scene, moordyn_input, mujoco_xml
 from models.io import atomic_write_text
 from models.scene import Scene
 
@@ -291,7 +291,9 @@ def readme(study: Study, scene: Scene, tabs: Tables, settings: dict, provenance:
         f"- scene: `{scene.name}` at fixed length ℓ = {scene.initial.deployed_length:g} m, μ = {scene.string.mass_per_length:g} kg/m, "
         f"EA = {scene.string.axial_stiffness:g} N, m_b = {scene.body.mass:g} kg, straight unstretched start along "
         f"{[round(float(x), 6) for x in scene.initial.direction]}, tip velocity {[float(x) for x in scene.initial.tip_velocity]} m/s, "
-        f"over {settings['t_end']:g} s; point_mass = the same without `rigid_body`.",
+        f"over {settings['t_end']:g} s; point_mass = the same without `rigid_body`; in_water = point_mass in water "
+        "(buoyancy and Morison drag, `benchmark.xval.WATER`: "
+        + ", ".join(f"{k} = {v:g}" for k, v in WATER.items()) + "; MoorDyn without added mass).",
         f"- compared quantity: the attachment point r_p + q_(N+1) (the tip) at t = 0, {OUTPUT_INTERVAL:g}, … s; "
         "every distance below is the maximum over those times.",
         f"- MoorDyn and MuJoCo: RK4 at dt = min({DT_MAX:g}, {CFL:g}/ω_max), ω_max = (2/l)√(EA/μ) (dt per N in "

@@ -25,7 +25,7 @@ equations; the work of step k is (f⁻ + f⁺)·Δx / h):
 
 * reel forces (Carnot, control; s_p row only): f⁻ = f⁺ = (h/2) Q(t_k, x_k, Δs/h), implicit
   in Δs, which is already a Newton unknown;
-* string forces (axial damping; q rows and s_p row): evaluated *explicitly*, so that the
+* string forces (axial damping, fluid drag; q rows and s_p row): evaluated *explicitly*, so that the
   string rows stay a scalar tridiagonal system with a known right-hand side:
   f⁻ = (h/2) Q(t_k, x_k, w_k) with w_k = M(g_k)⁻¹ p_k (the continuous Legendre transform of
   the discrete momentum, structured O(N) solve of `models.closed_form`), and
@@ -34,7 +34,8 @@ equations; the work of step k is (f⁻ + f⁺)·Δx / h):
   predictor (Heun): second order for a fixed length (the reel terms keep first order while
   the length changes). Being explicit, it is stable only while h γ_max < 2, γ_max the largest
   eigenvalue of M⁻¹ K_d (K_d = −∂Q/∂w; γ_max ≤ 12 c/(μ l²) for the consistent-mass string):
-  a mode with rate γ is multiplied by 1 − hγ + (hγ)²/2 per step. Measured (fixed_length point
+  a mode with rate γ is multiplied by 1 − hγ + (hγ)²/2 per step. The drag's rate is about
+  ρ_f d C_n |u|/μ on the string (u the flow relative to it; `models.effects.Drag`). Measured (fixed_length point
   mass, N = 4, h = 5 ms, γ_max = 25.5 c): bounded at hγ_max = 1.95, blows up at 2.05.
   `node_forcing` / `end_forcing` / `work` are the pieces.
 """

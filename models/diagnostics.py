@@ -6,7 +6,8 @@ Attitude may be rotation matrices or (not renormalised) quaternions; the state m
 velocities or momenta (then the continuous Legendre transform recovers velocities).
 
 Columns: t, energy, kinetic, T_rot, V_gravity, V_elastic, V_reel, work, energy_minus_work,
-pi3, orthogonality_error, deployed_length, stretched_length, reel_rate, omega_1..3,
+power (Q·w of the non-conservative forces), work_path (its integral along the saved times; the
+work of a trajectory that carries none), pi3, orthogonality_error, deployed_length, stretched_length, reel_rate, omega_1..3,
 body_x..z (the attachment point r_p + q_{N+1}), tension_min, tension_max.
 ``energy`` holds only the terms of the scene's effects; ``V_gravity`` is the sum of the terms
 the `gravity` effect contributes (`StringPendulum.terms_of`); ``V_reel`` is one of them (the
@@ -26,8 +27,8 @@ from models.model import StringPendulum, build_model, quat_to_rot
 E3 = jnp.array([0.0, 0.0, 1.0])
 
 
-def point_diagnostics(model: StringPendulum, x, R, w, W) -> dict:
-    """All scalar diagnostics at one state (x, R, w) with accumulated work W."""
+def point_diagnostics(model: StringPendulum, x, R, w, W, t=0.0) -> dict:
+    """All scalar diagnostics at one state (x, R, w) at time t with accumulated work W."""
     lay = model.layout
     kin = {k: f(x, R, w) for k, f in model.kinetic_terms.items()}
     pot = {k: f(x, R) for k, f in model.potential_terms.items()}
@@ -54,6 +55,8 @@ def point_diagnostics(model: StringPendulum, x, R, w, W) -> dict:
         "V_reel": jnp.asarray(pot.get("V_reel", 0.0)),
         "work": W,
         "energy_minus_work": T + V - W,
+        # Q·w of the non-conservative forces: `evaluate` integrates it along the saved path
+        "power": model.power(t, x, w) if lay.has_work else jnp.asarray(0.0),
         "pi3": ang[2],
         "orthogonality_error": jnp.linalg.norm(jnp.eye(3) - R.T @ R) if lay.has_attitude else jnp.asarray(0.0),
         "deployed_length": model.L - model.reel_coordinate(x),
@@ -72,7 +75,7 @@ def point_diagnostics(model: StringPendulum, x, R, w, W) -> dict:
 
 @functools.lru_cache(maxsize=64)
 def _batched(model: StringPendulum, attitude_kind: str, from_momentum: bool):
-    def one(x, att, v, W):
+    def one(t, x, att, v, W):
         if not model.layout.has_attitude:
             R = jnp.eye(3)
         elif attitude_kind == "quaternion":
@@ -80,7 +83,7 @@ def _batched(model: StringPendulum, attitude_kind: str, from_momentum: bool):
         else:
             R = att
         w = model.velocity_from_momentum(x, R, v) if from_momentum else v
-        return point_diagnostics(model, x, R, w, W)
+        return point_diagnostics(model, x, R, w, W, t)
 
     return jax.jit(jax.vmap(one))
 
@@ -90,7 +93,7 @@ def evaluate(scene, trajectory) -> pd.DataFrame:
     model = build_model(scene)
     tr = trajectory
     n = len(tr.t)
-    columns = ["t"] + list(_COLUMNS)
+    columns = ["t"] + list(_COLUMNS) + ["work_path"]
     if n == 0:
         return pd.DataFrame(columns=columns)
     from_momentum = tr.velocity is None
@@ -101,17 +104,25 @@ def evaluate(scene, trajectory) -> pd.DataFrame:
     kind = tr.attitude_kind if model.layout.has_attitude else "matrix"
     work = tr.work if tr.work is not None else np.zeros(n)
     out = _batched(model, kind, from_momentum)(
-        jnp.asarray(tr.x), jnp.asarray(att), jnp.asarray(v), jnp.asarray(work, dtype=float)
+        jnp.asarray(tr.t, dtype=float), jnp.asarray(tr.x), jnp.asarray(att), jnp.asarray(v), jnp.asarray(work, dtype=float)
     )
     data = {"t": np.asarray(tr.t, dtype=float)}
     data.update({k: np.asarray(out[k], dtype=float) for k in _COLUMNS})
+    # the work of the scene's forces along the saved path (trapezoidal rule over the saved
+    # times): the balance of a trajectory that carries no work of its own (a method that does
+    # not know the scene's forces) is taken with it, so ignoring a force shows as an imbalance
+    t = data["t"]
+    data["work_path"] = np.concatenate([[0.0], np.cumsum(0.5 * np.diff(t) * (data["power"][1:] + data["power"][:-1]))])
+    if tr.work is None and model.layout.has_work:
+        data["work"] = data["work_path"]
+        data["energy_minus_work"] = data["energy"] - data["work_path"]
     if model.layout.has_attitude and kind == "quaternion":
         data["quaternion_norm_error"] = np.abs(np.linalg.norm(np.asarray(tr.attitude), axis=1) - 1.0)
     return pd.DataFrame(data)
 
 
 _COLUMNS = (
-    "energy", "kinetic", "T_rot", "V_gravity", "V_elastic", "V_reel", "work", "energy_minus_work", "pi3",
+    "energy", "kinetic", "T_rot", "V_gravity", "V_elastic", "V_reel", "work", "energy_minus_work", "power", "pi3",
     "orthogonality_error", "deployed_length", "stretched_length", "reel_rate", "omega_1", "omega_2",
     "omega_3", "body_x", "body_y", "body_z", "tension_min", "tension_max",
 )

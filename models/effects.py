@@ -142,6 +142,52 @@ class Effect:
 # --------------------------------------------------------------------------------------------
 
 
+def _weight_terms(m, per_length, body):
+    """The potential of a uniform vertical load on the deployed string and a point load at the
+    body's centre of mass: per_length (N/m, along +e3) on each element at its midpoint (exact for
+    linear elements), body (N) at r_p + q_{N+1} (+ R ρ_c). Gravity's weights (μ g, m_b g) and
+    buoyancy's (−ρ_f g A, −ρ_f g V) are this one formula with their own signs."""
+    from models._jax import jnp
+
+    e3 = jnp.asarray(E3)
+
+    def V_string(x, R):
+        q, l = m.nodes(x), m.element_length(x)
+        mid = m.r_p + 0.5 * (q[:-1] + q[1:])  # each element at its midpoint
+        return -per_length * l * jnp.sum(mid[:, 2])
+
+    # node N+1 ends one element only: weight ½ (a constant, so it is not rebuilt per call)
+    weights_e3 = np.outer(np.r_[np.ones(m.N - 1), 0.5], E3)
+
+    def dV_string(x, R):
+        q, l = m.nodes(x), m.element_length(x)
+        dq = -(per_length * l) * jnp.asarray(weights_e3)
+        # l = (L − s_p)/N: ∂V/∂s_p = w Σ mid_z / N
+        ds = jnp.sum(per_length * (2 * m.r_p[2] + q[:-1, 2] + q[1:, 2])) / (2 * m.N) if m.layout.has_reel else None
+        return m.over_w(ds=ds, dq=dq)
+
+    def V_body(x, R):
+        tip = m.r_p + m.nodes(x)[-1]
+        if m.layout.has_attitude:
+            tip = tip + R @ m.rho_c
+        return -body * tip[2]
+
+    tip_only = np.zeros((m.N, 3))
+    tip_only[-1] = -body * E3  # a constant
+
+    def dV_body(x, R):
+        # the negative moment of the load about the attachment point
+        deta = -body * jnp.cross(m.rho_c, R.T @ e3) if m.layout.has_attitude else None
+        return m.over_w(dq=jnp.asarray(tip_only), deta=deta)
+
+    return PotentialTerm(V_string, dV_string), PotentialTerm(V_body, dV_body)
+
+
+def _reach(m) -> float:
+    """The largest height difference the string and the body can span (energy scales)."""
+    return m.L + float(np.linalg.norm(m.rho_c)) + float(np.linalg.norm(m.r_d)) + m.d
+
+
 class Gravity(Effect):
     name = "gravity"
     conserves_pi3 = True
@@ -150,39 +196,8 @@ class Gravity(Effect):
     def potentials(self, m):
         from models._jax import jnp
 
-        e3 = jnp.asarray(E3)
-
-        def V_string(x, R):
-            q, l = m.nodes(x), m.element_length(x)
-            mid = m.r_p + 0.5 * (q[:-1] + q[1:])  # each element at its midpoint
-            return -m.mu * m.g * l * jnp.sum(mid[:, 2])
-
-        # node N+1 ends one element only: weight ½ (a constant, so it is not rebuilt per call)
-        weights_e3 = np.outer(np.r_[np.ones(m.N - 1), 0.5], E3)
-
-        def dV_string(x, R):
-            q, l = m.nodes(x), m.element_length(x)
-            dq = -(m.mu * m.g * l) * jnp.asarray(weights_e3)
-            # l = (L − s_p)/N: ∂V/∂s_p = μ g Σ mid_z / N
-            ds = jnp.sum(m.mu * m.g * (2 * m.r_p[2] + q[:-1, 2] + q[1:, 2])) / (2 * m.N) if m.layout.has_reel else None
-            return m.over_w(ds=ds, dq=dq)
-
-        def V_body(x, R):
-            tip = m.r_p + m.nodes(x)[-1]
-            if m.layout.has_attitude:
-                tip = tip + R @ m.rho_c
-            return -m.m_b * m.g * tip[2]
-
-        tip_only = np.zeros((m.N, 3))
-        tip_only[-1] = -m.m_b * m.g * E3  # a constant
-
-        def dV_body(x, R):
-            # the negative gravity moment about the attachment point
-            deta = -m.m_b * m.g * jnp.cross(m.rho_c, R.T @ e3) if m.layout.has_attitude else None
-            return m.over_w(dq=jnp.asarray(tip_only), deta=deta)
-
-        terms = {"V_string_gravity": PotentialTerm(V_string, dV_string),
-                 "V_body_gravity": PotentialTerm(V_body, dV_body)}
+        string, body = _weight_terms(m, m.mu * m.g, m.m_b * m.g)
+        terms = {"V_string_gravity": string, "V_body_gravity": body}
         if m.layout.has_reel:
             def V_reel(x, R):
                 """Reel-side string: the part stored on the drum and in the guide way."""
@@ -198,8 +213,7 @@ class Gravity(Effect):
 
     def energy_scale(self, m):
         # the most potential energy gravity could release over the whole string length
-        reach = m.L + float(np.linalg.norm(m.rho_c)) + float(np.linalg.norm(m.r_d)) + m.d
-        return m.g * (m.m_b + m.mu * m.L) * reach
+        return m.g * (m.m_b + m.mu * m.L) * _reach(m)
 
 
 class Elasticity(Effect):
@@ -416,6 +430,226 @@ class AxialDamping(Effect):
         return -jnp.sum(m.scene.string.axial_damping * m.element_length(x) * rate * rate)
 
 
+class Buoyancy(Effect):
+    """The weight of the displaced fluid, upward (−e3): on every element of the deployed string
+    through its volume-equivalent diameter d (ρ_f g π d²/4 per unstretched length, at the
+    element's midpoint like gravity) and on the body through its volume V (at its centre of
+    mass: a homogeneous body's centre of buoyancy). The deployed string and the body are taken
+    as wholly immersed; the reel and the guide way are not."""
+
+    name = "buoyancy"
+    needs = ("gravity",)
+    summary = "weight of the displaced fluid (fluid.density), upward: string by string.diameter, body by body.volume"
+    keys = {
+        "fluid": {"density": Key("float", "positive", required_by=("buoyancy",), only_with_effect=True)},
+        "string": {"diameter": Key("float", "positive", required_by=("buoyancy",), only_with_effect=True)},
+        "body": {"volume": Key("float", "nonnegative", default=0.0, only_with_effect=True)},
+    }
+    plausible = {"fluid.density": (1e-6, 1e5), "string.diameter": (1e-6, 1e2), "body.volume": (1e-12, 1e9)}
+
+    @staticmethod
+    def displaced_per_length(scene) -> float:
+        """ρ_f π d²/4: the fluid mass the string displaces per unstretched length, kg/m."""
+        return scene.section("fluid")["density"] * np.pi * scene.string.diameter ** 2 / 4.0
+
+    @staticmethod
+    def floats_note(scene) -> str | None:
+        """A note when the string is lighter than the fluid it displaces (allowed: it floats)."""
+        if not scene.has("buoyancy"):
+            return None
+        displaced = Buoyancy.displaced_per_length(scene)
+        if scene.string.mass_per_length >= displaced:
+            return None
+        return (f"the string floats: string.mass_per_length = {scene.string.mass_per_length:g} kg/m is less than "
+                f"the {displaced:g} kg/m of fluid it displaces (fluid.density x pi string.diameter^2 / 4); its net "
+                "weight points up, so without a heavy enough body it rises")
+
+    def check(self, checks, d, effects):
+        if self.name not in effects:
+            return
+        displaced = d["fluid"]["density"] * np.pi * d["string"]["diameter"] ** 2 / 4.0
+        if d["string"]["mass_per_length"] < displaced:
+            import warnings
+
+            warnings.warn(f"{checks.source}: the string floats: string.mass_per_length = "
+                          f"{d['string']['mass_per_length']:g} kg/m < {displaced:g} kg/m of displaced fluid "
+                          "(allowed; its net weight points up)", FloatingStringWarning, stacklevel=2)
+
+    def potentials(self, m):
+        rho = m.scene.section("fluid")["density"]
+        string, body = _weight_terms(m, -rho * m.g * np.pi * m.scene.string.diameter ** 2 / 4.0,
+                                     -rho * m.g * m.scene.section("body")["volume"])
+        return {"V_string_buoyancy": string, "V_body_buoyancy": body}
+
+    def energy_scale(self, m):
+        rho = m.scene.section("fluid")["density"]
+        volume = np.pi * m.scene.string.diameter ** 2 / 4.0 * m.L + m.scene.section("body")["volume"]
+        return m.g * rho * volume * _reach(m)
+
+
+class FloatingStringWarning(UserWarning):
+    """A scene's string is lighter than the fluid it displaces (allowed: it floats)."""
+
+
+#: 3-point Gauss–Legendre rule on [0, 1] (exact for polynomials of degree 5): the drag of the
+#: finite-element string, a smooth but non-polynomial load, integrated over each element
+GAUSS_POINTS = 0.5 + 0.5 * np.sqrt(0.6) * np.array([-1.0, 0.0, 1.0])
+GAUSS_WEIGHTS = np.array([5.0, 8.0, 5.0]) / 18.0
+
+
+def _norm(v):
+    """|v| along the last axis, with derivative 0 (not NaN) at v = 0: |v| v is differentiable there."""
+    from models._jax import jnp
+
+    vv = jnp.sum(v * v, axis=-1)
+    pos = vv > 0.0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, vv, 1.0)), 0.0)
+
+
+class Drag(Effect):
+    """Morison drag, quadratic in the velocity relative to a uniform current U (`fluid.current`).
+
+    On the string, per unstretched length, with t the unit tangent and u = U − v split into
+    u_t = (u·t) t and u_n = u − u_t: f = ½ ρ_f d (C_n |u_n| u_n + π C_t |u_t| u_t) (MoorDyn v2's
+    definitions, the π of the tangential term included: C_t refers to the wetted perimeter π d).
+    The lumped string (`string.mass_model = "lumped"`) takes it per node as MoorDyn does: the
+    node's velocity, the tangent (q_{a+1} − q_{a−1})/|…| at interior nodes and that of the
+    adjacent element at the ends, over half the unstretched length of the elements on either
+    side. The finite-element string integrates f over each element by `GAUSS_POINTS` with its
+    linear shape functions, at the material velocity (with a reel the material slides through
+    the nodes: v = (1−ξ) v_a + ξ v_{a+1} + Δ_a ṡ_p ((a−1+ξ)/N − 1)/l, the same axial flow as in
+    the kinetic energy), and gives s_p its share ∫ f·∂r/∂s_p. On the body, at its centre of
+    mass: ½ ρ_f (C_d A) |U − v| (U − v). With a current the fluid can do positive work, so the
+    effect does not claim to be dissipative."""
+
+    name = "drag"
+    needs = ("buoyancy",)
+    forcing = True
+    summary = "Morison drag on the string (string.normal_drag, tangential_drag) and the body (body.drag_area)"
+    keys = {
+        "fluid": {"current": Key("vec3", default=(0.0, 0.0, 0.0), only_with_effect=True)},
+        "string": {"normal_drag": Key("float", "nonnegative", required_by=("drag",), only_with_effect=True),
+                   "tangential_drag": Key("float", "nonnegative", required_by=("drag",), only_with_effect=True)},
+        "body": {"drag_area": Key("float", "nonnegative", default=0.0, only_with_effect=True)},
+    }
+    plausible = {"fluid.current": (0.0, 1e3), "string.normal_drag": (1e-6, 1e3), "string.tangential_drag": (1e-6, 1e3),
+                 "body.drag_area": (1e-12, 1e6)}
+
+    def check(self, checks, d, effects):
+        if self.name not in effects or "rigid_body" not in effects:
+            return
+        rho_c = d["body"]["attachment_to_com"]
+        if d["body"]["drag_area"] > 0 and any(c != 0.0 for c in rho_c):
+            # the body's drag at its centre of mass would put a moment on the attitude and depend
+            # on Ω and R, which forces on (s_p, q) (`Effect.string_forces`) cannot carry
+            raise checks.refuse(
+                f"key 'body.drag_area' = {d['body']['drag_area']!r} with effect 'rigid_body' needs "
+                f"body.attachment_to_com = [0, 0, 0] (the drag then acts at the attachment point, the centre of "
+                f"mass; with an offset it would put a moment on the body, which is not modelled): allowed "
+                f"drag_area = 0, a zero offset, or a point-mass body", "body.drag_area")
+
+    # -- the pieces ---------------------------------------------------------------------------
+    @staticmethod
+    def _params(m):
+        fluid, st, body = m.scene.section("fluid"), m.scene.string, m.scene.section("body")
+        half_rho = 0.5 * fluid["density"]
+        return (half_rho * st.diameter * st.normal_drag, half_rho * st.diameter * np.pi * st.tangential_drag,
+                half_rho * body["drag_area"], np.asarray(fluid["current"], dtype=float))
+
+    @staticmethod
+    def _morison(kn, kt, u, t):
+        """kn |u_n| u_n + kt |u_t| u_t for relative velocities u and unit tangents t (…, 3)."""
+        from models._jax import jnp
+
+        ut = jnp.sum(u * t, axis=-1, keepdims=True) * t
+        un = u - ut
+        return kn * _norm(un)[..., None] * un + kt * _norm(ut)[..., None] * ut
+
+    def _element_loads(self, m, x, w):
+        """FE string: per Gauss point g, (f_g (N, 3) per unstretched length, material velocity v_g
+        (N, 3), ∂r/∂s_p β_g Δ (N, 3) or None)."""
+        from models._jax import jnp
+
+        kn, kt, _, U = self._params(m)
+        q, v, l = m.nodes(x), m.node_velocities(w), m.element_length(x)
+        delta = q[1:] - q[:-1]
+        t = delta / _norm(delta)[:, None]
+        a = np.arange(1, m.N + 1, dtype=float)
+        out = []
+        for xi in GAUSS_POINTS:
+            vg = (1.0 - xi) * v[:-1] + xi * v[1:]
+            ds_dir = None
+            if m.layout.has_reel:
+                # a material point at (a−1+ξ) l from the exit moves along the element as s_p changes
+                ds_dir = jnp.asarray(((a - 1.0 + xi) / m.N - 1.0))[:, None] * delta / l
+                vg = vg + ds_dir * m.reel_rate(w)
+            out.append((self._morison(kn, kt, jnp.asarray(U) - vg, t), vg, ds_dir))
+        return out
+
+    def _node_loads(self, m, x, w):
+        """Lumped string (MoorDyn's nodes): forces on nodes 2 … N+1 (N, 3) and their velocities."""
+        from models._jax import jnp
+
+        kn, kt, _, U = self._params(m)
+        q, v, l = m.nodes(x), m.node_velocities(w), m.element_length(x)
+        ahead = jnp.concatenate([q[2:], q[-1:]], axis=0)  # q_{a+1}, a = 2 … N+1 (q_{N+1} at the end)
+        t = ahead - q[:-1]  # q_{a+1} − q_{a−1}; at node N+1: q_{N+1} − q_N
+        t = t / _norm(t)[:, None]
+        length = jnp.asarray(np.r_[np.ones(m.N - 1), 0.5])[:, None] * l  # half of each adjacent element
+        vn = v[1:]
+        return length * self._morison(kn, kt, jnp.asarray(U) - vn, t), vn
+
+    def _body_load(self, m, w):
+        _, _, kb, U = self._params(m)
+        u = U - m.node_velocities(w)[-1]
+        return kb * _norm(u) * u
+
+    # -- the hooks ----------------------------------------------------------------------------
+    def string_forces(self, m):
+        from models._jax import jnp
+
+        lumped = m.scene.string.mass_model == "lumped"
+
+        def Q(t, x, w):
+            """Drag as a generalized force: on the nodes (and s_p) by the virtual work ∫ f·δr."""
+            if lumped:
+                fq, _ = self._node_loads(m, x, w)
+                ds = None
+            else:
+                l = m.element_length(x)
+                left = right = 0.0
+                ds = 0.0
+                for wg, xi, (f, _, ds_dir) in zip(GAUSS_WEIGHTS, GAUSS_POINTS, self._element_loads(m, x, w)):
+                    left = left + (wg * (1.0 - xi) * l) * f
+                    right = right + (wg * xi * l) * f
+                    if ds_dir is not None:
+                        ds = ds + wg * l * jnp.sum(ds_dir * f)
+                # node b = 2 … N+1 ends element b−1 (right share) and starts element b (left share)
+                fq = right + jnp.concatenate([left[1:], jnp.zeros((1, 3))], axis=0)
+                ds = ds if m.layout.has_reel else None
+            fq = fq.at[-1].add(self._body_load(m, w))
+            return m.over_w(ds=ds, dq=fq)
+
+        return {"Q_drag": Q}
+
+    def power(self, m, t, x, w):
+        """∫ f·v over the string (the same quadrature, at the material velocity) + f_body·v_body."""
+        from models._jax import jnp
+
+        if m.scene.string.mass_model == "lumped":
+            f, v = self._node_loads(m, x, w)
+            P = jnp.sum(f * v)
+        else:
+            l = m.element_length(x)
+            P = sum(wg * l * jnp.sum(f * vg) for wg, (f, vg, _) in zip(GAUSS_WEIGHTS, self._element_loads(m, x, w)))
+        return P + self._body_load(m, w) @ m.node_velocities(w)[-1]
+
+    def energy_scale(self, m):
+        # what a current can give the string and the body: twice their kinetic energy at its speed
+        U = np.asarray(m.scene.section("fluid")["current"], dtype=float)
+        return (m.m_b + m.mu * m.L) * float(U @ U)
+
+
 # --------------------------------------------------------------------------------------------
 # Registry
 # --------------------------------------------------------------------------------------------
@@ -523,7 +757,8 @@ def effect_keys() -> dict[str, dict[str, Key]]:
     return out
 
 
-for _e in (Gravity(), Elasticity(), RigidBody(), Reel(), Carnot(), ReelControl(), Slack(), AxialDamping()):
+for _e in (Gravity(), Elasticity(), RigidBody(), Reel(), Carnot(), ReelControl(), Slack(), AxialDamping(), Buoyancy(),
+           Drag()):
     EFFECTS[_e.name] = _e
 _BUILTIN = frozenset(EFFECTS)
 

@@ -76,6 +76,11 @@ class StringParams:
     elements: int  # N
     axial_damping: float | None = None  # c, N s (only with effect `axial_damping`)
     mass_model: str = "consistent"  # the string's element mass matrix (models.model.STRING_MASS)
+    # the fluid's string keys, out of the repr (a scene without them reads as before they existed;
+    # `Scene.raw` holds them for the key and the comparison)
+    diameter: float | None = dataclasses.field(default=None, repr=False)  # d, m (only with `buoyancy`)
+    normal_drag: float | None = dataclasses.field(default=None, repr=False)  # C_n (only with `drag`)
+    tangential_drag: float | None = dataclasses.field(default=None, repr=False)  # C_t (only with `drag`)
 
 
 @dataclass(frozen=True)

@@ -9,6 +9,24 @@ from integrators.base import Trajectory
 from models import build_model, load_scene
 
 
+#: The fluid's keys of the water scenes (drag and buoyancy), as `scene_with_effects` adds them
+WATER = {"fluid.density": 1025.0, "string.diameter": 0.007, "normal_drag": 1.3, "tangential_drag": 0.02,
+         "body.volume": 2e-4}
+#: a fluid test scene's body drag (with a rigid body at zero offset: the drag acts at its centre of mass)
+BODY_DRAG_AREA = 0.05
+
+
+def fluid_combinations():
+    """Effect lists with the fluid effects: buoyancy alone, and drag at a fixed length and with a reel,
+    each with a point mass and a rigid body."""
+    out = []
+    for body in ([], ["rigid_body"]):
+        out.append(["elasticity", "gravity", *body, "buoyancy"])
+        out.append(["elasticity", "gravity", *body, "buoyancy", "drag"])
+        out.append(["elasticity", "gravity", *body, "reel", "carnot", "reel_control", "buoyancy", "drag"])
+    return out
+
+
 def effect_combinations():
     """Every valid effect list (elasticity always present)."""
     out = []
@@ -33,6 +51,13 @@ def scene_with_effects(effects, elements=3, **overrides):
         kw["control_moment"] = 0.0
     if "reel" in effects:
         kw["reel_rate"] = -0.7
+    if "buoyancy" in effects:
+        kw.update({k: v for k, v in WATER.items() if k != "normal_drag" and k != "tangential_drag"})
+    if "drag" in effects:
+        kw.update(normal_drag=WATER["normal_drag"], tangential_drag=WATER["tangential_drag"],
+                  **{"body.drag_area": BODY_DRAG_AREA, "fluid.current": [0.3, -0.2, 0.1]})
+        if "rigid_body" in effects:
+            kw["attachment_to_com"] = [0.0, 0.0, 0.0]
     kw.update(overrides)
     return load_scene("retrieval", **kw)
 

@@ -18,7 +18,7 @@ from models._jax import jax, jnp
 from models.closed_form import ClosedFormEOM
 import models.closed_form as closed_form_module
 
-from _helpers import effect_combinations, scene_with_effects
+from _helpers import effect_combinations, fluid_combinations, scene_with_effects
 
 RTOL = 1e-10
 FULL = ["elasticity", "gravity", "rigid_body", "reel", "carnot", "reel_control"]
@@ -95,7 +95,7 @@ def _check(model, variants, rng, n=2, dense=False):
     return ref
 
 
-@pytest.mark.parametrize("effects", effect_combinations(), ids=lambda e: "+".join(e))
+@pytest.mark.parametrize("effects", effect_combinations() + fluid_combinations(), ids=lambda e: "+".join(e))
 def test_closed_form_matches_autodiff(effects, rng):
     model = build_model(scene_with_effects(effects, elements=SWEEP_ELEMENTS))
     cf = ClosedFormEOM(model)

@@ -26,7 +26,8 @@ def closure(names):
     return [n for n in EFFECTS if n in out]
 
 
-BUILTIN_FULL = ["gravity", "elasticity", "rigid_body", "reel", "carnot", "reel_control", "slack", "axial_damping"]
+BUILTIN_FULL = ["gravity", "elasticity", "rigid_body", "reel", "carnot", "reel_control", "slack", "axial_damping",
+                "buoyancy", "drag"]
 
 
 def scenes_for(name, **extra):
@@ -36,6 +37,8 @@ def scenes_for(name, **extra):
         kw = {"axial_damping": 0.3} if "axial_damping" in names else {}
         kw.update(extra)
         out.append(scene_with_effects(names, elements=3, **kw))
+    if name in ("buoyancy", "drag"):  # the lumped string takes the fluid forces per node (MoorDyn's)
+        out.append(scene_with_effects(closure([name]), elements=3, mass_model="lumped", **extra))
     return out
 
 
@@ -97,8 +100,8 @@ def test_registry_declarations_are_consistent():
         for section, keys in effect.keys.items():
             for key, spec in keys.items():
                 assert not (isinstance(BASE_SCHEMA.get(section), dict) and key in BASE_SCHEMA[section])
-                if spec.only_with_effect:
-                    assert spec.required_by and name in spec.required_by
+                if spec.only_with_effect:  # required by its effect, or an optional key of it (a default)
+                    assert (spec.required_by and name in spec.required_by) or spec.default is not None
         for key in effect.plausible:
             section, k = key.split(".")
             assert k in effect.keys.get(section, {}), f"{name} bounds a key it does not own: {key}"

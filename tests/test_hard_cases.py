@@ -16,7 +16,7 @@ from models import available_scenes, build_model, load_scene
 from models.diagnostics import evaluate, summary
 
 HARD = ("stiff_string", "many_elements", "fast_spin", "retrieval_to_limit", "deployment_to_end", "long_horizon",
-        "near_slack")
+        "near_slack", "strong_drag")
 NAMED = {s.value for s in Status} - {"ok"}
 
 
@@ -53,6 +53,7 @@ def test_hard_scenes_ship_with_their_defining_values():
     r = load_scene("retrieval_to_limit")
     assert r.has("reel_control") and r.reel.min_deployed_length > 0
     assert load_scene("deployment_to_end").t_end > 9.2  # the string runs out at t ~ 9.2 s
+    assert load_scene("strong_drag").section("fluid")["current"] == [0.0, 3.0, 0.0]
 
 
 def test_near_slack_start_is_compressed_by_five_percent():

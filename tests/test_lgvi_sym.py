@@ -108,7 +108,8 @@ def test_symmetric_discrete_lagrangian_is_self_adjoint(rng):
     ["elasticity", "gravity", "reel", "carnot", "reel_control"],
     ["elasticity", "gravity", "rigid_body", "reel", "carnot", "reel_control", "slack", "axial_damping"],
     ["elasticity", "gravity", "axial_damping"],
-], ids=["rigid_reel", "point_reel", "rigid_reel_damped", "point_fixed_damped"])
+    ["elasticity", "gravity", "reel", "carnot", "reel_control", "buoyancy", "drag"],
+], ids=["rigid_reel", "point_reel", "rigid_reel_damped", "point_fixed_damped", "point_reel_in_water"])
 def test_production_steps_satisfy_autodiff_equations(effects):
     kw = {"axial_damping": C_DAMP} if "axial_damping" in effects else {}
     scene = scene_with_effects(effects, elements=3, **kw)

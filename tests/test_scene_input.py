@@ -34,6 +34,8 @@ SHIPPED = {
     "fixed_length": "fa1733f4fd711dcf", "long_horizon": "44b78f625727340a", "many_elements": "0a0ec1ed46b08b5d",
     "near_slack": "434c0a2a6e439519", "reel_reversal": "c6edc11cd2cd083a", "retrieval": "389ce5bb81575649",
     "retrieval_to_limit": "c83b6b61137bb40b", "stiff_string": "b31f94537d6f16ec",
+    # the fluid scenes (added with the buoyancy and drag effects)
+    "deployment_in_water": "6efa15e901743d9d", "strong_drag": "d15c547f65ed3673", "towed": "0d82fba9eee8b1df",
 }
 
 
