@@ -229,8 +229,9 @@ def cmd_check(args) -> int:
                          f"repository's root directory, or give --baseline PATH")
     # how the baseline was produced, for its header (the options that change its content)
     command = check.UPDATE_COMMAND + "".join(f" --{k} {shlex.quote(v)}" for k, v in
-                                             (("integrators", args.integrators), ("baseline", args.baseline)) if v)
-    names = [v.strip() for v in args.integrators.split(",") if v.strip()] if args.integrators else None
+                                             (("integrators", ",".join(args.integrators or ())),
+                                              ("baseline", args.baseline)) if v)
+    names = args.integrators  # a list (opt.names: "," is refused by the parser, it would select every method)
     for name in names or ():
         _check_integrator(name)  # before the baseline is read
     opt.check_tolerance_rules(2.0 if args.factor is None else args.factor,
@@ -422,7 +423,8 @@ def _add_check(sub) -> None:
                      "exit 1 on a regression (rules in benchmark/check.py)")
     c.add_argument("--update", action="store_true", help="rewrite the baseline from this run instead of failing")
     c.add_argument("--baseline", help="baseline CSV (default: results/baseline/drift.csv, run from the repository root)")
-    c.add_argument("--integrators", help="comma-separated names (default: all registered except test_*)")
+    c.add_argument("--integrators", type=opt.names,
+                   help="comma-separated names (default: all registered except test_*)")
     c.add_argument("--factor", type=opt.number,
                    help="a drift or error fails when worse than FACTOR x baseline, above its floor (default: 2)")
     c.add_argument("--order-margin", type=opt.number,

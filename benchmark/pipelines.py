@@ -419,8 +419,8 @@ def run_check(*, update: bool = False, baseline=None, integrators=None, factor: 
     tasks = check.build_check_tasks(integrators) if tasks is None else tasks
     old = check.baseline_for(baseline, update=update, warn=log or echo)
     table = old.table if old is not None else None
-    if not update:
-        check.comparable(table, tasks, baseline, allow_new)
+    unknown = [] if update else check.comparable(table, tasks, baseline, allow_new)
+    tasks = [t for t in tasks if t.integrator not in set(unknown)]  # nothing to compare them with
     try:
         current = check.measure(tasks, executor=executor, jobs=jobs, cache_dir=cache_dir or str(CACHE_DIR),
                                 costs=check.costs_of(table), log=log)
@@ -428,10 +428,18 @@ def run_check(*, update: bool = False, baseline=None, integrators=None, factor: 
         return engine.stopped(exc, "the baseline was not changed", log or log_stderr)
     cmp = check.compare(table, current, tol) if old is not None else None
     if cmp is not None:
+        cmp.notes += check.not_gated(unknown)
         echo(check.format_report(cmp, tol, baseline, old.header))
         if not update and cmp.compared == 0:
             raise ValueError(f"baseline {baseline}: no row of this check was compared (a check of nothing cannot pass)")
     if update:
+        problems = check.row_problems(current.set_axis(range(1, len(current) + 1)))
+        if problems:  # a baseline that could not fail is not written (the old one stays)
+            lines = [f"  {why}" for _, why in problems[:10]]
+            echo("\n".join([f"baseline NOT written: {len(problems)} row(s) of this sweep could not fail a check "
+                             f"(fix the method, or leave it out with --integrators); {baseline} is unchanged:",
+                             *lines]))
+            return 1
         path = check.write_baseline(check.merge(table, current), baseline, provenance=provenance,
                                     sweep_note=check.describe(tasks))
         echo(f"baseline written: {path} ({len(current)} rows recomputed)")
