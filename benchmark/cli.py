@@ -128,7 +128,8 @@ def cmd_run(args) -> int:
         quick=args.quick, dts=tuple(args.dts) if args.dts else None, rtols=tuple(args.rtols) if args.rtols else None,
         t_end=args.t_end, overrides=tuple(sorted((k, v) for k, v in ov.items() if k != "t_end")), jobs=args.jobs,
         executor=args.executor, scheduler=args.scheduler, repeats=args.repeats, horizon=args.horizon,
-        figures=not args.no_figures, fresh=args.fresh, compare_with=tuple(args.compare_with or ()), command=_command(args)), log=_log)
+        figures=not args.no_figures, fresh=args.fresh, compare_with=tuple(args.compare_with or ()), command=_command(args),
+        accept_legacy=args.accept_legacy), log=_log)
 
 
 #: The options of `run` that make it something other than the default sweep (other rows).
@@ -407,6 +408,9 @@ def _add_run(sub) -> None:
                         f"{sweep.FULL_HORIZON:g}; --quick: {sweep.QUICK_HORIZON:g})")
     r.add_argument("--no-figures", action="store_true", help="skip the figures and the energy study")
     r.add_argument("--fresh", action="store_true", help="recompute every run, ignoring rows already in OUT/runs.csv")
+    r.add_argument("--accept-legacy", action="store_true",
+                   help="keep the rows of OUT/runs.csv written before row digests covered every column (checked by "
+                        "range only, then written with digests); without it such a table is refused")
     r.add_argument("--compare-with", type=opt.runs_table, metavar="RUNS.csv", action="append",
                    help="an earlier run's runs.csv: the README then says which conclusions changed and by how much "
                         "(give it more than once to compare with several, e.g. the last committed run and a second "

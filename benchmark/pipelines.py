@@ -53,6 +53,7 @@ class SweepRequest:
     figures: bool = True
     fresh: bool = False
     compare_with: tuple[str, ...] = ()  # earlier runs.csv files, one README section each
+    accept_legacy: bool = False  # keep rows of --out that predate full row digests (then given digests)
     command: str = "python -m benchmark run"
 
     @property
@@ -126,16 +127,23 @@ def _merge_plan(request: SweepRequest, tasks, stored: store.StoredRuns, path: Pa
     """Refuse a run whose rows cannot join the table in its --out (before any work), set aside
     the untrusted rows no recomputation will replace, and say in one line what the run replaces."""
     names, scenes = _this_run(request, tasks)
+    mine = {(names[t.scene], t.integrator, t.setting) for t in tasks}
+    legacy = [r for r in stored.legacy if store.identity_of(r) not in mine]  # kept, not recomputed by this run
+    if legacy and not request.accept_legacy:
+        raise ValueError(f"{path}: {len(legacy)} row(s) this run keeps predate row digests over every column (their "
+                         "timings and flops cannot be verified), e.g. " + store.describe_row(legacy[0]) + ": pass "
+                         "--accept-legacy once to keep them (checked by range, then written with digests), or move "
+                         f"{path} away to start over")
     conflicts = store.merge_conflicts(stored.rows, scenes)
     if conflicts:
         raise ValueError(f"{path} cannot take this run's rows: {'; '.join(conflicts)}. A table holds one horizon and "
                          "one set of scene values per scene: give another --out (a scratch directory), or move "
                          f"{path} away to start over")
-    mine = {(names[t.scene], t.integrator, t.setting) for t in tasks}
     aside = [(r, why) for r, why in stored.rejected if store.identity_of(r) not in mine]
     if aside:
         rejected = path.with_name("runs.rejected.csv")
-        earlier = store.read_runs(rejected).rows + [r for r, _ in store.read_runs(rejected).rejected]
+        before = store.read_runs(rejected)
+        earlier = before.rows + [r for r, _ in before.rejected]
         store.write_table(rejected, store.frame(store.merge_rows(earlier, [dict(r, rejected_because=why)
                                                                           for r, why in aside]), []))
         log(f"warning: {len(aside)} untrusted row(s) of {path} are outside this run and were moved to {rejected}: "
@@ -146,8 +154,12 @@ def _merge_plan(request: SweepRequest, tasks, stored: store.StoredRuns, path: Pa
     where = "the committed results" if is_committed_results(request.out) else str(path)
     log(f"{where}: this run writes {len(mine)} row(s) of {len(scenes)} scene(s) ({replaced} replacing rows there, "
         f"{len(mine) - replaced} new) and keeps the other {kept} row(s) as they are"
-        + (f" ({stored.unverified} of the kept rows predate row digests: checked by range only)"
-           if stored.unverified else ""))
+        + (f" ({len(legacy)} of them predate row digests: accepted by --accept-legacy, checked by range and "
+           "written with digests)" if legacy else "")
+        + (f"; {len(stored.legacy) - len(legacy)} row(s) predating row digests are recomputed"
+           if len(stored.legacy) > len(legacy) else ""))
+    if request.accept_legacy:
+        stored.accept_legacy()
 
 
 def _sweep(request: SweepRequest, runs_csv: store.TableWriter, log) -> int:

@@ -336,3 +336,137 @@ def test_a_scene_file_that_cannot_be_a_scene_is_one_error_line_for_every_command
         err, line = outcome(capsys)
         assert rc == 2 and str(path) in line and fragment in line, (args, err)
     assert not (tmp_path / "o").exists()
+
+
+# ------------------------------------------------------------------------------------------
+# The results store fails closed: a table it cannot read whole is kept, its rows salvaged one
+# by one; a row whose digest was removed or whose timings were edited is not trusted
+# ------------------------------------------------------------------------------------------
+def stored_row(scene="deployment", setting="dt=0.01", **values) -> dict:
+    """A finished row as the runner writes it (with its digest), of a scene other than TINY's."""
+    from benchmark import runner
+
+    row = {"scene": scene, "scene_key": "abc", "integrator": "lgvi", "setting": setting, "dt": 0.01,
+           "rtol": np.nan, "atol": np.nan, "t_end": 2.0, "status": "ok", "reason": "", "rhs": "closed_form",
+           "steps": 200, "newton_iterations": 600.0, "work_evals": 600.0, "run_time": 0.002,
+           "run_time_low": 0.0015, "run_time_high": 0.004, "timing_repeats": 30, "compile_time": 2.0,
+           "energy_error": 3e-5, "pi3_error": 1e-13, "orthogonality_error": 1e-14, "position_error_final": 9e-3,
+           "position_error_max": 1e-2, "attitude_error_final": 0.2, "attitude_error_max": 0.2, "t_reached": 2.0,
+           "implementation": "jax-compiled", "load_avg": 2.5, "us_per_eval": 6.7, "flops": 1.2e7, **values}
+    return runner.finish_row(row, f"key-{scene}-{setting}")
+
+
+def table_bytes(rows) -> bytes:
+    from benchmark import runner
+
+    return runner.runs_frame(rows).to_csv(index=False).encode()
+
+
+def many_rows(n=160) -> list[dict]:
+    return [stored_row(setting=f"dt={0.01 / (k + 1):.6g}", dt=0.01 / (k + 1), steps=200 * (k + 1),
+                       position_error_final=9e-3 / (k + 1) ** 2) for k in range(n)]
+
+
+def _with_stray_byte(data: bytes) -> bytes:
+    lines = data.split(b"\n")
+    lines[5] = lines[5].replace(b",ok,", b",ok\xff,", 1)  # one non-UTF-8 byte in one row
+    return b"\n".join(lines)
+
+
+@pytest.mark.parametrize("content, why, kept", [
+    (lambda: _with_stray_byte(table_bytes(many_rows())), "a byte that is not UTF-8", 159),
+    (lambda: b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR" + bytes(range(256)), "not UTF-8", 0),
+    (lambda: b"", "empty", 0),
+    (lambda: b"name,price\nwidget,3\n", "not a runs table: no column(s) scene, integrator, setting, status", 0),
+    (lambda: table_bytes(many_rows(3) + many_rows(1)), "1 row(s) repeat", 3),
+], ids=["a stray byte", "binary", "empty", "foreign", "an exact repeat"])
+def test_a_table_that_cannot_be_read_whole_is_kept_intact_and_its_rows_salvaged(tmp_path, content, why, kept):
+    from benchmark import store
+
+    path = tmp_path / "runs.csv"
+    data = content()
+    path.write_bytes(data)
+    said = []
+    got = store.read_runs(path, log=said.append)
+    assert len(got.rows) == kept and got.aside is not None and got.aside.read_bytes() == data
+    assert got.aside.parent == tmp_path and got.aside.name.startswith("runs.unreadable-")
+    (line,) = [s for s in said if "cannot be read whole" in s]
+    assert why in line and f"kept {kept} trusted row(s)" in line and str(got.aside) in line, said
+    assert path.read_bytes() == data  # nothing is removed until the run writes its table
+
+
+def test_rows_that_repeat_with_different_values_are_caught_on_read_none_trusted(tmp_path):
+    from benchmark import store
+
+    path = tmp_path / "runs.csv"
+    path.write_bytes(table_bytes(many_rows(2) + [stored_row(setting="dt=0.01", energy_error=5e-5)]))
+    said = []
+    got = store.read_runs(path, log=said.append)
+    assert [r["setting"] for r in got.rows] == ["dt=0.005"] and len(got.rejected) == 2, got.rejected
+    assert all("appears 2 times with different values (lines 2, 4)" in why for _, why in got.rejected)
+    assert got.aside is not None and got.aside.is_file()
+
+
+def test_a_sweep_into_a_table_with_a_stray_byte_keeps_its_other_rows(tmp_path, capsys):
+    """160 rows of another scene and one non-UTF-8 byte once left 3 rows and no copy."""
+    import pandas as pd
+
+    out = tmp_path / "out"
+    out.mkdir()
+    data = _with_stray_byte(table_bytes(many_rows()))
+    (out / "runs.csv").write_bytes(data)
+    rc = main(TINY + ["--dts", "0.01", "--out", str(out)])
+    err, line = outcome(capsys)
+    assert rc == 0, err
+    (aside,) = out.glob("runs.unreadable-*.csv")
+    assert aside.read_bytes() == data
+    said = [s for s in err.splitlines() if "cannot be read whole" in s]
+    assert len(said) == 1 and "kept 159 trusted row(s)" in said[0] and "the other 1 are in that copy" in said[0]
+    table = pd.read_csv(out / "runs.csv")
+    assert len(table) == 160 and (table["scene"] == "deployment").sum() == 159
+
+
+@pytest.mark.parametrize("edit", [
+    {"run_time": 1e-9, "run_time_low": 1e-9, "run_time_high": 1e-9}, {"flops": 1.0}, {"us_per_eval": 1e-6},
+    {"compile_time": 0.0}, {"energy_error": 1e-12},
+], ids=["run times", "flops", "us_per_eval", "compile_time", "energy_error"])
+def test_every_column_a_conclusion_reads_is_covered_by_the_digest(tmp_path, edit):
+    from benchmark import store
+
+    rows = many_rows(2)
+    path = tmp_path / "runs.csv"
+    path.write_bytes(table_bytes([{**rows[0], **edit}, rows[1]]))
+    got = store.read_runs(path)
+    assert len(got.rows) == 1 and "do not match the digest" in got.rejected[0][1], got.rejected
+
+
+def test_a_row_whose_digest_was_blanked_is_tampered(tmp_path):
+    from benchmark import store
+
+    rows = many_rows(3)
+    path = tmp_path / "runs.csv"
+    path.write_bytes(table_bytes([{**rows[0], "row_digest": "", "energy_error": 1e-12}, *rows[1:]]))
+    got = store.read_runs(path)
+    assert len(got.rows) == 2 and not got.legacy
+    assert "no row digest, where the table's other rows have one" in got.rejected[0][1]
+
+
+def test_rows_from_before_digests_need_an_explicit_one_time_accept_legacy(tmp_path, capsys):
+    import pandas as pd
+
+    from benchmark import store
+
+    out = tmp_path / "out"
+    out.mkdir()
+    legacy = pd.read_csv(__import__("io").BytesIO(table_bytes(many_rows(3)))).drop(columns=["row_digest"])
+    legacy.to_csv(out / "runs.csv", index=False)
+    before = (out / "runs.csv").read_bytes()
+    rc = main(TINY + ["--dts", "0.01", "--out", str(out)])
+    err, line = outcome(capsys)
+    assert rc == 2 and "3 row(s) this run keeps predate row digests" in line and "--accept-legacy" in line, err
+    assert (out / "runs.csv").read_bytes() == before
+    rc = main(TINY + ["--dts", "0.01", "--out", str(out), "--accept-legacy"])
+    err, line = outcome(capsys)
+    assert rc == 0 and "3 of them predate row digests: accepted by --accept-legacy" in err, err
+    again = store.read_runs(out / "runs.csv")  # one time: they now carry digests
+    assert len(again.rows) == 4 and not again.legacy and not again.rejected
