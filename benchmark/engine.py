@@ -270,8 +270,8 @@ class Progress:
         elapsed = time.perf_counter() - self.start
         left = self.seconds_left() if self.new < self.todo else None
         eta = f", about {left:.0f} s left" if left is not None else ""
+        self.saved()  # on disk first: a row printed as finished is never lost to a stop that follows
         self.log(f"[{len(self.rows)}/{self.total}] {self.describe(row)}  ({elapsed:.0f} s elapsed{eta})")
-        self.saved()
 
     def saved(self) -> None:
         if self.on_row:

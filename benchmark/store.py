@@ -600,19 +600,60 @@ class OutputLock:
         return True
 
     def acquire(self) -> "OutputLock":
+        from models.io import WriteFailed
+
         me = {"pid": os.getpid(), "host": socket.gethostname(), "command": " ".join(sys.argv)}
-        self.path.parent.mkdir(parents=True, exist_ok=True)  # the command line checks --out without creating it
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)  # the command line checks --out without creating it
+        except OSError as exc:
+            raise WriteFailed(exc.errno, exc.strerror or str(exc), str(self.path.parent)) from None
         for _ in range(3):
             try:
                 fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
             except FileExistsError:
                 self._refuse_or_take_over()
                 continue
-            with os.fdopen(fd, "w") as fh:
-                json.dump(me, fh)
+            except OSError as exc:  # read-only, full, ...: the `cannot write FILE` line, no lock left
+                raise WriteFailed(exc.errno, exc.strerror or str(exc), str(self.path)) from None
+            try:
+                with os.fdopen(fd, "w") as fh:
+                    json.dump(me, fh)
+            except OSError as exc:
+                self.path.unlink(missing_ok=True)
+                raise WriteFailed(exc.errno, exc.strerror or str(exc), str(self.path)) from None
             self.held = True
+            self._remove_stale_temporaries()
             return self
         raise LockedError(f"could not take the lock {self.path}; delete it if no run is using {self.path.parent}/")
+
+    #: Temporaries of the atomic writer (`models.io.atomic_path`: ".NAME.XXXXXXXX.tmp.SUFFIX")
+    #: unchanged this long are stale: a live write rewrites its file as it goes and renames it
+    #: within moments.
+    STALE_AFTER = 5.0
+
+    def _remove_stale_temporaries(self) -> None:
+        """Delete what a run killed with -9 left of its atomic writes in the directory and its
+        cache (with the lock held, no study of this directory is writing)."""
+        import re
+
+        pattern = re.compile(r"^\..+\.[A-Za-z0-9_]{8}\.tmp(\.[^./]+)?$")
+        now, removed = time.time(), []
+        for d in (self.path.parent, self.path.parent / "cache"):
+            try:
+                entries = list(os.scandir(d))
+            except OSError:
+                continue
+            for e in entries:
+                try:
+                    if (pattern.match(e.name) and e.is_file(follow_symlinks=False)
+                            and now - e.stat(follow_symlinks=False).st_mtime > self.STALE_AFTER):
+                        os.unlink(e.path)
+                        removed.append(e.name)
+                except OSError:
+                    continue
+        if removed and self.log:
+            self.log(f"removed {len(removed)} temporary file(s) an interrupted run left in {self.path.parent}/: "
+                     + ", ".join(removed[:5]) + (" ..." if len(removed) > 5 else ""))
 
     def _refuse_or_take_over(self) -> None:
         """LockedError naming the holder if it is alive; else remove its stale lock."""
@@ -634,7 +675,10 @@ class OutputLock:
         if self.held:
             holder = self._holder()
             if holder is None or holder.get("pid") == os.getpid():
-                self.path.unlink(missing_ok=True)
+                try:
+                    self.path.unlink(missing_ok=True)
+                except OSError:  # a file system gone read-only: the lock is stale, taken over next time
+                    pass
             self.held = False
 
     def __enter__(self) -> "OutputLock":

@@ -470,3 +470,86 @@ def test_rows_from_before_digests_need_an_explicit_one_time_accept_legacy(tmp_pa
     assert rc == 0 and "3 of them predate row digests: accepted by --accept-legacy" in err, err
     again = store.read_runs(out / "runs.csv")  # one time: they now carry digests
     assert len(again.rows) == 4 and not again.legacy and not again.rejected
+
+
+# ------------------------------------------------------------------------------------------
+# Edges of the stop signals and the output lock
+# ------------------------------------------------------------------------------------------
+def test_a_row_printed_as_finished_is_already_on_disk():
+    from benchmark import engine
+
+    events = []
+    p = engine.Progress(2, on_row=lambda rows: events.append(("saved", len(rows))),
+                        log=lambda line: events.append(("printed", line)))
+    p.done(1, {"x": 1})
+    p.done(0, {"x": 0})
+    assert [e[0] for e in events] == ["saved", "printed", "saved", "printed"], events
+    assert events[0] == ("saved", 1) and events[1][1].startswith("[1/2]")
+
+
+def test_temporaries_left_by_a_killed_run_are_removed_under_the_lock_and_only_stale_ones(tmp_path):
+    import time
+
+    from benchmark import store
+
+    (tmp_path / "cache").mkdir()
+    stale = [tmp_path / ".runs.csv.k9ab_x12.tmp.csv", tmp_path / "cache" / ".reference-a-1.npz.zz99yy88.tmp.npz"]
+    live = tmp_path / ".runs.md.abcdefgh.tmp.md"  # being written right now
+    other = [tmp_path / "notes.tmp.csv", tmp_path / ".hidden.csv"]
+    for p in stale + [live] + other:
+        p.write_text("x")
+    old = time.time() - 3600
+    for p in stale + other:
+        os.utime(p, (old, old))
+    said = []
+    with store.OutputLock(tmp_path, log=said.append):
+        assert not any(p.exists() for p in stale) and live.exists() and all(p.exists() for p in other)
+    assert any("removed 2 temporary file(s)" in s for s in said), said
+
+
+def test_a_lock_that_cannot_be_written_is_the_cannot_write_line_and_leaves_no_lock(tmp_path, monkeypatch, capsys):
+    from benchmark import store
+
+    real = os.open
+
+    def read_only(path, *a, **k):
+        if str(path).endswith(store.OutputLock.NAME):
+            raise OSError(errno.EROFS, os.strerror(errno.EROFS), str(path))
+        return real(path, *a, **k)
+
+    monkeypatch.setattr(store.os, "open", read_only)
+    out = tmp_path / "out"
+    rc = main(TINY + ["--dts", "0.01", "--out", str(out)])
+    err, line = outcome(capsys)
+    assert rc == 1 and line.startswith(f"error: cannot write {out / store.OutputLock.NAME}: Read-only file system"), err
+    assert not (out / store.OutputLock.NAME).exists()
+
+
+@pytest.mark.parametrize("sig, rc, name", [(2, 130, "Ctrl-C"), (15, 143, "SIGTERM")], ids=["SIGINT", "SIGTERM"])
+def test_a_signal_in_the_first_moments_is_one_line_without_a_traceback(sig, rc, name):
+    """Sent while the command line is still importing (it installs its handlers after): Ctrl-C
+    printed a KeyboardInterrupt traceback, SIGTERM ended the process without a word. The clock
+    starts once the interpreter is up (its own start, `site` included, is not reelbench's code
+    and takes from 20 ms to most of a second on a loaded machine)."""
+    import subprocess
+    import sys
+    import time
+
+    start = ("import runpy, sys\nsys.argv = ['benchmark', 'list']\nprint('up', flush=True)\nsys.stdin.readline()\n"
+             "runpy.run_module('benchmark', run_name='__main__', alter_sys=True)\n")
+    stopped = 0
+    for delay in (0.02, 0.05, 0.1, 0.15):
+        proc = subprocess.Popen([sys.executable, "-c", start], cwd=ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
+        assert proc.stdout.readline() == "up\n"
+        proc.stdin.write("go\n")
+        proc.stdin.flush()
+        time.sleep(delay)
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=60)
+        assert "Traceback" not in err, (delay, err)
+        if proc.returncode == 0:  # finished before the signal
+            continue
+        assert proc.returncode == rc and err.strip().splitlines()[-1].startswith(f"stopped by {name}"), (delay, err)
+        stopped += 1
+    assert stopped, "every run finished before its signal: nothing was tested"
