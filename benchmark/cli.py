@@ -27,7 +27,7 @@ from pathlib import Path
 
 from benchmark import options as opt
 from benchmark.options import UsageError
-from models.io import inside
+from models.io import inside, printable
 
 
 def _log(msg: str) -> None:
@@ -559,12 +559,12 @@ def main(argv=None) -> int:
     except ValueError as exc:  # bad input (UsageError, SceneError, an integrator's argument check)
         if os.environ.get("REELBENCH_DEBUG"):  # a developer chasing a ValueError gets its traceback
             raise
-        _log(f"error: {exc}")
+        _log(f"error: {printable(exc)}")  # input quoted in it (a path with a newline, U+202E) stays one line
         return 2
     except OSError as exc:  # the file system failed during work (full, read-only, ...): no traceback
         if os.environ.get("REELBENCH_DEBUG"):
             raise
-        _log(f"error: {exc}")
+        _log(f"error: {printable(exc)}")
         return 1
     except KeyboardInterrupt as exc:  # a command without its own stop message
         from benchmark.engine import stop_cause, stop_status

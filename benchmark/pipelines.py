@@ -19,7 +19,7 @@ from typing import Callable
 from benchmark import engine, store
 from benchmark.engine import log_stderr
 from benchmark.report import Provenance
-from models.io import inside
+from models.io import inside, printable
 
 
 @contextlib.contextmanager
@@ -95,7 +95,7 @@ def run_sweep(request: SweepRequest, log: Callable[[str], None] = log_stderr) ->
             what += f" (its {earlier} earlier row(s) are kept)"
         resume = "run the same command again to resume (finished runs are kept), or add --fresh to recompute this run's rows"
         if isinstance(exc, OSError):  # a full or failing disk: stop, say what is safe, exit 1
-            log(f"error: {exc}; {what}; free space (or fix the file system) and {resume}")
+            log(f"error: {printable(exc)}; {what}; free space (or fix the file system) and {resume}")
             return 1
         return engine.stopped(exc, f"{what}; {resume}", log)
 
@@ -170,6 +170,7 @@ def _sweep(request: SweepRequest, runs_csv: store.TableWriter, log) -> int:
     from models.io import atomic_write_text
 
     out = request.out
+    cache = inside(out, CACHE_DIR.name)  # a link planted there may not lead out of --out (refused)
     provenance = Provenance(request.command)
     tasks = sweep.build_tasks(request.scenes, request.integrators, quick=request.quick, dts=request.dts,
                               rtols=request.rtols, t_end=request.t_end, overrides=dict(request.overrides))
@@ -181,7 +182,7 @@ def _sweep(request: SweepRequest, runs_csv: store.TableWriter, log) -> int:
     log(f"{len(tasks)} runs: {len(request.scenes)} scene(s) × {len({t.integrator for t in tasks})} integrator(s); "
         f"results -> {out}/")
     runs = runner.execute(tasks, jobs=request.jobs, executor=request.executor, scheduler=request.scheduler,
-                          repeats=request.repeats, cache_dir=str(out / CACHE_DIR.name), on_row=runs_csv,
+                          repeats=request.repeats, cache_dir=str(cache), on_row=runs_csv,
                           previous=[] if request.fresh else stored.resumable, log=log,
                           group=lambda t: (t.scene, t.integrator))  # one worker per (scene, method): one compile
     runs_csv(runs.to_dict("records"))

@@ -553,3 +553,39 @@ def test_a_signal_in_the_first_moments_is_one_line_without_a_traceback(sig, rc, 
         assert proc.returncode == rc and err.strip().splitlines()[-1].startswith(f"stopped by {name}"), (delay, err)
         stopped += 1
     assert stopped, "every run finished before its signal: nothing was tested"
+
+
+# ------------------------------------------------------------------------------------------
+# Links inside --out, and input quoted in an error line
+# ------------------------------------------------------------------------------------------
+def test_a_link_planted_inside_out_may_not_lead_out_of_it(tmp_path, capsys):
+    """OUT/cache planted as a link to another directory: the reference was written there."""
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "cache").symlink_to(elsewhere, target_is_directory=True)
+    rc = main(TINY + ["--dts", "0.01", "--out", str(out)])
+    err, line = outcome(capsys)
+    assert rc == 2 and "'cache' leads outside" in line and "a link inside it may not lead out of it" in line, err
+    assert list(elsewhere.iterdir()) == [] and not (out / "runs.csv").exists()
+    assert not (out / ".reelbench.lock").exists()
+
+
+def test_a_link_inside_out_that_stays_inside_is_written_through(tmp_path):
+    out = tmp_path / "out"
+    (out / "real_cache").mkdir(parents=True)
+    (out / "cache").symlink_to(out / "real_cache", target_is_directory=True)
+    assert model_io.inside(out, "cache") == (out / "real_cache").resolve()
+
+
+def test_error_lines_show_nul_bidi_overrides_and_newlines_escaped(tmp_path, capsys):
+    assert model_io.printable("a\x00b\u202ec\nd, é π ×") == "a\\x00b\\u202ec\\nd, é π ×"
+    hostile = tmp_path / "evil\u202e\nlmth.toml"
+    rc = main(["simulate", str(hostile), "--dt", "0.01"])
+    err, line = outcome(capsys)
+    assert rc == 2 and len(err.strip().splitlines()) == 1, err
+    assert "evil\\u202e\\nlmth.toml" in line and "\u202e" not in err, err
+    rc = main(["simulate", "fixed_length", "--set", 'name="a\\u0000b"', "--dt", "0.01"])
+    err, line = outcome(capsys)
+    assert rc == 2 and "\x00" not in err and len(err.strip().splitlines()) == 1, err
