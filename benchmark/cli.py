@@ -120,6 +120,7 @@ def cmd_run(args) -> int:
                            save_option=None)  # run saves every SAVE_EVERY: no option to raise
     out = opt.writable_dir(_run_out(args))
     opt.no_directory_at(out, ("runs.csv", "runs.md", "orders.csv", "cheapest.csv", "README.md", "figures.json"))
+    _check_horizon_size(args, ov)  # the registry's declared horizon settings (no JAX)
 
     from benchmark import pipelines
 
@@ -130,6 +131,23 @@ def cmd_run(args) -> int:
         executor=args.executor, scheduler=args.scheduler, repeats=args.repeats, horizon=args.horizon,
         figures=not args.no_figures, fresh=args.fresh, compare_with=tuple(args.compare_with or ()), command=_command(args),
         accept_legacy=args.accept_legacy), log=_log)
+
+
+def _check_horizon_size(args, overrides: dict) -> None:
+    """The energy study of `run` (--horizon) fits, as any run must (`options.check_size`): e.g.
+    --horizon 1e9 would take 2e11 steps at dt = 0.005 s (it crashed its worker)."""
+    from benchmark import horizon, sweep
+    from models import load_scene
+
+    t_end = args.horizon if args.horizon is not None else (sweep.QUICK_HORIZON if args.quick else sweep.FULL_HORIZON)
+    if args.no_figures or not t_end:
+        return
+    scene = load_scene(horizon.SCENE, **{k: v for k, v in overrides.items() if k != "t_end"})
+    for m in sweep.horizon_methods():
+        if args.integrators and m.name not in args.integrators:
+            continue
+        opt.check_size(scene, t_end, horizon.SAVE_EVERY, m.settings.get("dt"), warn=_log, save_option=None,
+                       t_end_option="--horizon", what=f"--horizon {t_end:g}: the energy study of {m.name}")
 
 
 #: The options of `run` that make it something other than the default sweep (other rows).
@@ -204,6 +222,7 @@ def cmd_figures(args) -> int:
     if not _any_finite(traj.x):  # a figure of nothing would look like a result
         raise UsageError(f"{src}: the trajectory has no finite point (status {getattr(traj, 'status', '?')}): "
                          "nothing to draw; give a trajectory of a run that computed something")
+    _check_trajectory(src, traj)
     from models.schema import is_safe_name
 
     if not args.scene and not is_safe_name(traj.scene_name):  # a name read from a file is data, not a path
@@ -220,6 +239,31 @@ def cmd_figures(args) -> int:
     from benchmark import pipelines
 
     return pipelines.draw_figures(scene, traj, out, log=_log)
+
+
+def _check_trajectory(src: Path, traj) -> None:
+    """A trajectory `figures` draws: its status one a run can end with, and every saved value
+    finite (a run keeps only the finite part of what it computed: anything else was not written
+    by `simulate`)."""
+    import numpy as np
+
+    from benchmark.store import statuses
+
+    status = getattr(traj, "status", None)
+    if not isinstance(status, str) or status not in statuses():
+        raise UsageError(f"{src}: its metadata says status {status!r}, which is not a status a run ends with "
+                         f"({', '.join(statuses())}): not a trajectory written by `simulate`")
+    for name in ("t", "x", "attitude", "velocity", "work"):
+        values = getattr(traj, name, None)
+        if values is None:
+            continue
+        try:
+            bad = int(np.size(values) - np.isfinite(np.asarray(values, dtype=float)).sum())
+        except (TypeError, ValueError):
+            raise UsageError(f"{src}: its {name} array is not numbers: not a trajectory written by `simulate`") from None
+        if bad:
+            raise UsageError(f"{src}: its {name} array holds {bad} value(s) that are not finite (inf or nan): not a "
+                             "trajectory written by `simulate` (a run keeps only what it computed finitely)")
 
 
 def cmd_check(args) -> int:
@@ -324,7 +368,11 @@ def cmd_reel_reversal(args) -> int:
 
     reel_reversal.check_methods(args.methods or ())
     reel_reversal.check_horizon(args.t_end)
-    load_scene(args.scene, elements=args.elements)
+    scene = load_scene(args.scene, elements=args.elements)
+    if not scene.has("reel"):  # its "error" column would be a node coordinate, its sign changes noise
+        raise UsageError(f"--scene {scene.name!r} has no reel (effects: {', '.join(scene.effects)}): the reel-reversal "
+                         "study follows the reel rate through its change of sign; give a scene with the reel effect, "
+                         "e.g. --scene reel_reversal")
     cache = opt.writable_dir(args.cache_dir, option="--cache-dir")
     from benchmark import pipelines
 

@@ -194,13 +194,18 @@ def _sweep(request: SweepRequest, runs_csv: store.TableWriter, log) -> int:
     table = runs_report.cheapest_table(merged)
     runs_report.write_cheapest(out, table)
     failures = runs_report.failure_sentence(merged, out / "stability" / "stability.csv")
-    figures = _sweep_figures(request, merged, log) if request.figures else []
+    failed: list[str] = []  # what of the energy study did not end with a result (a crashed worker)
+    figures = _sweep_figures(request, merged, log, failed) if request.figures else []
     _sweep_readme(request, merged, orders, figures, provenance, table, failures,
                   merged_note=_merged_note(runs, merged))
     if is_committed_results(out):
         log(runs_report.write_answer(store.ROOT / "README.md", runs_report.answer_block(merged, table, failures)))
     log(f"done in {provenance.wall_time():.0f} s: {len(runs)} runs in this run, {len(merged)} in {out}/runs.csv; "
         f"{failures} See {out}/README.md")
+    if failed:
+        log(f"error: the energy study did not finish for {'; '.join(failed)}: its history is not in "
+            f"{out}/energy_horizon.csv (the runs table is complete)")
+        return 1
     return 0
 
 
@@ -226,7 +231,7 @@ def _paper_key(request: SweepRequest, scene, paper) -> str:
                         store.code_version(), _figure_code())
 
 
-def _sweep_figures(request: SweepRequest, merged, log) -> list[tuple[str, str]]:
+def _sweep_figures(request: SweepRequest, merged, log, failed: list | None = None) -> list[tuple[str, str]]:
     """Work–precision per scene of the merged table, the paper's panels of this run's scenes
     (from the method that declares the paper's settings, the LGVI at its step size), and the
     energy study of the selected methods: (file name, note) each. A figure whose inputs did not
@@ -271,7 +276,7 @@ def _sweep_figures(request: SweepRequest, merged, log) -> list[tuple[str, str]]:
     if request.energy_horizon > 0:
         figures += run_horizon_study(request.energy_horizon, out, request.overrides,
                                      0 if request.executor == "serial" else request.jobs, log,
-                                     selected=request.integrators)
+                                     selected=request.integrators, failed=failed)
     return figures
 
 
@@ -316,7 +321,8 @@ def _read_horizon(path: Path):
 
 
 def run_horizon_study(t_end: float, out: Path, overrides: tuple = (), jobs: int | None = None,
-                      log: Callable[[str], None] = log_stderr, selected=None) -> list[tuple[str, str]]:
+                      log: Callable[[str], None] = log_stderr, selected=None,
+                      failed: list | None = None) -> list[tuple[str, str]]:
     """Energy error vs time on the fixed-length scene over a long horizon, one job per method in
     parallel workers (``jobs``; 0: in this process; one after another they would be the main
     job's longest tail):
@@ -324,7 +330,8 @@ def run_horizon_study(t_end: float, out: Path, overrides: tuple = (), jobs: int 
     of those that declare horizon settings (`benchmark.sweep.horizon_methods`), a method whose
     history is already in energy_horizon.csv for the same settings, horizon, scene and code is
     kept, the others computed; other methods' histories stay. A method whose worker dies is left
-    out of both (its progress line says so). Returns [(figure name, note)]."""
+    out of both (its progress line says so, and ``failed`` gets its name and why). Returns
+    [(figure name, note)]."""
     import os
 
     from benchmark import horizon, plots, runner, sweep
@@ -359,6 +366,9 @@ def run_horizon_study(t_end: float, out: Path, overrides: tuple = (), jobs: int 
                                    crash_row=lambda i, exc: horizon.crash_row(jobs_[i], exc),
                                    describe=horizon.describe, cost=lambda i: costs[i], kind=lambda i: todo[i].name,
                                    log=log)
+    if failed is not None:  # a crashed worker is a failure of the command, not a result
+        failed += [f"{m.name} ({r.get('reason', r['status'])})" for m, r in zip(todo, rows)
+                   if r["status"] == "crashed" or r["history"] is None]
     fresh = {m.name: r["history"].assign(method=r["label"], integrator=m.name, t_end=t_end, job_key=wanted[m.name])
              for m, r in zip(todo, rows) if r["history"] is not None}
     if not todo and figure.is_file():

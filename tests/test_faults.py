@@ -589,3 +589,87 @@ def test_error_lines_show_nul_bidi_overrides_and_newlines_escaped(tmp_path, caps
     rc = main(["simulate", "fixed_length", "--set", 'name="a\\u0000b"', "--dt", "0.01"])
     err, line = outcome(capsys)
     assert rc == 2 and "\x00" not in err and len(err.strip().splitlines()) == 1, err
+
+
+# ------------------------------------------------------------------------------------------
+# A failure is a nonzero exit, or a refusal in one line
+# ------------------------------------------------------------------------------------------
+WITH_FIGURES = [a for a in TINY if a != "--no-figures"]
+
+
+def test_an_energy_study_too_long_to_run_is_refused_before_any_work(tmp_path, monkeypatch, capsys):
+    from benchmark import pipelines
+
+    monkeypatch.setattr(pipelines, "run_sweep", lambda *a, **k: pytest.fail("started the sweep"))
+    rc = main(WITH_FIGURES + ["--dts", "0.01", "--horizon", "1e9", "--out", str(tmp_path / "o")])
+    err, line = outcome(capsys)
+    assert rc == 2 and "--horizon 1e+09: the energy study of lgvi would keep" in line, err
+    assert "of trajectory in memory (limit 8 GiB): shorten --horizon" in line, err
+    assert not (tmp_path / "o").exists()
+
+
+def test_an_energy_study_whose_worker_crashed_ends_with_exit_1(tmp_path, monkeypatch, capsys):
+    """It logged `horizon lgvi dt=0.005 [crashed]` and then exited 0."""
+    from benchmark import horizon
+
+    def crashed(job):
+        return horizon.crash_row(job, MemoryError("out of memory"))
+
+    monkeypatch.setattr(horizon, "run_job", crashed)
+    out = tmp_path / "o"
+    rc = main(WITH_FIGURES + ["--dts", "0.01", "--horizon", "0.1", "--out", str(out)])
+    err, line = outcome(capsys)
+    assert rc == 1 and line.startswith("error: the energy study did not finish for lgvi (MemoryError: out of memory)"), err
+    assert len(__import__("pandas").read_csv(out / "runs.csv")) == 1  # the runs table is complete
+
+
+def test_reel_reversal_on_a_scene_without_a_reel_is_refused(tmp_path, capsys):
+    rc = main(["reel-reversal", "--scene", "fixed_length", "--cache-dir", str(tmp_path / "c")])
+    err, line = outcome(capsys)
+    assert rc == 2 and "'fixed_length' has no reel" in line and "--scene reel_reversal" in line, err
+    assert not (tmp_path / "c").exists()
+
+
+@pytest.mark.parametrize("damage, fragment", [
+    (lambda meta, arrays: meta.update(status=123), "status 123, which is not a status a run ends with"),
+    (lambda meta, arrays: meta.update(status="bogus"), "status 'bogus'"),
+    (lambda meta, arrays: arrays["x"].__setitem__((1, 0), np.inf), "its x array holds 1 value(s) that are not finite"),
+    (lambda meta, arrays: arrays["t"].__setitem__(-1, np.nan), "its t array holds 1 value(s)"),
+], ids=["status 123", "status bogus", "an inf in the state", "a nan time"])
+def test_figures_refuse_a_trajectory_that_simulate_did_not_write(tmp_path, capsys, damage, fragment):
+    import json
+
+    from integrators import get_integrator
+    from models import load_scene
+
+    traj = get_integrator("lgvi").solve(load_scene("fixed_length", elements=1), t_end=0.04, dt=0.01)
+    traj.save(tmp_path / "t.npz")
+    with np.load(tmp_path / "t.npz") as data:
+        arrays = {k: np.array(data[k]) for k in data.files if k != "meta"}
+        meta = json.loads(str(data["meta"]))
+    damage(meta, arrays)
+    np.savez(tmp_path / "bad.npz", meta=np.array(json.dumps(meta)), **arrays)
+    rc = main(["figures", str(tmp_path / "bad.npz"), "--set", "elements=1", "--out", str(tmp_path / "f.png")])
+    err, line = outcome(capsys)
+    assert rc == 2 and fragment in line, err
+    assert not (tmp_path / "f.png").exists()
+
+
+def test_the_step_limit_is_at_most_1e9_planned_steps_in_the_command_line_and_the_integrators():
+    """Exactly 1e9 steps is allowed and one more refused, by the same count (the loop's)."""
+    from benchmark import options
+    from integrators import lifecycle
+    from models import load_scene
+
+    scene = load_scene("fixed_length", elements=1)
+    dt = 2.0 ** -20  # t_end / dt exact
+    for steps, allowed in ((10 ** 9, True), (10 ** 9 + 1, False)):
+        t_end = steps * dt
+        if allowed:
+            assert options.check_size(scene, t_end, t_end, dt)["steps"] == steps
+            lifecycle.check_horizon(scene, "fixed", t_end, dt, t_end)
+        else:
+            with pytest.raises(options.UsageError, match="1000000001 steps .*allowed: at most 1e[+]09 planned steps"):
+                options.check_size(scene, t_end, t_end, dt)
+            with pytest.raises(ValueError, match="allowed: at most 1e[+]09"):
+                lifecycle.check_horizon(scene, "fixed", t_end, dt, t_end)
