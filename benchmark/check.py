@@ -21,17 +21,24 @@ Tolerance rules (a regression fails the check, exit status 1):
 - observed orders: lower than baseline − ``order_margin`` (default 0.5, absolute). Orders use
   only errors above the position floor, so round-off never enters a slope.
 - status: a run that was "ok" and no longer is (diverged, newton_failed, error, ...); an
-  integrator of the baseline whose module no longer loads (`plugin_errors()`).
+  integrator of the baseline whose module no longer loads (`plugin_errors()`) or that is no
+  longer registered (removed or renamed).
 
-Improvements beyond the same margins are reported, as are baseline rows of integrators that
-are no longer registered; neither fails. Run and compile times are reported, never judged.
+Improvements beyond the same margins are reported. Run and compile times are reported, never
+judged.
 
-A check cannot pass on nothing (exit 2, naming the file and the line, before any work): a
-baseline that is unreadable, binary, not a table, without rows, with a repeated row, or with
-a finished run whose metrics are not finite numbers >= 0 is refused, and so is a selected
-integrator without a baseline row this check compares with (a new method: `--allow-new NAME`,
-or add its rows with `--update --integrators NAME`). A metric the run has and the baseline
-lacks is a regression, not a note.
+A check cannot pass on nothing, and fails closed on what it gates (exit 2, naming the file and
+the line, before any work): a baseline that is unreadable, binary, not a table, without rows,
+with a repeated row, or with a row that could not fail (`row_problems`: an unknown status, a
+run that did not finish, a metric that is not a finite number in [0, `SANITY_BOUND`], an order
+outside its method's plausible range, a missing order row) is refused; so is one whose
+coverage shrank (a run of the sweep of a method it gates has no row), one with rows of a
+method no longer registered, and one without rows of one of reelbench's own selected methods
+(a new method: `--allow-new NAME`, or add its rows with `--update --integrators NAME`). A
+method the baseline does not know that comes from another package (an installed plugin) is
+reported with the command that adds it, and not run: installing a plugin never breaks the
+check. ``--update`` writes no baseline that could not fail. A metric the run has and the
+baseline lacks is a regression, not a note.
 """
 
 from __future__ import annotations
@@ -323,8 +330,8 @@ def row_problems(df: pd.DataFrame) -> list[tuple[int, str]]:
             out.append((line, f"{what}: status {status!r} is not a status of the runs table "
                               f"(known: {', '.join(known)})"))
         elif status != "ok":
-            out.append((line, f"{what}: status {status}: a run of the check sweep that did not finish cannot fail "
-                              "a check (only an improvement is possible); every run of a usable baseline finishes"))
+            out.append((line, f"{what}: status {status}: a run of the check sweep that is not ok cannot fail a "
+                              "check (only an improvement is possible); every run of a usable baseline is ok"))
         else:
             bad = [m for m in ACCURACY if not (np.isfinite(row[m]) and row[m] >= 0)]
             if bad:

@@ -8,10 +8,13 @@
   table (`read_runs`) with the same key, so only the rest is computed. Rows whose status
   may have been transient (`RETRY_STATUSES`) are never kept.
 * Trust: a row read back is used only when it passes `check_row` -- its types, ranges and
-  status vocabulary, finite non-negative costs, and the digest of its deterministic columns
-  recorded when it was written (`row_digest`). The digest catches a row edited by hand or
-  damaged on disk; like any checksum stored beside its data, it does not stop a deliberate
-  edit that recomputes it.
+  status vocabulary (`statuses`, the one list of them), finite non-negative costs, and the
+  digest of every column recorded when it was written (`row_digest`; a row without one in a
+  table whose other rows have one is not trusted, rows from before such digests only with
+  `StoredRuns.accept_legacy`). The digest catches a row edited by hand or damaged on disk; like
+  any checksum stored beside its data, it does not stop a deliberate edit that recomputes it.
+  A table that cannot be read whole is copied intact beside it and its readable rows salvaged
+  (`read_runs`).
 * Merging: a run restricted to fewer scenes, methods or settings than its output table holds
   adds or replaces only its own rows (`merge_rows`: one row per scene, integrator and
   setting); a table holds one horizon and one set of scene values per scene, and a run that
@@ -87,8 +90,10 @@ def run_key(task, code: str | None = None) -> str:
 # ------------------------------------------------------------------------------------------
 #: Rows with these statuses are recomputed on resume (the cause may have been transient).
 RETRY_STATUSES = ("crashed", "error")
-#: Statuses of the runs table besides the integrators' own (`integrators.Status`).
-TABLE_STATUSES = ("time_limit", "max_steps", "error", "crashed")
+#: Statuses of the runs table besides the integrators' own (`integrators.Status`); "inaccurate":
+#: a finished run whose error exceeds the sanity bound. Every reader that validates a status
+#: (resume, the drift gate, figures) asks `statuses`: extend the list here.
+TABLE_STATUSES = ("time_limit", "max_steps", "error", "crashed", "inaccurate")
 
 #: The columns a row's digest leaves out: the digest itself, and the traceback of a failed run
 #: (never written to the table). Every other column is covered, measurements included (run
