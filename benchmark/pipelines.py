@@ -128,16 +128,16 @@ def _merge_plan(request: SweepRequest, tasks, stored: store.StoredRuns, path: Pa
     the untrusted rows no recomputation will replace, and say in one line what the run replaces."""
     names, scenes = _this_run(request, tasks)
     mine = {(names[t.scene], t.integrator, t.setting) for t in tasks}
+    conflicts = store.merge_conflicts(stored.rows, scenes)
+    if conflicts:
+        raise ValueError(f"{path} cannot take this run's rows: {'; '.join(conflicts)}. A table holds one horizon and "
+                         "one set of scene values per scene: give another --out (a scratch directory), or move "
+                         f"{path} away to start over")
     legacy = [r for r in stored.legacy if store.identity_of(r) not in mine]  # kept, not recomputed by this run
     if legacy and not request.accept_legacy:
         raise ValueError(f"{path}: {len(legacy)} row(s) this run keeps predate row digests over every column (their "
                          "timings and flops cannot be verified), e.g. " + store.describe_row(legacy[0]) + ": pass "
                          "--accept-legacy once to keep them (checked by range, then written with digests), or move "
-                         f"{path} away to start over")
-    conflicts = store.merge_conflicts(stored.rows, scenes)
-    if conflicts:
-        raise ValueError(f"{path} cannot take this run's rows: {'; '.join(conflicts)}. A table holds one horizon and "
-                         "one set of scene values per scene: give another --out (a scratch directory), or move "
                          f"{path} away to start over")
     aside = [(r, why) for r, why in stored.rejected if store.identity_of(r) not in mine]
     if aside:
