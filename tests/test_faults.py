@@ -529,21 +529,23 @@ def test_a_lock_that_cannot_be_written_is_the_cannot_write_line_and_leaves_no_lo
 def test_a_signal_in_the_first_moments_is_one_line_without_a_traceback(sig, rc, name):
     """Sent while the command line is still importing (it installs its handlers after): Ctrl-C
     printed a KeyboardInterrupt traceback, SIGTERM ended the process without a word. The clock
-    starts once the interpreter is up (its own start, `site` included, is not reelbench's code
-    and takes from 20 ms to most of a second on a loaded machine)."""
+    starts once the package `benchmark` is imported (the interpreter's own start, `site`
+    included, is not reelbench's code and takes from 20 ms to most of a second on a loaded
+    machine): a thread of the child says when."""
     import subprocess
     import sys
     import time
 
-    start = ("import runpy, sys\nsys.argv = ['benchmark', 'list']\nprint('up', flush=True)\nsys.stdin.readline()\n"
+    start = ("import runpy, sys, threading, time\nsys.argv = ['benchmark', 'list']\n"
+             "def watch():\n    while 'benchmark' not in sys.modules:\n        time.sleep(0.0005)\n"
+             "    print('started', flush=True)\n"
+             "threading.Thread(target=watch, daemon=True).start()\n"
              "runpy.run_module('benchmark', run_name='__main__', alter_sys=True)\n")
     stopped = 0
-    for delay in (0.02, 0.05, 0.1, 0.15):
-        proc = subprocess.Popen([sys.executable, "-c", start], cwd=ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+    for delay in (0.03, 0.06, 0.1, 0.15):
+        proc = subprocess.Popen([sys.executable, "-c", start], cwd=ROOT, stdout=subprocess.PIPE,
                                 stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
-        assert proc.stdout.readline() == "up\n"
-        proc.stdin.write("go\n")
-        proc.stdin.flush()
+        assert proc.stdout.readline() == "started\n"
         time.sleep(delay)
         proc.send_signal(sig)
         out, err = proc.communicate(timeout=60)
