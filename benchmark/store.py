@@ -392,7 +392,7 @@ def read_runs(path: str | os.PathLike, log: Callable[[str], None] | None = None)
     from models.io import FileRefused, read_regular_file
 
     path = Path(path)
-    if not path.exists() and not path.is_symlink():
+    if not path.exists():  # (a dangling link too: the table is written fresh in its place)
         return StoredRuns([], [])
     try:
         data = read_regular_file(path, MAX_RUNS_BYTES)
