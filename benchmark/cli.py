@@ -129,8 +129,8 @@ def cmd_run(args) -> int:
         quick=args.quick, dts=tuple(args.dts) if args.dts else None, rtols=tuple(args.rtols) if args.rtols else None,
         t_end=args.t_end, overrides=tuple(sorted((k, v) for k, v in ov.items() if k != "t_end")), jobs=args.jobs,
         executor=args.executor, scheduler=args.scheduler, repeats=args.repeats, horizon=args.horizon,
-        figures=not args.no_figures, fresh=args.fresh, compare_with=tuple(args.compare_with or ()), command=_command(args),
-        accept_legacy=args.accept_legacy), log=_log)
+        figures=not args.no_figures, fresh=args.fresh, compare_with=tuple(args.compare_with or ()),
+        command=_command(args), accept_legacy=args.accept_legacy), log=_log)
 
 
 def _check_horizon_size(args, overrides: dict) -> None:
@@ -260,7 +260,8 @@ def _check_trajectory(src: Path, traj) -> None:
         try:
             bad = int(np.size(values) - np.isfinite(np.asarray(values, dtype=float)).sum())
         except (TypeError, ValueError):
-            raise UsageError(f"{src}: its {name} array is not numbers: not a trajectory written by `simulate`") from None
+            raise UsageError(f"{src}: its {name} array is not numbers: not a trajectory written by "
+                             "`simulate`") from None
         if bad:
             raise UsageError(f"{src}: its {name} array holds {bad} value(s) that are not finite (inf or nan): not a "
                              "trajectory written by `simulate` (a run keeps only what it computed finitely)")

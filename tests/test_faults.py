@@ -621,7 +621,8 @@ def test_an_energy_study_whose_worker_crashed_ends_with_exit_1(tmp_path, monkeyp
     out = tmp_path / "o"
     rc = main(WITH_FIGURES + ["--dts", "0.01", "--horizon", "0.1", "--out", str(out)])
     err, line = outcome(capsys)
-    assert rc == 1 and line.startswith("error: the energy study did not finish for lgvi (MemoryError: out of memory)"), err
+    assert rc == 1, err
+    assert line.startswith("error: the energy study did not finish for lgvi (MemoryError: out of memory)"), err
     assert len(__import__("pandas").read_csv(out / "runs.csv")) == 1  # the runs table is complete
 
 
