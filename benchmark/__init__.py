@@ -6,13 +6,16 @@
 By concern, from the command line down:
 
 - `cli` parses and checks a command's input, then calls its pipeline in `pipelines`;
-- the studies, as jobs: `runner` (the runs table), `stability`, `check`, `horizon`, `xval`,
-  `lgvi_speed` (speed), `reel_reversal`; what a sweep runs: `sweep`; its metrics: `metrics`;
+- the studies, as jobs: `runner` (the runs table), `stability`, `check`, `horizon` (the energy
+  study), `orders` (observed orders on a short horizon), `xval`, `lgvi_speed` (speed),
+  `reel_reversal`; what a sweep runs: `sweep`; its metrics: `metrics`;
 - their writers: `runs_report`, `stability_report`, `xval_report` (and the baseline in `check`,
   the speed tables in `lgvi_speed`), on the report layer `report` and the plot layer `plots`;
-  what they conclude from: `cheapest` (the cost at a target, with its spread, and verdicts that
+  what they conclude from: `properties` (energy growth classified, orthogonality), `cheapest` (the cost at a target, with its spread, and verdicts that
   call a tie a tie), `reproducibility` (two runs tables compared within stated tolerances),
   `styles` (one look per method in every figure);
+- the plugin contract: `verify` (`python -m benchmark verify NAME`, and `check_integrator` /
+  `check_effect` for a plugin's own tests);
 - underneath: `engine` (jobs on worker processes, this process or Dask; stop signals,
   progress with a measured ETA, crash rows), `store` (output lock, resume keys, rows checked
   before they are trusted, a run merged into the table of its --out, atomic tables and .npz files),

@@ -355,12 +355,20 @@ def row_problems(df: pd.DataFrame) -> list[tuple[int, str]]:
 
 
 def shipped(name: str) -> bool:
-    """Whether ``name`` is one of reelbench's own integrators (its class lives in the
-    ``integrators`` package), not a plugin installed from another package."""
-    try:
-        return type(get_integrator(name)).__module__.split(".")[0] == "integrators"
-    except ValueError:
-        return False
+    """Whether ``name`` is one of reelbench's own integrators (`integrators.registry.own`), not
+    a plugin installed from another package."""
+    from integrators import registry
+
+    return name in registry.own()
+
+
+def guests_not_gated(baseline: pd.DataFrame) -> list[str]:
+    """Installed plugins the baseline does not know (a default check does not run plugins:
+    they are reported, with the command that adds them)."""
+    from integrators import registry
+
+    own, based = set(registry.own()), set(baseline["integrator"])
+    return [n for n in available() if n not in own and n not in based and not n.startswith("test_")]
 
 
 def comparable(baseline: pd.DataFrame, tasks, path, allow_new=(), *, registered=None,

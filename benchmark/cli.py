@@ -1,4 +1,4 @@
-"""Command line: ``python -m benchmark {run,check,simulate,figures,speed,stability,xval,reel-reversal,list}``
+"""Command line: ``python -m benchmark {run,check,simulate,figures,speed,stability,xval,reel-reversal,orders,energy,list,verify}``
 (also ``reelbench``).
 
 Every command checks all of its input first -- option types and ranges, conflicting options,
@@ -105,6 +105,15 @@ def cmd_run(args) -> int:
         raise UsageError(f"--scheduler is only used with --executor dask (got --executor {args.executor})")
     for name in args.integrators or ():
         _check_integrator(name)  # an unknown name is refused before any work
+    if args.with_plugins:
+        if args.integrators:
+            raise UsageError("--with-plugins adds every installed plugin to the default methods: with --integrators "
+                             "name the plugins you want instead")
+        from integrators import get_integrator
+
+        every = [n for n in sweep.default_names(plugins=True) if get_integrator(n).default_sweep]
+        if sweep.plugin_names(every):  # none installed: this is the default sweep
+            args.integrators = every
     scene_names = args.scenes or list(sweep.PAPER_SCENES)
     ov = _overrides(args.set)
     with_t_end = {"t_end": args.t_end, **ov} if args.t_end is not None else ov  # validated with the scene
@@ -142,12 +151,12 @@ def _check_horizon_size(args, overrides: dict) -> None:
     t_end = args.horizon if args.horizon is not None else (sweep.QUICK_HORIZON if args.quick else sweep.FULL_HORIZON)
     if args.no_figures or not t_end:
         return
-    scene = load_scene(horizon.SCENE, **{k: v for k, v in overrides.items() if k != "t_end"})
-    for m in sweep.horizon_methods():
-        if args.integrators and m.name not in args.integrators:
-            continue
-        opt.check_size(scene, t_end, horizon.SAVE_EVERY, m.settings.get("dt"), warn=_log, save_option=None,
-                       t_end_option="--horizon", what=f"--horizon {t_end:g}: the energy study of {m.name}")
+    ov = {k: v for k, v in overrides.items() if k not in ("t_end", "elements")}
+    sizes = (int(overrides["elements"]),) if "elements" in overrides else horizon.ELEMENTS
+    for n, m in horizon.runs(args.integrators, sizes):
+        opt.check_size(load_scene(horizon.DEFAULT_SCENE, elements=n, **ov), t_end, horizon.SAVE_EVERY,
+                       m.settings.get("dt"), warn=_log, save_option=None, t_end_option="--horizon",
+                       what=f"--horizon {t_end:g}: the energy study of {m.name} at N = {n}")
 
 
 #: The options of `run` that make it something other than the default sweep (other rows).
@@ -158,14 +167,30 @@ _SWEEP_OPTIONS = (("scenes", "--scenes"), ("integrators", "--integrators"), ("qu
 def _run_out(args) -> str:
     """`run`'s output directory: the committed results/ only for the default sweep or when named
     (`--out results`); any other sweep must say where its results go."""
+    from benchmark.sweep import plugin_names
+
+    guests = plugin_names(args.integrators or ())
     if args.out is not None:
+        if guests and Path(args.out).resolve() == Path("results").resolve():
+            _log(f"note: {Path(args.out)}/ gets the rows of plugin(s) {_describe(guests)}, as --out asks")
         return args.out
+    if guests:
+        raise UsageError(f"this run would add the rows of plugin(s) {_describe(guests)} to the committed results/, "
+                         "which hold only the project's own methods: give --out DIR for them (e.g. a scratch "
+                         "directory), or --out results to add them there")
     given = [flag for attr, flag in _SWEEP_OPTIONS if getattr(args, attr)]
     if given:
         raise UsageError(f"this run is not the default sweep ({', '.join(given)}): give --out DIR for its results "
                          "(e.g. a scratch directory), or --out results to merge its rows into the committed results "
                          "(the rows of other scenes, methods and settings are kept)")
     return "results"
+
+
+def _describe(names) -> str:
+    """"a (package p 0.1), b (...)": plugins with their provenance, for messages."""
+    from integrators import origin
+
+    return ", ".join(f"{n} ({origin(n).label().removeprefix('plugin, ')})" for n in names)
 
 
 def cmd_simulate(args) -> int:
@@ -381,22 +406,66 @@ def cmd_reel_reversal(args) -> int:
                                        cache_dir=str(cache), log=_log)
 
 
+def cmd_orders(args) -> int:
+    from benchmark import orders
+    from models import load_scene
+
+    for sc in args.scenes or ():
+        load_scene(sc)  # an unknown scene is refused before any work
+    orders.fixed_step_methods(args.integrators)  # an unknown or adaptive-only method likewise
+    out = opt.writable_dir(args.out)
+    from benchmark import pipelines
+
+    return pipelines.run_orders(args.scenes, args.integrators, out=out, jobs=args.jobs, log=_log)
+
+
+def cmd_energy(args) -> int:
+    from benchmark import horizon
+    from models import load_scene
+
+    for sc in args.scenes or ():
+        load_scene(sc)
+    horizon.methods(args.integrators)  # an unknown name, or one without energy-study settings, is refused
+    out = opt.writable_dir(args.out)
+    from benchmark import pipelines
+
+    figures = pipelines.run_horizon_study(args.horizon, out, scenes=args.scenes, jobs=args.jobs, log=_log,
+                                          selected=args.integrators)
+    _log("wrote " + ", ".join(f"{out}/{name}" for name, _ in figures) if figures else "energy study: nothing written")
+    return 0
+
+def cmd_verify(args) -> int:
+    """The plugin contract (benchmark/verify.py): exit 0 when every check holds, 1 otherwise."""
+    from benchmark import verify
+
+    ov = _overrides(args.set)
+    for name in args.names:  # an unknown name, a scene without the effect or a bad one: exit 2 before any work
+        kind = verify.kind_of(name)
+        if kind == "integrator" and (args.scene or ov):
+            raise UsageError(f"--scene/--set are for an effect; {name} is an integrator, checked on its own "
+                             "small scenes")
+        if kind == "effect":
+            verify.effect_scene(name, args.scene, ov)
+    return max(verify.verify(name, scene=args.scene, overrides=ov, log=print) for name in args.names)
+
+
 def cmd_list(args) -> int:
-    from integrators import available, get_integrator, plugin_errors
+    from integrators import available, get_integrator, origin, plugin_errors
     from models import available_scenes
 
     print("scenes:", ", ".join(available_scenes()))
     for name in available():
         integ = get_integrator(name)
         caps = ", ".join(sorted(c.value for c in integ.capabilities))
-        print(f"  {name:10s} order {integ.order}  [{caps}]  {integ.description}")
+        guest = "" if origin(name).own else f"  ({origin(name).label()})"
+        print(f"  {name:10s} order {integ.order}  [{caps}]  {integ.description}{guest}")
     for name, err in plugin_errors().items():
         print(f"  {name:10s} FAILED TO LOAD: {err}")
     from models import EFFECTS
-    from models.effects import plugin_errors as effect_plugin_errors
+    from models.effects import effect_origin, plugin_errors as effect_plugin_errors
 
     failed = effect_plugin_errors()  # loads the reelbench.effects plugins first
-    print("effects:", ", ".join(EFFECTS))
+    print("effects:", ", ".join(n if effect_origin(n).own else f"{n} ({effect_origin(n).label()})" for n in EFFECTS))
     for name, err in failed.items():
         print(f"  {name:10s} FAILED TO LOAD: {err}")
     return 0
@@ -429,8 +498,11 @@ def _add_run(sub) -> None:
             "recomputes this run's rows). Ctrl-C stops cleanly.")
     r.add_argument("--scenes", type=opt.names, help="comma-separated scene names or .toml paths "
                                                     f"(default: {_csv(sweep.PAPER_SCENES)})")
-    r.add_argument("--integrators", type=opt.names, help="comma-separated integrator names (default: every "
-                                                         "registered one; see `list`)")
+    r.add_argument("--integrators", type=opt.names, help="comma-separated integrator names (default: the "
+                                                         "project's own methods; installed plugins join when named "
+                                                         "here or with --with-plugins; see `list`)")
+    r.add_argument("--with-plugins", action="store_true", help="sweep every installed plugin too (with the default "
+                   "methods); its rows go to --out, which must then be given")
     r.add_argument("--quick", action="store_true", help=f"reduced sweep: {sweep.QUICK_T_END:g} s horizon, "
                    f"{len(sweep.QUICK_DTS)} step sizes, {len(sweep.QUICK_RTOLS)} tolerances, "
                    f"{sweep.QUICK_HORIZON:g} s energy study")
@@ -453,7 +525,7 @@ def _add_run(sub) -> None:
                    help="where runs execute: worker processes, this process, or a Dask cluster")
     r.add_argument("--scheduler", help="Dask scheduler address, with --executor dask (e.g. tcp://host:8786)")
     r.add_argument("--horizon", type=opt.nonnegative_float,
-                   help=f"length (s) of the long-horizon energy study on fixed_length; 0 = off (default: "
+                   help=f"length (s) of the long-horizon energy study on the run's fixed-length scenes; 0 = off (default: "
                         f"{sweep.FULL_HORIZON:g}; --quick: {sweep.QUICK_HORIZON:g})")
     r.add_argument("--no-figures", action="store_true", help="skip the figures and the energy study")
     r.add_argument("--fresh", action="store_true", help="recompute every run, ignoring rows already in OUT/runs.csv")
@@ -545,8 +617,8 @@ def _add_stability(sub) -> None:
     st = sub("stability", "stability map of the hard scenes: largest stable dt (fixed step), step statistics "
                           "(adaptive) -> --out")
     st.add_argument("--scenes", type=opt.names, help="comma-separated hard scenes (default: all seven)")
-    st.add_argument("--integrators", type=opt.names, help="comma-separated names (default: every method of the "
-                                                          "sweep, registered plugins included, implicit baselines last)")
+    st.add_argument("--integrators", type=opt.names, help="comma-separated names (default: the project's own "
+                                                          "methods, implicit baselines last; a plugin runs when named)")
     st.add_argument("--jobs", type=opt.nonnegative_int, default=2, help="worker processes (0: run in this process)")
     st.add_argument("--out", default="results/stability", help="output directory (created if missing)")
     st.set_defaults(func=cmd_stability)
@@ -578,6 +650,43 @@ def _add_reel_reversal(sub) -> None:
     rr.set_defaults(func=cmd_reel_reversal)
 
 
+def _add_orders(sub) -> None:
+    from benchmark import orders  # constants only (no JAX)
+
+    o = sub("orders", "observed orders of the fixed-step methods on a short horizon, against a reference "
+                      "100x more accurate -> OUT/orders.csv",
+            f"Each fixed-step method at {orders.HALVINGS} halvings of its step on a {orders.T_END:g} s horizon of "
+            f"each scene (N = {orders.ELEMENTS}), against constant-step {orders.REFERENCE_METHOD}; the order is the "
+            "slope of the last halving above the reference's floor, flagged when not asymptotic (see "
+            "benchmark/orders.py). Rows of other scenes and methods in OUT/orders.csv are kept.")
+    o.add_argument("--scenes", type=opt.names, help=f"comma-separated scene names or .toml paths (default: "
+                                                    f"{_csv(orders.SCENES)}, one per situation)")
+    o.add_argument("--integrators", type=opt.names, help="comma-separated fixed-step methods (default: every "
+                                                         "registered one)")
+    o.add_argument("--jobs", type=opt.nonnegative_int, help="worker processes (0: in this process; default: one "
+                                                            "per method, at most the CPU count)")
+    o.add_argument("--out", default="results", help="output directory (created if missing)")
+    o.set_defaults(func=cmd_orders)
+
+
+def _add_energy(sub) -> None:
+    from benchmark import horizon, sweep  # constants only (no JAX)
+
+    e = sub("energy", "the long-horizon energy study alone: energy error vs time, classified as bounded or "
+                      "drifting -> OUT/energy_horizon.csv and figures",
+            "The energy study of `run` on its own (benchmark/horizon.py): every method that declares "
+            f"settings for it, at N = {_csv(horizon.ELEMENTS)} and at its step and {horizon.FINER:g}x finer, on "
+            "each scene; the histories already in OUT/energy_horizon.csv for the same settings and code are kept, "
+            "rows of other methods and scenes too.")
+    e.add_argument("--scenes", type=opt.names, help=f"comma-separated scenes (default: {horizon.DEFAULT_SCENE})")
+    e.add_argument("--integrators", type=opt.names, help="comma-separated methods (default: every one that "
+                                                         "declares energy-study settings)")
+    e.add_argument("--horizon", type=opt.positive_float, default=sweep.FULL_HORIZON, help="length in s")
+    e.add_argument("--jobs", type=opt.nonnegative_int, help="worker processes (0: in this process)")
+    e.add_argument("--out", default="results", help="output directory (created if missing)")
+    e.set_defaults(func=cmd_energy)
+
+
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m benchmark", description=__doc__, formatter_class=_Help)
     commands = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -586,9 +695,21 @@ def parser() -> argparse.ArgumentParser:
         return commands.add_parser(name, help=help, description=description or help, formatter_class=_Help)
 
     for add in (_add_run, _add_check, _add_simulate, _add_figures, _add_speed, _add_stability, _add_xval,
-                _add_reel_reversal):
+                _add_reel_reversal, _add_orders, _add_energy):
         add(sub)
     sub("list", "registered integrators and shipped scenes").set_defaults(func=cmd_list)
+    v = sub("verify", "check an integrator or an effect (a plugin's, or one of the project's) against the plugin "
+                      "contract: one line per check with its figure; exit 1 on a failure",
+            "Check an integrator or an effect against the plugin contract (benchmark/verify.py): for an integrator "
+            "its declared order on a fixed-length and a reeling scene, its statuses and guards, its capabilities, "
+            "determinism and its flop count; for an effect its gradients against autodiff, its power, the energy "
+            "balance with a reference method and the validation of its scene keys. Small scenes: seconds to tens of "
+            "seconds, mostly compilation.")
+    v.add_argument("names", nargs="+", metavar="NAME", help="registered integrators or effects (see `list`)")
+    v.add_argument("--scene", help="for an effect: a scene name or .toml path that lists it (default: a small "
+                                   "scene with the effect and what it needs; required when its keys have no default)")
+    _add_set(v, "for an effect: a scene override, repeatable, e.g. --set stiffness=20")
+    v.set_defaults(func=cmd_verify)
     return p
 
 

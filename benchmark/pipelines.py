@@ -1,7 +1,7 @@
 """Every command's pipeline: the one function the command line calls once its input is checked.
 
 Each composes the layers below it and nothing else: the jobs of a study (`runner`,
-`stability`, `check`, `horizon`, `xval`, `lgvi_speed`, `reel_reversal`) run on the engine
+`stability`, `check`, `horizon`, `orders`, `xval`, `lgvi_speed`, `reel_reversal`) run on the engine
 (`engine.run_jobs`), their rows go to the results store (`store`: the output lock, atomic
 tables), their words and figures through the report and plot layers (`report`, `plots` and
 the writers `runs_report`, `stability_report`, `xval_report`). A study that writes into a
@@ -76,8 +76,9 @@ class SweepRequest:
 
 
 def run_sweep(request: SweepRequest, log: Callable[[str], None] = log_stderr) -> int:
-    """The sweep into ``request.out``: runs.csv (written after every run), runs.md, orders.csv,
-    cheapest.csv, the figures, the energy study and README.md; with the committed results/ as
+    """The sweep into ``request.out``: runs.csv (written after every run), runs.md,
+    cheapest.csv, the figures, the energy study and README.md (with the orders of `run_orders`
+    when ``out`` has them); with the committed results/ as
     ``out``, the answer block of the project README too. The run's rows join the table already
     in ``out`` (`benchmark.store.merge_rows`): rows of other scenes, methods or settings are kept,
     and every file is written from the merged table. A stopped sweep keeps its finished rows."""
@@ -164,7 +165,6 @@ def _merge_plan(request: SweepRequest, tasks, stored: store.StoredRuns, path: Pa
 
 def _sweep(request: SweepRequest, runs_csv: store.TableWriter, log) -> int:
     from benchmark import runner, runs_report, sweep
-    from benchmark.metrics import observed_orders
     from benchmark.reference import CACHE_DIR
     from benchmark.report import markdown_table
     from models.io import atomic_write_text
@@ -189,8 +189,7 @@ def _sweep(request: SweepRequest, runs_csv: store.TableWriter, log) -> int:
     merged = runs_csv.to_table(runs.to_dict("records")).drop(columns=["traceback"], errors="ignore")
     atomic_write_text(out / "runs.md", markdown_table(merged.drop(columns=[c for c in ("reason", "run_key", "row_digest",
                                                                                       "scene_key") if c in merged])))
-    orders = observed_orders(merged)
-    store.write_table(out / "orders.csv", orders)
+    orders = _orders_table(out)  # the short-horizon orders study's (`python -m benchmark orders`), never the sweep's
     table = runs_report.cheapest_table(merged)
     runs_report.write_cheapest(out, table)
     failures = runs_report.failure_sentence(merged, out / "stability" / "stability.csv")
@@ -207,6 +206,19 @@ def _sweep(request: SweepRequest, runs_csv: store.TableWriter, log) -> int:
             f"{out}/energy_horizon.csv (the runs table is complete)")
         return 1
     return 0
+
+
+def _orders_table(out: Path):
+    """``out``/orders.csv of the orders study, or None when there is none (or it is unreadable or from
+    before the study: the sweep's slopes over chaotic horizons, which are not orders)."""
+    import pandas as pd
+
+    path = out / "orders.csv"
+    try:
+        table = pd.read_csv(path) if path.is_file() else None
+    except Exception:
+        return None
+    return table if table is not None and {"declared_order", "within_theory"} <= set(table.columns) else None
 
 
 def _merged_note(runs, merged) -> str:
@@ -274,9 +286,14 @@ def _sweep_figures(request: SweepRequest, merged, log, failed: list | None = Non
         if scene not in run_scenes and (out / name).is_file():
             figures.append((name, "drawn by an earlier run (this run did not include the scene)"))
     if request.energy_horizon > 0:
-        figures += run_horizon_study(request.energy_horizon, out, request.overrides,
-                                     0 if request.executor == "serial" else request.jobs, log,
-                                     selected=request.integrators, failed=failed)
+        scenes = energy_scenes(request.scenes, request.overrides, log)
+        if scenes:
+            figures += run_horizon_study(request.energy_horizon, out, request.overrides,
+                                         0 if request.executor == "serial" else request.jobs, log,
+                                         selected=request.integrators, scenes=scenes, failed=failed)
+        else:
+            log("horizon: no scene of this run keeps its length: no energy study (energy_horizon.csv kept as it was)")
+            figures += _horizon_figures(out, _read_horizon(out / "energy_horizon.csv"), (), redraw=False)
     return figures
 
 
@@ -294,98 +311,153 @@ def _sweep_readme(request: SweepRequest, runs, orders, figures, provenance: Prov
                                     merged=merged_note)
 
 
-def _horizon_key(method, t_end: float, overrides: tuple) -> str:
-    return store.key_of(method.name, method.settings, float(t_end), list(overrides), store.code_version())
+def _horizon_key(scene: str, elements: int, method, t_end: float, overrides: tuple) -> str:
+    return store.key_of(scene, elements, method.name, method.settings, float(t_end), list(overrides),
+                        store.code_version())
 
 
 def _read_horizon(path: Path):
-    """The energy study's earlier table, by method (integrator -> its rows), or {} when there is
-    none or it cannot be read."""
+    """The energy study's earlier table (a DataFrame), or None when there is none or it cannot be
+    read. A table from before the study had sizes and scenes gets their columns (fixed_length,
+    the scene's own N = 10)."""
     import pandas as pd
 
     from benchmark.plots import method_of
 
     if not path.is_file():
-        return {}
+        return None
     try:
         df = pd.read_csv(path)
     except Exception:  # unreadable: recomputed, never a crash
-        return {}
+        return None
     if not {"t", "energy_error", "method"} <= set(df.columns):
-        return {}
+        return None
     df["t"] = pd.to_numeric(df["t"], errors="coerce")
     df["energy_error"] = pd.to_numeric(df["energy_error"], errors="coerce")
     if "integrator" not in df:
         df["integrator"] = df["method"].map(method_of)
-    return {name: g for name, g in df.groupby("integrator", sort=False)}
+    defaults = {"scene": "fixed_length", "elements": 10,
+                "setting": df["method"].map(lambda m: str(m).split(" ", 1)[1] if " " in str(m) else "")}
+    for col, value in defaults.items():
+        if col not in df:
+            df[col] = value
+    return df
+
+
+def energy_scenes(scenes, overrides: tuple = (), log: Callable[[str], None] = log_stderr) -> list[str]:
+    """The scenes of ``scenes`` (names or paths) the energy study can run on over a long
+    horizon: those of fixed length (a reel ends at its limit); says which it leaves out."""
+    from integrators.base import situation
+    from models import load_scene
+
+    ov = {k: v for k, v in overrides if k != "elements"}
+    kept = [s for s in scenes if situation(load_scene(s, **ov)) == "fixed_length"]
+    left = [s for s in scenes if s not in kept]
+    if left:
+        log(f"horizon: {', '.join(left)} left out of the energy study (a reel ends at its limit, long before a "
+            "long horizon)")
+    return kept
 
 
 def run_horizon_study(t_end: float, out: Path, overrides: tuple = (), jobs: int | None = None,
                       log: Callable[[str], None] = log_stderr, selected=None,
-                      failed: list | None = None) -> list[tuple[str, str]]:
-    """Energy error vs time on the fixed-length scene over a long horizon, one job per method in
-    parallel workers (``jobs``; 0: in this process; one after another they would be the main
-    job's longest tail):
-    energy_horizon.csv and its figure. ``selected``: the methods a run asked for (None: all);
-    of those that declare horizon settings (`benchmark.sweep.horizon_methods`), a method whose
-    history is already in energy_horizon.csv for the same settings, horizon, scene and code is
-    kept, the others computed; other methods' histories stay. A method whose worker dies is left
-    out of both (its progress line says so, and ``failed`` gets its name and why). Returns
-    [(figure name, note)]."""
+                      scenes=None, failed: list | None = None) -> list[tuple[str, str]]:
+    """Energy error vs time over a long horizon (`benchmark.horizon`) on ``scenes`` (default
+    `horizon.DEFAULT_SCENE`), one job per run in parallel workers (``jobs``; 0: in this process;
+    one after another they would be the main job's longest tail): energy_horizon.csv and one
+    figure per scene. ``selected``: the methods a run asked for (None: all); of those that
+    declare horizon settings (`benchmark.sweep.horizon_methods`), a run whose history is already
+    in energy_horizon.csv for the same settings, size, horizon, scene and code is kept, the
+    others computed; other runs' histories stay (`store.merge_study_table`). A run whose worker
+    dies is left out of both (its progress line says so, and ``failed`` gets what it was and
+    why). Returns [(figure name, note)]."""
     import os
 
-    from benchmark import horizon, plots, runner, sweep
+    import pandas as pd
+
+    from benchmark import horizon, plots, runner
     from benchmark.sweep import Task
     from models import load_scene
 
     path = out / "energy_horizon.csv"
     earlier = _read_horizon(path)
-    methods = [m for m in sweep.horizon_methods() if selected is None or m.name in selected]
-    if not methods:
+    scenes = list(scenes or [horizon.DEFAULT_SCENE])
+    ov = dict(overrides)
+    sizes = (int(ov.pop("elements")),) if "elements" in ov else horizon.ELEMENTS  # --set elements=N: that N only
+    ov = tuple(sorted(ov.items()))
+    names = {s: load_scene(s, **dict(ov)).name for s in scenes}
+    plan = [(s, n, m) for s in scenes for n, m in horizon.runs(selected, sizes)]
+    if not plan:
         log("horizon: none of the selected methods declares settings for the energy study; "
-            + ("energy_horizon.csv kept as it was" if earlier else "no energy study"))
-        figure = f"energy_horizon_{load_scene(horizon.SCENE, **dict(overrides)).name}.png"
-        return [(figure, "from an earlier run")] if earlier and (out / figure).is_file() else []
-    wanted = {m.name: _horizon_key(m, t_end, overrides) for m in methods}
-    kept = [m for m in methods if m.name in earlier and "job_key" in earlier[m.name]
-            and (earlier[m.name]["job_key"] == wanted[m.name]).all()]
-    todo = [m for m in methods if m not in kept]
-    figure = inside(out, f"energy_horizon_{load_scene(horizon.SCENE, **dict(overrides)).name}.png")
+            + ("energy_horizon.csv kept as it was" if earlier is not None else "no energy study"))
+        return _horizon_figures(out, earlier, names.values(), redraw=False)
+    wanted = {(s, n, m.name, horizon.setting_of(m)): _horizon_key(names[s], n, m, t_end, ov) for s, n, m in plan}
+
+    def key(s, n, m):
+        return names[s], n, m.name, horizon.setting_of(m)
+
+    done = set()
+    if earlier is not None and "job_key" in earlier:
+        for k, g in earlier.groupby(list(horizon.RUN_KEY), sort=False):
+            done.add((k[0], int(k[1]), k[2], k[3], str(g["job_key"].iloc[0])))
+    todo = [(s, n, m) for s, n, m in plan if (*key(s, n, m), wanted[(s, n, m.name, horizon.setting_of(m))]) not in done]
+    kept = len(plan) - len(todo)
     if kept:
-        log(f"horizon: kept {', '.join(m.name for m in kept)} (same settings, horizon and code)")
-    rows = []
+        log(f"horizon: kept {kept} of {len(plan)} runs (same settings, size, horizon and code)")
+    new = []
     if todo:
-        jobs_ = [horizon.Job(m, t_end, tuple(overrides)) for m in todo]
-        tasks = [Task(horizon.SCENE, m.name, dt=m.settings.get("dt"), rtol=m.settings.get("rtol"), t_end=t_end)
-                 for m in todo]
+        jobs_ = [horizon.Job(s, n, m, t_end, ov) for s, n, m in todo]
+        tasks = [Task(s, m.name, dt=m.settings.get("dt"), rtol=m.settings.get("rtol"), t_end=t_end,
+                      overrides=tuple(sorted({**dict(ov), "elements": n}.items()))) for s, n, m in todo]
         costs = runner.task_costs(tasks)
         workers = jobs if jobs is not None else min(len(todo), os.cpu_count() or 1)  # 0: this process
-        log(f"horizon: {', '.join(m.name for m in todo)} to t = {t_end:g} s ...")
+        log(f"horizon: {len(todo)} runs ({', '.join(dict.fromkeys(m.name for _, _, m in todo))} at N = "
+            f"{', '.join(str(n) for n in dict.fromkeys(n for _, n, _ in todo))}) on {', '.join(scenes)} to "
+            f"t = {t_end:g} s ...")
         with engine.Heartbeat(f"horizon study to t = {t_end:g} s", sum(costs) / max(workers, 1), log=log):
             rows = engine.run_jobs(horizon.run_job, jobs_, workers=workers,
                                    crash_row=lambda i, exc: horizon.crash_row(jobs_[i], exc),
-                                   describe=horizon.describe, cost=lambda i: costs[i], kind=lambda i: todo[i].name,
+                                   describe=horizon.describe, cost=lambda i: costs[i], kind=lambda i: todo[i][2].name,
                                    log=log)
-    if failed is not None:  # a crashed worker is a failure of the command, not a result
-        failed += [f"{m.name} ({r.get('reason', r['status'])})" for m, r in zip(todo, rows)
-                   if r["status"] == "crashed" or r["history"] is None]
-    fresh = {m.name: r["history"].assign(method=r["label"], integrator=m.name, t_end=t_end, job_key=wanted[m.name])
-             for m, r in zip(todo, rows) if r["history"] is not None}
-    if not todo and figure.is_file():
-        return [(figure.name, "")]
-    import pandas as pd
-
-    parts = {**earlier, **fresh}
-    for m in todo:  # a method recomputed without a history (its worker died) is not drawn from stale rows
-        if m.name not in fresh:
-            parts.pop(m.name, None)
-    if not parts:
+        if failed is not None:  # a crashed worker is a failure of the command, not a result
+            failed += [f"{m.name} {horizon.setting_of(m)} N={n} on {s} ({r.get('reason', r['status'])})"
+                       for (s, n, m), r in zip(todo, rows) if r["status"] == "crashed" or r["history"] is None]
+        for (s, n, m), r in zip(todo, rows):
+            if r["history"] is None:
+                continue
+            scene, elements, name, setting = key(s, n, m)
+            new.append(r["history"].assign(method=r["label"], integrator=name, scene=scene, elements=elements,
+                                           setting=setting, status=r["status"], t_end=t_end,
+                                           job_key=wanted[(s, n, name, setting)]))
+    if not todo:
+        return _horizon_figures(out, earlier, names.values(), redraw=False)
+    table = store.merge_study_table(earlier, pd.concat(new, ignore_index=True) if new else None, horizon.RUN_KEY)
+    dead = {key(s, n, m) for (s, n, m), r in zip(todo, rows) if r["history"] is None}
+    if dead and table is not None and len(table):  # a run recomputed without a history is not drawn from stale rows
+        stale = table[list(horizon.RUN_KEY)].apply(lambda r: (r.iloc[0], int(r.iloc[1]), r.iloc[2], r.iloc[3]) in dead,
+                                                   axis=1)
+        table = table[~stale]
+    if table is None or table.empty:
         return []
-    table = pd.concat(list(parts.values()), ignore_index=True)
     store.write_table(path, table)
-    histories = {str(g["method"].iloc[0]): g for _, g in table.groupby("integrator", sort=False)}
-    plots.energy_horizon(histories, load_scene(horizon.SCENE, **dict(overrides)).name, out)
-    return [(figure.name, "")]
+    return _horizon_figures(out, table, names.values(), redraw=True)
+
+
+def _horizon_figures(out: Path, table, scenes, redraw: bool) -> list[tuple[str, str]]:
+    """energy_horizon_SCENE.png of each scene in ``table``: drawn (``redraw``) or listed as they are."""
+    from benchmark import plots
+
+    if table is None or table.empty:
+        return []
+    figures = []
+    for scene, g in table.groupby("scene", sort=False):
+        figure = inside(out, f"energy_horizon_{scene}.png")
+        if (redraw or not figure.is_file()) and scene in set(scenes):
+            plots.energy_horizon(g, scene, out)
+            figures.append((figure.name, ""))
+        elif figure.is_file():
+            figures.append((figure.name, "" if scene in set(scenes) else "from an earlier run"))
+    return figures
 
 
 # ------------------------------------------------------------------------------------------
@@ -443,6 +515,8 @@ def run_check(*, update: bool = False, baseline=None, integrators=None, factor: 
     old = check.baseline_for(baseline, update=update, warn=log or echo)
     table = old.table if old is not None else None
     unknown = [] if update else check.comparable(table, tasks, baseline, allow_new)
+    if not update and integrators is None:  # installed plugins are guests: reported, not run
+        unknown += [n for n in check.guests_not_gated(table) if n not in unknown]
     tasks = [t for t in tasks if t.integrator not in set(unknown)]  # nothing to compare them with
     try:
         current = check.measure(tasks, executor=executor, jobs=jobs, cache_dir=cache_dir or str(CACHE_DIR),
@@ -521,6 +595,48 @@ def run_reel_reversal(scene_name: str = "reel_reversal", elements: int = 5, t_en
     rows = engine.run_jobs(reel_reversal.run_job, todo, workers=workers, group=lambda i: todo[i].method,
                            describe=reel_reversal.describe, log=log)
     echo(reel_reversal.table(scene, t_end, ref.flips, rows))
+    return 0
+
+
+def run_orders(scenes=None, integrators=None, *, out: Path = Path("results"), jobs: int | None = None,
+               log: Callable[[str], None] = log_stderr, echo: Callable[[str], None] = print) -> int:
+    """The observed orders (`benchmark.orders`) into ``out``: orders_errors.csv (every run of
+    every ladder) and orders.csv (a row per scene and method); a rerun of some scenes or methods
+    replaces their rows and keeps the others (`store.merge_study_table`)."""
+    import os
+
+    import pandas as pd
+
+    from benchmark import orders
+
+    scenes = list(scenes or orders.SCENES)
+    methods = orders.fixed_step_methods(integrators)  # refuses an adaptive-only name before any work
+    out = Path(out)
+    with _exclusive(out, log):
+        try:
+            log(f"orders: references of {', '.join(scenes)} ({orders.REFERENCE_METHOD} at dt = "
+                f"{orders.REFERENCE_DT:g} s, N = {orders.ELEMENTS}, to t = {orders.T_END:g} s) ...")
+            refs = {s: orders.reference(s) for s in scenes}
+            todo = [orders.Job(s, m, refs[s]) for s in scenes for m in methods]
+            workers = jobs if jobs is not None else min(len(methods), os.cpu_count() or 1)
+            rows = engine.run_jobs(orders.run_job, todo, workers=workers, group=lambda i: todo[i].integrator,
+                                   crash_row=lambda i, exc: orders.crash_row(todo[i], exc),
+                                   describe=orders.describe, log=log)
+        except KeyboardInterrupt as exc:
+            return engine.stopped(exc, f"nothing written: {out}/orders.csv is as it was", log)
+        for r in rows:
+            if r["status"] != "ok":
+                log(f"warning: orders of {r['integrator']} on {r['scene']}: {r['status']} ({r.get('reason', '')}); "
+                    "its earlier rows are kept")
+        new = pd.DataFrame([x for r in rows for x in r["ladder"]])
+        path = out / "orders_errors.csv"
+        earlier = pd.read_csv(path) if path.is_file() else None
+        ladder = orders.in_order(store.merge_study_table(earlier, new, orders.LADDER_KEY))
+        summary = orders.summarise(ladder)
+        store.write_table(path, ladder)
+        store.write_table(out / "orders.csv", summary)
+    echo(orders.section(summary))
+    log(f"wrote {out}/orders.csv and {path} ({len(new)} runs, {len(ladder)} in the table)")
     return 0
 
 

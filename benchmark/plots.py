@@ -125,20 +125,40 @@ def method_of(label: str) -> str:
     return str(label).split(" ", 1)[0]
 
 
-def energy_horizon(histories: dict[str, pd.DataFrame], scene: str, out_dir: Path) -> Path:
-    """Energy error vs time over a long horizon, one curve per method (its own colour and line)."""
+def energy_horizon(table: pd.DataFrame, scene: str, out_dir: Path) -> Path:
+    """Energy error vs time on log–log axes, one panel per size N of the string, one curve per run
+    (the method's colour; solid: its declared setting, dotted: the finer one), symplectic methods
+    named as such: a bounded error is a flat band, a drift a line of slope 1."""
+    from benchmark.properties import is_symplectic
+
     path = inside(out_dir, f"energy_horizon_{scene}.png")  # the scene name comes from a table: refused if it walks out
-    fig, ax = plt.subplots(figsize=(8, 4.2))
-    for label, h in histories.items():
-        st = styles.style(method_of(label))
-        ax.semilogy(h["t"], np.maximum(h["energy_error"], 1e-17), color=st.color, linestyle=st.linestyle, lw=1)
-    style_axes(ax, xlabel="t (s)", ylabel="|E − E0| / max T", title=f"{scene}: energy error over a long horizon",
-               legend=None)
+    sizes = sorted({int(n) for n in table["elements"]})
+    fig, axes = plt.subplots(1, len(sizes), figsize=(6.2 * len(sizes), 4.4), squeeze=False, sharey=True)
+    handles, labels = {}, {}
+    for ax, n in zip(axes[0], sizes):
+        g = table[table["elements"].astype(int) == n]
+        for name, m in g.groupby("integrator", sort=False):
+            st = styles.style(name)
+            for k, (setting, h) in enumerate(sorted(m.groupby("setting", sort=False),
+                                                    key=lambda kv: -_setting_size(kv[0]))):
+                h = h[h["t"] > 0]
+                ax.loglog(h["t"], np.maximum(np.abs(h["energy_error"]), 1e-17), color=st.color,
+                          linestyle="-" if k == 0 else ":", lw=1.0)
+            handles[name] = Line2D([], [], color=st.color)
+            labels[name] = f"{name} ({'symplectic' if is_symplectic(name) else 'not symplectic'})"
+        style_axes(ax, xlabel="t (s)", ylabel="|E − E0| / max T", title=f"{scene}, N = {n}", legend=None)
+    fig.suptitle("energy error over a long horizon (solid: the declared setting, dotted: the finer one)", fontsize=10)
     fig.tight_layout()
-    handles = [Line2D([], [], color=styles.style(method_of(lb)).color, linestyle=styles.style(method_of(lb)).linestyle)
-               for lb in histories]
-    styles.legend_outside(fig, handles, list(histories))
+    styles.legend_outside(fig, list(handles.values()), list(labels.values()))
     return save_figure(fig, path)
+
+
+def _setting_size(setting: str) -> float:
+    """The step or tolerance of a setting "dt=0.005" / "rtol=1e-06, atol=1e-08" (larger: coarser)."""
+    try:
+        return float(str(setting).split(",")[0].split("=")[1])
+    except (IndexError, ValueError):
+        return 0.0
 
 
 def paper_panels(scene, traj, df: pd.DataFrame, out_path: Path, n_snapshots: int = 20) -> Path:

@@ -37,7 +37,7 @@ from benchmark.flops import run_flops
 from benchmark.metrics import ACCURACY, COLUMNS, run_metrics, work_evals
 from benchmark.reference import CACHE_DIR, ReferenceProblem, get_reference, prepare_reference
 from benchmark.report import shorten
-from benchmark.store import code_version, frame, kept_rows, row_digest, run_key
+from benchmark.store import code_version, frame, key_of, kept_rows, row_digest, run_key
 from benchmark.sweep import EXECUTORS, MAX_REPEATS, MIN_REPEATS, TIMING_BUDGET, Task
 
 #: Step statistics some integrators report (`Trajectory.stats`), copied into the row when present.
@@ -45,8 +45,10 @@ STEP_STATS = ("rejected_steps", "min_step", "median_step", "max_step", "max_newt
 #: Columns after `benchmark.metrics.COLUMNS`: the timing spread and the implementation ...
 TIMING_COLUMNS = ["implementation", "run_time_low", "run_time_high", "timing_repeats", "load_avg", "us_per_eval",
                   "flops", "flops_note", "task_time"]
-#: ... and a row's identity: the scene's physics hash, the resume key and the row's digest.
-IDENTITY_COLUMNS = ["scene_key", "run_key", "row_digest"]
+#: ... and a row's identity: the scene's physics hash, the resume key and the row's digest, and
+#: whose method it is: its package and version and the code digest its resume key covers
+#: (`provenance`).
+IDENTITY_COLUMNS = ["scene_key", "run_key", "row_digest", "package", "package_version", "code_digest"]
 RUN_COLUMNS = COLUMNS + TIMING_COLUMNS + IDENTITY_COLUMNS
 
 
@@ -239,12 +241,29 @@ def task_costs(tasks: list[Task]) -> list[float]:
     return out
 
 
-def finish_row(row: dict, key: str) -> dict:
-    """A row as the table keeps it: no accuracy without a finished run, its resume key and the
-    digest of its deterministic columns (`benchmark.store.row_digest`)."""
+def provenance(name: str, code: str) -> dict:
+    """Whose method ``name`` is: {"package", "package_version", "code_digest"}. The digest is
+    the project's code version (`benchmark.store.code_version`, given as ``code``) and, for a
+    plugin, that of the source file defining it too (`models.origin.source_digest`): a changed
+    plugin's rows are recomputed on resume, like the project's."""
+    from integrators import origin, registry
+    from models.origin import source_digest
+
+    try:
+        where = origin(name)
+    except ValueError:  # not registered: the task becomes an error row of its own
+        return {"package": "", "package_version": "", "code_digest": code}
+    digest = code if where.own else key_of(code, source_digest(registry._REGISTRY[name]))[:12]
+    return {"package": where.package, "package_version": where.version, "code_digest": digest}
+
+
+def finish_row(row: dict, key: str, origin: dict | None = None) -> dict:
+    """A row as the table keeps it: no accuracy without a finished run, its resume key, the
+    method's provenance and the digest of its deterministic columns (`benchmark.store.row_digest`)."""
     if row.get("status") != "ok":
         row.update({k: np.nan for k in ACCURACY})
     row["run_key"] = key
+    row.update(origin or {})
     row["row_digest"] = row_digest(row)
     return row
 
@@ -282,7 +301,8 @@ def execute(
     if executor == "dask" and not scheduler:
         raise ValueError("executor 'dask' needs --scheduler ADDRESS (e.g. tcp://host:8786)")
     code = code_version()
-    keys = [run_key(t, code) for t in tasks]
+    origins = {name: provenance(name, code) for name in dict.fromkeys(t.integrator for t in tasks)}
+    keys = [run_key(t, origins[t.integrator]["code_digest"]) for t in tasks]
     kept = kept_rows(keys, previous)
     if kept:
         log(f"resuming: {len(kept)} of {len(tasks)} runs already done (kept); "
@@ -305,5 +325,5 @@ def execute(
         setup=[functools.partial(prepare_reference, p, cache_dir) for p in problems],
         setup_labels=[f"reference {Path(p.scene).stem}" + (f" to t = {p.t_end:g} s" if p.t_end else "")
                       for p in problems],
-        done=kept, finish=lambda i, row: finish_row(row, keys[i]), describe=describe_run, on_row=on_row, log=log)
+        done=kept, finish=lambda i, row: finish_row(row, keys[i], origins[tasks[i].integrator]), describe=describe_run, on_row=on_row, log=log)
     return runs_frame(rows)

@@ -324,7 +324,7 @@ def _figure_lines(figures: list[tuple[str, str]]) -> str:
     return "\n".join(f"- [{name}]({name})" + (f" — {note}" if note else "") for name, note in figures)
 
 
-def write_readme(out_dir: Path, runs: pd.DataFrame, orders: pd.DataFrame, *, provenance: Provenance,
+def write_readme(out_dir: Path, runs: pd.DataFrame, orders: pd.DataFrame | None, *, provenance: Provenance,
                  figures: list, horizons: dict | None = None, compared: str = "", table: pd.DataFrame | None = None,
                  failures: str | None = None, merged: str = "") -> Path:
     """results/README.md from the (merged) runs table. ``figures``: file names, or (name, note)
@@ -336,6 +336,7 @@ def write_readme(out_dir: Path, runs: pd.DataFrame, orders: pd.DataFrame, *, pro
     status = runs.groupby(["integrator", "status"]).size().unstack(fill_value=0).reset_index()
     ref = REFERENCE_METHOD
     per_eval = evaluation_costs(runs)
+    from benchmark.orders import section as orders_section
     from benchmark.properties import properties_text
 
     text = f"""# Benchmark results
@@ -382,14 +383,7 @@ that finished, which already met the target: the method may be cheaper than stat
 {failures}
 
 {markdown_table(status)}
-{compared}## Observed convergence orders
-
-Slope p of error ∝ steps^(−p) on the body position at t_end (fixed-step: the order in dt):
-the mean over consecutive settings, and from the two finest settings alone. Over these
-horizons the system is chaotic and coarse steps sit near stability limits, so read the
-finest pair; the classical orders are measured on short horizons in `tests/`.
-
-{markdown_table(orders)}
+{compared}{orders_section(orders)}
 {properties_text(runs, Path(out_dir) / "energy_horizon.csv")}
 {TRUST}
 ## Figures

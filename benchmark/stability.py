@@ -52,7 +52,8 @@ def implicit_baseline(integ) -> bool:
 
 def default_integrators() -> list[str]:
     """The map's default methods: those of the default sweep (`benchmark.sweep.default_names`:
-    every registered method and plugin), implicit baselines last (their jobs are the longest)."""
+    the project's own registered methods; a plugin joins when named), implicit baselines last
+    (their jobs are the longest)."""
     from benchmark.sweep import default_names
     from integrators import get_integrator
 

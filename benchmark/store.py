@@ -267,9 +267,11 @@ class StoredRuns:
         self.legacy = []
 
 
-#: Columns of the runs table that hold text; the others are read as numbers where they are.
+#: Columns of the runs table that hold text; the others are read as numbers where they are
+#: (a version "1.10" or a digest "12e5" is not a number).
 TEXT_COLUMNS = ("scene", "integrator", "setting", "status", "reason", "rhs", "implementation", "run_key",
-                "row_digest", "scene_key", "traceback", "flops_note", "rejected_because")
+                "row_digest", "scene_key", "traceback", "flops_note", "rejected_because", "package",
+                "package_version", "code_digest")
 #: A runs table is a few MB; anything far larger is not one (and is not read whole).
 MAX_RUNS_BYTES = 512 * 2**20
 
@@ -765,3 +767,23 @@ def trajectory_from(arrays: dict, meta: dict):
     from integrators import Trajectory
 
     return Trajectory(**{k: arrays.get(k) for k in TRAJECTORY_ARRAYS}, **meta)
+
+
+def merge_study_table(earlier, new, key: Iterable[str]):
+    """A study's table (a DataFrame) with the rows of ``new`` in place of every row of
+    ``earlier`` that has the same values in the columns ``key`` (a run's rows replace that run's
+    rows as a whole), and ``earlier``'s other rows kept as they were, first: a study that
+    recomputes a few of its runs never drops the others. ``earlier`` may be None."""
+    import pandas as pd
+
+    key = list(key)
+    if earlier is None or earlier.empty:  # (None when neither has rows: every run of a study crashed)
+        return new.reset_index(drop=True) if new is not None else None
+    if new is None or new.empty:
+        return earlier.reset_index(drop=True)
+    missing = [c for c in key if c not in earlier or c not in new]
+    if missing:
+        raise ValueError(f"merge_study_table: key column(s) {missing} missing")
+    replaced = pd.MultiIndex.from_frame(new[key].astype(str).drop_duplicates())
+    keep = ~pd.MultiIndex.from_frame(earlier[key].astype(str)).isin(replaced)
+    return pd.concat([earlier[keep], new], ignore_index=True)

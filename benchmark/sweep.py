@@ -95,14 +95,23 @@ def check_settings(dts=(), rtols=()) -> None:
                 raise ValueError(f"--rtols: rtol = {v!r} is invalid (allowed: {RTOL_RULE})")
 
 
-def default_names() -> list[str]:
-    """The integrators a run without ``--integrators`` uses: the registered ones among
-    `PRESENTATION_ORDER` in that order, then every other plugin (test-only ``test_*`` excepted)."""
-    from integrators import available
+def default_names(plugins: bool = False) -> list[str]:
+    """The integrators a run without ``--integrators`` uses: the project's own registered
+    methods (`integrators.registry.own`) among `PRESENTATION_ORDER` in that order, then its
+    others; with ``plugins`` (`run --with-plugins`) every installed plugin after them (test-only
+    ``test_*`` excepted). A plugin is a guest: it joins a default only when asked."""
+    from integrators import available, registry
 
-    names = available()
+    names = available() if plugins else registry.own()
     return [n for n in PRESENTATION_ORDER if n in names] + [
         n for n in names if n not in PRESENTATION_ORDER and not n.startswith("test_")]
+
+
+def plugin_names(names) -> list[str]:
+    """Those of ``names`` that are plugins (not the project's own methods)."""
+    from integrators import origin
+
+    return [n for n in names if not origin(n).own]
 
 
 class MethodSettings(NamedTuple):
@@ -151,8 +160,8 @@ def build_tasks(
     t_end: float | None = None,
     overrides: dict | None = None,
 ) -> list[Task]:
-    """The sweep as tasks. ``integrators=None`` means every registered one among the defaults
-    plus any plugin; unknown names raise ValueError before anything runs."""
+    """The sweep as tasks. ``integrators=None`` means the project's methods of the default
+    sweep (`default_names`); unknown names raise ValueError before anything runs."""
     from integrators import Capability, get_integrator  # JAX: only once the input is known good
 
     names = list(integrators) if integrators else [n for n in default_names() if get_integrator(n).default_sweep]

@@ -16,7 +16,7 @@ JAX to float64 first).
 from integrators.base import IMPLEMENTATIONS, Capability, Integrator, Status, Trajectory, save_times
 from integrators.fixed_step import FixedStepMethod, StepCode, StepResult
 from integrators.lifecycle import Guards, LibraryAdapter, ODEProblem, Outcome, Run
-from integrators.registry import ENTRY_POINT_GROUP, available, get_integrator, plugin_errors, register, unregister
+from integrators.registry import ENTRY_POINT_GROUP, available, get_integrator, origin, plugin_errors, register, unregister
 
 __all__ = [
     "Capability",
@@ -35,6 +35,7 @@ __all__ = [
     "Trajectory",
     "available",
     "get_integrator",
+    "origin",
     "plugin_errors",
     "register",
     "save_times",

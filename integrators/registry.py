@@ -16,11 +16,14 @@ import difflib
 from importlib.metadata import entry_points
 
 from integrators.base import Integrator
+from models import origin as _origin
 
 ENTRY_POINT_GROUP = "reelbench.integrators"
 
 _REGISTRY: dict[str, type[Integrator]] = {}
 _PLUGIN_ERRORS: dict[str, str] = {}
+#: the distribution of each method loaded through an entry point (the others: by their module)
+_ORIGINS: dict[str, _origin.Origin] = {}
 
 
 def register(cls: type[Integrator]) -> type[Integrator]:
@@ -44,6 +47,7 @@ def unregister(name: str) -> None:
     """
     _REGISTRY.pop(name, None)
     _PLUGIN_ERRORS.pop(name, None)
+    _ORIGINS.pop(name, None)
 
 
 def _load_plugins() -> None:
@@ -55,6 +59,9 @@ def _load_plugins() -> None:
             if getattr(cls, "name", None) != ep.name:
                 raise ValueError(f"entry point {ep.name!r} loads a class named {getattr(cls, 'name', None)!r}")
             register(cls)
+            found = _origin.of_distribution(getattr(ep, "dist", None))
+            if found is not None:
+                _ORIGINS[ep.name] = found
         except Exception as exc:  # a broken plugin must not take the others down
             _PLUGIN_ERRORS[ep.name] = f"{type(exc).__name__}: {exc}"
 
@@ -63,6 +70,22 @@ def available() -> list[str]:
     """Names of all registered integrators (built-ins and plugins)."""
     _load_plugins()
     return sorted(_REGISTRY)
+
+
+def origin(name: str) -> _origin.Origin:
+    """Where the registered method ``name`` comes from (`models.origin.Origin`): the project
+    (its decorators and its own entry points) or a plugin's package and version."""
+    _load_plugins()
+    if name in _ORIGINS:
+        return _ORIGINS[name]
+    if name not in _REGISTRY:
+        raise ValueError(f"unknown integrator {name!r}; available: {', '.join(sorted(_REGISTRY))}")
+    return _origin.of_object(_REGISTRY[name])
+
+
+def own() -> list[str]:
+    """The project's own methods (those the reelbench distribution registers), sorted."""
+    return [n for n in available() if origin(n).own]
 
 
 def plugin_errors() -> dict[str, str]:

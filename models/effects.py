@@ -37,6 +37,7 @@ from typing import Callable, NamedTuple
 
 import numpy as np
 
+from models.origin import of_distribution as origin_of_distribution, of_object as origin_of_object, project_origin
 from models.schema import BASE_SCHEMA, GYRATION_RADIUS, Key, SceneChecks
 
 E3 = np.array([0.0, 0.0, 1.0])
@@ -48,7 +49,7 @@ ENTRY_POINT_GROUP = "reelbench.effects"
 EFFECT_NAME = re.compile(r"[a-z][a-z0-9_]{0,63}")
 
 __all__ = ["EFFECTS", "ENTRY_POINT_GROUP", "Effect", "Key", "PotentialTerm", "SceneChecks", "effect_keys",
-           "get_effect", "load_plugins", "plugin_errors", "register_effect", "unregister_effect", "unusable"]
+           "effect_origin", "get_effect", "load_plugins", "plugin_errors", "register_effect", "unregister_effect", "unusable"]
 
 
 class PotentialTerm(NamedTuple):
@@ -478,6 +479,7 @@ def unregister_effect(name: str) -> Effect | None:
     the next scan tries it again."""
     if name in _BUILTIN:
         raise ValueError(f"effect {name!r} is built in and cannot be unregistered")
+    _ORIGINS.pop(name, None)
     if name not in EFFECTS and name in _PLUGIN_ERRORS:
         del _PLUGIN_ERRORS[name]
         return None
@@ -517,6 +519,8 @@ _BUILTIN = frozenset(EFFECTS)
 # --------------------------------------------------------------------------------------------
 
 _PLUGIN_ERRORS: dict[str, str] = {}
+#: the distribution of each effect loaded through an entry point
+_ORIGINS: dict = {}
 _scanned = False
 
 
@@ -539,6 +543,9 @@ def load_plugins(refresh: bool = False) -> None:
             continue
         try:
             pending[ep.name] = _effect_from(ep)
+            found = origin_of_distribution(getattr(ep, "dist", None))
+            if found is not None:
+                _ORIGINS[ep.name] = found
         except Exception as exc:  # a broken plugin must not take the others down
             _PLUGIN_ERRORS[ep.name] = f"{type(exc).__name__}: {exc}"
     while pending:
@@ -565,6 +572,16 @@ def ensure_known(names) -> None:
     load_plugins()
     if any(isinstance(n, str) and n not in EFFECTS and n not in _PLUGIN_ERRORS for n in names):
         load_plugins(refresh=True)
+
+
+def effect_origin(name: str):
+    """Where the registered effect ``name`` comes from (`models.origin.Origin`): built in, or
+    a plugin's package and version (an entry point's distribution, or the module that
+    registered it)."""
+    effect = get_effect(name)
+    if name in _BUILTIN:
+        return project_origin()
+    return _ORIGINS.get(name) or origin_of_object(effect)
 
 
 def plugin_errors() -> dict[str, str]:

@@ -21,7 +21,8 @@ ROOT = Path(__file__).resolve().parent.parent
 DOCS = (ROOT / "README.md", ROOT / "integrators" / "README.md")
 #: Commands that write elsewhere than runs.csv and take minutes: not run here.
 NOT_RUN = {"check": "results/baseline/ only", "speed": "its --out file only", "stability": "results/stability/ only",
-           "xval": "results/xval/ only", "reel-reversal": "stdout and its cache only"}
+           "xval": "results/xval/ only", "reel-reversal": "stdout and its cache only",
+           "verify": "writes nothing; tests/test_verify.py runs each documented verify"}
 #: Words of a template, not a command (an option to choose, a placeholder).
 TEMPLATE = re.compile(r"\[|\]|\.\.\.|COMMAND|HOST|NAME|FILE|TRAJ|DIR\b|\bN\b")
 

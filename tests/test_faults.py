@@ -605,7 +605,7 @@ def test_an_energy_study_too_long_to_run_is_refused_before_any_work(tmp_path, mo
     monkeypatch.setattr(pipelines, "run_sweep", lambda *a, **k: pytest.fail("started the sweep"))
     rc = main(WITH_FIGURES + ["--dts", "0.01", "--horizon", "1e9", "--out", str(tmp_path / "o")])
     err, line = outcome(capsys)
-    assert rc == 2 and "--horizon 1e+09: the energy study of lgvi would keep" in line, err
+    assert rc == 2 and "--horizon 1e+09: the energy study of lgvi at N = 1 would keep" in line, err
     assert "of trajectory in memory (limit 8 GiB): shorten --horizon" in line, err
     assert not (tmp_path / "o").exists()
 
@@ -622,7 +622,8 @@ def test_an_energy_study_whose_worker_crashed_ends_with_exit_1(tmp_path, monkeyp
     rc = main(WITH_FIGURES + ["--dts", "0.01", "--horizon", "0.1", "--out", str(out)])
     err, line = outcome(capsys)
     assert rc == 1, err
-    assert line.startswith("error: the energy study did not finish for lgvi (MemoryError: out of memory)"), err
+    assert line.startswith("error: the energy study did not finish for lgvi dt=") and "N=1 on fixed_length" in line, err
+    assert "(MemoryError: out of memory)" in line, err
     assert len(__import__("pandas").read_csv(out / "runs.csv")) == 1  # the runs table is complete
 
 

@@ -63,14 +63,14 @@ def test_a_restricted_run_keeps_the_other_rows_and_a_resume_trusts_only_checked_
     assert again.loc["dt=0.01", "energy_error"] == first.loc["dt=0.01", "energy_error"]  # recomputed: the same physics
     assert pd.api.types.is_float_dtype(again["run_time"])
     assert again.loc["rtol=0.0001", "row_digest"] == both.loc["rtol=0.0001", "row_digest"]  # rk45 untouched
-    assert "horizon: kept lgvi" in err  # the energy study of unchanged inputs is not recomputed
+    assert "horizon: kept 2 of 2 runs" in err  # the energy study of unchanged inputs is not recomputed
 
     # nothing to compute: nothing is recomputed, no figure redrawn
     rc, err = _run(LGVI, out, capsys)
     assert rc == 0, err
     assert "resuming: 2 of 2 runs already done" in err
     assert "figure: work_precision_fixed_length.png kept" in err and "figure: paper_fixed_length.png kept" in err
-    assert "solving" not in err and "horizon: kept lgvi" in err and "to t = 0.1 s ..." not in err
+    assert "solving" not in err and "horizon: kept 2 of 2 runs" in err and "to t = 0.1 s ..." not in err
 
 
 def test_a_run_that_would_mix_two_horizons_in_one_table_is_refused_before_any_work(tmp_path, capsys):

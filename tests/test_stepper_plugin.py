@@ -131,6 +131,12 @@ def test_it_runs_in_the_benchmark_into_tables_and_the_work_precision_plot(site, 
     ratio = mine.loc[0.005, "position_error_final"] / mine.loc[0.0025, "position_error_final"]
     assert 1.5 < ratio < 2.7, ratio
     assert NAME in (out / "runs.md").read_text()
+    # whose rows these are: the plugin's package and version, and the code digest its resume key covers
+    from benchmark.store import code_version
+
+    assert set(runs["package"]) == {"my-stepper"} and set(runs["package_version"].astype(str)) == {"0.1"}
+    [digest] = set(runs["code_digest"])
+    assert len(digest) == 12 and digest != code_version()  # the plugin's source is part of it
     assert (out / "work_precision_fixed_length.png").stat().st_size > 0
 
     # the work-precision figure has its curve on both cost axes (run time and work count)

@@ -212,7 +212,8 @@ def test_setup_calls_each_say_when_they_are_done():
 
 
 # ---- the plugin workflow ------------------------------------------------------------------
-def test_the_stability_map_includes_registered_plugins_by_default():
+def test_the_stability_map_runs_a_registered_plugin_when_named_not_by_default():
+    """A plugin is a guest: the committed map holds the project's methods unless one is named."""
     from benchmark import stability
     from integrators import FixedStepMethod, register, registry
 
@@ -226,7 +227,9 @@ def test_the_stability_map_includes_registered_plugins_by_default():
             return y + h * ode.f(t, y)
 
     try:
-        assert "trust_plugin_euler" in stability.default_integrators()
-        assert any(j.integrator == "trust_plugin_euler" for j in stability.jobs_for())
+        assert "trust_plugin_euler" not in stability.default_integrators()
+        assert not any(j.integrator == "trust_plugin_euler" for j in stability.jobs_for())
+        assert "lgvi" in stability.default_integrators()
+        assert any(j.integrator == "trust_plugin_euler" for j in stability.jobs_for(integrators=["trust_plugin_euler"]))
     finally:
         registry.unregister("trust_plugin_euler")
