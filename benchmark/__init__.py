@@ -27,7 +27,8 @@ By concern, from the command line down:
   (JAX-free input checks).
 
 Names from input (scenes, integrators, rows read back) reach a file name only through
-`models.io.inside`, which refuses one that leaves its directory; `check` fails (exit 2) on a
-baseline that would compare nothing, and on an integrator without baseline rows unless
-`--allow-new NAME`.
+`models.io.inside`, which refuses one that leaves its directory (or a link inside it that leads
+out); `check` fails (exit 2) on a baseline that would compare nothing or could not fail, and on
+one of reelbench's own integrators without baseline rows unless `--allow-new NAME` (a plugin the
+baseline does not know is reported, not checked).
 """

@@ -21,17 +21,24 @@ Tolerance rules (a regression fails the check, exit status 1):
 - observed orders: lower than baseline − ``order_margin`` (default 0.5, absolute). Orders use
   only errors above the position floor, so round-off never enters a slope.
 - status: a run that was "ok" and no longer is (diverged, newton_failed, error, ...); an
-  integrator of the baseline whose module no longer loads (`plugin_errors()`).
+  integrator of the baseline whose module no longer loads (`plugin_errors()`) or that is no
+  longer registered (removed or renamed).
 
-Improvements beyond the same margins are reported, as are baseline rows of integrators that
-are no longer registered; neither fails. Run and compile times are reported, never judged.
+Improvements beyond the same margins are reported. Run and compile times are reported, never
+judged.
 
-A check cannot pass on nothing (exit 2, naming the file and the line, before any work): a
-baseline that is unreadable, binary, not a table, without rows, with a repeated row, or with
-a finished run whose metrics are not finite numbers >= 0 is refused, and so is a selected
-integrator without a baseline row this check compares with (a new method: `--allow-new NAME`,
-or add its rows with `--update --integrators NAME`). A metric the run has and the baseline
-lacks is a regression, not a note.
+A check cannot pass on nothing, and fails closed on what it gates (exit 2, naming the file and
+the line, before any work): a baseline that is unreadable, binary, not a table, without rows,
+with a repeated row, or with a row that could not fail (`row_problems`: an unknown status, a
+run that did not finish, a metric that is not a finite number in [0, `SANITY_BOUND`], an order
+outside its method's plausible range, a missing order row) is refused; so is one whose
+coverage shrank (a run of the sweep of a method it gates has no row), one with rows of a
+method no longer registered, and one without rows of one of reelbench's own selected methods
+(a new method: `--allow-new NAME`, or add its rows with `--update --integrators NAME`). A
+method the baseline does not know that comes from another package (an installed plugin) is
+reported with the command that adds it, and not run: installing a plugin never breaks the
+check. ``--update`` writes no baseline that could not fail. A metric the run has and the
+baseline lacks is a regression, not a note.
 """
 
 from __future__ import annotations
@@ -253,56 +260,176 @@ def read_baseline(path: str | os.PathLike = BASELINE) -> Baseline:
 
 
 def _check_rows(df: pd.DataFrame, path) -> None:
-    """Each (scene, integrator, setting) once; a finished run with every metric a finite number
-    >= 0, an order row with a finite order (else the check would compare nothing, silently)."""
+    """Refuse the baseline at its first row that could not fail a check (`row_problems`)."""
+    problems = row_problems(df)
+    if problems:
+        line, what = problems[0]
+        more = f" (and {len(problems) - 1} more row(s) like it)" if len(problems) > 1 else ""
+        raise _refuse(path, f"line {line}: {what}{more}")
+
+
+#: A drift or error of a finished run above this is not a measurement: a relative energy error
+#: of 1000, a position error of a kilometre on metre-scale scenes (an attitude error cannot
+#: exceed 2√3). A baseline value there would let any later value pass (x2 of 1e300 is inf).
+SANITY_BOUND = 1e3
+#: Observed orders are the slope of log(error) vs log(steps) over two settings. A baseline order
+#: below `order_floor` (a method that does not converge at its order) or above this ceiling
+#: (two-point slopes of errors near the floor reach 25: lgvi_yoshida4 on deployment) gates
+#: nothing: a regression of the method would pass the margin.
+ORDER_CEILING = 32.0
+
+
+def order_floor(integrator: str, scene: str, axis: str) -> float:
+    """The least observed order a baseline may record for ``integrator`` on ``scene``: half its
+    declared order on a fixed-step sweep (``axis`` "dt"; the LGVI's is 1 with a reel), and 0.5
+    on a tolerance sweep (a slope against the steps, not the classical order)."""
+    if axis != "dt":
+        return 0.5
+    try:
+        from models import load_scene
+
+        declared = get_integrator(integrator).order_for(load_scene(scene))
+    except (ValueError, TypeError, AttributeError):  # an unregistered method or a scene by file
+        declared = None
+    return max(0.5, 0.5 * declared) if declared else 0.5
+
+
+def row_problems(df: pd.DataFrame) -> list[tuple[int, str]]:
+    """(line, why) of every row of a check table that could not fail a check: a repeated or
+    nameless row, an unknown status, a run that did not finish (a check can then only find an
+    improvement), a finished run whose metrics are not finite numbers in [0, `SANITY_BOUND`],
+    an order row without a finite order in its method's plausible range (`order_floor`,
+    `ORDER_CEILING`), and a missing order row where two runs of the sweep give one."""
+    from benchmark.store import statuses
+
+    known = statuses()
+    out: list[tuple[int, str]] = []
     first: dict = {}
+    usable: dict = {}  # (scene, integrator, axis) -> [runs that give an order, line of the first]
     for line, row in df.iterrows():
         key = tuple(row[c] for c in KEY)
         if not all(key):
-            raise _refuse(path, f"line {line}: empty {', '.join(c for c, v in zip(KEY, key) if not v)}")
+            out.append((line, f"empty {', '.join(c for c, v in zip(KEY, key) if not v)}"))
+            continue
         if key in first:
-            raise _refuse(path, f"line {line} repeats {_name(key)} of line {first[key]} (one row per run)")
+            out.append((line, f"repeats {_name(key)} of line {first[key]} (one row per run)"))
+            continue
         first[key] = line
+        what = _name(key)
         if _is_order_row(key[2]):
-            bad = [ORDER] if not np.isfinite(row[ORDER]) else []
-        elif row["status"] == "ok":
-            bad = [m for m in ACCURACY if not (np.isfinite(row[m]) and row[m] >= 0)]
+            axis = key[2][len("order("):].rstrip(")")
+            lo, v = order_floor(key[1], key[0], axis), row[ORDER]
+            if not np.isfinite(v):
+                out.append((line, f"{what}: {ORDER} = {v:g} (allowed: a finite number >= 0; every order row has one)"))
+            elif not lo <= v <= ORDER_CEILING:
+                out.append((line, f"{what}: {ORDER} = {v:g} is outside the plausible range of {key[1]} "
+                                  f"({lo:g} to {ORDER_CEILING:g}): a check against it could not fail"))
+            continue
+        status = row["status"]
+        if status not in known:
+            out.append((line, f"{what}: status {status!r} is not a status of the runs table "
+                              f"(known: {', '.join(known)})"))
+        elif status != "ok":
+            out.append((line, f"{what}: status {status}: a run of the check sweep that is not ok cannot fail a "
+                              "check (only an improvement is possible); every run of a usable baseline is ok"))
         else:
-            bad = []
-        if bad:
-            shown = ", ".join(f"{m} = {row[m]:g}" for m in bad)
-            raise _refuse(path, f"line {line} ({_name(key)}): {shown} (allowed: a finite number >= 0; every "
-                                "finished run and order row has its values)")
+            bad = [m for m in ACCURACY if not (np.isfinite(row[m]) and row[m] >= 0)]
+            if bad:
+                shown = ", ".join(f"{m} = {row[m]:g}" for m in bad)
+                out.append((line, f"{what}: {shown} (allowed: a finite number >= 0; every finished run and order "
+                                  "row has its values)"))
+                continue
+            high = [m for m in ACCURACY if row[m] > SANITY_BOUND]
+            if high:
+                shown = ", ".join(f"{m} = {row[m]:g}" for m in high)
+                out.append((line, f"{what}: {shown} is above the sanity bound {SANITY_BOUND:g}: not a measurement, "
+                                  "and a check against it could not fail"))
+                continue
+            err = "position_error_final"
+            if row[err] > FLOORS[err] and row.get("steps", 1.0) != 0:
+                usable.setdefault((key[0], key[1], key[2].split("=")[0]), [0, line])[0] += 1
+    for (scene, name, axis), (n, line) in usable.items():
+        if n >= 2 and (scene, name, f"order({axis})") not in first:
+            out.append((line, f"no {ORDER} row for {scene} / {name} / order({axis}), though {n} of its runs give one"))
+    return out
 
 
-def comparable(baseline: pd.DataFrame, tasks, path, allow_new=()) -> None:
-    """Before any work: every selected integrator has rows in ``baseline`` that this check's
-    runs compare with, unless named in ``allow_new`` (a new method, no baseline yet); ValueError
-    naming the file and the fix otherwise."""
+def shipped(name: str) -> bool:
+    """Whether ``name`` is one of reelbench's own integrators (`integrators.registry.own`), not
+    a plugin installed from another package."""
+    from integrators import registry
+
+    return name in registry.own()
+
+
+def guests_not_gated(baseline: pd.DataFrame) -> list[str]:
+    """Installed plugins the baseline does not know (a default check does not run plugins:
+    they are reported, with the command that adds them)."""
+    from integrators import registry
+
+    own, based = set(registry.own()), set(baseline["integrator"])
+    return [n for n in available() if n not in own and n not in based and not n.startswith("test_")]
+
+
+def comparable(baseline: pd.DataFrame, tasks, path, allow_new=(), *, registered=None,
+               load_errors=None) -> list[str]:
+    """Before any work: the baseline covers the check sweep ``tasks``, or ValueError naming the
+    file, what is missing and the fix. Returns the names of the selected integrators the
+    baseline does not know at all and that are not checked: plugins installed from other
+    packages, and the methods named in ``allow_new`` (a new method, no baseline yet).
+
+    Fails closed on what the baseline gates: an integrator with baseline rows that is no longer
+    registered (removed or renamed; one whose plugin fails to load is a regression of the
+    comparison), a gated integrator with any run of the sweep missing from the baseline (its
+    coverage shrank), and one of reelbench's own integrators without baseline rows."""
+    registered = set(available() if registered is None else registered)
+    load_errors = plugin_errors() if load_errors is None else load_errors
     have = set(zip(*(baseline[c] for c in KEY)))
     based = set(baseline["integrator"])
-    by_integrator: dict[str, int] = {}
-    for t in tasks:
-        by_integrator.setdefault(t.integrator, 0)
-        by_integrator[t.integrator] += (t.scene, t.integrator, t.setting) in have
-    lacking = [n for n, k in by_integrator.items() if k == 0 and n not in set(allow_new)]
+    gone = sorted(based - registered - set(load_errors))
+    if gone:
+        raise ValueError(f"baseline {path} has rows of {', '.join(gone)}, which {'is' if len(gone) == 1 else 'are'} "
+                         "not a registered integrator (removed or renamed?): restore it, or regenerate the "
+                         f"baseline with `{UPDATE_COMMAND}` (it drops the rows of integrators that are gone)")
+    selected = list(dict.fromkeys(t.integrator for t in tasks))
+    unknown = [n for n in selected if n not in based]
+    lacking = [n for n in unknown if n not in set(allow_new) and shipped(n)]
     if lacking:
-        why = "; ".join(f"{n}: {'no rows' if n not in based else 'rows of other scenes or settings only'}"
-                        for n in lacking)
         names = ",".join(lacking)
-        raise ValueError(f"baseline {path} has no row this check can compare with for {why}. Add them with "
+        raise ValueError(f"baseline {path} has no row this check can compare with for {'; '.join(lacking)}: no rows "
+                         f"(reelbench's own method{'s' if len(lacking) > 1 else ''}). Add them with "
                          f"`{UPDATE_COMMAND} --integrators {names}`, or pass --allow-new {names} to check the others "
                          "without them")
-    if not any(by_integrator[n] for n in by_integrator):
+    missing = [t for t in tasks if t.integrator in based and (t.scene, t.integrator, t.setting) not in have]
+    if missing:
+        shown = ", ".join(_name((t.scene, t.integrator, t.setting)) for t in missing[:6])
+        more = f" and {len(missing) - 6} more" if len(missing) > 6 else ""
+        why = ("rows of other scenes or settings only" if not any((t.scene, t.integrator, t.setting) in have
+                                                                  for t in tasks) else "its coverage shrank")
+        raise ValueError(f"baseline {path} lacks {len(missing)} run(s) of this check's sweep ({why}): {shown}{more}. "
+                         f"A check cannot pass on runs it does not compare: regenerate the baseline with "
+                         f"`{UPDATE_COMMAND}`")
+    if not any(n in based for n in selected):
         raise ValueError(f"baseline {path}: none of this check's runs has a row there (a check of nothing cannot pass)")
+    return unknown
 
 
-def merge(baseline: pd.DataFrame | None, current: pd.DataFrame) -> pd.DataFrame:
+def not_gated(names) -> list[str]:
+    """The report's lines for the selected integrators the baseline does not know (`comparable`)."""
+    return [f"{n}: no baseline rows, not checked{' (a plugin)' if not shipped(n) else ''}; add them with "
+            f"`{UPDATE_COMMAND} --integrators {n}`" for n in names]
+
+
+def merge(baseline: pd.DataFrame | None, current: pd.DataFrame, registered=None) -> pd.DataFrame:
     """The new baseline after an update: ``current`` replaces the rows of the integrators it
-    covers; rows of other integrators (an update restricted with --integrators) are kept."""
+    covers; rows of other integrators (an update restricted with --integrators) are kept, those
+    of integrators no longer registered nor failing to load (``registered``: default every
+    `available` one and every `plugin_errors` one) are dropped."""
     if baseline is None or baseline.empty:
         return current.reset_index(drop=True)
-    kept = baseline[~baseline["integrator"].isin(set(current["integrator"]))]
+    registered = set(available()) | set(plugin_errors()) if registered is None else set(registered)
+    kept = baseline[~baseline["integrator"].isin(set(current["integrator"]))
+                    & baseline["integrator"].isin(registered)]
     return pd.concat([current, kept], ignore_index=True).reindex(columns=COLUMNS)
 
 
@@ -379,8 +506,9 @@ def _compare_membership(out: Comparison, base: pd.DataFrame, cur: pd.DataFrame, 
         if name in load_errors:
             out.regression(("*", name, "*"), "load", "registered", f"failed to load: {load_errors[name]}"[:80], "gone",
                            "loads")
-        else:
-            out.notes.append(f"{name}: in the baseline but no longer registered (its rows were not checked)")
+        else:  # removed or renamed: its rows would drop out of the check silently
+            out.regression(("*", name, "*"), "registered", "registered", "not registered (removed or renamed?)",
+                           "gone", "registered")
     for key in cur.index.difference(base.index):
         if key[1] in based:
             out.notes.append(f"{_name(key)}: new in the sweep, no baseline row (run `{UPDATE_COMMAND}`)")

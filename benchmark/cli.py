@@ -27,7 +27,7 @@ from pathlib import Path
 
 from benchmark import options as opt
 from benchmark.options import UsageError
-from models.io import inside
+from models.io import inside, printable
 
 
 def _log(msg: str) -> None:
@@ -141,6 +141,7 @@ def cmd_run(args) -> int:
                            save_option=None)  # run saves every SAVE_EVERY: no option to raise
     out = opt.writable_dir(_run_out(args))
     opt.no_directory_at(out, ("runs.csv", "runs.md", "orders.csv", "cheapest.csv", "README.md", "figures.json"))
+    _check_horizon_size(args, ov)  # the registry's declared horizon settings (no JAX)
 
     from benchmark import pipelines
 
@@ -149,7 +150,25 @@ def cmd_run(args) -> int:
         quick=args.quick, dts=tuple(args.dts) if args.dts else None, rtols=tuple(args.rtols) if args.rtols else None,
         t_end=args.t_end, overrides=tuple(sorted((k, v) for k, v in ov.items() if k != "t_end")), jobs=args.jobs,
         executor=args.executor, scheduler=args.scheduler, repeats=args.repeats, horizon=args.horizon,
-        figures=not args.no_figures, fresh=args.fresh, compare_with=tuple(args.compare_with or ()), command=_command(args)), log=_log)
+        figures=not args.no_figures, fresh=args.fresh, compare_with=tuple(args.compare_with or ()),
+        command=_command(args), accept_legacy=args.accept_legacy), log=_log)
+
+
+def _check_horizon_size(args, overrides: dict) -> None:
+    """The energy study of `run` (--horizon) fits, as any run must (`options.check_size`): e.g.
+    --horizon 1e9 would take 2e11 steps at dt = 0.005 s (it crashed its worker)."""
+    from benchmark import horizon, sweep
+    from models import load_scene
+
+    t_end = args.horizon if args.horizon is not None else (sweep.QUICK_HORIZON if args.quick else sweep.FULL_HORIZON)
+    if args.no_figures or not t_end:
+        return
+    ov = {k: v for k, v in overrides.items() if k not in ("t_end", "elements")}
+    sizes = (int(overrides["elements"]),) if "elements" in overrides else horizon.ELEMENTS
+    for n, m in horizon.runs(args.integrators, sizes):
+        opt.check_size(load_scene(horizon.DEFAULT_SCENE, elements=n, **ov), t_end, horizon.SAVE_EVERY,
+                       m.settings.get("dt"), warn=_log, save_option=None, t_end_option="--horizon",
+                       what=f"--horizon {t_end:g}: the energy study of {m.name} at N = {n}")
 
 
 #: The options of `run` that make it something other than the default sweep (other rows).
@@ -240,6 +259,7 @@ def cmd_figures(args) -> int:
     if not _any_finite(traj.x):  # a figure of nothing would look like a result
         raise UsageError(f"{src}: the trajectory has no finite point (status {getattr(traj, 'status', '?')}): "
                          "nothing to draw; give a trajectory of a run that computed something")
+    _check_trajectory(src, traj)
     from models.schema import is_safe_name
     from models.scene import scene_from_dict
 
@@ -266,6 +286,32 @@ def cmd_figures(args) -> int:
     return pipelines.draw_figures(scene, traj, out, log=_log)
 
 
+def _check_trajectory(src: Path, traj) -> None:
+    """A trajectory `figures` draws: its status one a run can end with, and every saved value
+    finite (a run keeps only the finite part of what it computed: anything else was not written
+    by `simulate`)."""
+    import numpy as np
+
+    from benchmark.store import statuses
+
+    status = getattr(traj, "status", None)
+    if not isinstance(status, str) or status not in statuses():
+        raise UsageError(f"{src}: its metadata says status {status!r}, which is not a status a run ends with "
+                         f"({', '.join(statuses())}): not a trajectory written by `simulate`")
+    for name in ("t", "x", "attitude", "velocity", "work"):
+        values = getattr(traj, name, None)
+        if values is None:
+            continue
+        try:
+            bad = int(np.size(values) - np.isfinite(np.asarray(values, dtype=float)).sum())
+        except (TypeError, ValueError):
+            raise UsageError(f"{src}: its {name} array is not numbers: not a trajectory written by "
+                             "`simulate`") from None
+        if bad:
+            raise UsageError(f"{src}: its {name} array holds {bad} value(s) that are not finite (inf or nan): not a "
+                             "trajectory written by `simulate` (a run keeps only what it computed finitely)")
+
+
 def cmd_check(args) -> int:
     from benchmark import check
 
@@ -274,8 +320,9 @@ def cmd_check(args) -> int:
                          f"repository's root directory, or give --baseline PATH")
     # how the baseline was produced, for its header (the options that change its content)
     command = check.UPDATE_COMMAND + "".join(f" --{k} {shlex.quote(v)}" for k, v in
-                                             (("integrators", args.integrators), ("baseline", args.baseline)) if v)
-    names = [v.strip() for v in args.integrators.split(",") if v.strip()] if args.integrators else None
+                                             (("integrators", ",".join(args.integrators or ())),
+                                              ("baseline", args.baseline)) if v)
+    names = args.integrators  # a list (opt.names: "," is refused by the parser, it would select every method)
     for name in names or ():
         _check_integrator(name)  # before the baseline is read
     opt.check_tolerance_rules(2.0 if args.factor is None else args.factor,
@@ -394,7 +441,11 @@ def cmd_reel_reversal(args) -> int:
 
     reel_reversal.check_methods(args.methods or ())
     reel_reversal.check_horizon(args.t_end)
-    load_scene(args.scene, elements=args.elements)
+    scene = load_scene(args.scene, elements=args.elements)
+    if not scene.has("reel"):  # its "error" column would be a node coordinate, its sign changes noise
+        raise UsageError(f"--scene {scene.name!r} has no reel (effects: {', '.join(scene.effects)}): the reel-reversal "
+                         "study follows the reel rate through its change of sign; give a scene with the reel effect, "
+                         "e.g. --scene reel_reversal")
     cache = opt.writable_dir(args.cache_dir, option="--cache-dir")
     from benchmark import pipelines
 
@@ -531,6 +582,9 @@ def _add_run(sub) -> None:
                         f"{sweep.FULL_HORIZON:g}; --quick: {sweep.QUICK_HORIZON:g})")
     r.add_argument("--no-figures", action="store_true", help="skip the figures and the energy study")
     r.add_argument("--fresh", action="store_true", help="recompute every run, ignoring rows already in OUT/runs.csv")
+    r.add_argument("--accept-legacy", action="store_true",
+                   help="keep the rows of OUT/runs.csv written before row digests covered every column (checked by "
+                        "range only, then written with digests); without it such a table is refused")
     r.add_argument("--compare-with", type=opt.runs_table, metavar="RUNS.csv", action="append",
                    help="an earlier run's runs.csv: the README then says which conclusions changed and by how much "
                         "(give it more than once to compare with several, e.g. the last committed run and a second "
@@ -547,7 +601,8 @@ def _add_check(sub) -> None:
                      "exit 1 on a regression (rules in benchmark/check.py)")
     c.add_argument("--update", action="store_true", help="rewrite the baseline from this run instead of failing")
     c.add_argument("--baseline", help="baseline CSV (default: results/baseline/drift.csv, run from the repository root)")
-    c.add_argument("--integrators", help="comma-separated names (default: all registered except test_*)")
+    c.add_argument("--integrators", type=opt.names,
+                   help="comma-separated names (default: all registered except test_*)")
     c.add_argument("--factor", type=opt.number,
                    help="a drift or error fails when worse than FACTOR x baseline, above its floor (default: 2)")
     c.add_argument("--order-margin", type=opt.number,
@@ -758,12 +813,12 @@ def main(argv=None) -> int:
     except ValueError as exc:  # bad input (UsageError, SceneError, an integrator's argument check)
         if os.environ.get("REELBENCH_DEBUG"):  # a developer chasing a ValueError gets its traceback
             raise
-        _log(f"error: {exc}")
+        _log(f"error: {printable(exc)}")  # input quoted in it (a path with a newline, U+202E) stays one line
         return 2
     except OSError as exc:  # the file system failed during work (full, read-only, ...): no traceback
         if os.environ.get("REELBENCH_DEBUG"):
             raise
-        _log(f"error: {exc}")
+        _log(f"error: {printable(exc)}")
         return 1
     except KeyboardInterrupt as exc:  # a command without its own stop message
         from benchmark.engine import stop_cause, stop_status

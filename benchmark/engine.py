@@ -273,8 +273,8 @@ class Progress:
         left = self.seconds_left() if self.new < self.todo else None
         # no estimate yet (or none that is a number: a job without its time) says nothing, not "nan s"
         eta = f", about {left:.0f} s left" if left is not None and math.isfinite(left) else ""
+        self.saved()  # on disk first: a row printed as finished is never lost to a stop that follows
         self.log(f"[{len(self.rows)}/{self.total}] {self.describe(row)}  ({elapsed:.0f} s elapsed{eta})")
-        self.saved()
 
     def saved(self) -> None:
         if self.on_row:

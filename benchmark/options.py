@@ -189,8 +189,10 @@ def writable_file(path: str | os.PathLike, option: str = "--out") -> Path:
 MEMORY_REFUSE = 8 * 2**30
 #: ... and warn above this.
 MEMORY_WARN = 1 * 2**30
-#: Refuse a fixed-step run with more steps than this (at the estimate below, 1e9 steps is over
-#: half an hour at N = 10 and days at N = 1000; below it the time estimate warns instead).
+#: A fixed-step run takes at most this many planned steps (the fixed-step loop's count,
+#: floor(t_end / dt); the integrators' own limit `integrators.lifecycle.MAX_PLANNED_STEPS` is the
+#: same): exactly 1e9 runs, one more is refused. At the estimate below, 1e9 steps is over half an
+#: hour at N = 10 and days at N = 1000; below it the time estimate warns instead.
 STEPS_REFUSE = 1e9
 #: `simulate`'s default budgets (raised by --max-steps / --time-limit): a request that would run
 #: for hours (a tolerance near round-off over a long horizon) ends with its trajectory saved.
@@ -216,7 +218,7 @@ def run_size(scene, t_end: float, save_every: float, dt: float | None = None) ->
     points = math.floor(t_end / save_every) + 2
     out = {"points": points, "bytes": points * per_point, "steps": None, "seconds": None}
     if dt is not None:
-        out["steps"] = t_end / dt
+        out["steps"] = math.floor(t_end / dt + 1e-9)  # what the fixed-step loop runs (lifecycle.step_indices)
         out["seconds"] = out["steps"] * STEP_COST_10 * (n / 10.0) ** 0.9
     return out
 
@@ -240,7 +242,7 @@ def _human_seconds(s: float) -> str:
 
 
 def check_size(scene, t_end: float, save_every: float, dt: float | None = None, *, warn=None,
-               what: str = "this run", save_option: str | None = "--save-every") -> dict:
+               what: str = "this run", save_option: str | None = "--save-every", t_end_option: str = "--t-end") -> dict:
     """Refuse (UsageError) a run that cannot fit (memory, steps); warn through ``warn`` about a
     large one. ``save_option``: the option that sets the save interval, if the command has one
     (the fix a refusal names). Returns `run_size`."""
@@ -249,11 +251,12 @@ def check_size(scene, t_end: float, save_every: float, dt: float | None = None, 
            f"{_human_bytes(size['bytes'])}")
     if size["bytes"] > MEMORY_REFUSE:
         raise UsageError(f"{what} would keep {mem} of trajectory in memory (limit {_human_bytes(MEMORY_REFUSE)}): "
-                         + (f"raise {save_option}, " if save_option else "") + "shorten --t-end or use fewer elements")
+                         + (f"raise {save_option}, " if save_option else "") + f"shorten {t_end_option} or use fewer "
+                         "elements")
     if size["steps"] is not None and size["steps"] > STEPS_REFUSE:
-        raise UsageError(f"{what} would take {size['steps']:.3g} steps of dt = {dt:g} s to t_end = {t_end:g} s "
-                         f"(limit {STEPS_REFUSE:.0e}; estimated {_human_seconds(size['seconds'])}): "
-                         f"raise --dt or shorten --t-end")
+        raise UsageError(f"{what} would take {size['steps']:.10g} steps of dt = {dt:g} s to t_end = {t_end:g} s "
+                         f"(allowed: at most {STEPS_REFUSE:.0e} planned steps; estimated "
+                         f"{_human_seconds(size['seconds'])}): raise --dt or shorten {t_end_option}")
     if warn is not None:
         if size["bytes"] > MEMORY_WARN:
             warn(f"warning: {what} will keep {mem} in memory")

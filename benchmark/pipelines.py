@@ -21,7 +21,7 @@ from typing import Callable
 from benchmark import engine, store
 from benchmark.engine import log_stderr
 from benchmark.report import Provenance
-from models.io import inside
+from models.io import inside, printable
 
 
 @contextlib.contextmanager
@@ -55,6 +55,7 @@ class SweepRequest:
     figures: bool = True
     fresh: bool = False
     compare_with: tuple[str, ...] = ()  # earlier runs.csv files, one README section each
+    accept_legacy: bool = False  # keep rows of --out that predate full row digests (then given digests)
     command: str = "python -m benchmark run"
 
     @property
@@ -97,7 +98,7 @@ def run_sweep(request: SweepRequest, log: Callable[[str], None] = log_stderr) ->
             what += f" (its {earlier} earlier row(s) are kept)"
         resume = "run the same command again to resume (finished runs are kept), or add --fresh to recompute this run's rows"
         if isinstance(exc, OSError):  # a full or failing disk: stop, say what is safe, exit 1
-            log(f"error: {exc}; {what}; free space (or fix the file system) and {resume}")
+            log(f"error: {printable(exc)}; {what}; free space (or fix the file system) and {resume}")
             return 1
         return engine.stopped(exc, f"{what}; {resume}", log)
 
@@ -129,16 +130,23 @@ def _merge_plan(request: SweepRequest, tasks, stored: store.StoredRuns, path: Pa
     """Refuse a run whose rows cannot join the table in its --out (before any work), set aside
     the untrusted rows no recomputation will replace, and say in one line what the run replaces."""
     names, scenes = _this_run(request, tasks)
+    mine = {(names[t.scene], t.integrator, t.setting) for t in tasks}
     conflicts = store.merge_conflicts(stored.rows, scenes)
     if conflicts:
         raise ValueError(f"{path} cannot take this run's rows: {'; '.join(conflicts)}. A table holds one horizon and "
                          "one set of scene values per scene: give another --out (a scratch directory), or move "
                          f"{path} away to start over")
-    mine = {(names[t.scene], t.integrator, t.setting) for t in tasks}
+    legacy = [r for r in stored.legacy if store.identity_of(r) not in mine]  # kept, not recomputed by this run
+    if legacy and not request.accept_legacy:
+        raise ValueError(f"{path}: {len(legacy)} row(s) this run keeps predate row digests over every column (their "
+                         "timings and flops cannot be verified), e.g. " + store.describe_row(legacy[0]) + ": pass "
+                         "--accept-legacy once to keep them (checked by range, then written with digests), or move "
+                         f"{path} away to start over")
     aside = [(r, why) for r, why in stored.rejected if store.identity_of(r) not in mine]
     if aside:
         rejected = path.with_name("runs.rejected.csv")
-        earlier = store.read_runs(rejected).rows + [r for r, _ in store.read_runs(rejected).rejected]
+        before = store.read_runs(rejected)
+        earlier = before.rows + [r for r, _ in before.rejected]
         store.write_table(rejected, store.frame(store.merge_rows(earlier, [dict(r, rejected_because=why)
                                                                           for r, why in aside]), []))
         log(f"warning: {len(aside)} untrusted row(s) of {path} are outside this run and were moved to {rejected}: "
@@ -149,8 +157,12 @@ def _merge_plan(request: SweepRequest, tasks, stored: store.StoredRuns, path: Pa
     where = "the committed results" if is_committed_results(request.out) else str(path)
     log(f"{where}: this run writes {len(mine)} row(s) of {len(scenes)} scene(s) ({replaced} replacing rows there, "
         f"{len(mine) - replaced} new) and keeps the other {kept} row(s) as they are"
-        + (f" ({stored.unverified} of the kept rows predate row digests: checked by range only)"
-           if stored.unverified else ""))
+        + (f" ({len(legacy)} of them predate row digests: accepted by --accept-legacy, checked by range and "
+           "written with digests)" if legacy else "")
+        + (f"; {len(stored.legacy) - len(legacy)} row(s) predating row digests are recomputed"
+           if len(stored.legacy) > len(legacy) else ""))
+    if request.accept_legacy:
+        stored.accept_legacy()
 
 
 def _sweep(request: SweepRequest, runs_csv: store.TableWriter, log) -> int:
@@ -160,6 +172,7 @@ def _sweep(request: SweepRequest, runs_csv: store.TableWriter, log) -> int:
     from models.io import atomic_write_text
 
     out = request.out
+    cache = inside(out, CACHE_DIR.name)  # a link planted there may not lead out of --out (refused)
     provenance = Provenance(request.command)
     tasks = sweep.build_tasks(request.scenes, request.integrators, quick=request.quick, dts=request.dts,
                               rtols=request.rtols, t_end=request.t_end, overrides=dict(request.overrides))
@@ -171,7 +184,7 @@ def _sweep(request: SweepRequest, runs_csv: store.TableWriter, log) -> int:
     log(f"{len(tasks)} runs: {len(request.scenes)} scene(s) × {len({t.integrator for t in tasks})} integrator(s); "
         f"results -> {out}/")
     runs = runner.execute(tasks, jobs=request.jobs, executor=request.executor, scheduler=request.scheduler,
-                          repeats=request.repeats, cache_dir=str(out / CACHE_DIR.name), on_row=runs_csv,
+                          repeats=request.repeats, cache_dir=str(cache), on_row=runs_csv,
                           previous=[] if request.fresh else stored.resumable, log=log,
                           group=lambda t: (t.scene, t.integrator))  # one worker per (scene, method): one compile
     runs_csv(runs.to_dict("records"))
@@ -182,7 +195,8 @@ def _sweep(request: SweepRequest, runs_csv: store.TableWriter, log) -> int:
     table = runs_report.cheapest_table(merged)
     runs_report.write_cheapest(out, table)
     failures = runs_report.failure_sentence(merged, out / "stability" / "stability.csv")
-    figures = _sweep_figures(request, merged, log) if request.figures else []
+    failed: list[str] = []  # what of the energy study did not end with a result (a crashed worker)
+    figures = _sweep_figures(request, merged, log, failed) if request.figures else []
     _sweep_readme(request, merged, orders, figures, provenance, table, failures,
                   merged_note=_merged_note(runs, merged))
     if is_committed_results(out) and (out / "answer" / "cheapest.csv").exists():  # the searched answer's block
@@ -191,6 +205,10 @@ def _sweep(request: SweepRequest, runs_csv: store.TableWriter, log) -> int:
         log(runs_report.write_answer(store.ROOT / "README.md", runs_report.answer_block(merged, table, failures)))
     log(f"done in {provenance.wall_time():.0f} s: {len(runs)} runs in this run, {len(merged)} in {out}/runs.csv; "
         f"{failures} See {out}/README.md")
+    if failed:
+        log(f"error: the energy study did not finish for {'; '.join(failed)}: its history is not in "
+            f"{out}/energy_horizon.csv (the runs table is complete)")
+        return 1
     return 0
 
 
@@ -229,7 +247,7 @@ def _paper_key(request: SweepRequest, scene, paper) -> str:
                         store.code_version(), _figure_code())
 
 
-def _sweep_figures(request: SweepRequest, merged, log) -> list[tuple[str, str]]:
+def _sweep_figures(request: SweepRequest, merged, log, failed: list | None = None) -> list[tuple[str, str]]:
     """Work–precision per scene of the merged table, the paper's panels of this run's scenes
     (from the method that declares the paper's settings, the LGVI at its step size), and the
     energy study of the selected methods: (file name, note) each. A figure whose inputs did not
@@ -276,7 +294,7 @@ def _sweep_figures(request: SweepRequest, merged, log) -> list[tuple[str, str]]:
         if scenes:
             figures += run_horizon_study(request.energy_horizon, out, request.overrides,
                                          0 if request.executor == "serial" else request.jobs, log,
-                                         selected=request.integrators, scenes=scenes)
+                                         selected=request.integrators, scenes=scenes, failed=failed)
         else:
             log("horizon: no scene of this run keeps its length: no energy study (energy_horizon.csv kept as it was)")
             figures += _horizon_figures(out, _read_horizon(out / "energy_horizon.csv"), (), redraw=False)
@@ -400,7 +418,7 @@ def energy_scenes(scenes, overrides: tuple = (), log: Callable[[str], None] = lo
 
 def run_horizon_study(t_end: float, out: Path, overrides: tuple = (), jobs: int | None = None,
                       log: Callable[[str], None] = log_stderr, selected=None,
-                      scenes=None) -> list[tuple[str, str]]:
+                      scenes=None, failed: list | None = None) -> list[tuple[str, str]]:
     """Energy error vs time over a long horizon (`benchmark.horizon`) on ``scenes`` (default
     `horizon.DEFAULT_SCENE`), one job per run in parallel workers (``jobs``; 0: in this process;
     one after another they would be the main job's longest tail): energy_horizon.csv and one
@@ -408,7 +426,8 @@ def run_horizon_study(t_end: float, out: Path, overrides: tuple = (), jobs: int 
     declare horizon settings (`benchmark.sweep.horizon_methods`), a run whose history is already
     in energy_horizon.csv for the same settings, size, horizon, scene and code is kept, the
     others computed; other runs' histories stay (`store.merge_study_table`). A run whose worker
-    dies is left out of both (its progress line says so). Returns [(figure name, note)]."""
+    dies is left out of both (its progress line says so, and ``failed`` gets what it was and
+    why). Returns [(figure name, note)]."""
     import os
 
     import pandas as pd
@@ -457,6 +476,9 @@ def run_horizon_study(t_end: float, out: Path, overrides: tuple = (), jobs: int 
                                    crash_row=lambda i, exc: horizon.crash_row(jobs_[i], exc),
                                    describe=horizon.describe, cost=lambda i: costs[i], kind=lambda i: todo[i][2].name,
                                    log=log)
+        if failed is not None:  # a crashed worker is a failure of the command, not a result
+            failed += [f"{m.name} {horizon.setting_of(m)} N={n} on {s} ({r.get('reason', r['status'])})"
+                       for (s, n, m), r in zip(todo, rows) if r["status"] == "crashed" or r["history"] is None]
         for (s, n, m), r in zip(todo, rows):
             if r["history"] is None:
                 continue
@@ -583,8 +605,10 @@ def run_check(*, update: bool = False, baseline=None, integrators=None, factor: 
     tasks = check.build_check_tasks(integrators) if tasks is None else tasks
     old = check.baseline_for(baseline, update=update, warn=log or echo)
     table = old.table if old is not None else None
-    if not update:
-        check.comparable(table, tasks, baseline, allow_new)
+    unknown = [] if update else check.comparable(table, tasks, baseline, allow_new)
+    if not update and integrators is None:  # installed plugins are guests: reported, not run
+        unknown += [n for n in check.guests_not_gated(table) if n not in unknown]
+    tasks = [t for t in tasks if t.integrator not in set(unknown)]  # nothing to compare them with
     try:
         current = check.measure(tasks, executor=executor, jobs=jobs, cache_dir=cache_dir or str(CACHE_DIR),
                                 costs=check.costs_of(table), log=log)
@@ -592,10 +616,18 @@ def run_check(*, update: bool = False, baseline=None, integrators=None, factor: 
         return engine.stopped(exc, "the baseline was not changed", log or log_stderr)
     cmp = check.compare(table, current, tol) if old is not None else None
     if cmp is not None:
+        cmp.notes += check.not_gated(unknown)
         echo(check.format_report(cmp, tol, baseline, old.header))
         if not update and cmp.compared == 0:
             raise ValueError(f"baseline {baseline}: no row of this check was compared (a check of nothing cannot pass)")
     if update:
+        problems = check.row_problems(current.set_axis(range(1, len(current) + 1)))
+        if problems:  # a baseline that could not fail is not written (the old one stays)
+            lines = [f"  {why}" for _, why in problems[:10]]
+            echo("\n".join([f"baseline NOT written: {len(problems)} row(s) of this sweep could not fail a check "
+                             f"(fix the method, or leave it out with --integrators); {baseline} is unchanged:",
+                             *lines]))
+            return 1
         path = check.write_baseline(check.merge(table, current), baseline, provenance=provenance,
                                     sweep_note=check.describe(tasks))
         echo(f"baseline written: {path} ({len(current)} rows recomputed)")

@@ -306,9 +306,12 @@ TRUST = """## What is checked before it is trusted
 A run that resumes keeps a row of `runs.csv` only when it passes its checks: its status is one
 of the table's statuses, its numbers are numbers in their ranges (counts, errors and costs
 finite and non-negative, `run_time_low` ≤ `run_time` ≤ `run_time_high`, errors only for
-finished runs), and its deterministic columns (settings, status, counts, errors, keys) still
-match the digest (`row_digest`) written with it. A row that fails is named in a warning and
-recomputed (a row outside the run is set aside in `runs.rejected.csv`). Cached reference
+finished runs), and every column (settings, status, counts, errors, timings, flops, keys) still
+matches the digest (`row_digest`) written with it; a row without a digest in a table whose
+other rows have one is not trusted, and rows from before digests are kept only with an explicit
+`--accept-legacy`. A row that fails is named in a warning and recomputed (a row outside the run
+is set aside in `runs.rejected.csv`). A table that cannot be read whole (a stray byte, binary,
+a repeated row) is copied intact to `runs.unreadable-TIME.csv` and its readable rows salvaged. Cached reference
 solutions (`cache/`) carry their identity and a SHA-256 checksum of their arrays, and one that
 does not match is recomputed. Both protect against accidents — a hand edit, a damaged or
 truncated file, a file from another problem or other code — not against a deliberate edit that

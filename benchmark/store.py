@@ -8,10 +8,13 @@
   table (`read_runs`) with the same key, so only the rest is computed. Rows whose status
   may have been transient (`RETRY_STATUSES`) are never kept.
 * Trust: a row read back is used only when it passes `check_row` -- its types, ranges and
-  status vocabulary, finite non-negative costs, and the digest of its deterministic columns
-  recorded when it was written (`row_digest`). The digest catches a row edited by hand or
-  damaged on disk; like any checksum stored beside its data, it does not stop a deliberate
-  edit that recomputes it.
+  status vocabulary (`statuses`, the one list of them), finite non-negative costs, and the
+  digest of every column recorded when it was written (`row_digest`; a row without one in a
+  table whose other rows have one is not trusted, rows from before such digests only with
+  `StoredRuns.accept_legacy`). The digest catches a row edited by hand or damaged on disk; like
+  any checksum stored beside its data, it does not stop a deliberate edit that recomputes it.
+  A table that cannot be read whole is copied intact beside it and its readable rows salvaged
+  (`read_runs`).
 * Merging: a run restricted to fewer scenes, methods or settings than its output table holds
   adds or replaces only its own rows (`merge_rows`: one row per scene, integrator and
   setting); a table holds one horizon and one set of scene values per scene, and a run that
@@ -88,12 +91,17 @@ def run_key(task, code: str | None = None) -> str:
 #: Rows with these statuses are recomputed on resume (the cause may have been transient).
 RETRY_STATUSES = ("crashed", "error")
 #: Statuses of the runs table besides the integrators' own (`integrators.Status`); "inaccurate":
-#: finished beyond a sanity bound (`benchmark.metrics.INACCURATE`).
+#: finished beyond a sanity bound (`benchmark.metrics.INACCURATE`). Every reader that validates a
+#: status (resume, the drift gate, figures) asks `statuses`: extend the list here.
 TABLE_STATUSES = ("time_limit", "max_steps", "error", "crashed", "inaccurate")
 
-#: The columns a row's digest covers: what the same code computes again for the same task
-#: (timings, the load and the task's wall time are measurements, checked by range only).
-DIGEST_COLUMNS = (
+#: The columns a row's digest leaves out: the digest itself, and the traceback of a failed run
+#: (never written to the table). Every other column is covered, measurements included (run
+#: times, flops, us_per_eval: the rankings read them), and so is a column added later.
+DIGEST_EXCLUDED = ("row_digest", "traceback")
+#: The columns digests covered before they covered every column (`legacy_digest`): a row whose
+#: digest is over these only was written by older code, and its timings are unverified.
+LEGACY_DIGEST_COLUMNS = (
     "scene", "scene_key", "integrator", "setting", "dt", "rtol", "atol", "t_end", "status", "reason", "rhs",
     "steps", "rhs_evals", "jac_evals", "lu_decompositions", "newton_iterations", "work_evals",
     "energy_error", "pi3_error", "orthogonality_error", "position_error_final", "position_error_max",
@@ -113,7 +121,7 @@ def _missing(v) -> bool:
     return v is None or (isinstance(v, float) and v != v) or (isinstance(v, str) and v == "")
 
 
-def _canonical(v) -> str:
+def _canonical_legacy(v) -> str:
     """One text per value, the same after a round trip through CSV (numbers as floats)."""
     if _missing(v):
         return ""
@@ -124,10 +132,29 @@ def _canonical(v) -> str:
     return str(v)
 
 
+def _canonical(v) -> str:
+    """One text per value, the same after a round trip through CSV: numbers, and text that
+    reads as one (a column the reader keeps as text), as floats."""
+    if isinstance(v, str):
+        try:
+            return repr(float(v))
+        except ValueError:
+            return v
+    return _canonical_legacy(v)
+
+
 def row_digest(row: dict) -> str:
-    """SHA-256 (16 hex digits) of a row's `DIGEST_COLUMNS`, written with the row and checked
-    when it is read back (`check_row`)."""
-    text = "\x1f".join(f"{c}={_canonical(row.get(c))}" for c in DIGEST_COLUMNS)
+    """SHA-256 (16 hex digits) of every value a row has (`DIGEST_EXCLUDED` apart; an empty value
+    is left out, so a column added to the table later changes no digest), written with the row
+    and checked when it is read back (`check_row`)."""
+    text = "\x1f".join(f"{c}={_canonical(row[c])}" for c in sorted(map(str, row))
+                       if c not in DIGEST_EXCLUDED and not _missing(row[c]))
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def legacy_digest(row: dict) -> str:
+    """The digest older code wrote: over `LEGACY_DIGEST_COLUMNS` only."""
+    text = "\x1f".join(f"{c}={_canonical_legacy(row.get(c))}" for c in LEGACY_DIGEST_COLUMNS)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
@@ -193,9 +220,16 @@ def check_row(row: dict, known_statuses=None) -> str | None:
         if (lo == lo and lo > mid * (1 + 1e-12)) or (hi == hi and hi < mid * (1 - 1e-12)):
             return f"run_time_low <= run_time <= run_time_high does not hold ({lo:g}, {mid:g}, {hi:g})"
     digest = row.get("row_digest")
-    if not _missing(digest) and str(digest) != row_digest(row):
+    if not _missing(digest) and str(digest) not in (row_digest(row), legacy_digest(row)):
         return "its values do not match the digest written with it (edited or damaged after it was written)"
     return None
+
+
+def is_legacy(row: dict) -> bool:
+    """Whether a row predates digests over every column (none, or `legacy_digest`'s): what its
+    digest does not cover is checked by range only."""
+    digest = row.get("row_digest")
+    return _missing(digest) or (str(digest) != row_digest(row) and str(digest) == legacy_digest(row))
 
 
 # ------------------------------------------------------------------------------------------
@@ -204,30 +238,48 @@ def check_row(row: dict, known_statuses=None) -> str | None:
 @dataclasses.dataclass
 class StoredRuns:
     """The rows of an earlier ``runs.csv``: those that pass `check_row`, and those that do not,
-    each with why (``rejected``: (row, reason))."""
+    each with why (``rejected``: (row, reason)). ``legacy``: trusted rows that predate digests
+    over every column (`is_legacy`), kept only when the run accepts them (`accept_legacy`).
+    ``aside``: where the table was copied intact when it could not be read whole."""
 
     rows: list[dict]
     rejected: list[tuple[dict, str]]
-    unverified: int = 0  # rows without a digest (written before digests), checked by range only
+    legacy: list[dict] = dataclasses.field(default_factory=list)
+    aside: Path | None = None
+
+    @property
+    def unverified(self) -> int:
+        return len(self.legacy)
 
     @property
     def resumable(self) -> list[dict]:
-        """The trusted rows a run may keep instead of computing (transient failures retried)."""
-        return [r for r in self.rows if r.get("status") not in RETRY_STATUSES and r.get("run_key")]
+        """The trusted rows a run may keep instead of computing (transient failures retried, rows
+        that predate full digests recomputed unless accepted)."""
+        legacy = {id(r) for r in self.legacy}
+        return [r for r in self.rows if r.get("status") not in RETRY_STATUSES and r.get("run_key")
+                and id(r) not in legacy]
+
+    def accept_legacy(self) -> None:
+        """Keep the rows that predate full digests (checked by range) and give them digests, so
+        that the next read verifies them: the one-time, explicit ``--accept-legacy``."""
+        for r in self.legacy:
+            r["row_digest"] = row_digest(r)
+        self.legacy = []
 
 
-#: Columns of a runs table read back as text (a version "1.10" or a digest "12e5" is not a number).
-TEXT_COLUMNS = ("scene", "integrator", "setting", "status", "reason", "rhs", "implementation", "run_key", "row_digest",
-                "scene_key", "traceback", "package", "package_version", "code_digest")
+#: Columns of the runs table that hold text; the others are read as numbers where they are
+#: (a version "1.10" or a digest "12e5" is not a number).
+TEXT_COLUMNS = ("scene", "integrator", "setting", "status", "reason", "rhs", "implementation", "run_key",
+                "row_digest", "scene_key", "traceback", "flops_note", "rejected_because", "package",
+                "package_version", "code_digest")
+#: A runs table is a few MB; anything far larger is not one (and is not read whole).
+MAX_RUNS_BYTES = 512 * 2**20
 
 
-def _read_csv(path: Path):
-    import pandas as pd
-
-    # every column as text first: a number edited into text must be seen, not coerced to NaN
-    df = pd.read_csv(path, dtype=str, keep_default_na=False)
+def _records(records: Iterable[dict]) -> list[dict]:
+    """CSV records (every value text) -> rows: empty as NaN, numbers as floats, text kept."""
     rows = []
-    for rec in df.to_dict("records"):
+    for rec in records:
         row = {}
         for k, v in rec.items():
             if v == "":
@@ -243,29 +295,140 @@ def _read_csv(path: Path):
     return rows
 
 
+class _NotATable(Exception):
+    """A runs table that cannot be read whole; the message says why."""
+
+
+def _read_whole(data: bytes) -> list[dict]:
+    import io
+
+    import pandas as pd
+
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise _NotATable(f"a byte that is not UTF-8 at offset {exc.start}") from None
+    if "\x00" in text:
+        raise _NotATable("binary: it holds NUL bytes")
+    if not text.strip():
+        raise _NotATable("empty")
+    try:
+        # every column as text first: a number edited into text must be seen, not coerced to NaN
+        df = pd.read_csv(io.StringIO(text), dtype=str, keep_default_na=False)
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, ValueError) as exc:
+        raise _NotATable(f"not a CSV table: {str(exc).strip().splitlines()[0][:100]}") from None
+    missing = [c for c in ROW_IDENTITY + ("status",) if c not in df]
+    if missing:
+        raise _NotATable(f"not a runs table: no column(s) {', '.join(missing)}")
+    return _records(df.to_dict("records"))
+
+
+def _salvage(data: bytes) -> tuple[list[dict], int]:
+    """The rows of a table that cannot be read whole, one line at a time: (readable rows, the
+    number of other lines). A row with a byte that is not UTF-8, a NUL, or the wrong number
+    of fields is not readable; without a header naming the identity columns nothing is."""
+    import csv
+    import io
+
+    text = data.decode("utf-8", "surrogateescape").replace("\x00", "\udc00")  # unreadable bytes marked
+    try:
+        lines = list(csv.reader(io.StringIO(text, newline="")))
+    except csv.Error:
+        lines = [line.split(",") for line in text.splitlines()]  # a broken quote: fields as they stand
+    lines = [line for line in lines if line]
+    if not lines:
+        return [], 0
+    header, body = lines[0], lines[1:]
+    unreadable = lambda fields: any("\udc00" <= ch <= "\udcff" for f in fields for ch in f)  # noqa: E731
+    if unreadable(header) or not set(ROW_IDENTITY + ("status",)) <= set(header) or len(set(header)) < len(header):
+        return [], len(body)
+    good = [dict(zip(header, f)) for f in body if len(f) == len(header) and not unreadable(f)]
+    return _records(good), len(body) - len(good)
+
+
+def _set_aside(path: Path) -> Path:
+    """Copy ``path`` intact (atomically) to ``<stem>.unreadable-<UTC time>.csv`` beside it."""
+    import shutil
+
+    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+    aside = path.with_name(f"{path.stem}.unreadable-{stamp}{path.suffix}")
+    k = 1
+    while aside.exists():
+        k += 1
+        aside = path.with_name(f"{path.stem}.unreadable-{stamp}-{k}{path.suffix}")
+    with atomic_path(aside) as tmp:
+        shutil.copyfile(path, tmp)
+    return aside
+
+
+def _duplicates(rows: list[dict]) -> tuple[list[dict], list[tuple[dict, str]], int]:
+    """(rows with each identity once, rows rejected, exact copies dropped): of rows with the
+    same scene, integrator and setting, an exact copy is dropped; copies that differ are all
+    rejected (which one is the run's cannot be told)."""
+    by_id: dict = {}
+    for line, r in enumerate(rows, start=2):
+        by_id.setdefault(identity_of(r), []).append((line, r))
+    keep, bad, copies = [], [], 0
+    for same in by_id.values():
+        line0, first = same[0]
+        texts = {tuple(sorted((k, _canonical(v)) for k, v in r.items() if not _missing(v))) for _, r in same}
+        if len(texts) == 1:
+            keep.append(first)
+            copies += len(same) - 1
+        else:
+            lines = ", ".join(str(line) for line, _ in same)
+            bad += [(r, f"it appears {len(same)} times with different values (lines {lines})") for _, r in same]
+    order = {id(r): k for k, r in enumerate(rows)}
+    return sorted(keep, key=lambda r: order[id(r)]), bad, copies
+
+
 def read_runs(path: str | os.PathLike, log: Callable[[str], None] | None = None) -> StoredRuns:
-    """The rows of an earlier run's ``runs.csv`` (none if the file is missing or unreadable),
-    each checked by `check_row`; every row that fails is named through ``log``."""
+    """The rows of an earlier run's ``runs.csv`` (none if the file is missing), each checked by
+    `check_row`; every row that fails is named through ``log``.
+
+    A table that cannot be read whole (a byte that is not UTF-8, binary, empty, not a runs
+    table, or a row that appears twice) is copied intact beside it first (`StoredRuns.aside`),
+    and its readable rows are salvaged one by one; one line says how many were kept and where
+    the rest are. A row without a digest in a table whose other rows have one is not trusted
+    (its digest was removed); a table without any digest is from older code (`legacy`)."""
+    from models.io import FileRefused, read_regular_file
+
     path = Path(path)
-    if not path.exists():
+    if not path.exists():  # (a dangling link too: the table is written fresh in its place)
         return StoredRuns([], [])
     try:
-        rows = _read_csv(path)
-    except Exception as exc:  # a damaged table is not a reason to stop: start afresh
-        if log:
-            log(f"warning: {path} cannot be read ({type(exc).__name__}); its rows are recomputed")
-        return StoredRuns([], [])
+        data = read_regular_file(path, MAX_RUNS_BYTES)
+    except FileRefused as exc:  # kept as it is: the run is refused, before any work
+        raise ValueError(f"{path} {exc}: move it away, or give another --out") from None
+    why, aside, lost = None, None, 0
+    try:
+        rows = _read_whole(data)
+    except _NotATable as exc:
+        why = str(exc)
+        rows, lost = _salvage(data)
+    rows, bad, copies = _duplicates(rows)
+    if why is None and (bad or copies):
+        why = f"{len(bad) + copies} row(s) repeat the scene, integrator and setting of another"
+    if why is not None:
+        aside = _set_aside(path)
     known = statuses()
-    good, bad = [], []
+    digested = any(not _missing(r.get("row_digest")) for r in rows)
+    good = []
     for r in rows:
-        why = check_row(r, known)
-        (bad.append((r, why)) if why else good.append(r))
+        reason = check_row(r, known)
+        if reason is None and digested and _missing(r.get("row_digest")):
+            reason = "it has no row digest, where the table's other rows have one (removed after it was written)"
+        (bad.append((r, reason)) if reason else good.append(r))
     if log:
-        for r, why in bad:
-            log(f"warning: {path}: row {describe_row(r)} is not trusted ({why}); it is recomputed if this run "
+        if aside is not None:
+            log(f"warning: {path} cannot be read whole ({why}): copied intact to {aside}; kept {len(good)} "
+                f"trusted row(s) of it, the other {len(bad) + lost + copies} are in that copy"
+                + (f" ({copies} exact repeat(s) dropped)" if copies else ""))
+        for r, reason in bad:
+            log(f"warning: {path}: row {describe_row(r)} is not trusted ({reason}); it is recomputed if this run "
                 "includes it")
-    unverified = sum(1 for r in good if _missing(r.get("row_digest")))
-    return StoredRuns(good, bad, unverified)
+    legacy = [r for r in good if is_legacy(r)]
+    return StoredRuns(good, bad, legacy, aside)
 
 
 def describe_row(row: dict) -> str:
@@ -445,19 +608,60 @@ class OutputLock:
         return True
 
     def acquire(self) -> "OutputLock":
+        from models.io import WriteFailed
+
         me = {"pid": os.getpid(), "host": socket.gethostname(), "command": " ".join(sys.argv)}
-        self.path.parent.mkdir(parents=True, exist_ok=True)  # the command line checks --out without creating it
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)  # the command line checks --out without creating it
+        except OSError as exc:
+            raise WriteFailed(exc.errno, exc.strerror or str(exc), str(self.path.parent)) from None
         for _ in range(3):
             try:
                 fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
             except FileExistsError:
                 self._refuse_or_take_over()
                 continue
-            with os.fdopen(fd, "w") as fh:
-                json.dump(me, fh)
+            except OSError as exc:  # read-only, full, ...: the `cannot write FILE` line, no lock left
+                raise WriteFailed(exc.errno, exc.strerror or str(exc), str(self.path)) from None
+            try:
+                with os.fdopen(fd, "w") as fh:
+                    json.dump(me, fh)
+            except OSError as exc:
+                self.path.unlink(missing_ok=True)
+                raise WriteFailed(exc.errno, exc.strerror or str(exc), str(self.path)) from None
             self.held = True
+            self._remove_stale_temporaries()
             return self
         raise LockedError(f"could not take the lock {self.path}; delete it if no run is using {self.path.parent}/")
+
+    #: Temporaries of the atomic writer (`models.io.atomic_path`: ".NAME.XXXXXXXX.tmp.SUFFIX")
+    #: unchanged this long are stale: a live write rewrites its file as it goes and renames it
+    #: within moments.
+    STALE_AFTER = 5.0
+
+    def _remove_stale_temporaries(self) -> None:
+        """Delete what a run killed with -9 left of its atomic writes in the directory and its
+        cache (with the lock held, no study of this directory is writing)."""
+        import re
+
+        pattern = re.compile(r"^\..+\.[A-Za-z0-9_]{8}\.tmp(\.[^./]+)?$")
+        now, removed = time.time(), []
+        for d in (self.path.parent, self.path.parent / "cache"):
+            try:
+                entries = list(os.scandir(d))
+            except OSError:
+                continue
+            for e in entries:
+                try:
+                    if (pattern.match(e.name) and e.is_file(follow_symlinks=False)
+                            and now - e.stat(follow_symlinks=False).st_mtime > self.STALE_AFTER):
+                        os.unlink(e.path)
+                        removed.append(e.name)
+                except OSError:
+                    continue
+        if removed and self.log:
+            self.log(f"removed {len(removed)} temporary file(s) an interrupted run left in {self.path.parent}/: "
+                     + ", ".join(removed[:5]) + (" ..." if len(removed) > 5 else ""))
 
     def _refuse_or_take_over(self) -> None:
         """LockedError naming the holder if it is alive; else remove its stale lock."""
@@ -479,7 +683,10 @@ class OutputLock:
         if self.held:
             holder = self._holder()
             if holder is None or holder.get("pid") == os.getpid():
-                self.path.unlink(missing_ok=True)
+                try:
+                    self.path.unlink(missing_ok=True)
+                except OSError:  # a file system gone read-only: the lock is stale, taken over next time
+                    pass
             self.held = False
 
     def __enter__(self) -> "OutputLock":
@@ -586,8 +793,8 @@ def merge_study_table(earlier, new, key: Iterable[str]):
     import pandas as pd
 
     key = list(key)
-    if earlier is None or earlier.empty:
-        return new.reset_index(drop=True)
+    if earlier is None or earlier.empty:  # (None when neither has rows: every run of a study crashed)
+        return new.reset_index(drop=True) if new is not None else None
     if new is None or new.empty:
         return earlier.reset_index(drop=True)
     missing = [c for c in key if c not in earlier or c not in new]

@@ -70,6 +70,13 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> None:
 # --------------------------------------------------------------------------------------------
 
 
+def printable(text: str) -> str:
+    """``text`` with every character that is not printable (a NUL, a newline, a bidirectional
+    override such as U+202E) written as its escape, so that a message quoting input is one line
+    that shows what it quotes: ``printable("a\\nb") == "a\\\\nb"``."""
+    return "".join(ch if ch.isprintable() else ascii(ch)[1:-1] for ch in str(text))
+
+
 class UnsafePath(ValueError):
     """A path built from a name would lie outside the directory it was meant for."""
 
@@ -103,7 +110,7 @@ def inside(directory: str | os.PathLike, *parts: str | os.PathLike) -> Path:
     if base not in target.parents:
         shown = os.path.join(*map(os.fspath, parts))
         raise UnsafePath(f"{shown!r} leads outside {base} (to {target}): a name from input must stay a "
-                         f"file name inside its output directory")
+                         f"file name inside its output directory, and a link inside it may not lead out of it")
     return target
 
 

@@ -185,15 +185,17 @@ def test_ok_to_not_ok_is_a_regression_and_the_reverse_an_improvement():
     assert not cmp.failed and any("newton_failed -> diverged" in n for n in cmp.notes)
 
 
-def test_missing_and_unregistered_integrators_are_reported_not_failed():
+def test_a_new_plugin_is_reported_and_a_baseline_integrator_that_is_gone_fails():
+    """A method the baseline does not know is a note; one the baseline gates that is no longer
+    registered (removed or renamed) is a regression: its rows must not drop out silently."""
     base = pd.concat([table(["ok"]), table(["ok"], integrator="retired")], ignore_index=True)
     current = pd.concat([table(["ok"]), table(["ok"], integrator="new_plugin")], ignore_index=True)
     cmp = check.compare(base, current, registered=["lgvi", "new_plugin"])
-    assert not cmp.failed
     assert any(n.startswith("new_plugin: no baseline, run `python -m benchmark check --update`") for n in cmp.notes)
-    assert any(n.startswith("retired: in the baseline but no longer registered") for n in cmp.notes)
+    assert cmp.failed and [(r["integrator"], r["metric"]) for r in cmp.regressions] == [("retired", "registered")]
     report = check.format_report(cmp, check.Tolerance(), "drift.csv")
-    assert "no baseline" in report and "check passed" in report
+    assert "no baseline" in report and "check FAILED" in report
+    assert not check.compare(base[base["integrator"] == "lgvi"], current, registered=["lgvi", "new_plugin"]).failed
 
 
 def test_baseline_integrator_that_fails_to_load_is_a_regression():
@@ -253,9 +255,11 @@ def test_ci_runs_exactly_the_readme_test_command():
 
 def baseline_of(names) -> pd.DataFrame:
     """A well-formed baseline for the check sweep of ``names``: one ok row per task."""
+    tasks = check.build_check_tasks(names)
     rows = [{"scene": t.scene, "integrator": t.integrator, "setting": t.setting, "status": "ok", "reason": "",
-             "run_time": 0.01, "compile_time": 1.0, **{m: 1e-6 for m in ACCURACY}}
-            for t in check.build_check_tasks(names)]
+             "run_time": 0.01, "compile_time": 1.0, **{m: 1e-6 for m in ACCURACY}} for t in tasks]
+    rows += [{"scene": s, "integrator": n, "setting": f"order({axis})", "status": "", "reason": "", check.ORDER: 2.0}
+             for s, n, axis in dict.fromkeys((t.scene, t.integrator, "dt" if t.dt else "rtol") for t in tasks)]
     return pd.DataFrame(rows).reindex(columns=check.COLUMNS).fillna({"status": "", "reason": ""})
 
 
@@ -285,7 +289,7 @@ def test_a_well_formed_baseline_passes_and_the_gate_is_reached(tmp_path, capsys,
     path = tmp_path / "b.csv"
     check.write_baseline(baseline_of(["lgvi"]), path)
     rc, err, out = check_cli(capsys, path, "--integrators", "lgvi")
-    assert rc == 0 and no_sweep and "6 rows compared" in out and "check passed" in out, (err, out)
+    assert rc == 0 and no_sweep and "9 rows compared" in out and "check passed" in out, (err, out)
 
 
 @pytest.mark.parametrize("damage, fragments", [
@@ -295,9 +299,9 @@ def test_a_well_formed_baseline_passes_and_the_gate_is_reached(tmp_path, capsys,
     (lambda text: text.replace(",ok,1e-06,", ",ok,,", 1), ["line 9", "energy_error = nan", "finite number"]),
     (lambda text: text.replace(",ok,1e-06,", ",ok,-5,", 1), ["line 9", "energy_error = -5"]),
     (lambda text: text.replace(",ok,1e-06,", ",ok,tiny,", 1), ["line 9", "energy_error = 'tiny' is not a number"]),
-    (lambda text: text.replace(",lgvi,", ",lgvi_renamed,"), ["no row this check can compare with for lgvi",
-                                                             "--allow-new lgvi"]),
-    (lambda text: text.replace(",dt=0.00", ",dt=0.50"), ["no row this check can compare with for lgvi",
+    (lambda text: text.replace(",lgvi,", ",lgvi_renamed,"), ["rows of lgvi_renamed, which is not a registered "
+                                                             "integrator (removed or renamed?)"]),
+    (lambda text: text.replace(",dt=0.00", ",dt=0.50"), ["lacks 6 run(s) of this check's sweep",
                                                              "rows of other scenes or settings only"]),
     (lambda text: "\x89PNG\x00\x00binary", ["not a text file"]),
 ])
@@ -334,7 +338,7 @@ def test_a_new_integrator_fails_unless_allowed_by_name(tmp_path, capsys, no_swee
     rc, err, _ = check_cli(capsys, path, "--integrators", "lgvi,rk45", "--allow-new", "rk45x")
     assert rc == 2 and "unknown integrator 'rk45x'" in err, err
     rc, err, out = check_cli(capsys, path, "--integrators", "lgvi,rk45", "--allow-new", "rk45")
-    assert rc == 0 and "rk45: no baseline" in out and "6 rows compared" in out, (err, out)
+    assert rc == 0 and "rk45: no baseline" in out and "9 rows compared" in out, (err, out)
     # allowing every selected integrator leaves nothing to compare: still refused
     rc, err, _ = check_cli(capsys, path, "--integrators", "rk45", "--allow-new", "rk45")
     assert rc == 2 and "a check of nothing cannot pass" in err, err
@@ -345,3 +349,98 @@ def test_a_metric_missing_from_the_baseline_where_the_run_has_one_fails():
     cmp = check.compare(base, table(["ok"]), registered=["lgvi"])
     assert cmp.failed and regressed(cmp) == {("dt=0.01", "energy_error")}
     assert cmp.regressions[0]["change"] == "missing in the baseline"
+
+
+# ------------------------------------------------------------------------------------------
+# a baseline row that could not fail, and a baseline whose coverage shrank: each of these once
+# passed (exit 0, e.g. "6 improvement(s)" against a baseline of diverged runs)
+
+def _set(df, where, **values):
+    df = df.copy()
+    for k, v in values.items():
+        df[k] = df[k].astype(object) if isinstance(v, str) else df[k]
+        df.loc[where(df), k] = v
+    return df
+
+
+RUNS = lambda df: ~df["setting"].str.startswith("order(")  # noqa: E731
+ORDERS = lambda df: df["setting"].str.startswith("order(")  # noqa: E731
+
+
+@pytest.mark.parametrize("damage, fragments", [
+    (lambda df: _set(df, RUNS, status="diverged", **{m: np.nan for m in ACCURACY}),
+     ["line 9", "status diverged", "cannot fail a check"]),
+    (lambda df: _set(df, lambda d: d.index == 0, status="bogus"), ["status 'bogus' is not a status"]),
+    (lambda df: _set(df, ORDERS, **{check.ORDER: -100.0}), ["observed_order = -100 is outside the plausible range"]),
+    (lambda df: _set(df, ORDERS, **{check.ORDER: 0.3}), ["observed_order = 0.3", "(1 to 32)"]),  # lgvi: 2nd order
+    (lambda df: _set(df, ORDERS, **{check.ORDER: 1e300}), ["observed_order = 1e+300 is outside"]),
+    (lambda df: _set(df, RUNS, **{m: 1e300 for m in ACCURACY}), ["energy_error = 1e+300", "above the sanity bound"]),
+    (lambda df: df.drop(index=[1, 2, 3, 4, 5]), ["lacks 5 run(s)", "its coverage shrank",
+                                                 "fixed_length / lgvi / dt=0.00125"]),
+    (lambda df: _set(df, lambda d: d["scene"] == "fixed_length", scene="fixed_lengthX"),
+     ["lacks 2 run(s)", "fixed_length / lgvi / dt=0.0025, fixed_length / lgvi / dt=0.00125"]),
+    (lambda df: df[~(ORDERS(df) & (df["scene"] == "deployment"))], ["no observed_order row for deployment / lgvi"]),
+], ids=["all diverged", "bogus status", "order -100", "order below the method's range", "order 1e300",
+        "metrics 1e300", "one row left", "a scene renamed", "an order row deleted"])
+def test_a_baseline_that_could_not_fail_is_refused(tmp_path, capsys, no_sweep, damage, fragments):
+    path = tmp_path / "b.csv"
+    check.write_baseline(damage(baseline_of(["lgvi"])), path)
+    rc, err, out = check_cli(capsys, path, "--integrators", "lgvi")
+    assert rc == 2 and err.startswith("error: baseline " + str(path)), (err, out)
+    for f in fragments:
+        assert f in err, (f, err)
+    assert not no_sweep  # refused before any work
+
+
+def test_an_update_that_would_write_a_baseline_that_could_not_fail_leaves_the_old_one(tmp_path, monkeypatch):
+    path = tmp_path / "b.csv"
+    check.write_baseline(baseline_of(["lgvi"]), path)
+    before = path.read_text()
+    monkeypatch.setattr(check, "measure", lambda tasks, **kw: _set(baseline_of(["lgvi"]), lambda d: d.index == 2,
+                                                                    status="diverged", energy_error=np.nan))
+    out = []
+    assert pipelines.run_check(update=True, baseline=path, integrators=["lgvi"], echo=out.append) == 1
+    assert "baseline NOT written" in out[-1] and "deployment / lgvi / dt=0.0025: status diverged" in out[-1], out
+    assert path.read_text() == before
+
+
+def test_check_integrators_that_names_nothing_is_refused(tmp_path, capsys, no_sweep):
+    path = tmp_path / "b.csv"
+    check.write_baseline(baseline_of(["lgvi"]), path)
+    for value in (",", " , ", ""):
+        rc, err, _ = check_cli(capsys, path, "--integrators", value)
+        assert rc == 2 and "argument --integrators" in err and "is empty" in err, (value, err)
+    assert not no_sweep
+
+
+class InstalledPlugin(RK45):
+    """A method installed from another package (its class lives outside `integrators`)."""
+
+    name = "ralston_plugin"
+
+
+def test_an_installed_plugin_is_reported_not_failed_and_a_method_of_the_baseline_that_is_gone_fails(
+        tmp_path, capsys, no_sweep):
+    """Installing a plugin must not break a user's CI: the default check reports it and says
+    how to add it; a method the baseline gates that is no longer registered fails closed."""
+    from benchmark import sweep
+
+    shipped = sweep.default_names()
+    path = tmp_path / "b.csv"
+    check.write_baseline(baseline_of(shipped), path)
+    registry.register(InstalledPlugin)
+    try:
+        assert "ralston_plugin" not in sweep.default_names()  # a guest: not in a default sweep
+        rc, err, out = check_cli(capsys, path)
+        assert rc == 0 and "check passed" in out, (err, out)
+        assert ("ralston_plugin: no baseline rows, not checked (a plugin); add them with "
+                "`python -m benchmark check --update --integrators ralston_plugin`") in out
+        assert no_sweep and no_sweep[-1] == len(check.build_check_tasks(shipped))  # the plugin is not run
+        # the baseline gates a plugin that is then uninstalled: refused, before any work
+        check.write_baseline(baseline_of(shipped + ["ralston_plugin"]), path)
+    finally:
+        registry.unregister("ralston_plugin")
+    no_sweep.clear()
+    rc, err, _ = check_cli(capsys, path)
+    assert rc == 2 and "rows of ralston_plugin, which is not a registered integrator" in err, err
+    assert not no_sweep

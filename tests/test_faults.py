@@ -336,3 +336,344 @@ def test_a_scene_file_that_cannot_be_a_scene_is_one_error_line_for_every_command
         err, line = outcome(capsys)
         assert rc == 2 and str(path) in line and fragment in line, (args, err)
     assert not (tmp_path / "o").exists()
+
+
+# ------------------------------------------------------------------------------------------
+# The results store fails closed: a table it cannot read whole is kept, its rows salvaged one
+# by one; a row whose digest was removed or whose timings were edited is not trusted
+# ------------------------------------------------------------------------------------------
+def stored_row(scene="deployment", setting="dt=0.01", **values) -> dict:
+    """A finished row as the runner writes it (with its digest), of a scene other than TINY's."""
+    from benchmark import runner
+
+    row = {"scene": scene, "scene_key": "abc", "integrator": "lgvi", "setting": setting, "dt": 0.01,
+           "rtol": np.nan, "atol": np.nan, "t_end": 2.0, "status": "ok", "reason": "", "rhs": "closed_form",
+           "steps": 200, "newton_iterations": 600.0, "work_evals": 600.0, "run_time": 0.002,
+           "run_time_low": 0.0015, "run_time_high": 0.004, "timing_repeats": 30, "compile_time": 2.0,
+           "energy_error": 3e-5, "pi3_error": 1e-13, "orthogonality_error": 1e-14, "position_error_final": 9e-3,
+           "position_error_max": 1e-2, "attitude_error_final": 0.2, "attitude_error_max": 0.2, "t_reached": 2.0,
+           "implementation": "jax-compiled", "load_avg": 2.5, "us_per_eval": 6.7, "flops": 1.2e7, **values}
+    return runner.finish_row(row, f"key-{scene}-{setting}")
+
+
+def table_bytes(rows) -> bytes:
+    from benchmark import runner
+
+    return runner.runs_frame(rows).to_csv(index=False).encode()
+
+
+def many_rows(n=160) -> list[dict]:
+    return [stored_row(setting=f"dt={0.01 / (k + 1):.6g}", dt=0.01 / (k + 1), steps=200 * (k + 1),
+                       position_error_final=9e-3 / (k + 1) ** 2) for k in range(n)]
+
+
+def _with_stray_byte(data: bytes) -> bytes:
+    lines = data.split(b"\n")
+    lines[5] = lines[5].replace(b",ok,", b",ok\xff,", 1)  # one non-UTF-8 byte in one row
+    return b"\n".join(lines)
+
+
+@pytest.mark.parametrize("content, why, kept", [
+    (lambda: _with_stray_byte(table_bytes(many_rows())), "a byte that is not UTF-8", 159),
+    (lambda: b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR" + bytes(range(256)), "not UTF-8", 0),
+    (lambda: b"", "empty", 0),
+    (lambda: b"name,price\nwidget,3\n", "not a runs table: no column(s) scene, integrator, setting, status", 0),
+    (lambda: table_bytes(many_rows(3) + many_rows(1)), "1 row(s) repeat", 3),
+], ids=["a stray byte", "binary", "empty", "foreign", "an exact repeat"])
+def test_a_table_that_cannot_be_read_whole_is_kept_intact_and_its_rows_salvaged(tmp_path, content, why, kept):
+    from benchmark import store
+
+    path = tmp_path / "runs.csv"
+    data = content()
+    path.write_bytes(data)
+    said = []
+    got = store.read_runs(path, log=said.append)
+    assert len(got.rows) == kept and got.aside is not None and got.aside.read_bytes() == data
+    assert got.aside.parent == tmp_path and got.aside.name.startswith("runs.unreadable-")
+    (line,) = [s for s in said if "cannot be read whole" in s]
+    assert why in line and f"kept {kept} trusted row(s)" in line and str(got.aside) in line, said
+    assert path.read_bytes() == data  # nothing is removed until the run writes its table
+
+
+def test_rows_that_repeat_with_different_values_are_caught_on_read_none_trusted(tmp_path):
+    from benchmark import store
+
+    path = tmp_path / "runs.csv"
+    path.write_bytes(table_bytes(many_rows(2) + [stored_row(setting="dt=0.01", energy_error=5e-5)]))
+    said = []
+    got = store.read_runs(path, log=said.append)
+    assert [r["setting"] for r in got.rows] == ["dt=0.005"] and len(got.rejected) == 2, got.rejected
+    assert all("appears 2 times with different values (lines 2, 4)" in why for _, why in got.rejected)
+    assert got.aside is not None and got.aside.is_file()
+
+
+def test_a_sweep_into_a_table_with_a_stray_byte_keeps_its_other_rows(tmp_path, capsys):
+    """160 rows of another scene and one non-UTF-8 byte once left 3 rows and no copy."""
+    import pandas as pd
+
+    out = tmp_path / "out"
+    out.mkdir()
+    data = _with_stray_byte(table_bytes(many_rows()))
+    (out / "runs.csv").write_bytes(data)
+    rc = main(TINY + ["--dts", "0.01", "--out", str(out)])
+    err, line = outcome(capsys)
+    assert rc == 0, err
+    (aside,) = out.glob("runs.unreadable-*.csv")
+    assert aside.read_bytes() == data
+    said = [s for s in err.splitlines() if "cannot be read whole" in s]
+    assert len(said) == 1 and "kept 159 trusted row(s)" in said[0] and "the other 1 are in that copy" in said[0]
+    table = pd.read_csv(out / "runs.csv")
+    assert len(table) == 160 and (table["scene"] == "deployment").sum() == 159
+
+
+@pytest.mark.parametrize("edit", [
+    {"run_time": 1e-9, "run_time_low": 1e-9, "run_time_high": 1e-9}, {"flops": 1.0}, {"us_per_eval": 1e-6},
+    {"compile_time": 0.0}, {"energy_error": 1e-12},
+], ids=["run times", "flops", "us_per_eval", "compile_time", "energy_error"])
+def test_every_column_a_conclusion_reads_is_covered_by_the_digest(tmp_path, edit):
+    from benchmark import store
+
+    rows = many_rows(2)
+    path = tmp_path / "runs.csv"
+    path.write_bytes(table_bytes([{**rows[0], **edit}, rows[1]]))
+    got = store.read_runs(path)
+    assert len(got.rows) == 1 and "do not match the digest" in got.rejected[0][1], got.rejected
+
+
+def test_a_row_whose_digest_was_blanked_is_tampered(tmp_path):
+    from benchmark import store
+
+    rows = many_rows(3)
+    path = tmp_path / "runs.csv"
+    path.write_bytes(table_bytes([{**rows[0], "row_digest": "", "energy_error": 1e-12}, *rows[1:]]))
+    got = store.read_runs(path)
+    assert len(got.rows) == 2 and not got.legacy
+    assert "no row digest, where the table's other rows have one" in got.rejected[0][1]
+
+
+def test_rows_from_before_digests_need_an_explicit_one_time_accept_legacy(tmp_path, capsys):
+    import pandas as pd
+
+    from benchmark import store
+
+    out = tmp_path / "out"
+    out.mkdir()
+    legacy = pd.read_csv(__import__("io").BytesIO(table_bytes(many_rows(3)))).drop(columns=["row_digest"])
+    legacy.to_csv(out / "runs.csv", index=False)
+    before = (out / "runs.csv").read_bytes()
+    rc = main(TINY + ["--dts", "0.01", "--out", str(out)])
+    err, line = outcome(capsys)
+    assert rc == 2 and "3 row(s) this run keeps predate row digests" in line and "--accept-legacy" in line, err
+    assert (out / "runs.csv").read_bytes() == before
+    rc = main(TINY + ["--dts", "0.01", "--out", str(out), "--accept-legacy"])
+    err, line = outcome(capsys)
+    assert rc == 0 and "3 of them predate row digests: accepted by --accept-legacy" in err, err
+    again = store.read_runs(out / "runs.csv")  # one time: they now carry digests
+    assert len(again.rows) == 4 and not again.legacy and not again.rejected
+
+
+# ------------------------------------------------------------------------------------------
+# Edges of the stop signals and the output lock
+# ------------------------------------------------------------------------------------------
+def test_a_row_printed_as_finished_is_already_on_disk():
+    from benchmark import engine
+
+    events = []
+    p = engine.Progress(2, on_row=lambda rows: events.append(("saved", len(rows))),
+                        log=lambda line: events.append(("printed", line)))
+    p.done(1, {"x": 1})
+    p.done(0, {"x": 0})
+    assert [e[0] for e in events] == ["saved", "printed", "saved", "printed"], events
+    assert events[0] == ("saved", 1) and events[1][1].startswith("[1/2]")
+
+
+def test_temporaries_left_by_a_killed_run_are_removed_under_the_lock_and_only_stale_ones(tmp_path):
+    import time
+
+    from benchmark import store
+
+    (tmp_path / "cache").mkdir()
+    stale = [tmp_path / ".runs.csv.k9ab_x12.tmp.csv", tmp_path / "cache" / ".reference-a-1.npz.zz99yy88.tmp.npz"]
+    live = tmp_path / ".runs.md.abcdefgh.tmp.md"  # being written right now
+    other = [tmp_path / "notes.tmp.csv", tmp_path / ".hidden.csv"]
+    for p in stale + [live] + other:
+        p.write_text("x")
+    old = time.time() - 3600
+    for p in stale + other:
+        os.utime(p, (old, old))
+    said = []
+    with store.OutputLock(tmp_path, log=said.append):
+        assert not any(p.exists() for p in stale) and live.exists() and all(p.exists() for p in other)
+    assert any("removed 2 temporary file(s)" in s for s in said), said
+
+
+def test_a_lock_that_cannot_be_written_is_the_cannot_write_line_and_leaves_no_lock(tmp_path, monkeypatch, capsys):
+    from benchmark import store
+
+    real = os.open
+
+    def read_only(path, *a, **k):
+        if str(path).endswith(store.OutputLock.NAME):
+            raise OSError(errno.EROFS, os.strerror(errno.EROFS), str(path))
+        return real(path, *a, **k)
+
+    monkeypatch.setattr(store.os, "open", read_only)
+    out = tmp_path / "out"
+    rc = main(TINY + ["--dts", "0.01", "--out", str(out)])
+    err, line = outcome(capsys)
+    assert rc == 1 and line.startswith(f"error: cannot write {out / store.OutputLock.NAME}: Read-only file system"), err
+    assert not (out / store.OutputLock.NAME).exists()
+
+
+@pytest.mark.parametrize("sig, rc, name", [(2, 130, "Ctrl-C"), (15, 143, "SIGTERM")], ids=["SIGINT", "SIGTERM"])
+def test_a_signal_in_the_first_moments_is_one_line_without_a_traceback(sig, rc, name):
+    """Sent while the command line is still importing (it installs its handlers after): Ctrl-C
+    printed a KeyboardInterrupt traceback, SIGTERM ended the process without a word. The clock
+    starts once the package `benchmark` is imported (the interpreter's own start, `site`
+    included, is not reelbench's code and takes from 20 ms to most of a second on a loaded
+    machine): a thread of the child says when."""
+    import subprocess
+    import sys
+    import time
+
+    start = ("import runpy, sys, threading, time\nsys.argv = ['benchmark', 'list']\n"
+             "def watch():\n    while 'benchmark' not in sys.modules:\n        time.sleep(0.0005)\n"
+             "    print('started', flush=True)\n"
+             "threading.Thread(target=watch, daemon=True).start()\n"
+             "runpy.run_module('benchmark', run_name='__main__', alter_sys=True)\n")
+    stopped = 0
+    for delay in (0.03, 0.06, 0.1, 0.15):
+        proc = subprocess.Popen([sys.executable, "-c", start], cwd=ROOT, stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
+        assert proc.stdout.readline() == "started\n"
+        time.sleep(delay)
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=60)
+        assert "Traceback" not in err, (delay, err)
+        if proc.returncode == 0:  # finished before the signal
+            continue
+        assert proc.returncode == rc and err.strip().splitlines()[-1].startswith(f"stopped by {name}"), (delay, err)
+        stopped += 1
+    assert stopped, "every run finished before its signal: nothing was tested"
+
+
+# ------------------------------------------------------------------------------------------
+# Links inside --out, and input quoted in an error line
+# ------------------------------------------------------------------------------------------
+def test_a_link_planted_inside_out_may_not_lead_out_of_it(tmp_path, capsys):
+    """OUT/cache planted as a link to another directory: the reference was written there."""
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "cache").symlink_to(elsewhere, target_is_directory=True)
+    rc = main(TINY + ["--dts", "0.01", "--out", str(out)])
+    err, line = outcome(capsys)
+    assert rc == 2 and "'cache' leads outside" in line and "a link inside it may not lead out of it" in line, err
+    assert list(elsewhere.iterdir()) == [] and not (out / "runs.csv").exists()
+    assert not (out / ".reelbench.lock").exists()
+
+
+def test_a_link_inside_out_that_stays_inside_is_written_through(tmp_path):
+    out = tmp_path / "out"
+    (out / "real_cache").mkdir(parents=True)
+    (out / "cache").symlink_to(out / "real_cache", target_is_directory=True)
+    assert model_io.inside(out, "cache") == (out / "real_cache").resolve()
+
+
+def test_error_lines_show_nul_bidi_overrides_and_newlines_escaped(tmp_path, capsys):
+    assert model_io.printable("a\x00b\u202ec\nd, é π ×") == "a\\x00b\\u202ec\\nd, é π ×"
+    hostile = tmp_path / "evil\u202e\nlmth.toml"
+    rc = main(["simulate", str(hostile), "--dt", "0.01"])
+    err, line = outcome(capsys)
+    assert rc == 2 and len(err.strip().splitlines()) == 1, err
+    assert "evil\\u202e\\nlmth.toml" in line and "\u202e" not in err, err
+    rc = main(["simulate", "fixed_length", "--set", 'name="a\\u0000b"', "--dt", "0.01"])
+    err, line = outcome(capsys)
+    assert rc == 2 and "\x00" not in err and len(err.strip().splitlines()) == 1, err
+
+
+# ------------------------------------------------------------------------------------------
+# A failure is a nonzero exit, or a refusal in one line
+# ------------------------------------------------------------------------------------------
+WITH_FIGURES = [a for a in TINY if a != "--no-figures"]
+
+
+def test_an_energy_study_too_long_to_run_is_refused_before_any_work(tmp_path, monkeypatch, capsys):
+    from benchmark import pipelines
+
+    monkeypatch.setattr(pipelines, "run_sweep", lambda *a, **k: pytest.fail("started the sweep"))
+    rc = main(WITH_FIGURES + ["--dts", "0.01", "--horizon", "1e9", "--out", str(tmp_path / "o")])
+    err, line = outcome(capsys)
+    assert rc == 2 and "--horizon 1e+09: the energy study of lgvi at N = 1 would keep" in line, err
+    assert "of trajectory in memory (limit 8 GiB): shorten --horizon" in line, err
+    assert not (tmp_path / "o").exists()
+
+
+def test_an_energy_study_whose_worker_crashed_ends_with_exit_1(tmp_path, monkeypatch, capsys):
+    """It logged `horizon lgvi dt=0.005 [crashed]` and then exited 0."""
+    from benchmark import horizon
+
+    def crashed(job):
+        return horizon.crash_row(job, MemoryError("out of memory"))
+
+    monkeypatch.setattr(horizon, "run_job", crashed)
+    out = tmp_path / "o"
+    rc = main(WITH_FIGURES + ["--dts", "0.01", "--horizon", "0.1", "--out", str(out)])
+    err, line = outcome(capsys)
+    assert rc == 1, err
+    assert line.startswith("error: the energy study did not finish for lgvi dt=") and "N=1 on fixed_length" in line, err
+    assert "(MemoryError: out of memory)" in line, err
+    assert len(__import__("pandas").read_csv(out / "runs.csv")) == 1  # the runs table is complete
+
+
+def test_reel_reversal_on_a_scene_without_a_reel_is_refused(tmp_path, capsys):
+    rc = main(["reel-reversal", "--scene", "fixed_length", "--cache-dir", str(tmp_path / "c")])
+    err, line = outcome(capsys)
+    assert rc == 2 and "'fixed_length' has no reel" in line and "--scene reel_reversal" in line, err
+    assert not (tmp_path / "c").exists()
+
+
+@pytest.mark.parametrize("damage, fragment", [
+    (lambda meta, arrays: meta.update(status=123), "status 123, which is not a status a run ends with"),
+    (lambda meta, arrays: meta.update(status="bogus"), "status 'bogus'"),
+    (lambda meta, arrays: arrays["x"].__setitem__((1, 0), np.inf), "its x array holds 1 value(s) that are not finite"),
+    (lambda meta, arrays: arrays["t"].__setitem__(-1, np.nan), "its t array holds 1 value(s)"),
+], ids=["status 123", "status bogus", "an inf in the state", "a nan time"])
+def test_figures_refuse_a_trajectory_that_simulate_did_not_write(tmp_path, capsys, damage, fragment):
+    import json
+
+    from integrators import get_integrator
+    from models import load_scene
+
+    traj = get_integrator("lgvi").solve(load_scene("fixed_length", elements=1), t_end=0.04, dt=0.01)
+    traj.save(tmp_path / "t.npz")
+    with np.load(tmp_path / "t.npz") as data:
+        arrays = {k: np.array(data[k]) for k in data.files if k != "meta"}
+        meta = json.loads(str(data["meta"]))
+    damage(meta, arrays)
+    np.savez(tmp_path / "bad.npz", meta=np.array(json.dumps(meta)), **arrays)
+    rc = main(["figures", str(tmp_path / "bad.npz"), "--set", "elements=1", "--out", str(tmp_path / "f.png")])
+    err, line = outcome(capsys)
+    assert rc == 2 and fragment in line, err
+    assert not (tmp_path / "f.png").exists()
+
+
+def test_the_step_limit_is_at_most_1e9_planned_steps_in_the_command_line_and_the_integrators():
+    """Exactly 1e9 steps is allowed and one more refused, by the same count (the loop's)."""
+    from benchmark import options
+    from integrators import lifecycle
+    from models import load_scene
+
+    scene = load_scene("fixed_length", elements=1)
+    dt = 2.0 ** -20  # t_end / dt exact
+    for steps, allowed in ((10 ** 9, True), (10 ** 9 + 1, False)):
+        t_end = steps * dt
+        if allowed:
+            assert options.check_size(scene, t_end, t_end, dt)["steps"] == steps
+            lifecycle.check_horizon(scene, "fixed", t_end, dt, t_end)
+        else:
+            with pytest.raises(options.UsageError, match="1000000001 steps .*allowed: at most 1e[+]09 planned steps"):
+                options.check_size(scene, t_end, t_end, dt)
+            with pytest.raises(ValueError, match="allowed: at most 1e[+]09"):
+                lifecycle.check_horizon(scene, "fixed", t_end, dt, t_end)

@@ -117,6 +117,7 @@ def test_an_unreadable_table_is_recomputed_not_a_crash(tmp_path):
     said = []
     got = store.read_runs(path, log=said.append)
     assert got.rows == [] and got.rejected == []
+    assert got.aside is not None and got.aside.read_bytes() == path.read_bytes()  # kept intact beside it
 
 
 # ---- merging a run into the table of its --out --------------------------------------------
