@@ -32,7 +32,7 @@ WORK_DEFINITION = ("work = RHS evaluations + Newton iterations + ny × Jacobian 
 
 #: The work in one unit that ranks methods (column ``flops``, the bottom row of the work-precision
 #: figures): the sum above adds unlike units (an LGVI Newton iteration is not an evaluation).
-FLOPS_DEFINITION = ("work = flops: XLA's cost model of each method's whole compiled step (loops at their trip "
+FLOPS_DEFINITION = ("work = floating-point operations (flops): XLA's cost model of each method's whole compiled step (loops at their trip "
                     "counts) × its attempted steps (`benchmark.flops`)")
 
 

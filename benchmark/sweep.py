@@ -124,6 +124,9 @@ def default_names(plugins: bool = False) -> list[str]:
 
 def plugin_names(names) -> list[str]:
     """Those of ``names`` that are plugins (not the project's own methods)."""
+    names = list(names)
+    if not names:  # nothing to look up: no import of the registry (a refusal stays JAX-free)
+        return []
     from integrators import origin
 
     return [n for n in names if not origin(n).own]
