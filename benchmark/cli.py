@@ -481,6 +481,7 @@ def cmd_energy(args) -> int:
     _log("wrote " + ", ".join(f"{out}/{name}" for name, _ in figures) if figures else "energy study: nothing written")
     return 0
 
+
 def cmd_verify(args) -> int:
     """The plugin contract (benchmark/verify.py): exit 0 when every check holds, 1 otherwise."""
     from benchmark import verify
