@@ -224,7 +224,7 @@ For every pair of methods the agreement (flops ratio / floor time ratio) should 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m benchmark.work_rule", description=__doc__.split("\n\n")[0])
     ap.add_argument("--floor", required=True, type=Path, help="directory of the numba floors (lgvi_nb, lgvi_nb2, rhs_nb)")
-    ap.add_argument("--elements", default="10,160", help="comma-separated element counts (default: 10,160)")
+    ap.add_argument("--elements", default="10,40,160", help="comma-separated element counts (default: 10,40,160)")
     ap.add_argument("--steps", type=int, default=20000, help="steps per timed floor run at N = 10, fewer in "
                     "proportion above (default: 20000)")
     ap.add_argument("--repeats", type=int, default=11, help="interleaved repeats (default: 11)")
