@@ -1,12 +1,12 @@
 """results/README.md, cheapest.csv and the project README's answer block: what the runs table
 says, in words and tables, generated from the data (never edited by hand).
 
-The answers come from `benchmark.cheapest`: each method's cost at a target read off its own
-work–precision curve, with an interval, and a verdict that calls a tie a tie. By wall time the
-methods are ranked among the compiled implementations only (a scipy method's time is mostly
-Python calling a compiled right-hand side: a statement about the implementation, not the
-method); by the one-unit work (``flops`` when the table has it, else the RHS-equivalent count)
-every method is ranked. Then the failures and why they were expected, the reproducibility
+The grid's reading comes from `benchmark.cheapest`: each method's cost at a target read off its
+own work–precision curve, with an interval, and a verdict that calls a tie a tie, by the one-unit
+work (``flops`` when the table has it, else the RHS-equivalent count), every method ranked. The
+sweep gives no wall-time verdict: a single solve of a few ms moves by up to 2× between sweeps
+(`benchmark.cheapest.WALL_RESOLUTION`), so the wall-time answer comes from paired, interleaved
+timing at searched settings (`benchmark.answer`, ``python -m benchmark answer``). Then the failures and why they were expected, the reproducibility
 statement against an earlier table, the changes since it, the observed orders and the statuses.
 """
 
@@ -70,21 +70,20 @@ def compiled_rows(runs: pd.DataFrame) -> tuple[pd.DataFrame, bool]:
     return runs, False
 
 
+#: Where the wall-time answer comes from (the sweep's single solves give none, `cheapest_table`).
+WALL_ANSWER = ("by wall time: no verdict from the sweep's single solves (a run of a few ms moves by up to "
+               f"{1 + cheap.WALL_RESOLUTION:g}× between sweeps); the wall-time answer is timed paired and "
+               "interleaved at searched settings by `python -m benchmark answer` (`results/answer/cheapest.csv`)")
+
+
 def cheapest_table(runs: pd.DataFrame) -> pd.DataFrame:
-    """cheapest.csv: for every target, the wall-time costs among the compiled implementations
-    (column ``among``) and the work costs among every method (`benchmark.cheapest.cheapest`)."""
+    """cheapest.csv: for every target, the work costs read off the grid among every method
+    (`benchmark.cheapest.cheapest`). No wall-time rows: single solves cannot separate methods
+    closer than `benchmark.cheapest.WALL_RESOLUTION`, and paired timing (`benchmark.answer`) can."""
     targets = [(m, t) for m, t, _ in TARGETS if m in runs]
     if runs.empty or not targets:
         return pd.DataFrame(columns=cheap.COLUMNS + ["among"])
-    # a table from before the timing spread: each cost is its own interval, widened to the resolution
-    runs = runs.assign(**{c: np.nan for c in cheap.WALL_COLUMNS if c not in runs})
-    ranked, only_compiled = compiled_rows(runs)
-    parts = []
-    if not ranked.empty:
-        parts.append(cheap.cheapest(ranked, targets, cost_kinds=["wall"]).assign(
-            among="compiled implementations" if only_compiled else "every method (no implementation declared)"))
-    parts.append(cheap.cheapest(runs, targets, cost_kinds=["work"]).assign(among="every method"))
-    return pd.concat(parts, ignore_index=True)
+    return cheap.cheapest(runs, targets, cost_kinds=["work"]).assign(among="every method")
 
 
 def write_cheapest(out_dir: Path, table: pd.DataFrame) -> Path:
@@ -101,25 +100,20 @@ def _unranked_by_wall(runs: pd.DataFrame) -> list[str]:
 def answers(runs: pd.DataFrame, table: pd.DataFrame) -> str:
     """The cost sections of results/README.md from the cheapest table ``table``."""
     out = []
-    for kind, title in (("wall", "By wall time"), ("work", "By work")):
-        g = table[table["cost_kind"] == kind]
-        if g.empty:
-            continue
-        among = g["among"].iloc[0]
-        out.append(f"### {title}, among {among}\n\n")
-        if kind == "wall":
-            out.append(f"The median of each run's timed solves, with the interval of its repeats widened to the "
-                       f"wall-time resolution (a factor {1 + cheap.WALL_RESOLUTION:g}: closer costs are a tie).")
-            others = _unranked_by_wall(runs)
-            if others:
-                out.append(f" Not ranked by wall time: {code_list(others)} (not compiled: their time is mostly the "
-                           "interpreter between right-hand-side calls, see the µs per evaluation below); they are "
-                           "ranked by work.")
-            out.append("\n\n")
-        else:
-            col = g["cost_column"].iloc[0]
-            what = ("floating-point operations (`flops`)" if col == "flops" else f"`{col}`: {WORK_DEFINITION}")
-            out.append(f"Work in {what}; two costs within {cheap.WORK_RESOLUTION:.0%} of each other are a tie.\n\n")
+    out.append("### By wall time\n\n" + WALL_ANSWER[0].upper() + WALL_ANSWER[1:] + ".")
+    others = _unranked_by_wall(runs)
+    if others:
+        out.append(f" Never ranked by wall time: {code_list(others)} (not compiled: their time is mostly the "
+                   "interpreter between right-hand-side calls, see the µs per evaluation below).")
+    out.append("\n\n")
+    g = table[table["cost_kind"] == "work"]
+    if not g.empty:
+        col = g["cost_column"].iloc[0]
+        what = ("floating-point operations (`flops`)" if col == "flops" else f"`{col}`: {WORK_DEFINITION}")
+        out.append(f"### By work, among {g['among'].iloc[0]}, read off the step grid\n\n"
+                   f"Work in {what}; two costs within {cheap.WORK_RESOLUTION:.0%} of each other are a tie. A cost "
+                   "the grid bounds (`bound`: stability, sweep range) is an upper bound; the searched cost at each "
+                   "target is `python -m benchmark answer`'s.\n\n")
         out.append("\n".join(cheap.summary_lines(g, LABELS)) + "\n\n")
     return "".join(out)
 
@@ -157,9 +151,8 @@ def timing_text(runs: pd.DataFrame) -> str:
         parts.append(f"{missing} finished row(s) come from an older table without a timing spread (their interval is "
                      "the resolution alone)")
     return ("Timing: " + "; ".join(parts) + ". " if parts else "") + (
-        f"Run times of a few ms move by up to 2× between sweeps on a shared machine, so the wall-time verdicts use a "
-        f"resolution of a factor {1 + cheap.WALL_RESOLUTION:g} whatever the repeats say (`benchmark/cheapest.py`), "
-        "and need a machine loaded below its core count.")
+        f"Run times of a few ms move by up to {1 + cheap.WALL_RESOLUTION:g}× between sweeps on a shared machine, so "
+        "the sweep gives no wall-time verdict; paired timing does (`python -m benchmark answer`).")
 
 
 # ------------------------------------------------------------------------------------------
@@ -189,24 +182,16 @@ def _power(x: float) -> str:
 
 
 def answer_block(runs: pd.DataFrame, table: pd.DataFrame, failures: str) -> str:
-    """Five lines for the project README: per target, the verdicts by wall time (compiled
-    implementations) and by work; the failures; how to read it."""
+    """Five lines for the project README when no searched answer is committed: per target, the
+    verdicts by work read off the grid; where wall time comes from; the failures; how to read it."""
     lines = []
     for metric, target, label in TARGETS:
-        g = table[(table["metric"] == metric) & (table["target"] == target)]
-        if g.empty:
+        k = table[(table["metric"] == metric) & (table["target"] == target) & (table["cost_kind"] == "work")]
+        if k.empty:
             continue
-        per = []
-        for kind, words in (("wall", "wall time"), ("work", "work")):
-            k = g[g["cost_kind"] == kind]
-            if len(k):
-                per.append(f"by {words}: " + "; ".join(f"{scene} {_short(s)}" for scene, s in k.groupby("scene")))
-        lines.append(f"- **{label[0].upper() + label[1:]} ≤ {_power(target)}** — " + " — ".join(per) + ".")
-    wall = table[table["cost_kind"] == "wall"]
-    among = wall["among"].iloc[0] if len(wall) else "compiled implementations"
-    lines.append(f"- Wall time is ranked among {among}; a winner's interval lies below every other method's, "
-                 f"otherwise it is a tie (resolution ×{1 + cheap.WALL_RESOLUTION:g} for wall time, "
-                 f"{cheap.WORK_RESOLUTION:.0%} for work).")
+        lines.append(f"- **{label[0].upper() + label[1:]} ≤ {_power(target)}** — by work, off the step grid: "
+                     + "; ".join(f"{scene} {_short(s)}" for scene, s in k.groupby("scene")) + ".")
+    lines.append(f"- A work verdict needs {cheap.WORK_RESOLUTION:.0%} between intervals; {WALL_ANSWER}.")
     lines.append(f"- {failures}")
     lines.append("- Generated from `results/runs.csv` by `python -m benchmark run`; each method's cost with its "
                  "interval: `results/cheapest.csv`; the reading: `results/README.md`.")
