@@ -234,13 +234,39 @@ def search_jobs(scenes, integrators, targets, elements=ELEMENTS, t_end=None, max
     return jobs
 
 
+#: What two searches must share, bit for bit, to be one computation ranked once (`twins`).
+TWIN_COLUMNS = ("sweep", "setting", "setting_low", "setting_high", "error", "cost", "runs")
+
+
+def twins(g: pd.DataFrame) -> dict[tuple[str, str], str]:
+    """(integrator, sweep) -> the method it is ranked as, for every search of one scene × N ×
+    metric × target that is bit-identical to another's in `TWIN_COLUMNS` (the same bracket,
+    the same error and flops at the same setting after the same number of runs: e.g. ``lgvi_sym``
+    and ``lgvi`` at fixed length, one trajectory). Of such a group the method first in
+    `benchmark.sweep.PRESENTATION_ORDER` is ranked; a search that reached nothing is never a twin."""
+    import pandas as pd
+
+    from benchmark.cheapest import _presentation_rank
+
+    out = {}
+    found = g[pd.to_numeric(g["setting"], errors="coerce").notna()]
+    for _, h in found.groupby(list(TWIN_COLUMNS), sort=False, dropna=False):
+        names = sorted(h["integrator"], key=_presentation_rank)
+        for other in names[1:]:
+            out[(other, h["sweep"].iloc[0])] = names[0]
+    return out
+
+
 def timing_jobs(searched: pd.DataFrame, t_end=None, budget=_paired.BUDGET) -> list[TimingJob]:
     """One per scene × N × metric × target: the compiled entries that met it (a method with a
-    fixed-step and an adaptive axis is two entries, like with like), each at its searched setting."""
+    fixed-step and an adaptive axis is two entries, like with like), each at its searched setting;
+    a search bit-identical to another's (`twins`) is timed once, as the method ranked."""
     out = []
     ok = searched[searched["setting"].notna() & (searched["implementation"] != "scipy-python")]
     for (scene, n, metric, target), g in ok.groupby(["scene", "elements", "metric", "target"], sort=True):
-        cands = tuple(sorted((r.integrator, r.sweep, float(r.setting)) for r in g.itertuples()))
+        same = twins(g)
+        cands = tuple(sorted((r.integrator, r.sweep, float(r.setting)) for r in g.itertuples()
+                             if (r.integrator, r.sweep) not in same))
         out.append(TimingJob(scene, int(n), metric, float(target), cands, t_end, budget))
     return out
 
@@ -315,15 +341,24 @@ def answer_table(searched: pd.DataFrame, timed: pd.DataFrame) -> pd.DataFrame:
     one axis, that reached the target, by its searched cost in flops: winner when its cost, with
     the bracket's 10 % below it, stays below every other's, else tie) and the wall rows (the
     paired timing's ratios, intervals, pairs and verdicts)."""
-    from benchmark.cheapest import _verdicts, entry_name
+    from benchmark.cheapest import _presentation_rank, _verdicts, entry_name
 
     rows = []
     for (scene, n, metric, target), g in searched.groupby(["scene", "elements", "metric", "target"], sort=True):
-        work = []
+        work, same = [], twins(g)
         axes = g.groupby("integrator")["sweep"].nunique().to_dict()
         for (integ, sweep), h in g.groupby(["integrator", "sweep"], sort=True):
             r = h.iloc[0]
-            entry = entry_name(integ, sweep, axes[integ] > 1)
+            if (integ, sweep) in same:
+                rows.append(dict(scene=scene, elements=int(n), metric=metric, target=target, cost_kind="work",
+                                 integrator=integ, entry=entry_name(integ, sweep, axes[integ] > 1), sweep=sweep,
+                                 setting=_setting_text(sweep, r["setting"]), verdict="identical",
+                                 cost_column=r["cost_column"], error=r["error"], runs=r["runs"],
+                                 note=f"its search is bit-identical to {same[(integ, sweep)]}'s "
+                                      f"({', '.join(TWIN_COLUMNS)}): ranked as one entry"))
+                continue
+            mates = sorted((i for (i, sw), m in same.items() if m == integ and sw == sweep), key=_presentation_rank)
+            entry = entry_name(integ, sweep, axes[integ] > 1, mates)
             spread = r["spread"] if np.isfinite(r.get("spread", np.nan)) else 0.0
             base = dict(scene=scene, elements=int(n), metric=metric, target=target, cost_kind="work",
                         integrator=integ, entry=entry, sweep=sweep, setting=_setting_text(sweep, r["setting"]),
@@ -340,11 +375,12 @@ def answer_table(searched: pd.DataFrame, timed: pd.DataFrame) -> pd.DataFrame:
         t = timed[(timed["scene"] == scene) & (timed["elements"] == n) & (timed["metric"] == metric)
                   & (timed["target"] == target)] if len(timed) else timed
         if len(t):
-            by_entry = {r["entry"]: r for r in work}
+            # the timing names each method as `run_timing` does, without its twins
+            by_entry = {**{r["entry"].split(" = ")[0]: r for r in work}, **{r["integrator"]: r for r in work}}
             for ratio in json.loads(t.iloc[0]["ratios"] or "[]"):
                 w = by_entry.get(ratio["method"], {})
                 rows.append(dict(scene=scene, elements=int(n), metric=metric, target=target, cost_kind="wall",
-                                 integrator=w.get("integrator", ratio["method"]), entry=ratio["method"],
+                                 integrator=w.get("integrator", ratio["method"]), entry=w.get("entry", ratio["method"]),
                                  sweep=w.get("sweep", ""), setting=w.get("setting", ""), cost=ratio["time"],
                                  ratio=ratio["ratio"], ratio_low=ratio["low"], ratio_high=ratio["high"],
                                  pairs=ratio["pairs"], verdict=ratio["verdict"], cost_column="run_time (paired)",

@@ -60,6 +60,24 @@ def test_cheapest_csv_has_the_bracket_the_bound_and_the_paired_ratios(tables):
     assert "rk45" not in set(table.loc[table["cost_kind"] == "wall", "integrator"])
 
 
+def test_bit_identical_searches_are_ranked_and_timed_once(tables):
+    """lgvi_sym's search equal to lgvi's in every twin column: one entry, `lgvi = lgvi_sym`, the
+    other row `identical` and not timed; a search differing in its error alone stays apart."""
+    searched, timed = tables
+    sym = searched.iloc[0].to_dict() | {"integrator": "lgvi_sym"}
+    near = searched.iloc[0].to_dict() | {"integrator": "rattle", "error": searched.iloc[0]["error"] * (1 + 1e-15)}
+    searched = pd.concat([searched, pd.DataFrame([sym, near])], ignore_index=True)
+    [job10, _] = answer.timing_jobs(searched)
+    assert {c[0] for c in job10.candidates} == {"lgvi", "lie_rk4", "rattle"}
+    table = answer.answer_table(searched, timed)
+    work10 = table[(table["elements"] == 10) & (table["cost_kind"] == "work")].set_index("integrator")
+    assert work10.loc["lgvi", "entry"] == "lgvi = lgvi_sym" and work10.loc["lgvi_sym", "verdict"] == "identical"
+    assert "bit-identical to lgvi's" in work10.loc["lgvi_sym", "note"]
+    assert work10.loc["rattle", "entry"] == "rattle" and work10.loc["rattle", "verdict"] == "tie"
+    wall10 = table[(table["elements"] == 10) & (table["cost_kind"] == "wall")].set_index("integrator")
+    assert wall10.loc["lgvi", "entry"] == "lgvi = lgvi_sym" and "lgvi_sym" not in wall10.index
+
+
 def test_the_answer_block_says_one_thing_per_scene_and_target(tables):
     lines = answer.answer_lines(answer.answer_table(*tables), {"energy_error": "energy error"})
     assert lines[0].startswith("- **fixed_length**, N = 10, energy error ≤ 0.0001: by wall time: use `lgvi` "
