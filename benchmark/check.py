@@ -119,12 +119,14 @@ def build_check_tasks(integrators=None, *, scenes=SCENES, t_end: float = T_END, 
 
 
 def measure(tasks, *, executor: str = "process", jobs: int | None = None, cache_dir: str = str(CACHE_DIR),
-            costs: dict | None = None, log: Callable[[str], None] | None = None) -> pd.DataFrame:
+            costs: dict | None = None, budget=None, log: Callable[[str], None] | None = None) -> pd.DataFrame:
     """Run ``tasks`` (no timing repeats) and return the table in the baseline's layout.
 
     ``costs`` {(scene, integrator): seconds} (from the baseline) orders the work longest first,
     so no worker is left with a long compilation at the end; unknown groups go first."""
     kw = {"log": log} if log else {}
+    if budget is not None:  # each solve's (`runner.SolveBudget`); else the default
+        kw["budget"] = budget
     costs = costs or {}
     per_group = collections.Counter((t.scene, t.integrator) for t in tasks)
     # One worker runs all settings of a (scene, integrator): it compiles the JAX solve once.

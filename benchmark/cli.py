@@ -151,7 +151,23 @@ def cmd_run(args) -> int:
         t_end=args.t_end, overrides=tuple(sorted((k, v) for k, v in ov.items() if k != "t_end")), jobs=args.jobs,
         executor=args.executor, scheduler=args.scheduler, repeats=args.repeats, horizon=args.horizon,
         figures=not args.no_figures, fresh=args.fresh, compare_with=tuple(args.compare_with or ()),
-        command=_command(args), accept_legacy=args.accept_legacy), log=_log)
+        command=_command(args), accept_legacy=args.accept_legacy, budget=_budget(args)), log=_log)
+
+
+def _budget(args):
+    """The budget of each solve (--max-steps, --time-limit) as the runner takes it."""
+    from benchmark.runner import SolveBudget
+
+    return SolveBudget(max_steps=args.max_steps, time_limit=args.time_limit)
+
+
+def _add_budget(p, what: str) -> None:
+    """--max-steps and --time-limit, the budget of every solve of a study (`runner.SolveBudget`)."""
+    p.add_argument("--max-steps", type=opt.positive_int, default=opt.SOLVE_MAX_STEPS,
+                   help=f"step budget of each solve: a run past it ends with status max_steps and {what} goes on")
+    p.add_argument("--time-limit", type=opt.positive_float, default=opt.SOLVE_TIME_LIMIT,
+                   help=f"wall-clock budget of each solve in s (after compilation): a run past it ends with status "
+                        f"time_limit and {what} goes on (such a row is recomputed on resume)")
 
 
 def _check_horizon_size(args, overrides: dict) -> None:
@@ -336,7 +352,7 @@ def cmd_check(args) -> int:
 
     return pipelines.run_check(update=args.update, baseline=args.baseline, integrators=names, factor=args.factor,
                                order_margin=args.order_margin, jobs=args.jobs, command=command,
-                               allow_new=tuple(args.allow_new or ()), log=_log)
+                               allow_new=tuple(args.allow_new or ()), budget=_budget(args), log=_log)
 
 
 def cmd_speed(args) -> int:
@@ -384,6 +400,7 @@ def cmd_stability(args) -> int:
     from benchmark import pipelines
 
     return pipelines.run_stability(args.scenes, args.integrators, workers=args.jobs, out=out, command=_command(args),
+                                   budget=_budget(args),
                                    log=_log)
 
 
@@ -581,6 +598,7 @@ def _add_run(sub) -> None:
     r.add_argument("--horizon", type=opt.nonnegative_float,
                    help=f"length (s) of the long-horizon energy study on the run's fixed-length scenes; 0 = off (default: "
                         f"{sweep.FULL_HORIZON:g}; --quick: {sweep.QUICK_HORIZON:g})")
+    _add_budget(r, "the sweep")
     r.add_argument("--no-figures", action="store_true", help="skip the figures and the energy study")
     r.add_argument("--fresh", action="store_true", help="recompute every run, ignoring rows already in OUT/runs.csv")
     r.add_argument("--accept-legacy", action="store_true",
@@ -601,6 +619,7 @@ def _add_check(sub) -> None:
     c = sub("check", "recompute a short sweep and compare its accuracy metrics with the committed baseline; "
                      "exit 1 on a regression (rules in benchmark/check.py)")
     c.add_argument("--update", action="store_true", help="rewrite the baseline from this run instead of failing")
+    _add_budget(c, "the check")
     c.add_argument("--baseline", help="baseline CSV (default: results/baseline/drift.csv, run from the repository root)")
     c.add_argument("--integrators", type=opt.names,
                    help="comma-separated names (default: all registered except test_*)")
@@ -630,9 +649,9 @@ def _add_simulate(sub) -> None:
     s.add_argument("--atol", type=opt.positive_float, help="absolute tolerance, with --rtol (default: rtol/100)")
     s.add_argument("--t-end", type=opt.positive_float, help="horizon in s (default: the scene's t_end)")
     s.add_argument("--save-every", type=opt.positive_float, default=0.02, help="save interval in s")
-    s.add_argument("--max-steps", type=opt.positive_int, default=opt.SIMULATE_MAX_STEPS,
+    s.add_argument("--max-steps", type=opt.positive_int, default=opt.SOLVE_MAX_STEPS,
                    help="step budget: the run ends with status max_steps there, its trajectory saved")
-    s.add_argument("--time-limit", type=opt.positive_float, default=opt.SIMULATE_TIME_LIMIT,
+    s.add_argument("--time-limit", type=opt.positive_float, default=opt.SOLVE_TIME_LIMIT,
                    help="wall-clock budget of the run in s (after compilation): it ends with status time_limit "
                         "there, its trajectory saved (a first Ctrl-C ends it the same way, a second at once)")
     _add_set(s)
@@ -682,6 +701,7 @@ def _add_stability(sub) -> None:
     st.add_argument("--integrators", type=opt.names, help="comma-separated names (default: the project's own "
                                                           "methods, implicit baselines last; a plugin runs when named)")
     st.add_argument("--jobs", type=opt.nonnegative_int, default=2, help="worker processes (0: run in this process)")
+    _add_budget(st, "the map")
     st.add_argument("--out", default="results/stability", help="output directory (created if missing)")
     st.set_defaults(func=cmd_stability)
 

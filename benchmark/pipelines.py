@@ -16,7 +16,7 @@ from __future__ import annotations
 import contextlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 from benchmark import engine, store
 from benchmark.engine import log_stderr
@@ -57,6 +57,7 @@ class SweepRequest:
     compare_with: tuple[str, ...] = ()  # earlier runs.csv files, one README section each
     accept_legacy: bool = False  # keep rows of --out that predate full row digests (then given digests)
     command: str = "python -m benchmark run"
+    budget: Any = None  # of each solve (`benchmark.runner.SolveBudget`); None: the default
 
     @property
     def sweep_t_end(self) -> float | None:
@@ -185,6 +186,7 @@ def _sweep(request: SweepRequest, runs_csv: store.TableWriter, log) -> int:
         f"results -> {out}/")
     runs = runner.execute(tasks, jobs=request.jobs, executor=request.executor, scheduler=request.scheduler,
                           repeats=request.repeats, cache_dir=str(cache), on_row=runs_csv,
+                          **({"budget": request.budget} if request.budget else {}),
                           previous=[] if request.fresh else stored.resumable, log=log,
                           group=lambda t: (t.scene, t.integrator))  # one worker per (scene, method): one compile
     runs_csv(runs.to_dict("records"))
@@ -525,6 +527,7 @@ STABILITY_IDENTITY = ("scene", "integrator", "kind")
 
 
 def run_stability(scenes=None, integrators=None, *, workers: int = 2, out: Path = Path("results/stability"),
+                  budget=None,
                   command: str = "python -m benchmark stability", log: Callable[[str], None] = log_stderr) -> int:
     """The stability map into ``out``: stability.csv (written after every job), stability.md,
     stability.png and README.md. The run's rows join the map already in ``out`` (one row per
@@ -535,7 +538,7 @@ def run_stability(scenes=None, integrators=None, *, workers: int = 2, out: Path 
     from benchmark.study_store import MergedTable
 
     out = Path(out)
-    jobs = stability.jobs_for(scenes, integrators)  # validates names before any work
+    jobs = [j._replace(budget=budget) for j in stability.jobs_for(scenes, integrators)]  # names validated first
     provenance = Provenance(command, workers=workers or 1)
     rows: list[dict] = []
     table = None
@@ -587,7 +590,7 @@ def _stability_files(out: Path, table, rows: list[dict], provenance: Provenance)
 
 def run_check(*, update: bool = False, baseline=None, integrators=None, factor: float | None = None,
               order_margin: float | None = None, jobs: int | None = None, executor: str = "process",
-              cache_dir: str | None = None, tasks=None, command: str | None = None, allow_new=(),
+              cache_dir: str | None = None, tasks=None, command: str | None = None, allow_new=(), budget=None,
               log: Callable[[str], None] | None = None, echo: Callable[[str], None] = print) -> int:
     """Recompute the check sweep and compare it with the baseline (or with ``update``, rewrite
     the baseline). Returns the exit status: 0 passed or updated, 1 regressions. Bad input
@@ -611,7 +614,7 @@ def run_check(*, update: bool = False, baseline=None, integrators=None, factor: 
     tasks = [t for t in tasks if t.integrator not in set(unknown)]  # nothing to compare them with
     try:
         current = check.measure(tasks, executor=executor, jobs=jobs, cache_dir=cache_dir or str(CACHE_DIR),
-                                costs=check.costs_of(table), log=log)
+                                costs=check.costs_of(table), budget=budget, log=log)
     except KeyboardInterrupt as exc:
         return engine.stopped(exc, "the baseline was not changed", log or log_stderr)
     cmp = check.compare(table, current, tol) if old is not None else None
@@ -696,10 +699,10 @@ def run_speed(request, out: Path | None = None, *, command: str = "python -m ben
         if out is not None:
             table = MergedTable(speed_rows_file(out), lgvi_speed.IDENTITY, lgvi_speed.to_frame,
                                 text_columns=lgvi_speed.TEXT_COLUMNS)
-        log(f"speed: {len(jobs)} measurement(s), one after another in this process"
-            + (f"; rows -> {table.path} (merged with its {table.earlier} earlier row(s)), tables -> {out}"
-               if table is not None else " (no --out: the tables are printed, not saved)"))
-        try:
+        try:  # the at-work line inside: a stop right after it (a loaded machine) is this study's stop
+            log(f"speed: {len(jobs)} measurement(s), one after another in this process"
+                + (f"; rows -> {table.path} (merged with its {table.earlier} earlier row(s)), tables -> {out}"
+                   if table is not None else " (no --out: the tables are printed, not saved)"))
             rows[:] = engine.run_jobs(lgvi_speed.run_job, jobs, workers=0, describe=lgvi_speed.describe,
                                       on_row=on_row, log=log)
         except KeyboardInterrupt as exc:

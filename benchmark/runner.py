@@ -2,8 +2,11 @@
 of status, cost and metrics, and a list of tasks -> the table, on the engine.
 
 Each task runs in a worker process (or a Dask worker, or this process): one solve for the
-errors, then a separate timing pass (compilation excluded) of `timing_repeats` solves within
-`benchmark.sweep.TIMING_BUDGET`: ``run_time`` is their median, ``run_time_low`` the fastest,
+errors, within a step and wall-clock budget (`SolveBudget`: a run past it ends with status
+``max_steps`` / ``time_limit`` and the sweep goes on), then a separate timing pass (compilation
+excluded) of `timing_repeats` solves within `benchmark.sweep.TIMING_BUDGET`, without the budget
+(the first solve showed the run ends, and a wall-clock budget would split a fixed-step loop into
+chunks, so the solves timed would not be the same work as the other methods'): ``run_time`` is their median, ``run_time_low`` the fastest,
 ``run_time_high`` the 90th percentile (10 or more solves) or the slowest, ``timing_repeats``
 their count and ``load_avg`` the machine's 1-minute load when the row finished (timings on a
 loaded machine are inflated). ``us_per_eval`` is the run time per right-hand-side evaluation
@@ -28,6 +31,7 @@ import math
 import os
 import time
 import traceback
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Hashable, Iterable
 
@@ -36,6 +40,7 @@ import pandas as pd
 
 from benchmark import engine
 from benchmark.flops import run_flops
+from benchmark.options import SOLVE_MAX_STEPS, SOLVE_TIME_LIMIT
 from benchmark.metrics import ACCURACY, COLUMNS, INACCURATE, inaccurate_reason, run_metrics, work_evals
 from benchmark.reference import CACHE_DIR, ReferenceProblem, get_reference, prepare_reference
 from benchmark.report import shorten
@@ -52,6 +57,19 @@ TIMING_COLUMNS = ["implementation", "run_time_low", "run_time_high", "timing_rep
 #: (`provenance`).
 IDENTITY_COLUMNS = ["scene_key", "run_key", "row_digest", "package", "package_version", "code_digest"]
 RUN_COLUMNS = COLUMNS + TIMING_COLUMNS + IDENTITY_COLUMNS
+
+
+@dataclass(frozen=True)
+class SolveBudget:
+    """The budget of a run's first solve (`integrators.base.Integrator.solve`'s ``max_steps`` and
+    ``time_limit``); `benchmark.options` holds the defaults, the commands' --max-steps and
+    --time-limit raise them."""
+
+    max_steps: int = SOLVE_MAX_STEPS
+    time_limit: float = SOLVE_TIME_LIMIT
+
+    def solve_kwargs(self) -> dict:
+        return {"max_steps": self.max_steps, "time_limit": self.time_limit}
 
 
 def _scene(task: Task):
@@ -120,12 +138,9 @@ def timing_summary(times) -> dict:
 
 
 def _timing(first: float, repeat: Callable[[], float], least: int) -> dict:
-    """The timing pass: the first solve (compiled beforehand, compile time excluded) is one
-    sample, then solves until `timing_repeats` of them."""
-    times = [first]
-    for _ in range(timing_repeats(first, least) - 1):
-        times.append(repeat())
-    return timing_summary(times)
+    """The timing pass: the first solve (compiled beforehand, compile time excluded, run within
+    its budget) sets how many, then `timing_repeats` solves of the same work are the samples."""
+    return timing_summary([repeat() for _ in range(timing_repeats(first, least))])
 
 
 def us_per_eval(run_time: float, evals: float) -> float:
@@ -143,17 +158,18 @@ def _one_minute_load() -> float:
 
 
 def run_task(task: Task, cache_dir: str = str(CACHE_DIR), repeats: int = MIN_REPEATS, *, reference: bool = True,
-             finished=("ok",)) -> dict:
+             finished=("ok",), budget: SolveBudget = SolveBudget()) -> dict:
     """Run one task; always returns a row (never raises for a failed run).
 
     ``repeats``: the least timed solves of a run (`timing_repeats`); 0 times the first solve
     only. ``reference=False`` skips the reference solution (no position/attitude errors);
-    ``finished`` are the statuses whose runs get conservation metrics (default: "ok" only).
+    ``finished`` are the statuses whose runs get conservation metrics (default: "ok" only);
+    ``budget`` bounds the first solve.
     """
     started = time.perf_counter()
     loaded = []  # the scene, once it loaded (an error row still names it)
     try:
-        row = _solved_row(task, cache_dir, repeats, reference, finished, loaded)
+        row = _solved_row(task, cache_dir, repeats, reference, finished, loaded, budget)
     except Exception as exc:  # a bug in one task must not lose the other rows
         row = _empty_row(task, loaded[0] if loaded else None)
         row.update(status="error", reason=shorten(f"{type(exc).__name__}: {exc}".splitlines()[0], 300))
@@ -162,7 +178,8 @@ def run_task(task: Task, cache_dir: str = str(CACHE_DIR), repeats: int = MIN_REP
     return row
 
 
-def _solved_row(task: Task, cache_dir: str, repeats: int, reference: bool, finished, loaded: list) -> dict:
+def _solved_row(task: Task, cache_dir: str, repeats: int, reference: bool, finished, loaded: list,
+                budget: SolveBudget) -> dict:
     from integrators import get_integrator
     from models import build_model
 
@@ -173,7 +190,7 @@ def _solved_row(task: Task, cache_dir: str, repeats: int, reference: bool, finis
     ref = get_reference(scene, t_end, task.save_every, Path(cache_dir)) if reference else None
     integ = get_integrator(task.integrator)
     kw = {**task.solve_kwargs(), "t_end": t_end}
-    traj = integ.solve(scene, **kw)
+    traj = integ.solve(scene, **kw, **budget.solve_kwargs())
     model = build_model(scene)
     row.update(_run_columns(traj, model.layout.ny))
     row["flops"], row["flops_note"] = run_flops(task.integrator, model, traj.stats, row["rhs"], adaptive=task.dt is None)
@@ -286,6 +303,7 @@ def execute(
     group: Callable[[Task], Hashable] | None = None,
     previous: Iterable[dict] | None = None,
     cost: Callable[[Task], float] | None = None,
+    budget: SolveBudget = SolveBudget(),
 ) -> pd.DataFrame:
     """Run ``tasks`` on the engine and return the runs table (task order). ``on_row`` gets the
     rows so far after each completion (used to write partial results atomically).
@@ -298,7 +316,8 @@ def execute(
     one after another, so what that worker compiled for the first (JAX solves are cached per
     model and solver) serves the others; e.g. ``lambda t: (t.scene, t.integrator)``. ``cost``:
     a task's expected seconds (default `task_costs`); the groups start longest first, and the
-    progress line's ETA scales them by the measured rows of the same integrator."""
+    progress line's ETA scales them by the measured rows of the same integrator. ``budget``
+    bounds each run's first solve (`SolveBudget`)."""
     if executor not in EXECUTORS:
         raise ValueError(f"executor = {executor!r} is invalid (allowed: {', '.join(EXECUTORS)})")
     if jobs is not None and jobs < 1:
@@ -322,7 +341,7 @@ def execute(
         return {**_empty_row(tasks[i]), "status": "crashed", "reason": engine.crash_reason(exc)}
 
     rows = engine.run_jobs(
-        functools.partial(run_task, cache_dir=cache_dir, repeats=repeats), tasks,
+        functools.partial(run_task, cache_dir=cache_dir, repeats=repeats, budget=budget), tasks,
         workers=0 if executor == "serial" else (jobs or min(len(todo), os.cpu_count() or 1) or 1),
         scheduler=scheduler if executor == "dask" else None, crash_row=crashed,
         group=(lambda i: group(tasks[i])) if group else None, cost=lambda i: costs[i],

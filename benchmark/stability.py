@@ -201,6 +201,7 @@ class Job(NamedTuple):
     integrator: str
     kind: str
     default_run: bool = True
+    budget: "runner.SolveBudget | None" = None  # of each solve; None: the default (`runner.SolveBudget`)
 
 
 def is_bounded(case: Case, r: dict) -> bool:
@@ -209,14 +210,20 @@ def is_bounded(case: Case, r: dict) -> bool:
     return r["status"] in case.bounded and not (r.get("t_reached", np.inf) < case.earliest_end)
 
 
-def _climb(case: Case, integrator: str) -> tuple[dict, dict]:
+def _budget(job: Job):
+    from benchmark import runner
+
+    return job.budget or runner.SolveBudget()
+
+
+def _climb(case: Case, integrator: str, budget) -> tuple[dict, dict]:
     """Walk the ladder down to the first bounded rung: (the row's ladder columns, the run shown:
     that rung, or the last one tried when none stays bounded)."""
     tried, stable, above = 0, None, None
     from benchmark import runner  # JAX: only when a job runs
 
     for task in ladder(case, integrator):
-        r = runner.run_task(task, repeats=0, reference=False, finished=case.bounded)
+        r = runner.run_task(task, repeats=0, reference=False, finished=case.bounded, budget=budget)
         tried += 1
         if is_bounded(case, r):
             stable = r
@@ -230,7 +237,7 @@ def _climb(case: Case, integrator: str) -> tuple[dict, dict]:
 
 def run_job(job: Job) -> dict:
     """One row of the map: a whole ladder (kind "fixed") or one adaptive run. Never raises."""
-    case, integrator, kind, default_run = job
+    case, integrator, kind, default_run = job[:4]
     t0 = time.perf_counter()
     row = _base_row(case, integrator, kind)
     why = skip_reason(case, integrator, default_run)
@@ -239,12 +246,13 @@ def run_job(job: Job) -> dict:
         return row
     try:
         if kind == "fixed":
-            cols, r = _climb(case, integrator)
+            cols, r = _climb(case, integrator, _budget(job))
             row.update(cols)
         else:
             from benchmark import runner  # JAX: only when a job runs
 
-            r = runner.run_task(adaptive_task(case, integrator), repeats=0, reference=False, finished=case.bounded)
+            r = runner.run_task(adaptive_task(case, integrator), repeats=0, reference=False, finished=case.bounded,
+                                budget=_budget(job))
         row.update({k: r.get(k, np.nan) for k in (
             "setting", "status", "reason", "steps", "rejected_steps", "min_step", "median_step", "newton_iterations",
             "run_time", "compile_time", *CONSERVATION, "t_reached")})
@@ -317,7 +325,7 @@ def _cost_hint(job: Job) -> float:
     """Rough job cost, to start the longest jobs first (compilation dominates the short ones)."""
     from integrators import get_integrator
 
-    case, integrator, kind, default_run = job
+    case, integrator, kind, default_run = job[:4]
     if skip_reason(case, integrator, default_run):
         return 0.0
     compile_s, per_step = get_integrator(integrator).cost_hint  # declared by each method

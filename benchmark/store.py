@@ -88,8 +88,9 @@ def run_key(task, code: str | None = None) -> str:
 # ------------------------------------------------------------------------------------------
 # Trust: what a row of the runs table may hold, and its digest
 # ------------------------------------------------------------------------------------------
-#: Rows with these statuses are recomputed on resume (the cause may have been transient).
-RETRY_STATUSES = ("crashed", "error")
+#: Rows with these statuses are recomputed on resume (the cause may have been transient: a
+#: wall-clock budget runs out sooner on a loaded machine).
+RETRY_STATUSES = ("crashed", "error", "time_limit")
 #: Statuses of the runs table besides the integrators' own (`integrators.Status`); "inaccurate":
 #: finished beyond a sanity bound (`benchmark.metrics.INACCURATE`). Every reader that validates a
 #: status (resume, the drift gate, figures) asks `statuses`: extend the list here.

@@ -30,7 +30,7 @@ def test_simulate_runs_within_default_budgets_that_options_raise(monkeypatch, tm
     out = str(tmp_path / "t.npz")
     assert main(["simulate", "fixed_length", "--integrator", "rk45", "--rtol", "1e-13", "--t-end", "1e5",
                  "--out", out]) == 0
-    assert seen[-1]["max_steps"] == opt.SIMULATE_MAX_STEPS and seen[-1]["time_limit"] == opt.SIMULATE_TIME_LIMIT
+    assert seen[-1]["max_steps"] == opt.SOLVE_MAX_STEPS and seen[-1]["time_limit"] == opt.SOLVE_TIME_LIMIT
     assert main(["simulate", "fixed_length", "--integrator", "rk45", "--rtol", "1e-13", "--t-end", "1e5",
                  "--max-steps", "20000000", "--time-limit", "7200", "--out", out]) == 0
     assert seen[-1]["max_steps"] == 20_000_000 and seen[-1]["time_limit"] == 7200.0
@@ -107,3 +107,39 @@ def test_figures_of_a_trajectory_from_a_scene_file_needs_no_scene_option(tmp_pat
     os.remove(scene)  # the trajectory carries the scene
     assert main(["figures", str(traj), "--out", str(tmp_path / "f.png")]) == 0, _err(capsys)
     assert (tmp_path / "f.png").stat().st_size > 10_000
+
+
+def test_every_solve_of_a_sweep_has_a_budget_and_a_run_past_it_is_a_status_not_a_hang(tmp_path):
+    """`run`, `stability` and `check` bound each first solve (`runner.SolveBudget`): a run past
+    its steps or seconds is a row with status max_steps / time_limit; the timed repeats are the
+    same unbudgeted work (no chunked loop is timed)."""
+    from benchmark import runner
+    from benchmark.sweep import Task
+
+    long = Task("fixed_length", "lgvi", dt=0.001, t_end=5000.0, save_every=1.0, overrides=(("elements", 1),))
+    row = runner.run_task(long, cache_dir=str(tmp_path), repeats=0, reference=False,
+                          budget=runner.SolveBudget(time_limit=0.5))
+    assert row["status"] == "time_limit" and "stopped by time_limit = 0.5 s" in row["reason"], row
+    row = runner.run_task(long, cache_dir=str(tmp_path), repeats=0, reference=False,
+                          budget=runner.SolveBudget(max_steps=100))
+    assert row["status"] == "max_steps", row
+    short = Task("fixed_length", "lgvi", dt=0.01, t_end=0.2, overrides=(("elements", 2),))
+    row = runner.run_task(short, cache_dir=str(tmp_path), repeats=2, reference=False)
+    assert row["status"] == "ok" and row["timing_repeats"] >= 2, row
+    assert runner.SolveBudget() == runner.SolveBudget(opt.SOLVE_MAX_STEPS, opt.SOLVE_TIME_LIMIT)
+
+
+def test_the_studies_take_their_budget_from_the_command_line(monkeypatch, tmp_path):
+    from benchmark import pipelines
+    from benchmark.runner import SolveBudget
+
+    seen = {}
+    monkeypatch.setattr(pipelines, "run_sweep", lambda request, log=None: seen.update(run=request.budget) or 0)
+    monkeypatch.setattr(pipelines, "run_stability", lambda *a, budget=None, **k: seen.update(stability=budget) or 0)
+    monkeypatch.setattr(pipelines, "run_check", lambda *, budget=None, **k: seen.update(check=budget) or 0)
+    assert main(["run", "--quick", "--scenes", "fixed_length", "--integrators", "lgvi", "--out", str(tmp_path / "r"),
+                 "--time-limit", "30", "--max-steps", "1000"]) == 0
+    assert main(["stability", "--scenes", "stiff_string", "--integrators", "lgvi", "--out", str(tmp_path / "s")]) == 0
+    assert main(["check", "--integrators", "lgvi", "--time-limit", "7200"]) == 0
+    assert seen == {"run": SolveBudget(1000, 30.0), "stability": SolveBudget(),
+                    "check": SolveBudget(opt.SOLVE_MAX_STEPS, 7200.0)}

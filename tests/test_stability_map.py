@@ -33,7 +33,7 @@ def test_ladder_stops_at_the_first_bounded_rung_and_failures_are_rows(monkeypatc
     case = stability.Case("near_slack", 2.0)
     calls = []
 
-    def fake_run_task(task, cache_dir=None, repeats=3, *, reference=True, finished=("ok",)):
+    def fake_run_task(task, cache_dir=None, repeats=3, *, reference=True, finished=("ok",), budget=None):
         calls.append(task.dt)
         status = "ok" if task.dt <= 0.005 else "diverged"
         return {"dt": task.dt, "status": status, "reason": "" if status == "ok" else "energy", "steps": 2.0 / task.dt,
