@@ -3,12 +3,16 @@
 The same fixed-length string is built in three codes from one scene:
 
 * **ours**: `models` with ``string.mass_model`` "consistent" (the paper's) and "lumped"
-  (models/README.md). The study integrates it with our LGVI at the outside codes' step /
-  `OURS_REFINE` (`run_ours_lgvi`; its time error is then far below the differences studied, and
-  the lumped-vs-outside rows measure it); the tests compare with the benchmark's reference
-  solution (`benchmark.reference`: DOP853 on the closed-form right-hand side, `run_ours`);
+  (models/README.md). The study integrates both with our LGVI at the outside codes' step /
+  `OURS_REFINE` (`run_ours_lgvi`: the cost table, the self-convergence and the Richardson
+  limits), and the lumped one also with the benchmark's reference solver (`run_ours`:
+  `benchmark.reference`, DOP853 at rtol 1e-12 / atol 1e-14 on the closed-form right-hand side):
+  that solution, whose time error is far below `MODEL_TOLERANCE`, is the one compared with the
+  outside codes at equal N (the LGVI's time error, up to 1.4e-6 m at N = 5 over 5 s, would hide
+  the model difference);
 * **MoorDyn** (point mass only): one line from a fixed point at r_p to a free point of mass
-  m_b, fluid density 0 and every hydrodynamic coefficient 0 (no buoyancy, drag or added mass),
+  m_b, in vacuum fluid density 0 and every hydrodynamic coefficient 0 (no buoyancy, drag or added
+  mass; the ``in_water`` case: `WATER`, without added mass),
   internal damping BA = 0, bending EI = 0, water depth 10 km (no seabed contact), RK4. MoorDyn's
   z points up and ours (e3) down: ours (x, y, z) is MoorDyn's (x, −y, −z) (a rotation by π about
   e1, so handedness is kept). MoorDyn builds its own (catenary) initial line shape even without
@@ -22,8 +26,12 @@ The same fixed-length string is built in three codes from one scene:
   and m_b at ρ_c plus the last node's lumped mass μl/2 at its origin (one combined inertia).
 
 Both outside codes are lumped-mass discretisations, so at equal N they and our lumped model are
-the *same* discrete system (tests/test_xval.py checks that to 1e-8 m); our consistent model
-converges to the same continuum limit. `study` runs every code of every case at every N (one
+the *same* discrete system: the study compares our lumped model's DOP853 solution with each
+outside code at its step dt (`CFL`), and reruns each outside code at dt/2 (``<code>_half_dt``) so
+that the tables show the outside codes' own time error too; both must be below
+`MODEL_TOLERANCE` for the equal-N difference to measure the model and not the time steppers
+(tests/test_xval.py checks the difference to 1e-8 m in vacuum and 1e-9 m in water); our consistent
+model converges to the same continuum limit. `study` runs every code of every case at every N (one
 engine job per (case, N), in this process: the per-step costs are compared); its tables, plots
 and README are `benchmark.xval_report`'s.
 
@@ -65,9 +73,16 @@ WATER = {"fluid.density": 1025.0, "string.diameter": 0.007, "normal_drag": 1.3, 
 DEFAULT_ELEMENTS = (5, 10, 20, 40, 80)  # N = 160 (`--elements 5,10,20,40,80,160`) costs 4x the rest
 DEFAULT_T_END = 5.0
 #: Fixed time step of MoorDyn / MuJoCo: dt = min(DT_MAX, CFL / ω_max) with ω_max = (2/l)·√(EA/μ)
-#: the highest frequency of the lumped chain (RK4: stable up to 2.8; its error ∝ (ω dt)⁴).
-CFL = 0.05
+#: the highest frequency of the lumped chain (RK4: stable up to 2.8; its error ∝ dt⁴). 0.025 keeps
+#: their time error below `MODEL_TOLERANCE` over the default 5 s at every N of the study (measured
+#: by rerunning at dt/2: at most 1.8e-10 m, in water at N = 5, where dt is largest; 0.05 gave
+#: 3.2e-9 m there).
+CFL = 0.025
 DT_MAX = 1e-3
+#: What "the same discrete model" must show at equal N: the largest tip distance between our
+#: lumped model (DOP853) and an outside code, and each outside code's own time error (the change
+#: when its dt is halved), over the compared horizon.
+MODEL_TOLERANCE = 1e-9
 
 class Untranslatable(ValueError):
     """The scene has something the outside codes cannot represent; the message names it."""
@@ -470,8 +485,13 @@ def run_ours_lgvi(scene: Scene, times, dt: float) -> CodeRun:
                    float(tr.stats["wall_time"]), {"min_strain": _min_strain(model, tr.x), "method": "lgvi"})
 
 
-#: our LGVI runs at the outside codes' dt / OURS_REFINE
-OURS_REFINE = 4
+#: our LGVI runs at the outside codes' dt / OURS_REFINE (within 1 % of its step before `CFL` was
+#: halved, dt/4 at 0.05: its rows of the cost table and the convergence study barely change)
+OURS_REFINE = 2
+#: the code name of an outside code's rerun at dt/2 (its time-error check)
+HALF_DT = "_half_dt"
+#: the code name of our lumped model's reference (DOP853) solution: the equal-N comparison's
+REFERENCE_CODE = "ours_lumped_dop853"
 
 
 # ------------------------------------------------------------------------------------------
@@ -547,14 +567,22 @@ class Job(NamedTuple):
 
 
 def run_job(job: Job) -> dict:
-    """The row of one (case, N): the runs of our two mass models and of the case's outside codes."""
+    """The row of one (case, N): the LGVI runs of our two mass models, our lumped model's reference
+    (DOP853) solution (`REFERENCE_CODE`, computed in a temporary cache: never the shared one), and
+    each of the case's outside codes at dt and at dt/2 (``<code>_half_dt``)."""
     sc = job.scene.with_(elements=job.N, mass_model="lumped")
     dt = _dt_for(sc, OUTPUT_INTERVAL)
     runs = {"ours_consistent": run_ours_lgvi(job.scene.with_(elements=job.N, mass_model="consistent"), job.times,
                                              dt / OURS_REFINE),
             "ours_lumped": run_ours_lgvi(sc, job.times, dt / OURS_REFINE)}
+    with tempfile.TemporaryDirectory(prefix="xval-reference-") as tmp:
+        ref = run_ours(sc, job.times, tmp)
+    runs[REFERENCE_CODE] = CodeRun(REFERENCE_CODE, ref.N, None, ref.tip, ref.steps, ref.wall_s, ref.extra)
     for code in CASES[job.case]:
-        runs[code] = (run_moordyn if code == "moordyn" else run_mujoco)(sc, job.times, dt)
+        run = run_moordyn if code == "moordyn" else run_mujoco
+        runs[code] = run(sc, job.times, dt)
+        runs[code + HALF_DT] = run(sc, job.times, dt / 2)
+        runs[code + HALF_DT].code = code + HALF_DT
     return {"case": job.case, "N": job.N, "dt": dt, "runs": runs}
 
 

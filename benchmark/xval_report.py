@@ -3,6 +3,10 @@ runs of `benchmark.xval.study` (never edited by hand).
 
 Every distance is the maximum over the compared times of the tip distance |Δ(r_p + q_{N+1})|.
 Richardson limits assume order 2 in N: x_∞ = x_2N + (x_2N − x_N)/3 for N → 2N.
+
+The equal-N check of "the same discrete model" compares our lumped model's DOP853 solution
+(`xval.REFERENCE_CODE`) with each outside code at its step dt, and each outside code with itself at
+dt/2 (its time error): both at most `xval.MODEL_TOLERANCE` show that the difference is the model's.
 """
 
 from __future__ import annotations
@@ -17,16 +21,36 @@ import pandas as pd
 
 from benchmark import styles
 from benchmark.plots import log_ticks, plt, save_figure, style_axes
+from benchmark.reference import REFERENCE_METHOD
 from benchmark.report import Provenance, fmt
 from benchmark.store import write_npz, write_table
-from benchmark.xval import CFL, DT_MAX, OURS_REFINE, OUTPUT_INTERVAL, WATER, Study, case_scene, moordyn_input, mujoco_xml
+from benchmark.xval import (CFL, DT_MAX, HALF_DT, MODEL_TOLERANCE, OURS_REFINE, OUTPUT_INTERVAL, REFERENCE_CODE, WATER,
+                            Study, case_scene, moordyn_input, mujoco_xml)
 from models.io import atomic_write_text
 from models.scene import Scene
 
-PAIRS = [("ours_lumped", "moordyn"), ("ours_lumped", "mujoco"), ("moordyn", "mujoco"),
-         ("ours_consistent", "moordyn"), ("ours_consistent", "mujoco"), ("ours_consistent", "ours_lumped")]
-TRAJ_CODES = ("ours_consistent", "ours_lumped", "moordyn", "mujoco")
+REF = REFERENCE_CODE
 OUTSIDE = ("moordyn", "mujoco")
+#: The pairs compared at equal N, and what each difference measures.
+SAME_MODEL, TIME_ERROR, LGVI_ERROR, OTHER_MODEL = ("same discrete model", "outside code's time error (dt vs dt/2)",
+                                                  "our LGVI's time error", "different discrete models")
+PAIRS = [(REF, "moordyn"), (REF, "mujoco"), ("moordyn", "mujoco"),
+         ("moordyn", "moordyn" + HALF_DT), ("mujoco", "mujoco" + HALF_DT), ("ours_lumped", REF),
+         ("ours_consistent", "moordyn"), ("ours_consistent", "mujoco"), ("ours_consistent", "ours_lumped")]
+PAIR_KIND = dict(zip(PAIRS, [SAME_MODEL] * 3 + [TIME_ERROR] * 2 + [LGVI_ERROR] + [OTHER_MODEL] * 3))
+TRAJ_CODES = ("ours_consistent", "ours_lumped", "moordyn", "mujoco")
+_NAMES = {"moordyn": "MoorDyn", "mujoco": "MuJoCo"}
+
+
+def solution(code: str, run) -> str:
+    """What a code's tips are: which model, solved how."""
+    if code == REF:
+        return (f"{code} = our lumped model by {REFERENCE_METHOD['integrator'].upper()} (rtol {REFERENCE_METHOD['rtol']:g}, "
+                f"atol {REFERENCE_METHOD['atol']:g}: the benchmark's reference solver)")
+    if code in ("ours_consistent", "ours_lumped"):
+        return f"{code} = our {code[5:]} model by our LGVI at {fmt(run.dt, '.4g')} s"
+    base = code.removesuffix(HALF_DT)
+    return f"{code} = {_NAMES.get(base, base)} by RK4 at {fmt(run.dt, '.4g')} s" + (" (dt/2)" if code.endswith(HALF_DT) else "")
 
 
 def _max_dist(a, b) -> float:
@@ -50,8 +74,10 @@ class Tables(NamedTuple):
 
 
 def _at_equal_n(case: str, N: int, r: dict) -> tuple[list[dict], list[dict]]:
-    diff = [dict(case=case, N=N, pair=f"{a} - {b}", max_tip_distance_m=_max_dist(r[a].tip, r[b].tip),
-                 final_tip_distance_m=float(np.linalg.norm(r[a].tip[-1] - r[b].tip[-1])))
+    diff = [dict(case=case, N=N, pair=f"{a} - {b}", measures=PAIR_KIND[(a, b)],
+                 max_tip_distance_m=_max_dist(r[a].tip, r[b].tip),
+                 final_tip_distance_m=float(np.linalg.norm(r[a].tip[-1] - r[b].tip[-1])),
+                 compared=f"{solution(a, r[a])} vs {solution(b, r[b])}")
             for a, b in PAIRS if a in r and b in r]
     cost = [dict(case=case, N=N, code=code, dt_s=run.dt, steps=run.steps, wall_s=run.wall_s,
                  us_per_step=run.us_per_step if run.dt is not None else float("nan"),
@@ -120,14 +146,16 @@ def error_vs_limit(study: Study, case: str) -> pd.DataFrame:
 #: same discrete model, which coincide, all stay visible.
 CODE_LOOKS = {"ours_consistent": ("#1f77b4", "o", "-"), "ours_lumped": ("#ff7f0e", "s", "--"),
               "moordyn": ("#2ca02c", "^", "-."), "mujoco": ("#d62728", "D", ":")}
-PAIR_LOOKS = {("ours_lumped", "moordyn"): ("#9467bd", "o", "-"), ("ours_lumped", "mujoco"): ("#8c564b", "s", "--"),
-              ("moordyn", "mujoco"): ("#e377c2", "^", "-."), ("ours_consistent", "moordyn"): ("#17becf", "v", ":"),
+PAIR_LOOKS = {(REF, "moordyn"): ("#9467bd", "o", "-"), (REF, "mujoco"): ("#8c564b", "s", "--"),
+              ("moordyn", "mujoco"): ("#e377c2", "^", "-."), ("moordyn", "moordyn" + HALF_DT): ("#2ca02c", "x", ":"),
+              ("mujoco", "mujoco" + HALF_DT): ("#d62728", "+", ":"), ("ours_lumped", REF): ("#ff7f0e", "*", "-."),
+              ("ours_consistent", "moordyn"): ("#17becf", "v", ":"),
               ("ours_consistent", "mujoco"): ("#bcbd22", "D", "-"), ("ours_consistent", "ours_lumped"): ("#7f7f7f", "P", "--")}
 
 
 def _looks(keys, table) -> list[dict]:
     return [dict(color=c, marker=m, linestyle=ls, markersize=ms, markerfacecolor="none", markeredgecolor=c)
-            for (c, m, ls), ms in zip((table[k] for k in keys), [9, 7, 6, 5, 4, 3])]
+            for (c, m, ls), ms in zip((table[k] for k in keys), [10, 9, 8, 7, 6, 5, 4, 3, 3])]
 
 
 def plot(study: Study, case: str, path: Path) -> Path:
@@ -141,6 +169,9 @@ def plot(study: Study, case: str, path: Path) -> Path:
         if vals:
             handles += ax.loglog(*zip(*vals), **look)
             labels.append(f"left: {name}")
+    if Ns:
+        handles.append(ax.axhline(MODEL_TOLERANCE, color="0.4", linestyle=(0, (1, 2))))
+        labels.append(f"left: {MODEL_TOLERANCE:g} m (same model)")
     style_axes(ax, xlabel="N (elements)", ylabel="max over t of tip distance [m]", title=f"{case}: codes at equal N",
                grid=None, legend=None)
     for code, look in zip(TRAJ_CODES, _looks(TRAJ_CODES, CODE_LOOKS)):
@@ -180,6 +211,10 @@ def _write_inputs(study: Study, scene: Scene, out: Path, kept: dict | None = Non
     inputs.mkdir(exist_ok=True)
     settings = {"scene": scene.name, "t_end": float(study.times[-1]), "output_interval": OUTPUT_INTERVAL,
                 "cfl": CFL, "dt_max": DT_MAX, "ours": {"method": "lgvi", "dt": f"outside dt / {OURS_REFINE}"},
+                "same_model": {"ours": REF, "method": dict(REFERENCE_METHOD), "outside": "RK4 at dt",
+                               "time_error_check": f"each outside code rerun at dt/2 (code <code>{HALF_DT}; its input is "
+                                                   "the one in inputs/ with the time step halved)",
+                               "tolerance_m": MODEL_TOLERANCE},
                 "runs": []}
     for case in study.cases():
         for N in study.elements(case):
@@ -227,14 +262,58 @@ def _rows(df: pd.DataFrame, **kw) -> pd.DataFrame:
     return df
 
 
+def _pair_max(diff: pd.DataFrame, case: str, N: int | None, a: str, b: str) -> float:
+    d = _rows(diff, case=case, pair=f"{a} - {b}")
+    if N is not None:
+        d = _rows(d, N=N)
+    return float(d.max_tip_distance_m.max()) if len(d) else float("nan")
+
+
 def _agreement(study: Study, case: str, tabs: Tables, outside: list[str]) -> list[str]:
-    """What the same discrete model in several codes, and our consistent model, give at equal N."""
+    """The same discrete model in several codes at equal N (our lumped model's DOP853 solution
+    against each outside code, and each outside code's own time error), and our consistent model."""
     Ns, diff = study.elements(case), tabs.differences
-    same = [float(_rows(diff, case=case, pair=f"ours_lumped - {c}").max_tip_distance_m.max()) for c in outside]
-    lines = [f"- Same discrete model: our lumped model vs {' and '.join(outside)} at equal N: at most "
-             f"{_e(max(same))} m over N = {Ns[0]}…{Ns[-1]} (what is left is the time-step error of the codes)"
-             + (f"; MoorDyn vs MuJoCo: at most {_e(float(_rows(diff, case=case, pair='moordyn - mujoco').max_tip_distance_m.max()))} m."
-                if len(outside) == 2 else ".")]
+    tol = MODEL_TOLERANCE
+    cols = [(REF, c) for c in outside] + [(c, c + HALF_DT) for c in outside]
+    if len(outside) == 2:
+        cols.append(("moordyn", "mujoco"))
+    cols.append(("ours_lumped", REF))
+    head = {(REF, c): f"{REF} − {c}" for c in outside} | {(c, c + HALF_DT): f"{c}: dt vs dt/2" for c in outside} \
+        | {("moordyn", "mujoco"): "moordyn − mujoco", ("ours_lumped", REF): f"ours_lumped (LGVI) − {REF}"}
+    table = {(N, p): _pair_max(diff, case, N, *p) for N in Ns for p in cols}
+    model = [(N, c, table[(N, (REF, c))]) for N in Ns for c in outside]
+    steps = [(N, c, table[(N, (c, c + HALF_DT))]) for N in Ns for c in outside]
+    missing = [f"{c} at N = {N}" for N, c, v in model + steps if not np.isfinite(v)]
+    over = [f"{c} at N = {N}: {_e(v)} m" for N, c, v in model if v > tol]
+    over_steps = [f"{c} at N = {N}: {_e(v)} m" for N, c, v in steps if v > tol]
+    finite = [v for _, _, v in model if np.isfinite(v)]
+    lines = [f"- Same discrete model (required: at most {tol:g} m at every N, and each outside code's own time error "
+             "below that too, so that the difference measures the models, not the time steppers): our lumped model "
+             f"solved by {REFERENCE_METHOD['integrator'].upper()} at rtol {REFERENCE_METHOD['rtol']:g}, atol "
+             f"{REFERENCE_METHOD['atol']:g} (`{REF}`, the benchmark's reference solver) vs {' and '.join(outside)} by RK4 "
+             f"at dt, at equal N: at most {_e(max(finite) if finite else float('nan'))} m over N = {Ns[0]}…{Ns[-1]}; "
+             "each outside code's time error (the change of its tip when its dt is halved): at most "
+             f"{_e(max((v for *_, v in steps if np.isfinite(v)), default=float('nan')))} m."]
+    if over or over_steps or missing:
+        lines.append("- NOT shown at every N: " + "; ".join(
+            ([f"model difference above {tol:g} m for " + ", ".join(over)] if over else [])
+            + ([f"time error of the outside code above {tol:g} m for " + ", ".join(over_steps)] if over_steps else [])
+            + ([f"no DOP853 or dt/2 run (kept from an older study) for " + ", ".join(missing)] if missing else [])) + ".")
+    else:
+        lines.append(f"- Both are at most {tol:g} m at every N of this case.")
+    lines += ["", "Max over t of the tip distance at equal N [m] (`differences.csv`, which names the compared solutions "
+              "and their steps in its `compared` column):", "",
+              "| N | dt [s] | " + " | ".join(head[p] for p in cols) + " |", "|---|---|" + "---|" * len(cols)]
+    for N in Ns:
+        dt = study.runs[(case, N)][outside[0]].dt
+        lines.append(f"| {N} | {fmt(dt, '.3g')} | " + " | ".join(_e(table[(N, p)]) for p in cols) + " |")
+    lines.append("")
+    if len(outside) == 2:
+        lines.append(f"- MoorDyn vs MuJoCo (the same RK4 at the same dt): at most "
+                     f"{_e(_pair_max(diff, case, None, 'moordyn', 'mujoco'))} m.")
+    lines.append(f"- Our LGVI at dt/{OURS_REFINE} (the runs of the cost table and of the convergence study below) differs "
+                 f"from the DOP853 solution by up to {_e(_pair_max(diff, case, None, 'ours_lumped', REF))} m: its time error, "
+                 "not a model difference.")
     for c in outside:
         d = _rows(diff, case=case, pair=f"ours_consistent - {c}")
         lines.append(f"- Our consistent model vs {c}: {_e(float(d.max_tip_distance_m.iloc[0]))} m at N = {Ns[0]}, "
@@ -275,7 +354,8 @@ def _cost_table(study: Study, case: str, tabs: Tables, outside: list[str]) -> li
     codes = [c for c in (*OUTSIDE, "ours_consistent", "ours_lumped") if c in set(cost.code)]
     lines = ["Wall time per step at equal N (µs; MoorDyn and MuJoCo: one RK4 step = 4 force evaluations, at dt, "
              f"median over the {len(study.times) - 1} output intervals; ours: one LGVI step, at dt/{OURS_REFINE}, "
-             "mean over the run, compile time excluded):", "",
+             f"mean over the run, compile time excluded; the dt/2 reruns and {REF} (per right-hand side) are in "
+             "`cost.csv`):", "",
              "| N | dt [s] | " + " | ".join(codes) + " |", "|---|---|" + "---|" * len(codes)]
     for N in study.elements(case):
         cN = _rows(cost, N=N).set_index("code")
@@ -297,9 +377,14 @@ def readme(study: Study, scene: Scene, tabs: Tables, settings: dict, provenance:
         f"- compared quantity: the attachment point r_p + q_(N+1) (the tip) at t = 0, {OUTPUT_INTERVAL:g}, … s; "
         "every distance below is the maximum over those times.",
         f"- MoorDyn and MuJoCo: RK4 at dt = min({DT_MAX:g}, {CFL:g}/ω_max), ω_max = (2/l)√(EA/μ) (dt per N in "
-        "`settings.json`); their exact inputs are in `inputs/`. Ours: our LGVI at that dt / "
-        f"{OURS_REFINE} (consistent = the paper's mass matrix, lumped = `mass_model = \"lumped\"`, models/README.md).",
-        "- files: `differences.csv` (codes at equal N), `self_convergence.csv` (each code, N → next N), "
+        "`settings.json`), and again at dt/2 (`moordyn_half_dt`, `mujoco_half_dt`: their time error); their exact "
+        "inputs (at dt) are in `inputs/`. Ours: our LGVI at that dt / "
+        f"{OURS_REFINE} (consistent = the paper's mass matrix, lumped = `mass_model = \"lumped\"`, models/README.md), "
+        f"and the lumped model by {REFERENCE_METHOD['integrator'].upper()} at rtol {REFERENCE_METHOD['rtol']:g}, atol "
+        f"{REFERENCE_METHOD['atol']:g} (`{REF}`, `benchmark.reference`'s solver): the solution compared with the outside "
+        "codes at equal N.",
+        "- files: `differences.csv` (codes at equal N: what each pair measures, `measures`, and the solutions compared, "
+        "`compared`), `self_convergence.csv` (each code, N → next N), "
         "`limits.csv` (Richardson limits, order 2, from the two finest N), `error_vs_limit.csv`, `cost.csv` "
         "(wall time per step), `convergence_*.png`, `tips.npz` (every tip trajectory), `settings.json`.",
         "", "## Reading", "",

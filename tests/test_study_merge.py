@@ -230,12 +230,20 @@ def test_an_xval_stopped_before_it_ends_leaves_its_output_as_it_was(tmp_path, mo
 
 
 def test_an_xval_that_cannot_keep_the_earlier_runs_is_refused_before_any_work(tmp_path, monkeypatch, capsys):
-    """The committed study's point-mass runs were computed with other scene values: a run of
-    two N would keep them beside new ones, so it is refused; the whole study is not."""
+    """A study whose point-mass runs at N >= 20 were computed with other scene values (their
+    physics hash differs): a run of two N would keep them beside new ones, so it is refused; the
+    whole study is not."""
+    import json
+
     from benchmark import xval
 
     out = tmp_path / "xval"
     shutil.copytree(ROOT / "results" / "xval", out)
+    settings = json.loads((out / "settings.json").read_text())
+    for run in settings["runs"]:  # as if computed from another scene
+        if run["case"] == "point_mass" and run["N"] >= 20:
+            run["scene_key_lumped"] = "0123456789abcdef"
+    (out / "settings.json").write_text(json.dumps(settings))
     files = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
     monkeypatch.setattr(xval, "study", lambda *a, **k: pytest.fail("started work"))
     assert main(["xval", "--elements", "5,10", "--out", str(out)]) == 2

@@ -62,6 +62,23 @@ def test_lumped_in_water_equals_moordyn(point_scene, tmp_path, cache):
     assert np.max(np.linalg.norm(ours.tip - dry.tip, axis=1)) > 0.5
 
 
+def test_study_in_water_same_model_to_1e9_at_equal_n(point_scene):
+    """The study's own equal-N comparison (`xval.study`, its tables): our lumped model's DOP853
+    solution vs MoorDyn at the study's dt, in water, at N = 5 over 0.5 s, is at most 1e-9 m, and so
+    is MoorDyn's time error (its dt vs dt/2); the LGVI rows are the LGVI's time error, not the model's."""
+    study = xval.study(point_scene, elements=(5,), t_end=0.5, cases=["in_water"], log=lambda msg: None)
+    runs = study.runs[("in_water", 5)]
+    assert set(runs) == {"ours_consistent", "ours_lumped", xval.REFERENCE_CODE, "moordyn", "moordyn_half_dt"}
+    assert runs["moordyn_half_dt"].dt == pytest.approx(runs["moordyn"].dt / 2)
+    diff = xval_report.tables(study).differences.set_index("pair")
+    same = diff.loc[f"{xval.REFERENCE_CODE} - moordyn"]
+    print("in water, study at N = 5:", diff.max_tip_distance_m.to_dict())
+    assert same.measures == xval_report.SAME_MODEL and "DOP853" in same.compared and "RK4" in same.compared
+    assert same.max_tip_distance_m <= xval.MODEL_TOLERANCE == 1e-9  # measured 1.8e-11
+    assert diff.loc["moordyn - moordyn_half_dt"].max_tip_distance_m <= 1e-9  # measured 1.7e-11
+    assert np.linalg.norm(runs["moordyn"].tip[-1] - runs["moordyn"].tip[0]) > 0.3  # the tip moves (0.35 m)
+
+
 def test_in_water_consistent_and_lumped_converge_to_one_limit(point_scene, cache):
     """The finite-element string (Gauss quadrature of the distributed drag) and the lumped one
     (MoorDyn's nodes) approach each other as N grows (in vacuum their self-convergence orders are
@@ -200,28 +217,50 @@ def test_tables_and_readme_from_synthetic_runs(tmp_path, body_scene):
     times = np.linspace(0.0, 1.0, 21)
     X = np.stack([np.sin(times), np.cos(times), times], axis=1)
     coef = {"ours_consistent": 1.0, "ours_lumped": -2.0, "moordyn": -2.0, "mujoco": -2.0}
+    # the same discrete model: the reference and the outside codes (at dt and dt/2) off the lumped
+    # LGVI by known small distances (metres along e1); at N = 5, MoorDyn in water 2e-10 m and MuJoCo
+    # with the rigid body 3e-9 m more (over the tolerance: the README must say so)
+    off = {xval.REFERENCE_CODE: 0.0, "moordyn": 3e-12, "moordyn_half_dt": 1e-12, "mujoco": -4e-12, "mujoco_half_dt": 0.0}
     runs = {}
     for case, codes in xval.CASES.items():
         for N in (5, 10, 20, 40):
             r = {}
-            for code in ("ours_consistent", "ours_lumped") + codes:
-                shape = np.array([1.0, 0.5, 0.25]) * coef[code] / N**2
-                r[code] = xval.CodeRun(code, N, 1e-4, X + shape[None, :], 1000, 0.01 * N,
-                                       {"min_strain": 1e-3} if code.startswith("ours") else {})
+            for code in ("ours_consistent", "ours_lumped", xval.REFERENCE_CODE) + codes + tuple(c + "_half_dt" for c in codes):
+                shape = np.array([1.0, 0.5, 0.25]) * coef[code.removesuffix("_half_dt").replace("_dop853", "")] / N**2
+                shape[0] += off.get(code, 0.0) + {("in_water", 5, "moordyn"): 2e-10,
+                                                  ("rigid_body", 5, "mujoco"): 3e-9}.get((case, N, code), 0.0)
+                ref = code == xval.REFERENCE_CODE
+                r[code] = xval.CodeRun(code, N, None if ref else 1e-4 / (2 if code.endswith("_half_dt") else 1),
+                                       X + shape[None, :], 1000, 0.01 * N,
+                                       {"min_strain": 1e-3, **({"rhs_evals": 12000} if ref else {})}
+                                       if code.startswith("ours") else {})
             runs[(case, N)] = r
     study = xval.Study(times, runs)
     readme = xval_report.write_outputs(study, body_scene, tmp_path, Provenance("python -m benchmark xval --test"))
     import pandas as pd
 
     lim = pd.read_csv(tmp_path / "limits.csv")
-    assert lim.max_limit_distance_m.max() < 1e-14
+    assert lim.max_limit_distance_m.max() < 1e-11  # the outside codes sit 3e-12 and -4e-12 m off (`off`)
     conv = pd.read_csv(tmp_path / "self_convergence.csv").dropna()
     np.testing.assert_allclose(conv.observed_order, 2.0, atol=1e-9)
     err = pd.read_csv(tmp_path / "error_vs_limit.csv")
     np.testing.assert_allclose(err.lumped_over_consistent, 2.0, rtol=1e-9)
     cost = pd.read_csv(tmp_path / "cost.csv")
-    np.testing.assert_allclose(cost.us_per_step, 10.0 * cost.N, rtol=1e-12)  # 0.01 N s / 1000 steps
+    steps = cost[cost.code != xval.REFERENCE_CODE]
+    np.testing.assert_allclose(steps.us_per_step, 10.0 * steps.N, rtol=1e-12)  # 0.01 N s / 1000 steps
+    refs = cost[cost.code == xval.REFERENCE_CODE]
+    np.testing.assert_allclose(refs.us_per_rhs, 10.0 * refs.N / 12, rtol=1e-12)  # 0.01 N s / 12000 right-hand sides
+    diff = pd.read_csv(tmp_path / "differences.csv")
+    same = diff[(diff.case == "in_water") & (diff.pair == f"{xval.REFERENCE_CODE} - moordyn")]
+    np.testing.assert_allclose(same.max_tip_distance_m, [2.03e-10, 3e-12, 3e-12, 3e-12], rtol=1e-3)
+    assert set(same.measures) == {"same discrete model"} and all("DOP853" in c and "RK4 at 0.0001 s" in c for c in same.compared)
     text = readme.read_text()
+    assert "at equal N: at most 2.03e-10 m over N = 5…40" in text  # in water
+    assert "at equal N: at most 4.00e-12 m over N = 5…40" in text  # point mass: MuJoCo's 4e-12
+    assert text.count("- Both are at most 1e-09 m at every N of this case.") == 2
+    assert ("- NOT shown at every N: model difference above 1e-09 m for mujoco at N = 5: 3.00e-09 m; time error of the "
+            "outside code above 1e-09 m for mujoco at N = 5: 3.00e-09 m.") in text  # rigid body
+    assert "| 5 | 0.0001 | 2.03e-10 | 2.02e-10 | 0.00e+00 |" in text  # in water: vs DOP853, dt vs dt/2, LGVI
     assert "python -m benchmark xval --test" in text and "moordyn 2." in text and "mujoco " in text
     assert "lumped / consistent at equal N: 2.00 (N = 5), 2.00 (N = 10)" in text
     assert "| 40 | 0.0001 | 400.0 | 400.0 | 400.0 | 400.0 |" in text
