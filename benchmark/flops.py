@@ -54,10 +54,13 @@ FROM_TWIN = ("XLA cost_analysis of the compiled twin of scipy's step (its tablea
 #: XLA's fusion recomputes some values inside several fused kernels instead of storing them,
 #: and those recomputations are counted, so one right-hand side alone is 1,380 flops at
 #: N = 10 but two chained are 4,648), or "lowered", the program as written before optimisation
-#: (each operation once, additive: 1,157 and 2,448). `benchmark.work_rule` checks both against
-#: the compiled floors; runs.csv uses this one, "lowered": on a quiet pinned core (load 1.1) its
-#: method pairs agree with the floors' time ratios within 1.5x for 13 of 18 pairs at N = 10, 40
-#: and 160, the compiled program's for 11 (its lie_rk4 / lgvi is 2.3x off at N = 40).
+#: (each operation once, additive: 1,157 and 2,448). runs.csv uses this one, "lowered": it is the
+#: same on every machine (the optimised program depends on the CPU XLA compiles for) and each
+#: operation is counted once. `benchmark.work_rule` checks both against the compiled floors
+#: (results/work_rule.md): neither keeps every method pair within 1.5x of the floors' time ratio
+#: (on a quiet pinned core, 2026-12-05: lowered 11 of 18 pairs at N = 10, 40, 160, compiled 13);
+#: every miss involves the RK4 step, whose flops are mostly the right-hand side's scalar
+#: arithmetic (square roots, divisions per element), slower per flop than stage arithmetic.
 PROGRAM_COUNT = "lowered"
 PROGRAM_COUNTS = ("compiled", "lowered")
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+from benchmark.options import SOLVE_MAX_STEPS
 from benchmark.sweep import MethodSettings
 
 DEFAULT_SCENE = "fixed_length"
@@ -21,6 +22,9 @@ SAVE_EVERY = 0.1
 ELEMENTS = (4, 10)
 #: The second setting of a fixed-step method: its step / FINER (an adaptive one: its tolerances / TIGHTER).
 FINER, TIGHTER = 2.0, 100.0
+#: The step budget of each run: every solve's (`benchmark.options.SOLVE_MAX_STEPS`), not a
+#: library's default (diffrax's 100,000 stopped Tsit5 at rtol 1e-8 short of 100 s at N = 10).
+MAX_STEPS = SOLVE_MAX_STEPS
 #: Identity of one run in energy_horizon.csv (a rerun replaces the rows of the same run).
 RUN_KEY = ("scene", "elements", "integrator", "setting")
 
@@ -79,7 +83,8 @@ def run_job(job: Job) -> dict:
 
     started = time.perf_counter()
     scene = load_scene(job.scene, **dict(job.overrides), elements=job.elements)
-    traj = get_integrator(job.method.name).solve(scene, t_end=job.t_end, save_every=SAVE_EVERY, **job.method.settings)
+    traj = get_integrator(job.method.name).solve(scene, t_end=job.t_end, save_every=SAVE_EVERY, max_steps=MAX_STEPS,
+                                                 **job.method.settings)
     from models.diagnostics import evaluate
 
     name = label(job.scene, job.elements, job.method) + ("" if traj.ok else f" [{traj.status}]")

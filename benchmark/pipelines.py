@@ -371,8 +371,10 @@ def _earlier_comparisons(history, readme: Path, runs) -> str:
 
 
 def _horizon_key(scene: str, elements: int, method, t_end: float, overrides: tuple) -> str:
+    from benchmark import horizon
+
     return store.key_of(scene, elements, method.name, method.settings, float(t_end), list(overrides),
-                        store.code_version())
+                        store.code_version(), horizon.MAX_STEPS)
 
 
 def _read_horizon(path: Path):
@@ -496,6 +498,9 @@ def run_horizon_study(t_end: float, out: Path, overrides: tuple = (), jobs: int 
         stale = table[list(horizon.RUN_KEY)].apply(lambda r: (r.iloc[0], int(r.iloc[1]), r.iloc[2], r.iloc[3]) in dead,
                                                    axis=1)
         table = table[~stale]
+    if table is not None and len(table):  # a history of a run the study no longer makes (another method or setting)
+        made = {(m.name, horizon.setting_of(m)) for _, m in horizon.runs()}
+        table = table[[(i, s) in made for i, s in zip(table["integrator"], table["setting"])]]
     if table is None or table.empty:
         return []
     store.write_table(path, table)
