@@ -364,7 +364,13 @@ def answer_table(searched: pd.DataFrame, timed: pd.DataFrame) -> pd.DataFrame:
                         integrator=integ, entry=entry, sweep=sweep, setting=_setting_text(sweep, r["setting"]),
                         setting_low=r["setting_low"], setting_high=r["setting_high"], bound=r["bound"],
                         cost_column=r["cost_column"], error=r["error"], runs=r["runs"], note=r.get("note", ""))
-            if np.isfinite(r["setting"]):
+            if np.isfinite(r["setting"]) and r["cost_column"] != "flops":
+                # a cost in another unit (steps: a method XLA's cost model cannot count) is no
+                # point on the flops axis: it reached the target, but is not ranked by work
+                base.update(cost=np.nan, verdict="no flops count",
+                            note=f"its cost at the target is {r['cost']:.4g} {r['cost_column']}, not flops: not ranked "
+                                 "by work")
+            elif np.isfinite(r["setting"]):
                 # the cost at the target lies between the bracket's coarser end and its answer
                 base.update(cost=r["cost"], cost_low=r["cost"] / (1.0 + max(spread, 0.0)), cost_high=r["cost"])
             else:

@@ -60,6 +60,22 @@ def test_cheapest_csv_has_the_bracket_the_bound_and_the_paired_ratios(tables):
     assert "rk45" not in set(table.loc[table["cost_kind"] == "wall", "integrator"])
 
 
+def test_a_cost_that_is_not_in_flops_is_never_ranked_by_work(tables):
+    """kvaerno5's search has its cost in steps (XLA's cost model does not count its step): 607
+    steps is no point on the flops axis, so it is not ranked by work (it would 'win' at 607);
+    its wall time is still timed and ranked."""
+    searched, timed = tables
+    steps = searched.iloc[0].to_dict() | {"integrator": "kvaerno5", "cost": 607.0, "cost_column": "steps",
+                                          "sweep": "rtol", "setting": 1e-4}
+    searched = pd.concat([searched, pd.DataFrame([steps])], ignore_index=True)
+    table = answer.answer_table(searched, timed)
+    work10 = table[(table["elements"] == 10) & (table["cost_kind"] == "work")].set_index("integrator")
+    assert work10.loc["kvaerno5", "verdict"] == "no flops count" and np.isnan(work10.loc["kvaerno5", "cost"])
+    assert "607 steps, not flops" in work10.loc["kvaerno5", "note"]
+    assert work10.loc["lgvi", "verdict"] == "winner"
+    assert "kvaerno5" in {c[0] for c in answer.timing_jobs(searched)[0].candidates}
+
+
 def test_bit_identical_searches_are_ranked_and_timed_once(tables):
     """lgvi_sym's search equal to lgvi's in every twin column: one entry, `lgvi = lgvi_sym`, the
     other row `identical` and not timed; a search differing in its error alone stays apart."""
