@@ -136,10 +136,26 @@ def test_every_builtin_integrator_passes(name):
     check_integrator(name, log=print)
 
 
+#: Effects whose keys have no default are checked in a shipped scene that lists them, as
+#: `verify --scene` does (without one, check_effect refuses them: ValueError naming the keys).
+EFFECT_SCENES = {"buoyancy": "towed", "drag": "towed"}
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("name", list(EFFECTS))
 def test_every_builtin_effect_passes(name):
-    check_effect(name, log=print)
+    check_effect(name, scene=EFFECT_SCENES.get(name), log=print)
+
+
+def test_an_effect_another_needs_is_removed_with_it_when_its_keys_are_checked():
+    """buoyancy's keys given without it must be refused naming the key, in a scene where drag
+    (which needs buoyancy) is listed too: the check removes drag and its keys as well."""
+    from benchmark.verify import _scene_keys
+    from models import load_scene
+
+    check = _scene_keys("buoyancy", load_scene("towed"))
+    assert check.ok, check.figure
+    assert check.figure.startswith("11 of 11"), check.figure
 
 
 # ------------------------------------------------------------------------------------------
