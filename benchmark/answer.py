@@ -383,7 +383,9 @@ def answer_table(searched: pd.DataFrame, timed: pd.DataFrame) -> pd.DataFrame:
         if len(t):
             # the timing names each method as `run_timing` does, without its twins
             by_entry = {**{r["entry"].split(" = ")[0]: r for r in work}, **{r["integrator"]: r for r in work}}
-            for ratio in json.loads(t.iloc[0]["ratios"] or "[]"):
+            # the verdicts of today's rule (`benchmark.paired.verdicts`), not those stored with the timing
+            stored = [_paired.Ratio(**r) for r in json.loads(t.iloc[0]["ratios"] or "[]")]
+            for ratio in [asdict(r) for r in (_paired.verdicts(stored) if stored else [])]:
                 w = by_entry.get(ratio["method"], {})
                 rows.append(dict(scene=scene, elements=int(n), metric=metric, target=target, cost_kind="wall",
                                  integrator=w.get("integrator", ratio["method"]), entry=w.get("entry", ratio["method"]),

@@ -73,3 +73,14 @@ def test_pinned_restores_the_affinity():
     with pinned() as core:
         assert core is None or os.sched_getaffinity(0) == {core}
     assert os.sched_getaffinity(0) == before
+
+
+def test_a_ratio_within_the_equivalence_margin_is_a_tie_whatever_its_interval():
+    """Two quiet passes of the same settings moved a ratio by up to 10.7 %: an interval of
+    [1.06, 1.16] in one pass (a 'winner' by its interval alone) was the fastest in the next."""
+    from benchmark.paired import EQUIVALENCE, Ratio, verdicts
+
+    out = verdicts([Ratio("a", 1.0, 1.0, 1.0, 1.0, 17), Ratio("b", 1.09, 1.09, 1.06, 1.16, 17)])
+    assert [r.verdict for r in out] == ["tie", "tie"]
+    out = verdicts([Ratio("a", 1.0, 1.0, 1.0, 1.0, 17), Ratio("b", 1.5, 1.5, 1.0 + EQUIVALENCE * 1.01, 1.6, 17)])
+    assert [r.verdict for r in out] == ["winner", "slower"]
