@@ -58,7 +58,7 @@ FROM_TWIN = ("XLA cost_analysis of the compiled twin of scipy's step (its tablea
 #: same on every machine (the optimised program depends on the CPU XLA compiles for) and each
 #: operation is counted once. `benchmark.work_rule` checks both against the compiled floors
 #: (results/work_rule.md): neither keeps every method pair within 1.5x of the floors' time ratio
-#: (on a quiet pinned core, 2026-12-05: lowered 11 of 18 pairs at N = 10, 40, 160, compiled 13);
+#: (on a quiet pinned core, two runs on 2026-12-05: lowered 11 of 18 pairs at N = 10, 40, 160 both times, compiled 13 and 14);
 #: every miss involves the RK4 step, whose flops are mostly the right-hand side's scalar
 #: arithmetic (square roots, divisions per element), slower per flop than stage arithmetic.
 PROGRAM_COUNT = "lowered"
