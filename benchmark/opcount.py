@@ -147,12 +147,23 @@ def _counted_zeros(shape, *args, **kwargs):
 
 #: What a kernel's ``np`` and ``math`` become: numpy with fresh arrays of `Counted`, and square
 #: roots tallied (``math.sqrt`` would convert to a plain float and escape the count).
-_NUMPY = types.SimpleNamespace(**{k: getattr(np, k) for k in dir(np) if not k.startswith("__")})
-_NUMPY.zeros = _NUMPY.empty = _counted_zeros
-_NUMPY.sqrt = lambda x: x.sqrt() if isinstance(x, Counted) else np.sqrt(x)
-_MATH = types.SimpleNamespace(**{k: getattr(math, k) for k in dir(math) if not k.startswith("__")})
-_MATH.sqrt = _NUMPY.sqrt
-_MATH.isfinite = lambda x: math.isfinite(_value(x))
+class _Overlay:
+    """A module's namespace with some names replaced; every other name looked up in the module."""
+
+    def __init__(self, module, **replaced):
+        self.__dict__.update(replaced)
+        self._module = module
+
+    def __getattr__(self, name):
+        return getattr(self._module, name)
+
+
+def _sqrt(x):
+    return x.sqrt() if isinstance(x, Counted) else np.sqrt(x)
+
+
+_NUMPY = _Overlay(np, zeros=_counted_zeros, empty=_counted_zeros, sqrt=_sqrt)
+_MATH = _Overlay(math, sqrt=_sqrt, isfinite=lambda x: math.isfinite(_value(x)))
 
 
 def load_plain(directory: Path, names: tuple[str, ...]) -> dict[str, types.ModuleType]:

@@ -102,10 +102,7 @@ def _tableaux():
 def floor_times(floor: Path, n: int, h: float, steps: int, repeats: int) -> dict[str, dict[str, float]]:
     """method -> {"us": least µs per step of the floor over ``repeats`` interleaved repeats,
     "newton": the LGVI floor's Newton iterations per step}."""
-    sys.path.insert(0, str(floor))
-    import lgvi_nb  # noqa: E402  (measuring tools outside the project)
-    import lgvi_nb2
-    import rhs_nb
+    lgvi_nb, lgvi_nb2, rhs_nb = (_import_from(floor, name) for name in ("lgvi_nb", "lgvi_nb2", "rhs_nb"))
 
     from models import build_model, load_scene
     from models.closed_form import ClosedFormEOM
@@ -156,7 +153,8 @@ def floor_flops(floor: Path, n: int, h: float, newton: float) -> dict[str, dict[
     roots}, counted exactly by running the floors' source on counting scalars (`benchmark.opcount`):
     the right-hand-side floors' steps as the difference of 3 and 1 steps over 2 (the start's
     evaluation left out), the LGVI floor's step as its Newton-free part + ``newton`` (its measured
-    mean iterations per step) × one Newton iteration."""
+    mean iterations per step) × one Newton iteration. Each counted run must end where the compiled
+    kernel ends from the same start (to 1e-12), else it did not execute the same operations."""
     from benchmark.opcount import Counted, OpCounter, counted, counted_array, load_plain
     from models import build_model, load_scene
     from models.closed_form import ClosedFormEOM
@@ -180,12 +178,25 @@ def floor_flops(floor: Path, n: int, h: float, newton: float) -> dict[str, dict[
                 out[k] -= minus * iteration[k]
         return out
 
+    compiled = {name: _import_from(floor, name) for name in plain}  # the numba kernels, to compare with
+
+    def same_end(what: str, counted_values, compiled_values) -> None:
+        got = np.vectorize(float, otypes=[float])(counted_values)
+        want = np.asarray(compiled_values, float)
+        if not np.allclose(got, want, rtol=1e-12, atol=1e-12):
+            raise RuntimeError(f"the counted run of the {what} floor at N = {n} ends "
+                               f"{np.max(np.abs(got - want)):.3g} away from the compiled one's: not the same operations")
+
     out = {}
     for name, (A, b, fsal) in _tableaux().items():
         def erk(k, A=A, b=b, fsal=fsal):
-            return count(lambda: rhs_nb.erk_run(counted_array(A), counted_array(b), fsal, counted_array(y0),
-                                                Counted(h), k, *P))
-        out[name] = per_step(erk(1), erk(3), 2.0)
+            end = {}
+            ops = count(lambda: end.update(y=rhs_nb.erk_run(counted_array(A), counted_array(b), fsal,
+                                                            counted_array(y0), Counted(h), k, *P)[0]))
+            return ops, end["y"]
+        (one, _), (three, y3) = erk(1), erk(3)
+        same_end(name, y3, compiled["rhs_nb"].erk_run(A, b, fsal, y0, h, 3, *compiled["rhs_nb"].Params(model).pack())[0])
+        out[name] = per_step(one, three, 2.0)
 
     x0, R0, w0 = (np.asarray(v, float) for v in model.initial_state())
     p0 = np.asarray(ClosedFormEOM(model).momentum(x0, R0, w0))
@@ -198,16 +209,30 @@ def floor_flops(floor: Path, n: int, h: float, newton: float) -> dict[str, dict[
         result = {}
         ops = count(lambda: result.update(its=lgvi_nb2.run(steps, steps, q, R, pq, Pi, *counted((sc, rho, J_o, J_d)),
                                                            Counted(h), Counted(tol), maxit, *saved)[0]))
-        return ops, result["its"]
+        return ops, result["its"], q
 
     # one Newton iteration: a step forced to take 1, then 2 (a negative tolerance never converges)
-    one_it, _ = lgvi(1, tol=-1.0, maxit=1)
-    two_its, _ = lgvi(1, tol=-1.0, maxit=2)
+    one_it, _, _ = lgvi(1, tol=-1.0, maxit=1)
+    two_its, _, _ = lgvi(1, tol=-1.0, maxit=2)
     iteration = per_step(one_it, two_its, 1.0)
-    (first, its1), (second, its2) = lgvi(1), lgvi(2)
+    (first, its1, _), (second, its2, q2) = lgvi(1), lgvi(2)
+    q = x0.reshape(n, 3).copy()
+    compiled["lgvi_nb2"].run(2, 2, q, R0.copy(), p0[: 3 * n].reshape(n, 3).copy(), p0[3 * n: 3 * n + 3].copy(),
+                             sc, rho, J_o, J_d, h, 1e-12, 20, np.zeros((1, n, 3)), np.zeros((1, 3, 3)),
+                             np.zeros((1, n + 1, 3)))
+    same_end("lgvi", q2, q)
     base = per_step(first, second, 1.0, minus=its2 - its1, iteration=iteration)
     out["lgvi"] = {k: base[k] + newton * iteration[k] for k in base}
     return out
+
+
+def _import_from(directory: Path, name: str):
+    """The module ``name`` from ``directory`` (the floors: measuring tools outside the project)."""
+    import importlib
+
+    if str(directory) not in sys.path:
+        sys.path.insert(0, str(directory))
+    return importlib.import_module(name)
 
 
 def _within(agreement: float) -> bool:
