@@ -58,10 +58,10 @@ FROM_TWIN = ("XLA cost_analysis of the compiled twin of scipy's step (its tablea
 #: same on every machine (the optimised program depends on the CPU XLA compiles for) and each
 #: operation is counted once. `benchmark.work_rule` checks both against the compiled floors
 #: (results/work_rule.md). Neither keeps every method pair within 1.5x of the floors' time ratio
-#: (quiet pinned core, 2026-12-05, two runs: lowered 12 of 18 pairs at N = 10, 40, 160 both
-#: times, compiled 14 and 13), and no count of flops can: the floors' own flops, counted
-#: exactly (`benchmark.opcount`), keep 15 and 16, for the floors run at 2.8-5.4 GFlop/s by kind
-#: of arithmetic (lie_rk4 / lgvi and dopri8 / lie_rk4 at N = 160 miss in both runs). The rest of
+#: (quiet pinned core, 2026-12-05, three runs: lowered 12 of 18 pairs at N = 10, 40, 160 every
+#: time, compiled 13-14), and no count of flops can: the floors' own flops, counted exactly
+#: (`benchmark.opcount`), keep 15-16, for the floors run at 2.8-5.4 GFlop/s by kind of
+#: arithmetic (lie_rk4 / lgvi and dopri8 / lie_rk4 at N = 160 miss in every run). The rest of
 #: the lowered count's misses is what the programs compute: diffrax's stage sums run over every
 #: stage, zeros of the tableau included, so its tsit5 and dopri8 steps count 1.2-1.9x the floors'
 #: flops, the LGVI step 1.1-1.3x and lie_rk4's 0.9-1.4x.
