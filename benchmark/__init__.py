@@ -11,7 +11,8 @@ By concern, from the command line down:
   study), `orders` (observed orders on a short horizon), `xval`, `lgvi_speed` (speed),
   `reel_reversal`, `answer` (each method's cheapest setting at each target by `search`,
   wall-time verdicts by `paired` timing, at N = 10 and 40); what a sweep runs: `sweep`; its
-  metrics: `metrics`; its work: `flops` (one rule for every method), checked against compiled floors by `work_rule` (results/work_rule.md);
+  metrics: `metrics`; its work: `flops` (one rule for every method), checked against compiled floors by `work_rule` (results/work_rule.md), whose own arithmetic
+  `opcount` counts by running their source on counting scalars;
 - their writers: `runs_report`, `stability_report`, `xval_report` (and the baseline in `check`,
   the speed tables in `lgvi_speed`), on the report layer `report` and the plot layer `plots`;
   what they conclude from: `properties` (energy growth classified, orthogonality), `cheapest` (the cost at a target, with its spread, and verdicts that
