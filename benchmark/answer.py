@@ -370,13 +370,19 @@ def answer_table(searched: pd.DataFrame, timed: pd.DataFrame) -> pd.DataFrame:
                 base.update(cost=np.nan, verdict="no flops count",
                             note=f"its cost at the target is {r['cost']:.4g} {r['cost_column']}, not flops: not ranked "
                                  "by work")
-            elif np.isfinite(r["setting"]):
+            elif np.isfinite(r["setting"]) and _counts_whole_step(integ):
                 # the cost at the target lies between the bracket's coarser end and its answer
                 base.update(cost=r["cost"], cost_low=r["cost"] / (1.0 + max(spread, 0.0)), cost_high=r["cost"])
+            elif np.isfinite(r["setting"]):
+                # counted by its evaluations alone (Radau: its Newton solves left out): the work is
+                # at least this, so it can show a method slower, never make one the winner
+                base.update(cost=r["cost"], cost_low=r["cost"] / (1.0 + max(spread, 0.0)), cost_high=np.inf,
+                            verdict=LOWER_BOUND, note=LOWER_BOUND_NOTE)
             else:
                 base.update(cost=np.nan, verdict="not reached")
             work.append(base)
-        _verdicts(work)
+        _verdicts([w for w in work if w.get("verdict") != LOWER_BOUND])
+        _rank_lower_bounds(work)
         rows += work
         t = timed[(timed["scene"] == scene) & (timed["elements"] == n) & (timed["metric"] == metric)
                   & (timed["target"] == target)] if len(timed) else timed
@@ -396,6 +402,36 @@ def answer_table(searched: pd.DataFrame, timed: pd.DataFrame) -> pd.DataFrame:
     return frame(rows, COLUMNS, extra=False)
 
 
+#: The verdict of a work cost that is only a lower bound (`benchmark.flops.counting_rule`
+#: "evaluations") and lies below the winner's: it cannot be ranked.
+LOWER_BOUND = "lower bound"
+LOWER_BOUND_NOTE = ("its flops count right-hand sides, Jacobians and LU factorisations only (its Newton solves "
+                    "and stage arithmetic left out): a lower bound of its work, ranked only where it is above "
+                    "the winner's")
+
+
+def _counts_whole_step(integrator: str) -> bool:
+    from benchmark.flops import WHOLE_STEP_RULES, counting_rule
+
+    try:
+        return counting_rule(integrator) in WHOLE_STEP_RULES
+    except Exception:  # an integrator no longer registered: its count cannot be vouched for
+        return False
+
+
+def _rank_lower_bounds(work: list[dict]) -> None:
+    """A lower-bound cost above the winner's (or the tie's best) cost interval is `slower`
+    (its ratio interval open above); one below it stays a `LOWER_BOUND`, unranked."""
+    ranked = [w for w in work if w.get("verdict") in ("winner", "tie") and w.get("ratio") == 1.0]
+    for w in work:
+        if w.get("verdict") != LOWER_BOUND:
+            continue
+        if ranked and w["cost_low"] > ranked[0]["cost_high"]:
+            best = ranked[0]
+            w.update(verdict="slower", ratio=w["cost"] / best["cost"], ratio_low=w["cost_low"] / best["cost_high"],
+                     ratio_high=np.inf)
+
+
 def _use_line(g: pd.DataFrame) -> str:
     """"use X (setting, cost, interval); next Y at r× [lo–hi]" for one cost kind's rows; a tie
     (only where the intervals overlap) names its members with their ratios, then the next."""
@@ -409,6 +445,8 @@ def _use_line(g: pd.DataFrame) -> str:
         return f"{v * 1e3:.3g} ms" if kind == "wall" else f"{v:.3g} flops"
 
     def rel(r):
+        if not np.isfinite(r["ratio_high"]):  # a lower bound of its cost
+            return f"≥ {r['ratio_low']:.2f}× (a lower bound)"
         return f"{r['ratio']:.2f}× [{r['ratio_low']:.2f}–{r['ratio_high']:.2f}]"
 
     own = (f"{best['setting']}, {unit(best['cost'])}, {int(best['pairs'])} pairs" if kind == "wall"
@@ -449,11 +487,14 @@ def answer_lines(table: pd.DataFrame, labels: dict | None = None) -> list[str]:
 
 def answer_block(table: pd.DataFrame, labels: dict | None = None) -> str:
     """The project README's answer block: `answer_lines` and how they were made."""
+    bounded = sorted(table.loc[table["note"].fillna("").eq(LOWER_BOUND_NOTE), "integrator"].unique())
+    bounds = (f"; {', '.join(f'`{b}`' for b in bounded)} by work: its flops leave out its Newton solves, a lower "
+              "bound (`≥`), never a winner" if bounded else "")
     return "\n".join(answer_lines(table, labels) + [
         "- Each cost is the cheapest setting found by search to 10 % in cost (`bound`: what limits it); wall time "
         "from paired, interleaved timing on one pinned core (ratio to the fastest, 90 % bootstrap interval); a winner "
         f"only when every other interval lies above {1 + _paired.EQUIVALENCE:g} (`benchmark.paired.EQUIVALENCE`: two "
-        "quiet timing passes moved a ratio by up to 11 %), else a tie; scipy's methods ranked by work only.",
+        f"quiet timing passes moved a ratio by up to 11 %), else a tie; scipy's methods ranked by work only{bounds}.",
         "- Generated by `python -m benchmark answer --out results/answer`; every row: "
         "`results/answer/cheapest.csv`."]) + "\n"
 

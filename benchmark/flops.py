@@ -310,6 +310,27 @@ def _is_scipy_pair(integ) -> bool:
         return False
 
 
+def counting_rule(integrator: str) -> str:
+    """How `run_flops` counts ``integrator``'s work: "step" (its compiled step), "diffrax"
+    (diffrax's step), "twin" (the compiled twin of scipy's explicit step): the whole-step rule;
+    or "evaluations" (`FROM_RHS`: right-hand sides, Jacobians and LU factorisations, which leaves
+    out the step's own arithmetic, e.g. Radau's Newton solves: a lower bound of its work)."""
+    from integrators import get_integrator
+
+    integ = get_integrator(integrator)
+    if hasattr(integ, "step") and hasattr(integ, "init"):
+        return "step"
+    if getattr(integ, "fsal_stages", 0):
+        return "diffrax"
+    if _is_scipy_pair(integ):
+        return "twin"
+    return "evaluations"
+
+
+#: The rules that count a method's whole step (`counting_rule`).
+WHOLE_STEP_RULES = ("step", "diffrax", "twin")
+
+
 def run_flops(integrator: str, model, stats: dict, rhs: str | None, adaptive: bool | None = None
               ) -> tuple[float, str]:
     """(flops of a run, how they were counted or why there are none) from its stats, by the
@@ -325,8 +346,8 @@ def run_flops(integrator: str, model, stats: dict, rhs: str | None, adaptive: bo
             return np.nan, f"no flops: {stats['counts_unavailable']}"
         from integrators import get_integrator
 
-        integ = get_integrator(integrator)
-        if hasattr(integ, "step") and hasattr(integ, "init"):
+        integ, rule = get_integrator(integrator), counting_rule(integrator)
+        if rule == "step":
             if steps is None:
                 return np.nan, "no flops: the method reports no step count"
             return _compiled_step_flops(integrator, integ, model, stats, rhs, steps)
@@ -334,11 +355,11 @@ def run_flops(integrator: str, model, stats: dict, rhs: str | None, adaptive: bo
         if attempted is None and steps is not None and count("rejected_steps") is not None:
             attempted = steps + count("rejected_steps")
         stages = getattr(integ, "fsal_stages", 0)
-        if stages and rhs and evals is not None and attempted is not None:
+        if rule == "diffrax" and rhs and evals is not None and attempted is not None:
             start = evals - (stages - 1) * attempted  # 1 (first stage), + 2 (initial step size) when adaptive
             per_step = diffrax_step_cost(integrator, model, rhs, bool(start > 1) if adaptive is None else adaptive)
             return attempted * per_step + max(start, 0.0) * rhs_flops(model, rhs), FROM_DIFFRAX
-        if _is_scipy_pair(integ) and rhs and evals is not None and attempted is not None:
+        if rule == "twin" and rhs and evals is not None and attempted is not None:
             start = evals - integ.solver_class.n_stages * attempted  # the first f and the initial step's
             total = attempted * scipy_twin_step(integrator, model, rhs) + max(start, 0.0) * rhs_flops(model, rhs)
             if getattr(integ, "projected", False) and model.layout.has_attitude:

@@ -76,6 +76,32 @@ def test_a_cost_that_is_not_in_flops_is_never_ranked_by_work(tables):
     assert "kvaerno5" in {c[0] for c in answer.timing_jobs(searched)[0].candidates}
 
 
+def test_a_count_of_evaluations_alone_is_a_lower_bound_and_never_wins(tables):
+    """radau's flops count right-hand sides, Jacobians and LU factorisations, not its Newton
+    solves: a lower bound. Below the winner's cost it is unranked (and does not make the winner
+    a tie); above the winner's interval it is slower, its ratio open above."""
+    from benchmark.flops import counting_rule
+
+    assert counting_rule("radau") == "evaluations" and counting_rule("lgvi") == "step"
+    assert counting_rule("tsit5") == "diffrax" and counting_rule("dop853") == "twin"
+    searched, timed = tables
+    cheap = searched.iloc[0].to_dict() | {"integrator": "radau", "sweep": "rtol", "setting": 1e-3, "cost": 2e5}
+    dear = searched.iloc[3].to_dict() | {"integrator": "radau", "sweep": "rtol", "setting": 1e-3, "cost": 3e7}
+    table = answer.answer_table(pd.concat([searched, pd.DataFrame([cheap, dear])], ignore_index=True), timed)
+    work = table[table["cost_kind"] == "work"].set_index(["elements", "integrator"])
+    assert work.loc[(10, "radau"), "verdict"] == answer.LOWER_BOUND and work.loc[(10, "lgvi"), "verdict"] == "winner"
+    assert "a lower bound of its work" in work.loc[(10, "radau"), "note"]
+    assert work.loc[(40, "radau"), "verdict"] == "slower" and np.isinf(work.loc[(40, "radau"), "ratio_high"])
+    assert work.loc[(40, "radau"), "ratio_low"] == pytest.approx(3e7 / 1.08 / 9e6)
+    lines = answer.answer_lines(table)
+    assert "by work: use `lgvi`" in lines[0] and "radau" not in lines[0]
+    block = answer.answer_block(table)
+    assert "`radau` by work: its flops leave out its Newton solves, a lower bound (`≥`), never a winner" in block
+    # the lower bound shown as such when it is the next method
+    only = table[~((table["cost_kind"] == "work") & (table["integrator"] == "lie_rk4"))]
+    assert "next `radau` at ≥ 3.09× (a lower bound)" in answer.answer_lines(only)[1]
+
+
 def test_bit_identical_searches_are_ranked_and_timed_once(tables):
     """lgvi_sym's search equal to lgvi's in every twin column: one entry, `lgvi = lgvi_sym`, the
     other row `identical` and not timed; a search differing in its error alone stays apart."""
