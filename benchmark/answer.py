@@ -422,12 +422,10 @@ def _counts_whole_step(integrator: str) -> bool:
 def _rank_lower_bounds(work: list[dict]) -> None:
     """A lower-bound cost above the winner's (or the tie's best) cost interval is `slower`
     (its ratio interval open above); one below it stays a `LOWER_BOUND`, unranked."""
-    ranked = [w for w in work if w.get("verdict") in ("winner", "tie") and w.get("ratio") == 1.0]
+    ranked = [w for w in work if w.get("verdict") in ("winner", "tie")]
+    best = min(ranked, key=lambda w: (w["cost"], w["entry"])) if ranked else None
     for w in work:
-        if w.get("verdict") != LOWER_BOUND:
-            continue
-        if ranked and w["cost_low"] > ranked[0]["cost_high"]:
-            best = ranked[0]
+        if w.get("verdict") == LOWER_BOUND and best is not None and w["cost_low"] > best["cost_high"]:
             w.update(verdict="slower", ratio=w["cost"] / best["cost"], ratio_low=w["cost_low"] / best["cost_high"],
                      ratio_high=np.inf)
 

@@ -170,13 +170,9 @@ def floor_flops(floor: Path, n: int, h: float, newton: float) -> dict[str, dict[
             fn()
         return ops
 
-    def per_step(a: OpCounter, b: OpCounter, steps: float, minus: float = 0.0, iteration=None) -> dict:
-        out = {k: (b.counts[k] - a.counts[k]) / steps for k in ("div", "sqrt")}
-        out["flops"] = (b.flops - a.flops) / steps
-        if iteration is not None:
-            for k in out:
-                out[k] -= minus * iteration[k]
-        return out
+    def per_step(a: OpCounter, b: OpCounter, steps: float) -> dict:
+        """What run ``b`` counted beyond run ``a``, per step."""
+        return {"flops": (b.flops - a.flops) / steps, **{k: (b.counts[k] - a.counts[k]) / steps for k in ("div", "sqrt")}}
 
     compiled = {name: _import_from(floor, name) for name in plain}  # the numba kernels, to compare with
 
@@ -187,7 +183,7 @@ def floor_flops(floor: Path, n: int, h: float, newton: float) -> dict[str, dict[
             raise RuntimeError(f"the counted run of the {what} floor at N = {n} ends "
                                f"{np.max(np.abs(got - want)):.3g} away from the compiled one's: not the same operations")
 
-    out = {}
+    out, packed = {}, compiled["rhs_nb"].Params(model).pack()
     for name, (A, b, fsal) in _tableaux().items():
         def erk(k, A=A, b=b, fsal=fsal):
             end = {}
@@ -195,7 +191,7 @@ def floor_flops(floor: Path, n: int, h: float, newton: float) -> dict[str, dict[
                                                             counted_array(y0), Counted(h), k, *P)[0]))
             return ops, end["y"]
         (one, _), (three, y3) = erk(1), erk(3)
-        same_end(name, y3, compiled["rhs_nb"].erk_run(A, b, fsal, y0, h, 3, *compiled["rhs_nb"].Params(model).pack())[0])
+        same_end(name, y3, compiled["rhs_nb"].erk_run(A, b, fsal, y0, h, 3, *packed)[0])
         out[name] = per_step(one, three, 2.0)
 
     x0, R0, w0 = (np.asarray(v, float) for v in model.initial_state())
@@ -221,8 +217,8 @@ def floor_flops(floor: Path, n: int, h: float, newton: float) -> dict[str, dict[
                              sc, rho, J_o, J_d, h, 1e-12, 20, np.zeros((1, n, 3)), np.zeros((1, 3, 3)),
                              np.zeros((1, n + 1, 3)))
     same_end("lgvi", q2, q)
-    base = per_step(first, second, 1.0, minus=its2 - its1, iteration=iteration)
-    out["lgvi"] = {k: base[k] + newton * iteration[k] for k in base}
+    second_step = per_step(first, second, 1.0)  # its Newton-free part + its own iterations
+    out["lgvi"] = {k: second_step[k] + (newton - (its2 - its1)) * iteration[k] for k in second_step}
     return out
 
 
