@@ -432,7 +432,8 @@ def _rank_lower_bounds(work: list[dict]) -> None:
 
 def _use_line(g: pd.DataFrame) -> str:
     """"use X (setting, cost, interval); next Y at r× [lo–hi]" for one cost kind's rows; a tie
-    (only where the intervals overlap) names its members with their ratios, then the next."""
+    (only where the intervals overlap) names its members with their ratios, then the first
+    method outside it."""
     ranked = g[g["verdict"].isin(["winner", "tie", "slower"])].sort_values(["ratio", "entry"])
     if ranked.empty:
         return "no method reached it"
@@ -459,7 +460,10 @@ def _use_line(g: pd.DataFrame) -> str:
     if rest.empty:
         return head + ("" if len(ranked) > 1 else "; no other method reached it")
     nxt = rest.iloc[0]
-    return head + f"; next `{nxt['entry']}` at {rel(nxt)}"
+    # a tie goes by the intervals, the order by the ratios: a wide interval can keep a member at
+    # 1.33x in the tie while a narrow one puts 1.18x outside it, so "next" would misread
+    after = "first outside the tie" if best["verdict"] == "tie" else "next"
+    return head + f"; {after} `{nxt['entry']}` at {rel(nxt)}"
 
 
 def answer_lines(table: pd.DataFrame, labels: dict | None = None) -> list[str]:

@@ -99,7 +99,7 @@ def test_a_count_of_evaluations_alone_is_a_lower_bound_and_never_wins(tables):
     assert "`radau` by work: its flops leave out its Newton solves, a lower bound (`≥`), never a winner" in block
     # the lower bound shown as such when it is the next method
     only = table[~((table["cost_kind"] == "work") & (table["integrator"] == "lie_rk4"))]
-    assert "next `radau` at ≥ 3.09× (a lower bound)" in answer.answer_lines(only)[1]
+    assert "`radau` at ≥ 3.09× (a lower bound)." in answer.answer_lines(only)[1]
 
 
 def test_bit_identical_searches_are_ranked_and_timed_once(tables):
@@ -126,6 +126,24 @@ def test_the_answer_block_says_one_thing_per_scene_and_target(tables):
                                "(dt=0.0088, 6 ms, 40 pairs); next `lie_rk4` at 1.66× [1.50–1.80]")
     assert "by wall time: tie: `lie_rk4`" in lines[1] and "`lgvi` at 1.02× [0.97–1.08]" in lines[1]
     assert lines[2] == "  - from N = 10 to N = 40: fastest `lgvi` → `lie_rk4`"
+
+
+def test_after_a_tie_the_next_method_is_named_as_outside_it():
+    """Tie membership goes by the interval, the order by the ratio: after a tie whose wide member
+    lies at 1.33x, a narrow 1.18x is "first outside the tie", never "next"."""
+    from benchmark.answer import _use_line
+
+    def wall(entry, ratio, low, high, verdict):
+        return dict(entry=entry, ratio=ratio, ratio_low=low, ratio_high=high, verdict=verdict, cost=ratio * 1e-3,
+                    cost_kind="wall", setting="dt=0.01", pairs=8)
+
+    g = pd.DataFrame([wall("a", 1.0, 1.0, 1.0, "tie"), wall("b", 1.33, 1.05, 1.40, "tie"),
+                      wall("c", 1.18, 1.18, 1.22, "slower")])
+    line = _use_line(g)
+    assert line.startswith("tie: `a`") and "`b` at 1.33× [1.05–1.40]" in line
+    assert line.endswith("; first outside the tie `c` at 1.18× [1.18–1.22]") and "next" not in line
+    won = _use_line(g.assign(verdict=["winner", "slower", "slower"]))
+    assert won.startswith("use `a`") and won.endswith("; next `c` at 1.18× [1.18–1.22]")
 
 
 def test_timing_jobs_take_the_compiled_methods_that_met_the_target(tables):
