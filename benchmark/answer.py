@@ -415,7 +415,7 @@ def _counts_whole_step(integrator: str) -> bool:
 
     try:
         return counting_rule(integrator) in WHOLE_STEP_RULES
-    except Exception:  # an integrator no longer registered: its count cannot be vouched for
+    except ValueError:  # an integrator no longer registered: its count cannot be vouched for
         return False
 
 

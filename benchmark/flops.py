@@ -310,14 +310,15 @@ def _is_scipy_pair(integ) -> bool:
         return False
 
 
-def counting_rule(integrator: str) -> str:
-    """How `run_flops` counts ``integrator``'s work: "step" (its compiled step), "diffrax"
-    (diffrax's step), "twin" (the compiled twin of scipy's explicit step): the whole-step rule;
-    or "evaluations" (`FROM_RHS`: right-hand sides, Jacobians and LU factorisations, which leaves
-    out the step's own arithmetic, e.g. Radau's Newton solves: a lower bound of its work)."""
+def counting_rule(integrator) -> str:
+    """How `run_flops` counts ``integrator``'s work (a registered name, or the integrator):
+    "step" (its compiled step), "diffrax" (diffrax's step), "twin" (the compiled twin of scipy's
+    explicit step): the whole-step rule; or "evaluations" (`FROM_RHS`: right-hand sides, Jacobians
+    and LU factorisations, which leaves out the step's own arithmetic, e.g. Radau's Newton solves:
+    a lower bound of its work)."""
     from integrators import get_integrator
 
-    integ = get_integrator(integrator)
+    integ = get_integrator(integrator) if isinstance(integrator, str) else integrator
     if hasattr(integ, "step") and hasattr(integ, "init"):
         return "step"
     if getattr(integ, "fsal_stages", 0):
@@ -346,7 +347,8 @@ def run_flops(integrator: str, model, stats: dict, rhs: str | None, adaptive: bo
             return np.nan, f"no flops: {stats['counts_unavailable']}"
         from integrators import get_integrator
 
-        integ, rule = get_integrator(integrator), counting_rule(integrator)
+        integ = get_integrator(integrator)
+        rule = counting_rule(integ)
         if rule == "step":
             if steps is None:
                 return np.nan, "no flops: the method reports no step count"

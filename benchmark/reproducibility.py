@@ -81,8 +81,8 @@ class Tolerance:
     adaptive_error_of_rtol: float = 0.1
 
     def __post_init__(self):
-        for name, lo in (("fixed_error_rtol", 0.0), ("fixed_error_atol", 0.0), ("adaptive_steps_rtol", 0.0), ("adaptive_error_factor", 1.0),
-                         ("adaptive_error_of_rtol", 0.0)):
+        for name, lo in (("fixed_error_rtol", 0.0), ("fixed_error_atol", 0.0), ("adaptive_steps_rtol", 0.0),
+                         ("adaptive_error_factor", 1.0), ("adaptive_error_of_rtol", 0.0)):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= lo and (lo == 0 or v > lo)):
                 raise ValueError(f"Tolerance: {name} = {v!r} is invalid (allowed: a finite number "
@@ -207,8 +207,8 @@ def statement(comparison: pd.DataFrame, tol: Tolerance = DEFAULT_TOLERANCE) -> s
     text = (f"{len(c)} runs compared: {n.get('equal', 0)} equal to the last digit, "
             f"{n.get('within tolerance', 0)} within tolerance (fixed-step: same steps, errors within "
             f"{tol.fixed_error_rtol:g} relative plus {tol.fixed_error_atol:g} and the metric's floor; "
-            f"adaptive: steps within "
-            f"{tol.adaptive_steps_rtol:.0%}, errors within a factor {tol.adaptive_error_factor:g} or "
+            f"adaptive: steps within {tol.adaptive_steps_rtol:.0%}, "
+            f"errors within a factor {tol.adaptive_error_factor:g} or "
             f"{tol.adaptive_error_of_rtol:g} × rtol)")
     shares = [f"{what} {c.loc[within & sel, 'used'].max():.2g}" for what, sel in (("fixed-step", fixed),
                                                                                   ("adaptive", ~fixed))
