@@ -10,7 +10,10 @@ interval is a bootstrap over rounds (rounds resampled with replacement, the pair
 reference is the fastest by paired ratio.
 
 Rounds are added until every ratio's interval lies within ±``precision`` (10 %) of the ratio, or
-the time budget of the target (`BUDGET`, 20 s of timing) ends. The verdict comes from the
+the time budget of the target (`BUDGET`, 20 s of timing) ends. The timing races: from
+`RACE_ROUNDS` rounds on, a method whose interval lies wholly above 1 + `RACE_MARGIN` (clearly
+slower than the margin that makes a tie) leaves, so the rounds go to the contenders; its ratio
+stays the one of the rounds it ran, paired with the same rounds of the reference. The verdict comes from the
 intervals: the fastest method is the ``winner`` only when every other method's interval lies
 above 1 + `EQUIVALENCE`; otherwise it and every method whose interval reaches that are a
 ``tie``; the rest are ``slower``. The margin is measured, not chosen: a pass's bootstrap interval
@@ -45,6 +48,10 @@ RESAMPLES = 2000
 EQUIVALENCE = 0.10
 #: Rounds before the first stop check (a bootstrap of fewer is not an interval), and at most.
 MIN_ROUNDS = 8
+#: The race: from this many rounds on, a method whose interval's lower end is above 1 + RACE_MARGIN
+#: leaves (twice the tie margin: a method that leaves can never be part of a tie).
+RACE_ROUNDS = 4
+RACE_MARGIN = 2 * 0.10
 MAX_ROUNDS = 2000
 VERDICTS = ("winner", "tie", "slower")
 
@@ -87,17 +94,26 @@ def verdicts(ratios: list[Ratio], equivalence: float = EQUIVALENCE) -> list[Rati
 
 
 def compare(ratios_of: dict[str, np.ndarray], rng: np.random.Generator, level: float = LEVEL) -> list[Ratio]:
-    """The ratios of every method to the fastest (by median) from the rounds' times."""
+    """The ratios of every method to the fastest (by median) from the rounds' times. A method
+    that left the race has fewer rounds: it is paired with the reference's first rounds, the ones
+    it ran beside; the reference is chosen among the methods that ran every round."""
     times = {m: np.asarray(t, float) for m, t in ratios_of.items()}
-    base = min(times)
+    full = max(len(t) for t in times.values())
+    racing = sorted(m for m, t in times.items() if len(t) == full)
+    base = racing[0]
     # the reference: the fastest by paired ratio (to any one method), not by median time, so that
     # no other method's median ratio to it falls below 1 where the pairing says otherwise
-    ref = min(times, key=lambda m: (float(np.median(times[m] / times[base])), m))
+    ref = min(racing, key=lambda m: (float(np.median(times[m] / times[base])), m))
     out = []
     for m, t in times.items():
-        ratio, lo, hi = (1.0, 1.0, 1.0) if m == ref else ratio_interval(t, times[ref], rng, level)
+        ratio, lo, hi = (1.0, 1.0, 1.0) if m == ref else ratio_interval(t, times[ref][: len(t)], rng, level)
         out.append(Ratio(m, float(np.median(t)), ratio, lo, hi, len(t)))
     return verdicts(out)
+
+
+def leaving(ratios: list[Ratio], margin: float = RACE_MARGIN) -> list[str]:
+    """The methods clearly slower than the tie margin: their whole interval above 1 + ``margin``."""
+    return [r.method for r in ratios if r.low > 1.0 + margin]
 
 
 def resolved(ratios: list[Ratio], precision: float = PRECISION) -> bool:
@@ -107,30 +123,37 @@ def resolved(ratios: list[Ratio], precision: float = PRECISION) -> bool:
 
 def time_paired(solves: dict[str, Callable[[], float]], *, budget: float = BUDGET, precision: float = PRECISION,
                 level: float = LEVEL, min_rounds: int = MIN_ROUNDS, max_rounds: int = MAX_ROUNDS, seed: int = 0,
+                race_rounds: int = RACE_ROUNDS, race_margin: float = RACE_MARGIN,
                 clock: Callable[[], float] = time.perf_counter,
                 progress: Callable[[int, float, list[Ratio]], None] | None = None) -> list[Ratio]:
     """Time ``solves`` (method -> a callable returning one solve's seconds) round-robin until
-    `resolved` or ``budget`` seconds of timing have passed (``max_rounds`` at most); the
-    ratios and verdicts, fastest first. One method alone is its own ``winner`` (ratio 1).
+    `resolved` or ``budget`` seconds of timing have passed (``max_rounds`` at most), the clearly
+    slower ones leaving the race from ``race_rounds`` rounds on (`leaving`); the ratios and
+    verdicts, fastest first. One method alone is its own ``winner`` (ratio 1).
     ``progress(rounds, seconds, ratios)`` is called after every stop check."""
     if not solves:
         raise ValueError("time_paired: no methods to time")
     names = sorted(solves)
     rng = np.random.default_rng(seed)
     times: dict[str, list[float]] = {m: [] for m in names}
+    racing = list(names)
     started = clock()
     rounds = 0
     ratios: list[Ratio] = []
     while rounds < max_rounds:
-        for k in range(len(names)):  # rotate who goes first: no method always follows another
-            m = names[(rounds + k) % len(names)]
+        for k in range(len(racing)):  # rotate who goes first: no method always follows another
+            m = racing[(rounds + k) % len(racing)]
             times[m].append(float(solves[m]()))
         rounds += 1
+        if len(racing) > 1 and rounds >= race_rounds:
+            gone = leaving(compare({m: times[m] for m in racing}, rng, level), race_margin)
+            racing = [m for m in racing if m not in gone]
         if rounds >= min_rounds or len(names) == 1:
             ratios = compare(times, rng, level)
             if progress:
                 progress(rounds, clock() - started, ratios)
-            if len(names) == 1 or resolved(ratios, precision) or clock() - started >= budget:
+            contenders = [r for r in ratios if r.method in racing]
+            if len(names) == 1 or resolved(contenders, precision) or clock() - started >= budget:
                 break
     return ratios or compare(times, rng, level)
 

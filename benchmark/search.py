@@ -1,34 +1,35 @@
-"""The cheapest setting that meets a target, found by search instead of read off a fixed grid.
+"""The cheapest setting that meets a target and stands when moved, found by search instead of read
+off a fixed grid.
 
 Pure: `search` takes a callable ``run(setting) -> (status, error, cost)`` (one solve of one
 method on one scene at a step size or tolerance) and calls it until it knows, within a run
 budget, the cheapest setting that meets the target. Nothing here solves, times or writes.
 
 A setting is a positive number; larger is *coarser* (a larger step or a looser tolerance),
-cheaper, and less accurate or less likely to finish. The search:
+cheaper, and less accurate or less likely to finish. Settings lie on a lattice, ``start ·
+grid^k`` for whole k (`GRID`: 2^(1/8) for a step, 10^(1/8) for a tolerance), so that two
+settings a user would call neighbours are neighbours here. The search:
 
-1. **brackets** the target from the start setting: coarser by ``factor`` while the setting meets
-   the target (status ``ok`` and error <= target), finer by ``factor`` while it does not, until
-   one setting meets the target and the next coarser one does not (it missed the target or did
-   not finish), or a limit of the setting's range, or the budget;
-2. **bisects** the bracket in log setting (the geometric mean of its ends) until its two ends
-   are within ``resolution`` (10 %) of each other in cost: both measured costs where both runs
-   finished, else in the setting itself (a failed run has no cost: a fixed step's cost is
-   inversely proportional to it, so this is the same criterion).
+1. **brackets** the target from the start setting: coarser by ``factor`` (whole lattice steps)
+   while the setting meets the target (status ``ok`` and error <= target), finer while it does
+   not, until one setting meets the target and the next coarser one does not, or a limit of the
+   setting's range, or the budget;
+2. **bisects** the bracket on the lattice until its two ends are neighbours or within
+   ``resolution`` (10 %) of each other in cost;
+3. **confirms** it: a setting *stands* only when the `CONFIRM` settings just finer on the lattice
+   meet the target too. Where one does not (an adaptive method's error is erratic where its step
+   is held by stability, not by accuracy), the search goes on below the one that missed until a
+   setting stands. A setting that met the target above the answer without standing is named in
+   ``erratic_above``.
 
 ``bound`` says what limits the answer: ``target`` (the coarser end finished but missed the
 target), ``stability`` (the coarser end did not finish: the stability boundary, located to the
 same 10 %), ``largest setting`` (the coarsest allowed setting meets it: nothing cheaper exists to
 find), ``budget`` (the runs ran out first, or a run hit its own step or time budget, after which
-the search goes no finer; the row keeps the bracket reached), ``not reached``.
+the search goes no finer; the row keeps the best setting reached, ``confirmed`` False where it
+could not be confirmed), ``not reached``.
 
-**The answer never extrapolates:** it is the cheapest *measured* setting meeting the target
-(for a fixed step, whose error falls with the step, this is the finer end of the final bracket).
-An adaptive method's error is not monotone in its tolerance, so the bracket it is bisected to
-may be one of several crossings: the same rule (the cheapest measured setting that meets the
-target, among every setting the search ran) gives its answer, with its measured neighbours
-on either side (``setting_high``: the next coarser measured setting, ``setting_finer``: the next
-finer one), and ``non_monotone`` says whether a coarser setting than a failing one met it.
+**The answer never extrapolates:** it is the cheapest *measured* setting that stands.
 """
 
 from __future__ import annotations
@@ -39,12 +40,15 @@ from typing import Callable
 
 #: Two settings whose costs are within this relative distance are close enough (the issue's 10 %).
 RESOLUTION = 0.10
-#: The most runs of one search (bracket and bisection together).
-MAX_RUNS = 16
+#: The most runs of one search (bracket, bisection and confirmation together).
+MAX_RUNS = 24
+#: The lattice ratio of each axis: a step on the 2^(1/8) grid, a tolerance on the 1/8-decade grid.
+GRID = {"dt": 2.0 ** 0.125, "rtol": 10.0 ** 0.125}
+#: How many settings just finer than an answer must meet the target too for it to stand.
+CONFIRM = 3
 #: Statuses of a run stopped by its own budget (steps, seconds): a finer setting costs more, so
 #: the search goes no finer after one (its bound is then ``budget``).
 BUDGET_STATUSES = ("max_steps", "time_limit")
-BOUNDS = ("target", "stability", "largest setting", "budget", "not reached")
 
 
 @dataclass(frozen=True)
@@ -70,14 +74,16 @@ class Found:
 
     target: float
     bound: str
-    setting: float = math.nan  # the answer: the cheapest measured setting meeting the target
+    setting: float = math.nan  # the answer: the cheapest measured setting that stands
     cost: float = math.nan
     error: float = math.nan
     setting_low: float = math.nan  # the bracket's finer end (meets the target): the answer
     setting_high: float = math.nan  # its coarser end (missed, failed, or nan at a range limit)
     setting_finer: float = math.nan  # the measured neighbour finer than the answer, if any
     high_status: str = ""  # the coarser end's status ("ok": it finished and missed the target)
-    non_monotone: bool = False
+    non_monotone: bool = False  # a coarser setting met the target where a finer one missed it
+    confirmed: bool = False  # the CONFIRM settings just finer met the target too
+    erratic_above: float = math.nan  # the coarsest setting above the answer that met it without standing
     points: list[Point] = field(default_factory=list)
 
     @property
@@ -110,89 +116,152 @@ def close(good: Point, bad: Point, resolution: float = RESOLUTION) -> bool:
     return bad.setting <= good.setting * (1.0 + resolution)
 
 
+class _Lattice:
+    """Settings start·grid^k for whole k in [k_min, k_max] (the range's lattice points)."""
+
+    def __init__(self, start: float, lowest: float, highest: float, grid: float):
+        self.start, self.log = start, math.log(grid)
+        self.k_min = math.ceil(math.log(lowest / start) / self.log - 1e-9)
+        self.k_max = math.floor(math.log(highest / start) / self.log + 1e-9)
+
+    def setting(self, k: int) -> float:
+        return float(self.start * math.exp(k * self.log)) if k else float(self.start)
+
+    def index(self, s: float) -> int:
+        return round(math.log(s / self.start) / self.log)
+
+
 def search(run: Callable[[float], tuple[str, float, float]], target: float, start: float, *, lowest: float,
-           highest: float, factor: float = 2.0, resolution: float = RESOLUTION, max_runs: int = MAX_RUNS,
+           highest: float, factor: float = 2.0, grid: float | None = None, resolution: float = RESOLUTION,
+           max_runs: int = MAX_RUNS, confirm: int = CONFIRM,
            known: dict[float, tuple[str, float, float]] | None = None) -> Found:
-    """The cheapest setting in [lowest, highest] at which ``run`` meets ``target`` (module
-    docstring). ``known``: results of settings run before (a resumed search), used instead of
-    running them again; they count against ``max_runs`` as runs."""
+    """The cheapest setting on the lattice in [lowest, highest] at which ``run`` meets ``target``
+    and that stands (module docstring). ``grid``: the lattice ratio (default ``factor``^(1/8));
+    ``known``: results of settings run before, used instead of running them again (they count
+    against ``max_runs``)."""
     if not (0 < lowest <= start <= highest) or not all(math.isfinite(v) for v in (lowest, start, highest)):
         raise ValueError(f"search: need 0 < lowest <= start <= highest (got {lowest!r}, {start!r}, {highest!r})")
     if not (factor > 1 and math.isfinite(factor)):
         raise ValueError(f"search: factor = {factor!r} is invalid (allowed: a finite number > 1)")
     if not (target > 0 and math.isfinite(target)):
         raise ValueError(f"search: target = {target!r} is invalid (allowed: a finite number > 0)")
+    grid = factor ** 0.125 if grid is None else grid
+    if not (1 < grid <= factor):
+        raise ValueError(f"search: grid = {grid!r} is invalid (allowed: 1 < grid <= factor)")
+    lat = _Lattice(start, lowest, highest, grid)
+    jump = max(1, round(math.log(factor) / lat.log))
     known = dict(known or {})
-    points: dict[float, Point] = {}
+    points: dict[int, Point] = {}
 
-    def at(s: float) -> Point:
-        s = float(s)
-        if s not in points:
+    def at(k: int) -> Point:
+        if k not in points:
+            s = lat.setting(k)
             status, error, cost = known[s] if s in known else run(s)
-            points[s] = Point(s, str(status), float(error), float(cost))
-        return points[s]
+            points[k] = Point(s, str(status), float(error), float(cost))
+        return points[k]
 
     def budget_left() -> bool:
         return len(points) < max_runs
 
-    good = bad = None
-    p = at(start)
-    if p.meets(target):
-        good = p
-        while budget_left():  # coarser until missed or failed
-            if good.setting >= highest:
-                break
-            q = at(min(good.setting * factor, highest))
-            if q.meets(target):
-                good = q
+    good = bad = None  # lattice indices
+    if at(0).meets(target):
+        good = 0
+        while budget_left() and good < lat.k_max:  # coarser until missed or failed
+            k = min(good + jump, lat.k_max)
+            if at(k).meets(target):
+                good = k
             else:
-                bad = q
+                bad = k
                 break
     else:
-        bad = p
+        bad = 0
         while budget_left():  # finer until met, never past a run stopped by its own budget
-            if bad.setting <= lowest or bad.status in BUDGET_STATUSES:
+            if bad <= lat.k_min or at(bad).status in BUDGET_STATUSES:
                 break
-            q = at(max(bad.setting / factor, lowest))
-            if q.meets(target):
-                good = q
+            k = max(bad - jump, lat.k_min)
+            if at(k).meets(target):
+                good = k
                 break
-            bad = q
+            bad = k
     if good is not None and bad is not None:
-        while not close(good, bad, resolution) and budget_left():
-            q = at(math.sqrt(good.setting * bad.setting))
-            if q.meets(target):
-                good = q
+        while bad - good > 1 and not close(at(good), at(bad), resolution) and budget_left():
+            k = (good + bad) // 2
+            if at(k).meets(target):
+                good = k
             else:
-                bad = q
-    return _found(list(points.values()), target, lowest, highest, resolution)
+                bad = k
+    if good is not None:
+        _confirm(at, good, lat.k_min, confirm, target, budget_left)
+    return _found(points, target, lat, resolution, confirm)
 
 
-def _found(points: list[Point], target: float, lowest: float, highest: float, resolution: float) -> Found:
-    ordered = sorted(points, key=lambda p: p.setting)
-    meeting = [p for p in ordered if p.meets(target)]
+def _confirm(at, k: int, k_min: int, confirm: int, target: float, budget_left) -> None:
+    """Run the settings just finer than ``k`` until one stands: where one of them misses the
+    target, go on below it. Stops at the range's end, at a run stopped by its own budget, or when
+    the runs run out."""
+    while budget_left():
+        missed = None
+        for j in range(1, confirm + 1):
+            if k - j < k_min or not budget_left():
+                return
+            p = at(k - j)
+            if p.status in BUDGET_STATUSES:
+                return
+            if not p.meets(target):
+                missed = k - j
+                break
+        if missed is None:
+            return
+        k = missed - 1
+        if k < k_min:
+            return
+        while budget_left() and k >= k_min and not at(k).meets(target):  # down to the next setting that meets it
+            if at(k).status in BUDGET_STATUSES:
+                return
+            k -= 1
+
+
+def _stands(points: dict[int, Point], k: int, lat: _Lattice, confirm: int, target: float) -> bool:
+    """The point at k meets the target, and so do the ``confirm`` lattice settings just finer
+    (those below the range's end need not exist)."""
+    return points[k].meets(target) and all(
+        k - j < lat.k_min or (k - j in points and points[k - j].meets(target)) for j in range(1, confirm + 1))
+
+
+def _found(points: dict[int, Point], target: float, lat: _Lattice, resolution: float, confirm: int) -> Found:
+    ks = sorted(points)
+    plist = [points[k] for k in ks]
+    meeting = [k for k in ks if points[k].meets(target)]
     if not meeting:  # the finest setting allowed missed it too, or the runs (or a run's own budget) ran out
-        finest = ordered[0]
-        return Found(target, "not reached" if finest.setting <= lowest and finest.status not in BUDGET_STATUSES
-                     else "budget",
-                     setting_high=ordered[0].setting, high_status=ordered[0].status, points=points)
-    # the rule: the cheapest measured setting that meets the target (the coarsest on ties)
-    best = min(meeting, key=lambda p: (p.cost if _costed(p) else math.inf, -p.setting))
-    i = ordered.index(best)
-    coarser = ordered[i + 1] if i + 1 < len(ordered) else None
-    finer = ordered[i - 1] if i > 0 else None
-    failing_below = [p for p in ordered if p.setting < best.setting and not p.meets(target)]
-    out = Found(target, "", setting=best.setting, cost=best.cost, error=best.error, setting_low=best.setting,
+        finest = points[ks[0]]
+        return Found(target, "not reached" if ks[0] <= lat.k_min and finest.status not in BUDGET_STATUSES
+                     else "budget", setting_high=finest.setting, high_status=finest.status, points=plist)
+    standing = [k for k in meeting if _stands(points, k, lat, confirm, target)]
+
+    def cheapest(ks_):  # the cheapest by cost, the coarsest on ties
+        return max(ks_, key=lambda k: (-(points[k].cost if _costed(points[k]) else math.inf), k))
+
+    best = cheapest(standing) if standing else cheapest(meeting)
+    i = ks.index(best)
+    coarser = points[ks[i + 1]] if i + 1 < len(ks) else None
+    finer = points[ks[i - 1]] if i > 0 else None
+    unstable = [k for k in meeting if k > best and not _stands(points, k, lat, confirm, target)]
+    p = points[best]
+    out = Found(target, "", setting=p.setting, cost=p.cost, error=p.error, setting_low=p.setting,
                 setting_high=coarser.setting if coarser else math.nan,
                 setting_finer=finer.setting if finer else math.nan,
-                high_status=coarser.status if coarser else "", non_monotone=bool(failing_below), points=points)
-    if coarser is None:
-        out.bound = "largest setting" if best.setting >= highest else "budget"
-    elif coarser.meets(target):  # a coarser setting met it at a higher cost (adaptive)
+                high_status=coarser.status if coarser else "",
+                non_monotone=any(k < best and not points[k].meets(target) for k in ks) or bool(unstable),
+                confirmed=bool(standing), erratic_above=points[max(unstable)].setting if unstable else math.nan,
+                points=plist)
+    if not standing:
+        out.bound = "budget"
+    elif coarser is None:
+        out.bound = "largest setting" if best >= lat.k_max else "budget"
+    elif coarser.meets(target):  # a coarser setting met it without standing, or at a higher cost
         out.bound = "target"
-    elif not close(best, coarser, resolution):
+    elif not close(p, coarser, resolution) and ks[i + 1] - best > 1:
         out.bound = "budget"
     else:
         out.bound = "target" if coarser.finished else "stability"
     return out
-

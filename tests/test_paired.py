@@ -4,7 +4,7 @@ with the ratio inside its interval; two equal methods are a tie."""
 import numpy as np
 import pytest
 
-from benchmark.paired import compare, pinned, resolved, time_paired
+from benchmark.paired import RACE_MARGIN, compare, pinned, resolved, time_paired
 
 
 def synthetic(base: float, rng, load):
@@ -39,7 +39,8 @@ def test_a_known_ratio_of_1_3_is_a_winner(seed):
     fast, slow = ratios
     assert fast.method == "fast" and fast.verdict == "winner" and slow.verdict == "slower"
     assert slow.low <= 1.3 <= slow.high and slow.low > 1.0
-    assert resolved(ratios) and slow.pairs >= 8
+    # timed to the end and resolved, or left the race clearly slower than the tie margin
+    assert (resolved(ratios) and slow.pairs >= 8) or (slow.low > 1 + RACE_MARGIN and resolved([fast]))
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -84,3 +85,28 @@ def test_a_ratio_within_the_equivalence_margin_is_a_tie_whatever_its_interval():
     assert [r.verdict for r in out] == ["tie", "tie"]
     out = verdicts([Ratio("a", 1.0, 1.0, 1.0, 1.0, 17), Ratio("b", 1.5, 1.5, 1.0 + EQUIVALENCE * 1.01, 1.6, 17)])
     assert [r.verdict for r in out] == ["winner", "slower"]
+
+
+def _counting(base: float, calls: dict, name: str, rng):
+    def solve():
+        calls[name] = calls.get(name, 0) + 1
+        return base * rng.lognormal(0.0, 0.05)
+    return solve
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_race_drops_a_3x_slower_method_early_and_keeps_a_1_05x_one_to_the_end(seed):
+    """Three synthetic methods: the fastest, one 5 % slower (a contender: within the tie margin)
+    and one 3x slower. The 3x one leaves after the first rounds; the 1.05x one runs every round,
+    as the fastest does; the verdicts are unchanged by the race."""
+    rng = np.random.default_rng(seed)
+    calls: dict = {}
+    solves = {"fast": _counting(1.0, calls, "fast", rng), "close": _counting(1.05, calls, "close", rng),
+              "slow": _counting(3.0, calls, "slow", rng)}
+    ratios = {r.method: r for r in time_paired(solves, budget=1e9, max_rounds=60, precision=0.001, seed=seed)}
+    assert calls["fast"] == calls["close"] == 60  # the contenders ran to the end
+    assert calls["slow"] <= 5  # left at the first race check
+    assert ratios["slow"].pairs == calls["slow"] and ratios["slow"].verdict == "slower"
+    assert ratios["slow"].ratio == pytest.approx(3.0, rel=0.1)
+    assert ratios["close"].ratio == pytest.approx(1.05, rel=0.03) and ratios["close"].verdict == "tie"
+    assert resolved([ratios["fast"], ratios["close"]], 0.05)

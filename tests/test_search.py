@@ -85,27 +85,74 @@ def test_a_target_never_met_is_not_reached_and_the_coarsest_setting_is_the_large
     f = search(lambda dt: ("ok", 1.0, 1 / dt), 1e-3, 0.01, lowest=1e-3, highest=1.0)
     assert f.bound == "not reached" and math.isnan(f.setting)
     f = search(fixed_step(C=1e-9), 1e-3, 0.01, lowest=1e-3, highest=0.5)
-    assert f.bound == "largest setting" and f.setting == 0.5 and math.isnan(f.setting_high)
+    # the coarsest lattice setting within the range (start · 2^(k/8) <= 0.5)
+    assert f.bound == "largest setting" and 0.5 / 2 ** 0.125 < f.setting <= 0.5 and math.isnan(f.setting_high)
 
 
-def test_an_adaptive_non_monotone_curve_gives_the_cheapest_measured_setting_meeting_it():
-    """error(tol): meets 1e-6 at tol <= 1e-7, misses on (1e-7, 1e-5], and meets again on a bump
-    near tol = 3e-5 (a lucky step sequence); cost falls with tol. The rule takes the cheapest
-    measured setting that meets the target, whichever crossing the bisection found, and names
-    its measured neighbours."""
+def test_an_adaptive_non_monotone_curve_gives_the_cheapest_setting_that_stands():
+    """error(tol) = 0.1 tol: meets 1e-6 at tol <= 1e-5, misses above, and meets again on a bump
+    near tol = 3e-5 (a lucky step sequence); cost falls with tol. The bump's settings meet the
+    target but the settings just finer do not, so none of them stands: the answer is the cheapest
+    setting whose three finer neighbours meet it too, and the row names the lucky one above it."""
     def run(tol):
         lucky = 2.5e-5 <= tol <= 4e-5
         err = 5e-7 if lucky else (0.1 * tol if tol > 1e-7 else 1e-8)
         return "ok", err, tol ** -0.2
 
     f = search(run, 1e-6, 1e-4, lowest=1e-14, highest=0.1, factor=10.0)
-    measured = [p for p in f.points if p.meets(1e-6)]
-    assert f.cost == min(p.cost for p in measured)
+    assert f.confirmed and f.setting <= 1e-5 * (1 + 1e-9)
+    assert f.setting * 10 ** 0.25 > 1e-5  # within a lattice step of the crossing (1e-5 itself misses by an ulp)
+    standing = [p for p in f.points if p.meets(1e-6) and p.setting <= 1e-5 * (1 + 1e-9)]
+    assert f.cost == min(p.cost for p in standing)
     settings = sorted(p.setting for p in f.points)
     i = settings.index(f.setting)  # its measured neighbours on either side
     assert f.setting_finer == settings[i - 1] and f.setting_high == settings[i + 1]
-    above = [p for p in f.points if p.setting > f.setting]
-    assert all(not p.meets(1e-6) or p.cost >= f.cost for p in above)
+    lucky = [p for p in f.points if p.meets(1e-6) and p.setting > 1.1e-5]
+    if lucky:  # the bisection found the bump: it is named, never the answer
+        assert 2.5e-5 <= f.erratic_above <= 4e-5 and f.non_monotone
+    f = search(run, 1e-6, 3e-5, lowest=1e-14, highest=0.1, factor=10.0)  # start on the bump
+    assert f.confirmed and f.setting <= 1e-5 and f.erratic_above == 3e-5 and f.non_monotone
+
+
+def _erratic_dop853(calls=None):
+    """The deployment case of DOP853 at N = 10, position <= 1e-6 (measured on the 1/8-decade grid):
+    rtol 1e-3 passes (6.0e-7 m) but 1.33e-3, 1.78e-3 and 5.6e-4 fail; every rtol <= 4.2e-4 passes.
+    The step is held by stability, so the cost barely moves."""
+    def run(rtol):
+        if calls is not None:
+            calls.append(rtol)
+        k = round(math.log10(rtol) * 8)  # the 1/8-decade lattice index (1e-3 -> -24)
+        if k >= -23 and k != -24:  # 7.5e-4 and coarser, except the lucky 1e-3
+            err = 1.05e-6 if k in (-23, -22, -21, -20) else 3.1e-6
+        elif k == -24:
+            err = 6.0e-7
+        elif k == -26:  # 5.6e-4
+            err = 1.02e-6
+        elif k == -25:  # 7.5e-4
+            err = 8e-7
+        else:  # <= 4.2e-4
+            err = 2e-7 * 10 ** ((k + 27) / 8)
+        return "ok", err, 7787.0 + 10.0 * (-k)
+    return run
+
+
+def test_a_lucky_setting_is_not_published_the_one_that_stands_is():
+    calls = []
+    f = search(_erratic_dop853(calls), 1e-6, 1e-6, lowest=1e-13, highest=0.1, factor=10.0)
+    assert f.confirmed and f.bound == "target"
+    assert f.setting <= 4.3e-4, f  # below the erratic region: rtol <= 4.2e-4 passes everywhere
+    assert f.setting == pytest.approx(10 ** (-27 / 8))  # the coarsest setting that stands
+    for j in (1, 2, 3):  # its three finer neighbours were run and met the target
+        assert any(p.setting == pytest.approx(f.setting / 10 ** (j / 8)) and p.meets(1e-6) for p in f.points)
+    assert f.erratic_above == pytest.approx(1e-3) and f.non_monotone
+    assert f.runs <= 24
+
+
+def test_a_monotone_answer_is_confirmed_by_its_three_finer_neighbours():
+    f = search(fixed_step(), 1e-6, 0.005, lowest=1e-6, highest=1.0)
+    assert f.confirmed and math.isnan(f.erratic_above) and not f.non_monotone
+    finer = sorted((p.setting for p in f.points if p.setting < f.setting), reverse=True)[:3]
+    assert finer == pytest.approx([f.setting / 2 ** (j / 8) for j in (1, 2, 3)])
 
 
 def test_bad_arguments_are_refused():
