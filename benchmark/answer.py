@@ -39,8 +39,15 @@ from benchmark import paired as _paired
 from benchmark import search as _search
 from benchmark.store import code_version, frame, kept_rows, key_of
 
-#: (metric, target) pairs, the runs report's (`benchmark.runs_report.TARGETS`).
-ELEMENTS = (10, 40)
+#: The default targets: (metric, target, label); ``--targets`` asks for others, on any metric
+#: of `benchmark.metrics.METRICS`.
+TARGETS = (("energy_error", 1e-4, "energy error (relative to max T)"),
+           ("position_error_final", 1e-6, "body position error at t_end (m)"))
+#: The string sizes of the main job, and of the extended answer.
+ELEMENTS = (10,)
+EXTENDED_ELEMENTS = (10, 40)
+#: The scenes of the extended answer: the paper's three, the string in water, the tow.
+EXTENDED_SCENES = ("fixed_length", "deployment", "retrieval", "deployment_in_water", "towed")
 #: The search's range and start per axis: (start, lowest, highest, factor). dt: seconds; a
 #: step above 0.1 s is beyond every shipped method's stability on these scenes (the search
 #: would say "largest setting"); rtol: the adapters' own range, 1e-13 above the reference's 1e-12.
@@ -53,7 +60,7 @@ ATOL_FACTOR = 1e-2
 
 SEARCH_COLUMNS = ["scene", "elements", "integrator", "sweep", "metric", "target", "setting", "cost", "cost_column",
                   "error", "setting_low", "setting_high", "setting_finer", "high_status", "bound", "runs", "spread",
-                  "implementation", "note", "run_key", "row_digest"]
+                  "confirmed", "erratic_above", "implementation", "note", "points", "run_key", "row_digest"]
 TIMING_COLUMNS = ["scene", "elements", "metric", "target", "ratios", "rounds", "seconds", "core", "load_avg",
                   "note", "run_key", "row_digest"]
 #: Columns of cheapest.csv.
@@ -106,14 +113,16 @@ def solve_kwargs(sweep: str, setting: float, t_end: float) -> dict:
     return kw
 
 
-#: The solves this worker ran: (scene, N, t_end, method, axis, setting) -> (status, metrics, cost, column).
+#: The solves this worker ran: (scene, N, t_end, method, axis, setting) -> (status, metrics, cost,
+#: column, seconds).
 _SOLVED: dict = {}
 #: The references this worker read: (scene, N, t_end, cache) -> trajectory.
 _REFERENCES: dict = {}
 
 
-def _solve_once(job: SearchJob, setting: float, cache_dir: str) -> tuple[str, dict, float, str]:
-    """(status, every accuracy metric, flops, the cost column) of one setting, solved once per worker."""
+def _solve_once(job: SearchJob, setting: float, cache_dir: str) -> tuple[str, dict, float, str, float]:
+    """(status, every accuracy metric, flops, the cost column, the solve's seconds) of one setting,
+    solved once per worker."""
     key = (job.scene, job.elements, job.t_end, job.integrator, job.sweep, float(setting))
     if key in _SOLVED:
         return _SOLVED[key]
@@ -132,8 +141,8 @@ def _solve_once(job: SearchJob, setting: float, cache_dir: str) -> tuple[str, di
     try:
         traj = get_integrator(job.integrator).solve(scene, time_limit=RUN_TIME_LIMIT,
                                                     **solve_kwargs(job.sweep, setting, t_end))
-    except ValueError as exc:  # a setting the method refuses (e.g. dt beyond t_end): not finished
-        out = ("failed", {}, math.nan, "flops")
+    except ValueError:  # a setting the method refuses (e.g. dt beyond t_end): not finished
+        out = ("failed", {}, math.nan, "flops", math.nan)
         _SOLVED[key] = out
         return out
     model = build_model(scene)
@@ -144,7 +153,7 @@ def _solve_once(job: SearchJob, setting: float, cache_dir: str) -> tuple[str, di
     flops, _ = run_flops(job.integrator, model, traj.stats, traj.stats.get("rhs", traj.settings.get("rhs")),
                          adaptive=job.sweep == "rtol")
     cost, column = (flops, "flops") if np.isfinite(flops) else (float(traj.stats.get("steps", math.nan)), "steps")
-    out = (status, metrics, float(cost), column)
+    out = (status, metrics, float(cost), column, float(traj.stats.get("wall_time", math.nan)))
     _SOLVED[key] = out
     return out
 
@@ -157,23 +166,38 @@ def run_search(job: SearchJob, cache_dir: str) -> dict:
     row.pop("max_runs"), row.pop("t_end")
     try:
         start, lowest, highest, factor = AXES[job.sweep]
-        columns = set()
+        columns, points = set(), []
 
         def run(setting):
-            status, metrics, cost, column = _solve_once(job, setting, cache_dir)
+            status, metrics, cost, column, seconds = _solve_once(job, setting, cache_dir)
             columns.add(column)
+            points.append({"setting": setting, "status": status, "cost": cost, "cost_column": column,
+                           "run_time": seconds, **metrics})
             return status, metrics.get(job.metric, math.nan), cost
 
         found = _search.search(run, job.target, start, lowest=lowest, highest=highest, factor=factor,
-                               max_runs=job.max_runs)
+                               grid=_search.GRID[job.sweep], max_runs=job.max_runs)
         row.update(setting=found.setting, cost=found.cost, error=found.error, setting_low=found.setting_low,
                    setting_high=found.setting_high, setting_finer=found.setting_finer, high_status=found.high_status,
-                   bound=found.bound, runs=found.runs, spread=found.spread,
+                   bound=found.bound, runs=found.runs, spread=found.spread, confirmed=found.confirmed,
+                   erratic_above=found.erratic_above,
                    cost_column="flops" if columns == {"flops"} else "+".join(sorted(columns)),
-                   note="non-monotone: a finer setting missed the target" if found.non_monotone else "")
+                   note=_search_note(job.sweep, found), points=json.dumps(points, default=float))
     except Exception as exc:  # a bug in one search must not lose the others
         row.update(bound="error", note=f"{type(exc).__name__}: {exc}"[:300])
     return row
+
+
+def _search_note(sweep: str, found) -> str:
+    """What a reader must know of a search's answer: a lucky setting above it, or none confirmed."""
+    if math.isfinite(found.erratic_above):
+        return (f"the error was erratic above this setting: {_setting_text(sweep, found.erratic_above)} met the "
+                "target but a setting just finer did not")
+    if math.isfinite(found.setting) and not found.confirmed:
+        return f"not confirmed: the runs ran out before the {_search.CONFIRM} settings just finer were run"
+    if found.non_monotone:
+        return "non-monotone: a finer setting missed the target"
+    return ""
 
 
 def _one_minute_load() -> float:
@@ -487,22 +511,18 @@ def answer_lines(table: pd.DataFrame, labels: dict | None = None) -> list[str]:
     return lines
 
 
-def answer_block(table: pd.DataFrame, labels: dict | None = None) -> str:
-    """The project README's answer block: `answer_lines` and how they were made."""
+def answer_block(table: pd.DataFrame, labels: dict | None = None, command: str = "python -m benchmark answer",
+                 table_file: str = "results/cheapest.csv") -> str:
+    """The project README's answer block: one table per N, one sentence per scene, how it was made."""
+    from benchmark import answer_report
+
     bounded = sorted(table.loc[table["note"].fillna("").eq(LOWER_BOUND_NOTE), "integrator"].unique())
-    bounds = (f"; {', '.join(f'`{b}`' for b in bounded)} by work: its flops leave out its Newton solves, a lower "
-              "bound (`≥`), never a winner" if bounded else "")
-    return "\n".join(answer_lines(table, labels) + [
-        "- Each cost is the cheapest setting found by search to 10 % in cost (`bound`: what limits it); wall time "
-        "from paired, interleaved timing on one pinned core (ratio to the fastest, 90 % bootstrap interval); a winner "
-        f"only when every other interval lies above {1 + _paired.EQUIVALENCE:g} (`benchmark.paired.EQUIVALENCE`: two "
-        f"quiet timing passes moved a ratio by up to 11 %), else a tie; scipy's methods ranked by work only{bounds}.",
-        "- Generated by `python -m benchmark answer --out results/answer`; every row: "
-        "`results/answer/cheapest.csv`."]) + "\n"
+    return "\n".join(answer_report.tables(table, labels) + answer_report.how_made(
+        command, bounded, _paired.EQUIVALENCE, _search.CONFIRM, table_file)) + "\n"
 
 
 #: Where the committed answer lives: an `answer` run into it also rewrites the README's answer block.
-COMMITTED_ANSWER = Path("results") / "answer"
+COMMITTED_ANSWER = Path("results")
 
 
 def is_committed_answer(out: Path) -> bool:
@@ -571,43 +591,67 @@ class AnswerRequest:
     scenes: tuple
     integrators: tuple
     elements: tuple = ELEMENTS
+    targets: tuple = tuple((m, t) for m, t, _ in TARGETS)
     t_end: float | None = None
     max_runs: int = _search.MAX_RUNS
     timing_budget: float = _paired.BUDGET
     jobs: int | None = None
     fresh: bool = False
+    command: str = "python -m benchmark answer"
+
+
+def _shown(path: Path) -> str:
+    """``path`` relative to the repository where it lies inside it, else as given."""
+    from benchmark.store import ROOT
+
+    try:
+        return str(Path(path).resolve().relative_to(ROOT.resolve()))
+    except ValueError:
+        return str(path)
+
+
+def labels_of(targets) -> dict:
+    """metric -> its words: the default targets' labels, else the metric's own description."""
+    from benchmark.metrics import METRICS
+
+    words = {m: label for m, _, label in TARGETS}
+    described = {m.name: m.description or m.name for m in METRICS}
+    return {m: words.get(m, described.get(m, m)) for m, _ in targets}
 
 
 def run_answer(request: AnswerRequest, log: Callable[[str], None] = engine.log_stderr) -> int:
-    """search.csv, timing.csv (each written after every job), cheapest.csv and answer.md into
-    ``request.out``; a stopped study keeps its finished rows and resumes from them."""
+    """search.csv, timing.csv (each written after every job), cheapest.csv, answer.md, README.md
+    and the work–precision figures into ``request.out``; a stopped study keeps its finished rows
+    and resumes from them. Into the committed results/, the project README's answer block too."""
     import os
 
+    from benchmark import answer_report
     from benchmark.pipelines import _exclusive
-    from benchmark.runs_report import TARGETS
+    from benchmark.reference import CACHE_DIR
+    from benchmark.report import Provenance
     from benchmark.store import TableWriter, write_table
     from models.io import atomic_write_text
 
     out = Path(request.out)
     out.mkdir(parents=True, exist_ok=True)
+    provenance = Provenance(request.command)
     # a run joins the rows already there: rows of other scenes, sizes, methods or targets are kept
-    # (`merged`), this run's replace theirs (so N = 10 and N = 40 may run one after the other)
+    # (`merged`), this run's replace theirs (so the extended answer adds to the main job's)
     earlier = {name: read_rows(out / name, log) for name in ("search.csv", "timing.csv")}
     search_csv = TableWriter(out / "search.csv",
                              lambda rows: frame(merged(earlier["search.csv"], rows, SEARCH_IDENTITY), SEARCH_COLUMNS))
     timing_csv = TableWriter(out / "timing.csv",
                              lambda rows: frame(merged(earlier["timing.csv"], rows, TIMING_IDENTITY), TIMING_COLUMNS))
-    started = time.perf_counter()
     try:
         with _exclusive(out, log):
-            targets = [(m, t) for m, t, _ in TARGETS]
+            targets = list(request.targets)
             jobs = search_jobs(request.scenes, request.integrators, targets, request.elements, request.t_end,
                                request.max_runs)
             log(f"{len(jobs)} searches: {len(request.scenes)} scene(s) × N = "
                 f"{', '.join(map(str, request.elements))} × {len(request.integrators)} method(s) × "
                 f"{len(targets)} target(s); results -> {out}/")
             workers = request.jobs or min(len(jobs), os.cpu_count() or 1)
-            searched = run_search_stage(jobs, workers=workers, cache_dir=str(out / "cache"),
+            searched = run_search_stage(jobs, workers=workers, cache_dir=str(CACHE_DIR),
                                         previous=[] if request.fresh else earlier["search.csv"],
                                         on_row=search_csv, log=log)
             search_csv(searched.to_dict("records"))
@@ -620,9 +664,12 @@ def run_answer(request: AnswerRequest, log: Callable[[str], None] = engine.log_s
             timed = timing_csv.to_table(timed.to_dict("records"))
             table = answer_table(searched, timed)
             write_table(out / "cheapest.csv", table)
-            labels = {m: label for m, _, label in TARGETS}
-            block = answer_block(table, labels)
+            labels = labels_of(table[["metric", "target"]].drop_duplicates().itertuples(index=False))
+            block = answer_block(table, labels, request.command, _shown(out / "cheapest.csv"))
             atomic_write_text(out / "answer.md", block)
+            made = answer_report.figures(searched, out)
+            atomic_write_text(out / "README.md", answer_report.readme(block.splitlines(), made, provenance.header()))
+            log(f"{out}/README.md and {len(made)} work–precision figure(s) written")
             if is_committed_answer(out):
                 from benchmark.runs_report import write_answer
                 from benchmark.store import ROOT
@@ -631,5 +678,5 @@ def run_answer(request: AnswerRequest, log: Callable[[str], None] = engine.log_s
     except KeyboardInterrupt as exc:
         return engine.stopped(exc, f"{search_csv.saved} search row(s) and {timing_csv.saved} timing row(s) are "
                                    f"saved in {out}; run the same command again to resume", log)
-    log(f"done in {time.perf_counter() - started:.0f} s: {out}/cheapest.csv, {out}/answer.md")
+    log(f"done in {provenance.wall_time():.0f} s: {out}/cheapest.csv, {out}/README.md")
     return 0

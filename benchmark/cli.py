@@ -405,24 +405,53 @@ def cmd_stability(args) -> int:
 
 
 def cmd_answer(args) -> int:
-    """The cheapest setting of every method at every target by search, and paired timing."""
-    from benchmark import sweep
+    """The main job: the cheapest setting of every method at every target by search, and paired timing."""
+    from benchmark import answer, sweep
     from benchmark.answer import AnswerRequest
     from models import load_scene
 
     for name in args.integrators or ():
         _check_integrator(name)
-    scenes = tuple(args.scenes or sweep.PAPER_SCENES)
+    targets = _targets(args.targets) if args.targets else tuple((m, t) for m, t, _ in answer.TARGETS)
+    scenes = tuple(args.scenes or (answer.EXTENDED_SCENES if args.extended else sweep.PAPER_SCENES))
+    elements = tuple(args.elements or (answer.EXTENDED_ELEMENTS if args.extended else answer.ELEMENTS))
     for sc in scenes:
-        for n in args.elements:
+        for n in elements:
             load_scene(sc, elements=n, **({"t_end": args.t_end} if args.t_end else {}))  # validated before work
     out = opt.writable_dir(args.out)
-    from benchmark import answer
+    if args.integrators:
+        names = tuple(args.integrators)
+    else:
+        from integrators import get_integrator
 
-    names = tuple(args.integrators or sweep.default_names())
-    return answer.run_answer(AnswerRequest(out=out, scenes=scenes, integrators=names, elements=tuple(args.elements),
-                                           t_end=args.t_end, max_runs=args.max_runs, timing_budget=args.timing_budget,
-                                           jobs=args.jobs, fresh=args.fresh), log=_log)
+        names = tuple(n for n in sweep.default_names() if args.extended or get_integrator(n).default_sweep)
+    return answer.run_answer(AnswerRequest(out=out, scenes=scenes, integrators=names, elements=elements,
+                                           targets=targets, t_end=args.t_end, max_runs=args.max_runs,
+                                           timing_budget=args.timing_budget, jobs=args.jobs, fresh=args.fresh,
+                                           command=_command(args)), log=_log)
+
+
+def _targets(text: str) -> tuple:
+    """``metric=target,...`` -> ((metric, target), ...): each metric one of the runs table's
+    accuracy metrics, each target a positive number."""
+    from benchmark.metrics import ACCURACY
+
+    out = []
+    for part in text.split(","):
+        metric, _, value = part.strip().partition("=")
+        if metric not in ACCURACY:
+            raise UsageError(f"--targets {text}: {metric!r} is not a metric (allowed: {', '.join(ACCURACY)}), "
+                             "e.g. --targets energy_error=1e-5,position_error_final=1e-7")
+        try:
+            target = float(value)
+        except ValueError:
+            target = float("nan")
+        if not (0 < target < float("inf")):
+            raise UsageError(f"--targets {text}: the target of {metric} must be a positive number (got {value!r})")
+        out.append((metric, target))
+    if len({m for m, _ in out}) != len(out):
+        raise UsageError(f"--targets {text}: each metric at most once")
+    return tuple(out)
 
 
 def cmd_xval(args) -> int:
@@ -463,8 +492,10 @@ def cmd_reel_reversal(args) -> int:
         raise UsageError(f"--scene {scene.name!r} has no reel (effects: {', '.join(scene.effects)}): the reel-reversal "
                          "study follows the reel rate through its change of sign; give a scene with the reel effect, "
                          "e.g. --scene reel_reversal")
-    cache = opt.writable_dir(args.cache_dir, option="--cache-dir")
     from benchmark import pipelines
+    from benchmark.reference import CACHE_DIR
+
+    cache = opt.writable_dir(args.cache_dir or CACHE_DIR, option="--cache-dir")
 
     return pipelines.run_reel_reversal(args.scene, args.elements, args.t_end, args.methods, jobs=args.jobs,
                                        cache_dir=str(cache), log=_log)
@@ -709,21 +740,31 @@ def _add_stability(sub) -> None:
 def _add_answer(sub) -> None:
     from benchmark import answer, paired, search  # constants only (no JAX)
 
-    an = sub("answer", "each method's cheapest setting at each target by search, wall-time verdicts by paired "
-                       "timing, at N = 10 and 40 -> --out/cheapest.csv, answer.md",
-             "For every scene x N x method x target, search the cheapest setting meeting the target (bracket, then "
-             "bisect to 10 %% in cost; benchmark/search.py), then time the compiled methods at their settings paired "
-             "and interleaved on one pinned core (benchmark/paired.py). Resumable: rerun to continue.")
+    an = sub("answer", "the main job: each method's cheapest setting at each target by search, wall-time verdicts "
+                       "by paired timing -> --out/cheapest.csv, README.md, figures (and the README's answer block)",
+             "For every scene x N x method x target, search the cheapest setting meeting the target that stands "
+             "(bracket, bisect to 10 % in cost, confirm the three settings just finer; benchmark/search.py), then "
+             "time the compiled methods at their settings paired and interleaved on one pinned core, racing "
+             "(benchmark/paired.py). Default: the paper's three scenes at N = 10 with the default methods; "
+             "--extended: every method, the scenes in water and the off-centre tow too, at N = 10 and 40, its rows "
+             "merged into the same table. Resumable: rerun to continue.")
+    an.add_argument("--extended", action="store_true",
+                    help="every one of the project's methods on the paper's and the fluid scenes at N = 10 and 40")
     an.add_argument("--scenes", type=opt.names, help="comma-separated scene names (default: the paper's three)")
-    an.add_argument("--integrators", type=opt.names, help="comma-separated integrator names (default: the sweep's)")
-    an.add_argument("--elements", type=opt.positive_ints, default=list(answer.ELEMENTS), help="comma-separated N")
+    an.add_argument("--integrators", type=opt.names, help="comma-separated integrator names (default: the "
+                                                          "default sweep's; --extended: all of the project's)")
+    an.add_argument("--elements", type=opt.positive_ints, help="comma-separated N (default 10; --extended 10,40)")
+    an.add_argument("--targets", help="comma-separated metric=target pairs on any accuracy metric of the runs "
+                                      "table (default: energy_error=1e-4,position_error_final=1e-6)")
     an.add_argument("--t-end", type=opt.positive_float, help="horizon in s (default: each scene's t_end)")
     an.add_argument("--max-runs", type=opt.positive_int, default=search.MAX_RUNS, help="runs per search at most")
     an.add_argument("--timing-budget", type=opt.positive_float, default=paired.BUDGET,
                     help="seconds of paired timing per scene x N x target at most")
     an.add_argument("--jobs", type=opt.positive_int, help="worker processes for the search (default: one per CPU)")
-    an.add_argument("--fresh", action="store_true", help="recompute every row (default: keep the finished ones)")
-    an.add_argument("--out", default="results/answer", help="output directory (created if missing)")
+    an.add_argument("--fresh", action="store_true", help="recompute every row this command writes (default: keep "
+                                                         "the finished ones)")
+    an.add_argument("--out", default=str(answer.COMMITTED_ANSWER), help="output directory (created if missing; "
+                                                                       "results/ also rewrites the README's answer)")
     an.set_defaults(func=cmd_answer)
 
 
@@ -751,7 +792,8 @@ def _add_reel_reversal(sub) -> None:
     rr.add_argument("--methods", type=opt.names, help=f"comma-separated methods (default: {_csv(reel_reversal.DEFAULT_HS)})")
     rr.add_argument("--jobs", type=opt.nonnegative_int,
                     help="worker processes (0: run in this process; default: one per method, at most the CPU count)")
-    rr.add_argument("--cache-dir", default="results/cache", help="where the reference is cached (created if missing)")
+    rr.add_argument("--cache-dir", help="where the reference is cached (default: the user's cache, shared by every "
+                                        "study; created if missing)")
     rr.set_defaults(func=cmd_reel_reversal)
 
 

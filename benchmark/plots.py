@@ -16,7 +16,6 @@ import pandas as pd  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 
 from benchmark import styles  # noqa: E402
-from benchmark.cheapest import work_column  # noqa: E402
 from benchmark.metrics import FLOPS_DEFINITION, WORK_DEFINITION, pi3_deviation  # noqa: E402
 from models import build_model  # noqa: E402
 from models.diagnostics import energy_deviation  # noqa: E402
@@ -55,6 +54,13 @@ COST_AXES = (("run_time", "run time (s): solve() after compilation, median of re
 _COUNT_AXIS = ("work_evals", "work (RHS-equivalent evaluations)")
 
 
+def work_column(runs: pd.DataFrame) -> str:
+    """The work column of a runs table: ``flops`` when it has any value, else ``work_evals``."""
+    if "flops" in runs and runs["flops"].notna().any():
+        return "flops"
+    return "work_evals"
+
+
 def _numeric(df: pd.DataFrame, columns) -> pd.DataFrame:
     """``df`` with ``columns`` as numbers (text that is not one becomes NaN: never drawn)."""
     return df.assign(**{c: pd.to_numeric(df[c], errors="coerce") for c in columns if c in df})
@@ -82,15 +88,18 @@ def log_ticks(ax) -> None:
         axis.set_minor_formatter(NullFormatter())
 
 
-def work_precision(runs: pd.DataFrame, scene: str, out_dir: Path) -> Path:
+def work_precision(runs: pd.DataFrame, scene: str, out_dir: Path, *, searched: bool = False) -> Path:
     """Error vs cost, one curve per integrator and sweep axis, log-log: one column per error kind,
     one row per cost axis (`COST_AXES`: wall time, then the work in flops that ranks the methods,
-    so a reader on another machine can check the ranking). Every method has its own style
+    so a reader on another machine can check the ranking; ``searched``: the rows are the settings a
+    search ran, each solved once, drawn against work only). Every method has its own style
     (`benchmark.styles.style`) in every panel; the legend is outside the axes and names a method
     without a work count as such."""
     path = inside(out_dir, f"work_precision_{scene}.png")  # the scene name comes from a table: refused if it walks out
     by_flops = work_column(runs) == "flops"
     cost_axes = COST_AXES if by_flops else (COST_AXES[0], _COUNT_AXIS)
+    if searched:  # one solve's time under load is noise beside the paired timing: work only
+        cost_axes = (cost_axes[1],)
     work = cost_axes[1][0]
     cols = [c for c, _ in cost_axes] + list(ERROR_LABELS) + ["dt"]
     sel = runs[runs["scene"] == scene]
@@ -118,8 +127,9 @@ def work_precision(runs: pd.DataFrame, scene: str, out_dir: Path) -> Path:
     fig.tight_layout(rect=(0, 0, 1, 0.93))
     styles.legend_outside(fig, *styles.legend_entries(drawn, {i: why for i, why in absent.items() if i not in shown}))
     failed = sel[sel["status"] != "ok"]
-    fig.suptitle(f"{scene}: work–precision" + (f"  ({len(failed)} runs failed, see runs.csv)" if len(failed) else "")
-                 + f"\nbottom row: {FLOPS_DEFINITION if by_flops else WORK_DEFINITION}"
+    source = "search.csv" if searched else "runs.csv"
+    fig.suptitle(f"{scene}: work–precision" + (f"  ({len(failed)} runs failed, see {source})" if len(failed) else "")
+                 + f"\n{'work' if searched else 'bottom row'}: {FLOPS_DEFINITION if by_flops else WORK_DEFINITION}"
                  + (f"; no {'flops' if by_flops else 'work'} count for {', '.join(missing_below)}" if missing_below else "")
                  + _clash_caption(set(g["integrator"])), fontsize=10)
     return save_figure(fig, path)

@@ -31,7 +31,20 @@ from integrators import get_integrator
 from models.io import inside
 
 REFERENCE_METHOD = {"integrator": "dop853", "rtol": 1e-12, "atol": 1e-14}
-CACHE_DIR = Path("results") / "cache"
+def user_cache_dir() -> Path:
+    """Where reelbench keeps what it can recompute (reference solutions, compiled programs):
+    ``$REELBENCH_CACHE``, else ``$XDG_CACHE_HOME/reelbench``, else ``~/.cache/reelbench``."""
+    import os
+
+    if os.environ.get("REELBENCH_CACHE"):
+        return Path(os.environ["REELBENCH_CACHE"]).expanduser()
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base).expanduser() / "reelbench"
+
+
+#: References are shared by every study and output directory: one file per scene, horizon, save
+#: interval and physics code (`reference_path`).
+CACHE_DIR = user_cache_dir() / "references"
 #: Version of the file layout below; a file of another format is recomputed (3: with the dense
 #: output of the compared components, `DenseSolution`).
 FORMAT = 3
@@ -49,9 +62,10 @@ def identity(scene, t_end: float, save_every: float) -> dict:
 
 
 def reference_path(scene, t_end: float, save_every: float, cache_dir: Path = CACHE_DIR) -> Path:
-    """The file of a reference: one per problem, whatever code computed it (a reference computed
-    by other code is found there, refused by its identity and replaced)."""
-    key = json.dumps({"scene": scene.key(), "t_end": t_end, "save_every": save_every, **REFERENCE_METHOD}, sort_keys=True)
+    """The file of a reference: one per problem and physics code (a file found there is still
+    checked against its whole identity before it is used)."""
+    key = json.dumps({"scene": scene.key(), "t_end": t_end, "save_every": save_every, **REFERENCE_METHOD,
+                      "physics": source_hash(PHYSICS_DIRS)}, sort_keys=True)
     digest = hashlib.sha256(key.encode()).hexdigest()[:16]
     return inside(cache_dir, f"reference-{scene.name}-{digest}.npz")
 

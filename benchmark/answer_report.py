@@ -1,0 +1,174 @@
+"""The answer for a reader: one table per string size (scene × target → the fastest method by
+paired wall time and the one doing the least work, each with its runner-up and ratio), one
+sentence per scene on which family to use and what limits it, the work–precision figures drawn
+from every setting the searches ran, and results/README.md around them.
+
+Reads `benchmark.answer`'s tables (cheapest.csv's rows, search.csv's points); writes nothing but
+the files it is asked for.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+#: What limits a setting, in words (`benchmark.search` bounds).
+LIMITED_BY = {"target": "accuracy", "stability": "stability", "largest setting": "the largest setting allowed",
+              "budget": "the search's budget"}
+
+
+def family(integrator: str) -> str:
+    """The family a method belongs to, from what it declares (a plugin gets one too)."""
+    from integrators import Capability, get_integrator
+
+    try:
+        integ = get_integrator(integrator)
+    except ValueError:
+        return "an unregistered method"
+    caps = integ.capabilities
+    if Capability.VARIATIONAL in caps and Capability.GROUP_PRESERVING in caps:
+        return "the Lie group variational family"
+    if Capability.VARIATIONAL in caps:
+        return "a variational method"
+    if Capability.GROUP_PRESERVING in caps:
+        return "the Lie group Runge–Kutta family"
+    if integ.implementation == "jax-compiled":
+        return "a compiled Runge–Kutta pair"
+    return "a scipy solver"
+
+
+def _ratio(r) -> str:
+    if not np.isfinite(r["ratio_high"]):
+        return f"≥ {r['ratio_low']:.2f}× (a lower bound)"
+    return f"{r['ratio']:.2f}× [{r['ratio_low']:.2f}–{r['ratio_high']:.2f}]"
+
+
+def _amount(r, kind: str) -> str:
+    return f"{r['cost'] * 1e3:.3g} ms" if kind == "wall" else f"{r['cost']:.3g} flops"
+
+
+def best_and_next(g: pd.DataFrame) -> tuple[str, str, pd.Series | None]:
+    """(the best cell, the runner-up cell, the best row) of one cost kind's rows of one target: a
+    tie names its members with their ratios, the runner-up is then the first method outside it."""
+    ranked = g[g["verdict"].isin(["winner", "tie", "slower"])].sort_values(["ratio", "entry"])
+    if ranked.empty:
+        return "no method reached it", "", None
+    kind = g["cost_kind"].iloc[0]
+    best = ranked.iloc[0]
+    head = f"`{best['entry']}` ({best['setting']}, {_amount(best, kind)})"
+    ties = ranked[ranked["verdict"] == "tie"].iloc[1:]
+    if best["verdict"] == "tie":
+        head = "tie: " + ", ".join([head] + [f"`{r['entry']}` {_ratio(r)}" for _, r in ties.iterrows()])
+    rest = ranked[ranked["verdict"] == "slower"]
+    nxt = "—" if rest.empty else f"`{rest.iloc[0]['entry']}` {_ratio(rest.iloc[0])}"
+    return head, nxt, best
+
+
+def _target_text(metric: str, target: float, labels: dict) -> str:
+    return f"{labels.get(metric, metric)} ≤ {target:g}"
+
+
+def tables(table: pd.DataFrame, labels: dict | None = None) -> list[str]:
+    """Markdown: per N, one table of scene × target, then one sentence per scene."""
+    labels = labels or {}
+    out = []
+    for n, h in table.groupby("elements", sort=True):
+        out += [f"**N = {int(n)}**", "",
+                "| scene | target | fastest (paired wall time) | runner-up | least work (flops) | runner-up |",
+                "|---|---|---|---|---|---|"]
+        for (scene, metric, target), g in h.groupby(["scene", "metric", "target"], sort=True):
+            wall = best_and_next(g[g["cost_kind"] == "wall"]) if (g["cost_kind"] == "wall").any() else ("not timed", "", None)
+            work = best_and_next(g[g["cost_kind"] == "work"]) if (g["cost_kind"] == "work").any() else ("—", "", None)
+            out.append(f"| {scene} | {_target_text(metric, target, labels)} | {wall[0]} | {wall[1]} | {work[0]} | "
+                       f"{work[1]} |")
+        out.append("")
+        out += [f"- {line}" for line in sentences(h, labels)]
+        out.append("")
+    return out
+
+
+def sentences(h: pd.DataFrame, labels: dict) -> list[str]:
+    """One sentence per scene of one N: which family to use for each target (the fastest by wall
+    time, else the least work), and what holds its setting (accuracy or stability)."""
+    lines = []
+    for scene, g in h.groupby("scene", sort=True):
+        parts = []
+        for (metric, target), t in g.groupby(["metric", "target"], sort=True):
+            kind = "wall" if (t["cost_kind"] == "wall").any() else "work"
+            _, _, best = best_and_next(t[t["cost_kind"] == kind])
+            if best is None:
+                parts.append(f"for {_target_text(metric, target, labels)} no method reached it")
+                continue
+            work = t[(t["cost_kind"] == "work") & (t["entry"] == best["entry"])]
+            bound = work["bound"].iloc[0] if len(work) else ""
+            held = f", its setting held by {LIMITED_BY[bound]}" if bound in LIMITED_BY else ""
+            tie = " (a tie)" if best["verdict"] == "tie" else ""
+            parts.append(f"for {_target_text(metric, target, labels)} use {family(best['integrator'])} "
+                         f"(`{best['entry']}`{tie}{held})")
+        lines.append(f"**{scene}**: " + "; ".join(parts) + ".")
+    return lines
+
+
+def how_made(command: str, bounded: list[str], equivalence: float, confirm: int, table_file: str) -> list[str]:
+    bounds = (f" {', '.join(f'`{b}`' for b in bounded)} by work: its flops leave out its Newton solves, a lower bound (`≥`), "
+              "never a winner." if bounded else "")
+    return [f"Each setting is the cheapest found by search (to 10 % in cost) that stands: the {confirm} settings just "
+            "finer meet the target too. Wall time is timed in pairs on one pinned core: the ratio to the fastest and its "
+            f"90 % interval; a winner needs every other interval above {1 + equivalence:g}, else a tie. scipy's methods "
+            f"are ranked by work only.{bounds}",
+            "", f"Generated by `{command}`; every row: `{table_file}`."]
+
+
+def points(searched: pd.DataFrame) -> pd.DataFrame:
+    """Every setting the searches ran, one row per scene × N × method × axis × setting: the runs
+    table the work–precision figures are drawn from (status, run time, flops, every metric)."""
+    rows = []
+    for r in searched.to_dict("records"):
+        text = r.get("points")
+        if not isinstance(text, str) or not text:
+            continue
+        for p in json.loads(text):
+            cost_col = p.get("cost_column", "flops")
+            rows.append({"scene": r["scene"], "elements": int(r["elements"]), "integrator": r["integrator"],
+                         "axis": r["sweep"], "dt": p["setting"] if r["sweep"] == "dt" else math.nan,
+                         "rtol": p["setting"] if r["sweep"] == "rtol" else math.nan,
+                         "flops": p["cost"] if cost_col == "flops" else math.nan,
+                         **{k: v for k, v in p.items() if k not in ("setting", "cost", "cost_column")}})
+    if not rows:
+        return pd.DataFrame(columns=["scene", "elements", "integrator", "axis", "dt", "rtol", "status"])
+    df = pd.DataFrame(rows)
+    return df.drop_duplicates(["scene", "elements", "integrator", "axis", "dt", "rtol"]).reset_index(drop=True)
+
+
+def figures(searched: pd.DataFrame, out: Path) -> list[str]:
+    """work_precision_SCENE.png (the smallest N of each scene) from every setting searched."""
+    from benchmark import plots
+
+    pts = points(searched)
+    made = []
+    for scene, g in pts.groupby("scene", sort=True):
+        n = int(g["elements"].min())
+        made.append(plots.work_precision(g[g["elements"] == n], scene, Path(out), searched=True).name)
+    return made
+
+
+def readme(block: list[str], figures_made: list[str], provenance: str) -> str:
+    """results/README.md: the answer, how it was made, its figures, and where the other results are."""
+    figs = "\n".join(f"![{f}]({f})" for f in figures_made)
+    return "\n".join([
+        "# The answer: which integrator, and what accuracy costs in time", "",
+        "Generated by the main job; do not edit by hand.", "", *block, "",
+        "## Work–precision", "",
+        "Every setting the searches ran, error against work; the wall-time ranking is the paired timing's above.", "",
+        figs, "",
+        "## Where the other results are", "",
+        "- `search.csv`: every search (its bracket, bound and points); `timing.csv`: every paired timing;",
+        "  `cheapest.csv`: the answer's rows.",
+        "- `grid/`: the fixed grid sweep (`python -m benchmark run`): one row per method and setting.",
+        "- `energy_horizon.csv`: the long-horizon energy study (`python -m benchmark energy`).",
+        "- `stability/`, `xval/`, `orders.csv`, `lgvi_speed.md`, `work_rule.md`: their own commands.", "",
+        "## Provenance", "", provenance, ""])
