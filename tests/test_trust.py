@@ -235,3 +235,11 @@ def test_the_stability_map_runs_a_registered_plugin_when_named_not_by_default():
         assert any(j.integrator == "trust_plugin_euler" for j in stability.jobs_for(integrators=["trust_plugin_euler"]))
     finally:
         registry.unregister("trust_plugin_euler")
+
+
+def test_a_first_solve_as_long_as_the_budget_is_its_own_timing_and_nothing_is_solved_again():
+    calls = []
+    row = runner._timing(0.8, lambda: calls.append(1) or 0.7, 3)  # budget 0.5 s: one solve fills it
+    assert calls == [] and row["run_time"] == 0.8 and row["timing_repeats"] == 1
+    row = runner._timing(0.1, lambda: calls.append(1) or 0.1, 3)  # a short run is timed again, 5 times
+    assert len(calls) == 5 and row["timing_repeats"] == 5
