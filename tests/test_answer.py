@@ -195,3 +195,14 @@ def test_a_run_keeps_the_rows_of_other_sizes_and_replaces_its_own():
     out = answer.merged(base, new, answer.SEARCH_IDENTITY)
     assert [(r["integrator"], r["elements"], r["cost"]) for r in out] == [("lgvi", 10, 1e6), ("lgvi", 40, 8e6),
                                                                           ("rattle", 40, 7e6)]
+
+
+def test_the_readme_answer_block_is_what_the_main_job_wrote():
+    """The project README's block between the answer markers is results/answer.md, as the main job
+    (`python -m benchmark answer`, into results/) wrote it: no hand edit, no stale block."""
+    from benchmark.runs_report import ANSWER_END, ANSWER_START
+    from benchmark.store import ROOT
+
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    block = text[text.index(ANSWER_START) + len(ANSWER_START): text.index(ANSWER_END)]
+    assert block.strip() == (ROOT / "results" / "answer.md").read_text(encoding="utf-8").strip()
