@@ -315,9 +315,21 @@ def _describe_timing(row: dict) -> str:
            f"({row.get('rounds', 0)} rounds)"
 
 
+def _code(*files: str) -> str:
+    """The code a row of this study depends on: the runs' (`benchmark.store.code_version`) and ``files``."""
+    from benchmark.store import source_hash
+
+    return key_of(code_version(), source_hash((), files))
+
+
+#: The source a search row depends on beyond the runs' code, and a timing row.
+SEARCH_CODE = ("benchmark/answer.py", "benchmark/search.py", "benchmark/flops.py")
+TIMING_CODE = ("benchmark/answer.py", "benchmark/paired.py")
+
+
 def run_search_stage(jobs: list[SearchJob], *, workers: int, cache_dir: str, previous=(), on_row=None,
                      log=engine.log_stderr) -> pd.DataFrame:
-    code = code_version()
+    code = _code(*SEARCH_CODE)
     keys = [j.key(code) for j in jobs]
     kept = kept_rows(keys, previous)
     if kept:
@@ -344,7 +356,7 @@ def run_search_stage(jobs: list[SearchJob], *, workers: int, cache_dir: str, pre
 
 def run_timing_stage(jobs: list[TimingJob], *, previous=(), on_row=None, log=engine.log_stderr) -> pd.DataFrame:
     """The timing jobs in this process, one after another (one pinned core, never two at once)."""
-    code = code_version()
+    code = _code(*TIMING_CODE)
     keys = [j.key(code) for j in jobs]
     kept = kept_rows(keys, previous)
     rows = engine.run_jobs(run_timing, jobs, workers=0, cost=lambda i: jobs[i].budget + 5.0,
@@ -598,6 +610,7 @@ class AnswerRequest:
     jobs: int | None = None
     fresh: bool = False
     command: str = "python -m benchmark answer"
+    compare_with: tuple = ()  # earlier cheapest.csv files, one agreement paragraph each
 
 
 def _shown(path: Path) -> str:
@@ -624,6 +637,8 @@ def run_answer(request: AnswerRequest, log: Callable[[str], None] = engine.log_s
     and the work–precision figures into ``request.out``; a stopped study keeps its finished rows
     and resumes from them. Into the committed results/, the project README's answer block too."""
     import os
+
+    import pandas as pd
 
     from benchmark import answer_report
     from benchmark.pipelines import _exclusive
@@ -668,7 +683,11 @@ def run_answer(request: AnswerRequest, log: Callable[[str], None] = engine.log_s
             block = answer_block(table, labels, request.command, _shown(out / "cheapest.csv"))
             atomic_write_text(out / "answer.md", block)
             made = answer_report.figures(searched, out)
-            atomic_write_text(out / "README.md", answer_report.readme(block.splitlines(), made, provenance.header()))
+            compared = [answer_report.agreement_text(table, pd.read_csv(p), f"`{p}`") for p in request.compare_with]
+            for text in compared:
+                log(text.rstrip())
+            atomic_write_text(out / "README.md", answer_report.readme(block.splitlines(), made, provenance.header(),
+                                                                      compared))
             log(f"{out}/README.md and {len(made)} work–precision figure(s) written")
             if is_committed_answer(out):
                 from benchmark.runs_report import write_answer

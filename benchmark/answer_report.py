@@ -156,7 +156,7 @@ def figures(searched: pd.DataFrame, out: Path) -> list[str]:
     return made
 
 
-def readme(block: list[str], figures_made: list[str], provenance: str) -> str:
+def readme(block: list[str], figures_made: list[str], provenance: str, compared: list[str] = ()) -> str:
     """results/README.md: the answer, how it was made, its figures, and where the other results are."""
     figs = "\n".join(f"![{f}]({f})" for f in figures_made)
     return "\n".join([
@@ -165,6 +165,7 @@ def readme(block: list[str], figures_made: list[str], provenance: str) -> str:
         "## Work–precision", "",
         "Every setting the searches ran, error against work; the wall-time ranking is the paired timing's above.", "",
         figs, "",
+        *((["## Compared with earlier answers", "", *compared, ""]) if compared else []),
         "## Where the other results are", "",
         "- `search.csv`: every search (its bracket, bound and points); `timing.csv`: every paired timing;",
         "  `cheapest.csv`: the answer's rows.",
@@ -172,3 +173,41 @@ def readme(block: list[str], figures_made: list[str], provenance: str) -> str:
         "- `energy_horizon.csv`: the long-horizon energy study (`python -m benchmark energy`).",
         "- `stability/`, `xval/`, `orders.csv`, `lgvi_speed.md`, `work_rule.md`: their own commands.", "",
         "## Provenance", "", provenance, ""])
+
+
+def _front(g: pd.DataFrame) -> tuple[str, set]:
+    """(the best entry, the entries of its tie or just it) of one cost kind's rows of one target."""
+    ranked = g[g["verdict"].isin(["winner", "tie", "slower"])].sort_values(["ratio", "entry"])
+    if ranked.empty:
+        return "", set()
+    best = ranked["entry"].iloc[0]
+    return best, set(ranked.loc[ranked["verdict"].isin(["winner", "tie"]), "entry"]) | {best}
+
+
+def agreement(mine: pd.DataFrame, other: pd.DataFrame) -> pd.DataFrame:
+    """Per scene × N × metric × target × cost kind both tables answer: whether they agree (the
+    same winner, or ties that contain each other's best), and each one's best and front."""
+    keys = ["scene", "elements", "metric", "target", "cost_kind"]
+    rows = []
+    theirs = {k: g for k, g in other.groupby(keys, sort=True)}
+    for k, g in mine.groupby(keys, sort=True):
+        if k not in theirs:
+            continue
+        (a, front_a), (b, front_b) = _front(g), _front(theirs[k])
+        agree = a == b or (a in front_b and b in front_a)
+        rows.append({**dict(zip(keys, k)), "agree": bool(agree), "best": a, "front": ", ".join(sorted(front_a)),
+                     "other_best": b, "other_front": ", ".join(sorted(front_b))})
+    return pd.DataFrame(rows, columns=keys + ["agree", "best", "front", "other_best", "other_front"])
+
+
+def agreement_text(mine: pd.DataFrame, other: pd.DataFrame, label: str) -> str:
+    """A paragraph: how many answers two tables share and agree on, and the ones that differ."""
+    a = agreement(mine, other)
+    if a.empty:
+        return f"Compared with {label}: no scene, N and target in common.\n"
+    lines = [f"Compared with {label}: {int(a['agree'].sum())} of {len(a)} answers agree (the same winner, or ties "
+             "that contain each other's best)."]
+    for r in a[~a["agree"]].itertuples():
+        lines.append(f"- {r.scene}, N = {r.elements}, {r.metric} ≤ {r.target:g}, by {r.cost_kind}: `{r.best}` here "
+                     f"({r.front}), `{r.other_best}` there ({r.other_front})")
+    return "\n".join(lines) + "\n"

@@ -100,7 +100,7 @@ def work_precision(runs: pd.DataFrame, scene: str, out_dir: Path, *, searched: b
     cost_axes = COST_AXES if by_flops else (COST_AXES[0], _COUNT_AXIS)
     if searched:  # one solve's time under load is noise beside the paired timing: work only
         cost_axes = (cost_axes[1],)
-    work = cost_axes[1][0]
+    work = cost_axes[-1][0]
     cols = [c for c, _ in cost_axes] + list(ERROR_LABELS) + ["dt"]
     sel = runs[runs["scene"] == scene]
     g = _numeric(sel[sel["status"] == "ok"], cols)
