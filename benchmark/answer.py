@@ -120,9 +120,9 @@ _SOLVED: dict = {}
 _REFERENCES: dict = {}
 
 
-def _solve_once(job: SearchJob, setting: float, cache_dir: str) -> tuple[str, dict, float, str, float]:
-    """(status, every accuracy metric, flops, the cost column, the solve's seconds) of one setting,
-    solved once per worker."""
+def _solve_once(job: SearchJob, setting: float, cache_dir: str) -> tuple[str, dict, float, str, dict]:
+    """(status, every accuracy metric, flops, the cost column, its seconds: the solve's run and
+    compile time and the rest, metrics and flops) of one setting, solved once per worker."""
     key = (job.scene, job.elements, job.t_end, job.integrator, job.sweep, float(setting))
     if key in _SOLVED:
         return _SOLVED[key]
@@ -138,11 +138,12 @@ def _solve_once(job: SearchJob, setting: float, cache_dir: str) -> tuple[str, di
     if ref_key not in _REFERENCES:  # read (and its checksum verified) once per worker
         _REFERENCES[ref_key] = get_reference(scene, t_end, SAVE_EVERY, Path(cache_dir), log=None)
     ref = _REFERENCES[ref_key]
+    started = time.perf_counter()
     try:
         traj = get_integrator(job.integrator).solve(scene, time_limit=RUN_TIME_LIMIT,
                                                     **solve_kwargs(job.sweep, setting, t_end))
     except ValueError:  # a setting the method refuses (e.g. dt beyond t_end): not finished
-        out = ("failed", {}, math.nan, "flops", math.nan)
+        out = ("failed", {}, math.nan, "flops", {})
         _SOLVED[key] = out
         return out
     model = build_model(scene)
@@ -153,7 +154,10 @@ def _solve_once(job: SearchJob, setting: float, cache_dir: str) -> tuple[str, di
     flops, _ = run_flops(job.integrator, model, traj.stats, traj.stats.get("rhs", traj.settings.get("rhs")),
                          adaptive=job.sweep == "rtol")
     cost, column = (flops, "flops") if np.isfinite(flops) else (float(traj.stats.get("steps", math.nan)), "steps")
-    out = (status, metrics, float(cost), column, float(traj.stats.get("wall_time", math.nan)))
+    run, compiling = (float(traj.stats.get(k) or 0.0) for k in ("wall_time", "compile_time"))
+    seconds = {"run_time": run, "compile_time": compiling,
+               "other_time": max(0.0, time.perf_counter() - started - run - compiling)}
+    out = (status, metrics, float(cost), column, seconds)
     _SOLVED[key] = out
     return out
 
@@ -172,7 +176,7 @@ def run_search(job: SearchJob, cache_dir: str) -> dict:
             status, metrics, cost, column, seconds = _solve_once(job, setting, cache_dir)
             columns.add(column)
             points.append({"setting": setting, "status": status, "cost": cost, "cost_column": column,
-                           "run_time": seconds, **metrics})
+                           **seconds, **metrics})
             return status, metrics.get(job.metric, math.nan), cost
 
         found = _search.search(run, job.target, start, lowest=lowest, highest=highest, factor=factor,
@@ -686,8 +690,10 @@ def run_answer(request: AnswerRequest, log: Callable[[str], None] = engine.log_s
             compared = [answer_report.agreement_text(table, pd.read_csv(p), f"`{p}`") for p in request.compare_with]
             for text in compared:
                 log(text.rstrip())
-            atomic_write_text(out / "README.md", answer_report.readme(block.splitlines(), made, provenance.header(),
-                                                                      compared))
+            spent = answer_report.accounting(searched, timed, provenance.wall_time(), workers)
+            log(spent)
+            atomic_write_text(out / "README.md", answer_report.readme(block.splitlines(), made,
+                                                                      provenance.header() + "\n\n" + spent, compared))
             log(f"{out}/README.md and {len(made)} work–precision figure(s) written")
             if is_committed_answer(out):
                 from benchmark.runs_report import write_answer

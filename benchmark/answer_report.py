@@ -211,3 +211,21 @@ def agreement_text(mine: pd.DataFrame, other: pd.DataFrame, label: str) -> str:
         lines.append(f"- {r.scene}, N = {r.elements}, {r.metric} ≤ {r.target:g}, by {r.cost_kind}: `{r.best}` here "
                      f"({r.front}), `{r.other_best}` there ({r.other_front})")
     return "\n".join(lines) + "\n"
+
+
+def accounting(searched: pd.DataFrame, timed: pd.DataFrame, wall: float, workers: int) -> str:
+    """Where a run's time went, against its floor: the searches' solves, their compilation and the
+    rest (metrics, flops), each solve counted once, on ``workers`` processes; the paired timing; the
+    floor (the solves it must run plus the compilation, shared by the workers, plus the timing)."""
+    pts = points(searched)
+    if pts.empty or "run_time" not in pts:
+        return ""
+    total = {k: float(pd.to_numeric(pts.get(k), errors="coerce").fillna(0.0).sum())
+             for k in ("run_time", "compile_time", "other_time")}
+    timing = float(pd.to_numeric(timed.get("seconds", pd.Series(dtype=float)), errors="coerce").fillna(0.0).sum())
+    floor = (total["run_time"] + total["compile_time"]) / max(workers, 1) + timing
+    return (f"Time: {wall:.0f} s wall on {workers} worker(s). The searches ran {len(pts)} solves: {total['run_time']:.0f} s "
+            f"of solving, {total['compile_time']:.0f} s of compilation, {total['other_time']:.0f} s of metrics and "
+            f"flops (worker seconds); the paired timing took {timing:.0f} s. Floor (solves and compilation over the "
+            f"workers, plus the timing): {floor:.0f} s, so this run took {wall / floor if floor else float('nan'):.2f}× "
+            "its floor. Rows kept from earlier runs count here as they were measured then.")

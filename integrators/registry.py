@@ -100,7 +100,8 @@ def get_integrator(name: str) -> Integrator:
     if not isinstance(name, str):
         raise ValueError(f"integrator name = {name!r} is invalid (allowed: a string, one of: "
                          f"{', '.join(available())})")
-    _load_plugins()
+    if name not in _REGISTRY:  # scanning the installed distributions costs ~50 ms: only for a name not yet seen
+        _load_plugins()
     if name not in _REGISTRY:
         if name in _PLUGIN_ERRORS:
             raise ValueError(f"integrator {name!r} failed to load: {_PLUGIN_ERRORS[name]}")
