@@ -332,7 +332,7 @@ TIMING_CODE = ("benchmark/answer.py", "benchmark/paired.py")
 
 
 def run_search_stage(jobs: list[SearchJob], *, workers: int, cache_dir: str, previous=(), on_row=None,
-                     log=engine.log_stderr) -> pd.DataFrame:
+                     scheduler: str | None = None, log=engine.log_stderr) -> pd.DataFrame:
     code = _code(*SEARCH_CODE)
     keys = [j.key(code) for j in jobs]
     kept = kept_rows(keys, previous)
@@ -346,6 +346,7 @@ def run_search_stage(jobs: list[SearchJob], *, workers: int, cache_dir: str, pre
     problems = sorted({ReferenceProblem(j.scene, (("elements", j.elements),) + ((("t_end", j.t_end),) if j.t_end else ()),
                                         j.t_end, SAVE_EVERY) for j in todo}, key=str)
     rows = engine.run_jobs(functools.partial(run_search, cache_dir=cache_dir), jobs, workers=workers,
+                           scheduler=scheduler,
                            setup=[functools.partial(prepare_reference, p, cache_dir) for p in problems],
                            setup_labels=[f"reference {p.scene} N={dict(p.overrides)['elements']}" for p in problems],
                            group=lambda i: (jobs[i].scene, jobs[i].elements, jobs[i].integrator),
@@ -615,6 +616,8 @@ class AnswerRequest:
     fresh: bool = False
     command: str = "python -m benchmark answer"
     compare_with: tuple = ()  # earlier cheapest.csv files, one agreement paragraph each
+    executor: str = "process"  # where the searches run (`benchmark.sweep.EXECUTORS`); the timing stays here
+    scheduler: str | None = None
 
 
 def _shown(path: Path) -> str:
@@ -669,8 +672,9 @@ def run_answer(request: AnswerRequest, log: Callable[[str], None] = engine.log_s
             log(f"{len(jobs)} searches: {len(request.scenes)} scene(s) × N = "
                 f"{', '.join(map(str, request.elements))} × {len(request.integrators)} method(s) × "
                 f"{len(targets)} target(s); results -> {out}/")
-            workers = request.jobs or min(len(jobs), os.cpu_count() or 1)
+            workers = 0 if request.executor == "serial" else (request.jobs or min(len(jobs), os.cpu_count() or 1))
             searched = run_search_stage(jobs, workers=workers, cache_dir=str(CACHE_DIR),
+                                        scheduler=request.scheduler if request.executor == "dask" else None,
                                         previous=[] if request.fresh else earlier["search.csv"],
                                         on_row=search_csv, log=log)
             search_csv(searched.to_dict("records"))

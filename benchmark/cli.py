@@ -102,14 +102,27 @@ def _check_setting(integ, dt, rtol, t_end: float) -> None:
 # ------------------------------------------------------------------------------------------
 # Each command: check its input, then call its pipeline
 # ------------------------------------------------------------------------------------------
-def cmd_run(args) -> int:
-    from benchmark import sweep  # no JAX until the pipeline builds the tasks
-    from models import load_scene
-
+def _check_executor(args) -> None:
     if args.executor == "dask" and not args.scheduler:
         raise UsageError("--executor dask needs --scheduler ADDRESS (e.g. tcp://host:8786)")
     if args.scheduler and args.executor != "dask":
         raise UsageError(f"--scheduler is only used with --executor dask (got --executor {args.executor})")
+
+
+def _add_executor(p, what: str) -> None:
+    """--executor and --scheduler, the same on every command that runs jobs on the engine."""
+    from benchmark import sweep
+
+    p.add_argument("--executor", default="process", choices=list(sweep.EXECUTORS),
+                   help=f"where {what} execute: worker processes, this process, or a Dask cluster")
+    p.add_argument("--scheduler", help="Dask scheduler address, with --executor dask (e.g. tcp://host:8786)")
+
+
+def cmd_run(args) -> int:
+    from benchmark import sweep  # no JAX until the pipeline builds the tasks
+    from models import load_scene
+
+    _check_executor(args)
     for name in args.integrators or ():
         _check_integrator(name)  # an unknown name is refused before any work
     if args.with_plugins:
@@ -410,6 +423,7 @@ def cmd_answer(args) -> int:
     from benchmark.answer import AnswerRequest
     from models import load_scene
 
+    _check_executor(args)
     for name in args.integrators or ():
         _check_integrator(name)
     targets = _targets(args.targets) if args.targets else tuple((m, t) for m, t, _ in answer.TARGETS)
@@ -432,7 +446,8 @@ def cmd_answer(args) -> int:
     return answer.run_answer(AnswerRequest(out=out, scenes=scenes, integrators=names, elements=elements,
                                            targets=targets, t_end=args.t_end, max_runs=args.max_runs,
                                            timing_budget=args.timing_budget, jobs=args.jobs, fresh=args.fresh,
-                                           command=_command(args), compare_with=tuple(compared)), log=_log)
+                                           command=_command(args), compare_with=tuple(compared),
+                                           executor=args.executor, scheduler=args.scheduler), log=_log)
 
 
 def _readable_table(path: str, option: str, columns: tuple) -> str:
@@ -641,9 +656,7 @@ def _add_run(sub) -> None:
                    help=f"the least timed solves per run: as many as fit in {sweep.TIMING_BUDGET:g} s, at least this "
                         f"many and at most {sweep.MAX_REPEATS} (one when a single solve takes longer); run_time is "
                         "their median, run_time_low / run_time_high the fastest / the 90th percentile or slowest")
-    r.add_argument("--executor", default="process", choices=list(sweep.EXECUTORS),
-                   help="where runs execute: worker processes, this process, or a Dask cluster")
-    r.add_argument("--scheduler", help="Dask scheduler address, with --executor dask (e.g. tcp://host:8786)")
+    _add_executor(r, "runs")
     r.add_argument("--horizon", type=opt.nonnegative_float,
                    help=f"length (s) of the long-horizon energy study on the run's fixed-length scenes; 0 = off (default: "
                         f"{sweep.FULL_HORIZON:g}; --quick: {sweep.QUICK_HORIZON:g})")
@@ -779,6 +792,7 @@ def _add_answer(sub) -> None:
     an.add_argument("--timing-budget", type=opt.positive_float, default=paired.BUDGET,
                     help="seconds of paired timing per scene x N x target at most")
     an.add_argument("--jobs", type=opt.positive_int, help="worker processes for the search (default: one per CPU)")
+    _add_executor(an, "the searches (the paired timing stays in this process, on one pinned core)")
     an.add_argument("--fresh", action="store_true", help="recompute every row this command writes (default: keep "
                                                          "the finished ones)")
     an.add_argument("--compare-with", action="append", metavar="CHEAPEST.csv",
