@@ -60,7 +60,7 @@ ATOL_FACTOR = 1e-2
 
 SEARCH_COLUMNS = ["scene", "elements", "integrator", "sweep", "metric", "target", "setting", "cost", "cost_column",
                   "error", "setting_low", "setting_high", "setting_finer", "high_status", "bound", "runs", "spread",
-                  "confirmed", "erratic_above", "implementation", "note", "points", "run_key", "row_digest"]
+                  "confirmed", "erratic_above", "implementation", "note", "points", "job_time", "run_key", "row_digest"]
 TIMING_COLUMNS = ["scene", "elements", "metric", "target", "ratios", "rounds", "seconds", "core", "load_avg",
                   "note", "run_key", "row_digest"]
 #: Columns of cheapest.csv.
@@ -168,6 +168,7 @@ def run_search(job: SearchJob, cache_dir: str) -> dict:
 
     row = {**asdict(job), "implementation": implementation(job.integrator)}
     row.pop("max_runs"), row.pop("t_end")
+    started = time.perf_counter()
     try:
         start, lowest, highest, factor = AXES[job.sweep]
         columns, points = set(), []
@@ -189,6 +190,7 @@ def run_search(job: SearchJob, cache_dir: str) -> dict:
                    note=_search_note(job.sweep, found), points=json.dumps(points, default=float))
     except Exception as exc:  # a bug in one search must not lose the others
         row.update(bound="error", note=f"{type(exc).__name__}: {exc}"[:300])
+    row["job_time"] = time.perf_counter() - started  # the progress line's ETA learns from it
     return row
 
 
@@ -331,6 +333,34 @@ SEARCH_CODE = ("benchmark/answer.py", "benchmark/search.py", "benchmark/flops.py
 TIMING_CODE = ("benchmark/answer.py", "benchmark/paired.py")
 
 
+#: Predicted solves of one search, and seconds of one at N = 10 per unit of a method's declared
+#: per-step cost (`Integrator.cost_hint`): a first guess the progress line's ETA corrects per method.
+SOLVES_PER_SEARCH = 12
+SOLVE_SECONDS = 0.05
+
+
+def search_costs(jobs: list[SearchJob]) -> list[float]:
+    """Predicted seconds of each search: the method's declared compile time on the first search of
+    its (scene, N, method) group, then its solves, scaled by N (scipy's by its interpreter factor)."""
+    from benchmark.runner import PYTHON_STEP_FACTOR
+    from integrators import get_integrator
+
+    seen, out = set(), []
+    for j in jobs:
+        try:
+            integ = get_integrator(j.integrator)
+            compile_s, per_step = integ.cost_hint
+            if integ.implementation == "scipy-python":
+                per_step *= PYTHON_STEP_FACTOR
+        except (ValueError, AttributeError, TypeError):
+            compile_s, per_step = 30.0, 1.0
+        group = (j.scene, j.elements, j.integrator)
+        first = group not in seen
+        seen.add(group)
+        out.append((compile_s if first else 0.0) + SOLVES_PER_SEARCH * SOLVE_SECONDS * per_step * j.elements / 10.0)
+    return out
+
+
 def run_search_stage(jobs: list[SearchJob], *, workers: int, cache_dir: str, previous=(), on_row=None,
                      scheduler: str | None = None, log=engine.log_stderr) -> pd.DataFrame:
     code = _code(*SEARCH_CODE)
@@ -338,7 +368,6 @@ def run_search_stage(jobs: list[SearchJob], *, workers: int, cache_dir: str, pre
     kept = kept_rows(keys, previous)
     if kept:
         log(f"resuming: {len(kept)} of {len(jobs)} searches already done (kept)")
-    est = {"dt": 8.0, "rtol": 15.0}
     from benchmark.reference import ReferenceProblem, prepare_reference
 
     todo = [j for i, j in enumerate(jobs) if i not in kept]
@@ -350,7 +379,7 @@ def run_search_stage(jobs: list[SearchJob], *, workers: int, cache_dir: str, pre
                            setup=[functools.partial(prepare_reference, p, cache_dir) for p in problems],
                            setup_labels=[f"reference {p.scene} N={dict(p.overrides)['elements']}" for p in problems],
                            group=lambda i: (jobs[i].scene, jobs[i].elements, jobs[i].integrator),
-                           cost=lambda i: est[jobs[i].sweep] * (jobs[i].elements / 10.0),
+                           cost=search_costs(jobs).__getitem__,
                            kind=lambda i: jobs[i].integrator,
                            crash_row=lambda i, exc: {**asdict(jobs[i]), "bound": "crashed",
                                                      "note": engine.crash_reason(exc)},
@@ -554,8 +583,8 @@ def is_committed_answer(out: Path) -> bool:
 # ------------------------------------------------------------------------------------------
 # The study: python -m benchmark answer
 # ------------------------------------------------------------------------------------------
-#: What a row's digest leaves out (itself and the resume key).
-_NOT_DIGESTED = ("run_key", "row_digest")
+#: What a row's digest leaves out (itself, the resume key, and how long its job took).
+_NOT_DIGESTED = ("run_key", "row_digest", "job_time")
 
 
 def _digest(row: dict) -> str:
