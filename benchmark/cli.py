@@ -140,7 +140,7 @@ def cmd_run(args) -> int:
             opt.check_size(sc, t_end or sc.t_end, sweep.SAVE_EVERY, dt, warn=_log, what=f"{sc.name} at dt = {dt:g} s",
                            save_option=None)  # run saves every SAVE_EVERY: no option to raise
     out = opt.writable_dir(_run_out(args))
-    opt.no_directory_at(out, ("runs.csv", "runs.md", "orders.csv", "cheapest.csv", "README.md", "figures.json"))
+    opt.no_directory_at(out, ("runs.csv", "runs.md", "orders.csv", "README.md", "figures.json"))
     _check_horizon_size(args, ov)  # the registry's declared horizon settings (no JAX)
 
     from benchmark import pipelines

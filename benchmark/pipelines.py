@@ -79,10 +79,9 @@ class SweepRequest:
 
 
 def run_sweep(request: SweepRequest, log: Callable[[str], None] = log_stderr) -> int:
-    """The sweep into ``request.out``: runs.csv (written after every run), runs.md,
-    cheapest.csv, the figures, the energy study and README.md (with the orders of `run_orders`
-    when ``out`` has them); with the committed results/ as
-    ``out``, the answer block of the project README too. The run's rows join the table already
+    """The grid sweep into ``request.out``: runs.csv (written after every run), runs.md, the
+    figures, the energy study and README.md (with the orders of `run_orders` when ``out`` has
+    them). It ranks nothing: the answer is `benchmark.answer`'s. The run's rows join the table already
     in ``out`` (`benchmark.store.merge_rows`): rows of other scenes, methods or settings are kept,
     and every file is written from the merged table. A stopped sweep keeps its finished rows."""
     from benchmark import runner
@@ -104,7 +103,7 @@ def run_sweep(request: SweepRequest, log: Callable[[str], None] = log_stderr) ->
         return engine.stopped(exc, f"{what}; {resume}", log)
 
 
-#: The committed results directory: a run into it also rewrites the project README's answer block.
+#: The committed results directory.
 COMMITTED_RESULTS = store.ROOT / "results"
 
 
@@ -194,17 +193,10 @@ def _sweep(request: SweepRequest, runs_csv: store.TableWriter, log) -> int:
     atomic_write_text(out / "runs.md", markdown_table(merged.drop(columns=[c for c in ("reason", "run_key", "row_digest",
                                                                                       "scene_key") if c in merged])))
     orders = _orders_table(out)  # the short-horizon orders study's (`python -m benchmark orders`), never the sweep's
-    table = runs_report.cheapest_table(merged)
-    runs_report.write_cheapest(out, table)
     failures = runs_report.failure_sentence(merged, out / "stability" / "stability.csv")
     failed: list[str] = []  # what of the energy study did not end with a result (a crashed worker)
     figures = _sweep_figures(request, merged, log, failed) if request.figures else []
-    _sweep_readme(request, merged, orders, figures, provenance, table, failures,
-                  merged_note=_merged_note(runs, merged))
-    if is_committed_results(out) and (out / "answer" / "cheapest.csv").exists():  # the searched answer's block
-        log("README.md: the answer block is the searched one (python -m benchmark answer --out results/answer)")
-    elif is_committed_results(out):
-        log(runs_report.write_answer(store.ROOT / "README.md", runs_report.answer_block(merged, table, failures)))
+    _sweep_readme(request, merged, orders, figures, provenance, failures, merged_note=_merged_note(runs, merged))
     log(f"done in {provenance.wall_time():.0f} s: {len(runs)} runs in this run, {len(merged)} in {out}/runs.csv; "
         f"{failures} See {out}/README.md")
     if failed:
@@ -303,7 +295,7 @@ def _sweep_figures(request: SweepRequest, merged, log, failed: list | None = Non
     return figures
 
 
-def _sweep_readme(request: SweepRequest, runs, orders, figures, provenance: Provenance, table, failures,
+def _sweep_readme(request: SweepRequest, runs, orders, figures, provenance: Provenance, failures,
                   merged_note: str = "") -> Path:
     """README.md of the whole merged table. A run that keeps rows of earlier runs (``merged_note``)
     keeps what it did not recompute: the header names the run that made the table and those that
@@ -325,8 +317,7 @@ def _sweep_readme(request: SweepRequest, runs, orders, figures, provenance: Prov
         compared = _earlier_comparisons(history, readme, runs)
     horizons = {"sweep": request.sweep_t_end, "energy study": request.energy_horizon if request.figures else 0.0}
     return runs_report.write_readme(request.out, runs, orders, provenance=provenance, figures=figures,
-                                    compared=compared, horizons=horizons, table=table, failures=failures,
-                                    merged=merged_note)
+                                    compared=compared, horizons=horizons, failures=failures, merged=merged_note)
 
 
 def _earlier_comparisons(history, readme: Path, runs) -> str:

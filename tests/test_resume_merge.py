@@ -41,9 +41,7 @@ def test_a_restricted_run_keeps_the_other_rows_and_a_resume_trusts_only_checked_
     pd.testing.assert_frame_equal(both.loc[first.index, first.columns], first, check_dtype=False)
     readme = (out / "README.md").read_text()
     assert "`rk45`" in readme and "`lgvi`" in readme and "the other 2 come from earlier runs" in readme
-    cheapest = pd.read_csv(out / "cheapest.csv")
-    assert set(cheapest["integrator"]) == {"lgvi", "rk45"}
-    assert {"scene", "metric", "target", "integrator", "cost", "cost_low", "cost_high", "verdict"} <= set(cheapest)
+    assert not (out / "cheapest.csv").exists()  # the grid ranks nothing: the answer is `answer`'s
     energy = pd.read_csv(out / "energy_horizon.csv")
     # rk45 declares no energy-study settings (the compiled tsit5 stands for it): the LGVI's history is kept
     assert set(energy["integrator"]) == {"lgvi"}
