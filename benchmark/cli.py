@@ -187,31 +187,34 @@ def _check_horizon_size(args, overrides: dict) -> None:
                        what=f"--horizon {t_end:g}: the energy study of {m.name} at N = {n}")
 
 
+#: `run`'s default output directory: the committed grid sweep (`pipelines.COMMITTED_RESULTS`).
+GRID_OUT = "results/grid"
+
 #: The options of `run` that make it something other than the default sweep (other rows).
 _SWEEP_OPTIONS = (("scenes", "--scenes"), ("integrators", "--integrators"), ("quick", "--quick"), ("dts", "--dts"),
                   ("rtols", "--rtols"), ("t_end", "--t-end"), ("set", "--set"), ("extended", "--extended"))
 
 
 def _run_out(args) -> str:
-    """`run`'s output directory: the committed results/ only for the default sweep or when named
-    (`--out results`); any other sweep must say where its results go."""
+    """`run`'s output directory: the committed results/grid/ only for the default sweep or when
+    named (`--out results/grid`); any other sweep must say where its results go."""
     from benchmark.sweep import plugin_names
 
     guests = plugin_names(args.integrators or ())
     if args.out is not None:
-        if guests and Path(args.out).resolve() == Path("results").resolve():
+        if guests and Path(args.out).resolve() == Path(GRID_OUT).resolve():
             _log(f"note: {Path(args.out)}/ gets the rows of plugin(s) {_describe(guests)}, as --out asks")
         return args.out
     if guests:
-        raise UsageError(f"this run would add the rows of plugin(s) {_describe(guests)} to the committed results/, "
+        raise UsageError(f"this run would add the rows of plugin(s) {_describe(guests)} to the committed {GRID_OUT}/, "
                          "which hold only the project's own methods: give --out DIR for them (e.g. a scratch "
-                         "directory), or --out results to add them there")
+                         f"directory), or --out {GRID_OUT} to add them there")
     given = [flag for attr, flag in _SWEEP_OPTIONS if getattr(args, attr)]
     if given:
         raise UsageError(f"this run is not the default sweep ({', '.join(given)}): give --out DIR for its results "
-                         "(e.g. a scratch directory), or --out results to merge its rows into the committed results "
-                         "(the rows of other scenes, methods and settings are kept)")
-    return "results"
+                         f"(e.g. a scratch directory), or --out {GRID_OUT} to merge its rows into the committed "
+                         "results (the rows of other scenes, methods and settings are kept)")
+    return GRID_OUT
 
 
 def _describe(names) -> str:
@@ -639,10 +642,10 @@ def _add_run(sub) -> None:
                    help="an earlier run's runs.csv: the README then says which conclusions changed and by how much "
                         "(give it more than once to compare with several, e.g. the last committed run and a second "
                         "fresh run of the same code)")
-    r.add_argument("--out", help="output directory, created if missing (default: results); the run's rows join the "
-                                 "table there (rows of other scenes, methods and settings are kept). A run that is not "
-                                 "the default sweep (--quick, --scenes, ...) writes into results/ only when named: "
-                                 "--out results")
+    r.add_argument("--out", help=f"output directory, created if missing (default: {GRID_OUT}); the run's rows join "
+                                 "the table there (rows of other scenes, methods and settings are kept). A run that is "
+                                 f"not the default sweep (--quick, --scenes, ...) writes into {GRID_OUT}/ only when "
+                                 f"named: --out {GRID_OUT}")
     r.set_defaults(func=cmd_run)
 
 

@@ -33,7 +33,7 @@ def _exclusive(out: Path, log: Callable[[str], None]):
 
 
 # ------------------------------------------------------------------------------------------
-# run: the sweep -> results/
+# run: the grid sweep -> results/grid/
 # ------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class SweepRequest:
@@ -80,8 +80,9 @@ class SweepRequest:
 
 def run_sweep(request: SweepRequest, log: Callable[[str], None] = log_stderr) -> int:
     """The grid sweep into ``request.out``: runs.csv (written after every run), runs.md, the
-    figures, the energy study and README.md (with the orders of `run_orders` when ``out`` has
-    them). It ranks nothing: the answer is `benchmark.answer`'s. The run's rows join the table already
+    figures, the energy study and README.md (with the orders of `run_orders` and the stability
+    map's evidence, `study_file`). It ranks nothing:
+    the answer is `benchmark.answer`'s. The run's rows join the table already
     in ``out`` (`benchmark.store.merge_rows`): rows of other scenes, methods or settings are kept,
     and every file is written from the merged table. A stopped sweep keeps its finished rows."""
     from benchmark import runner
@@ -103,8 +104,18 @@ def run_sweep(request: SweepRequest, log: Callable[[str], None] = log_stderr) ->
         return engine.stopped(exc, f"{what}; {resume}", log)
 
 
-#: The committed results directory.
-COMMITTED_RESULTS = store.ROOT / "results"
+#: The committed grid sweep's directory (`python -m benchmark run`'s default --out).
+COMMITTED_RESULTS = store.ROOT / "results" / "grid"
+
+
+def study_file(out: Path, name: str) -> Path:
+    """``out``/``name``, a file of another study the sweep's README cites (orders.csv,
+    stability/stability.csv, energy_horizon.csv); for the committed grid without it, the
+    committed one in results/, where those studies write by default."""
+    path = Path(out) / name
+    if not path.exists() and is_committed_results(out):
+        return COMMITTED_RESULTS.parent / name
+    return path
 
 
 def is_committed_results(out: Path) -> bool:
@@ -154,7 +165,7 @@ def _merge_plan(request: SweepRequest, tasks, stored: store.StoredRuns, path: Pa
     there = {store.identity_of(r) for r in stored.rows}
     replaced = len(mine & there)
     kept = len(stored.rows) - replaced
-    where = "the committed results" if is_committed_results(request.out) else str(path)
+    where = "the committed grid results" if is_committed_results(request.out) else str(path)
     log(f"{where}: this run writes {len(mine)} row(s) of {len(scenes)} scene(s) ({replaced} replacing rows there, "
         f"{len(mine) - replaced} new) and keeps the other {kept} row(s) as they are"
         + (f" ({len(legacy)} of them predate row digests: accepted by --accept-legacy, checked by range and "
@@ -193,7 +204,7 @@ def _sweep(request: SweepRequest, runs_csv: store.TableWriter, log) -> int:
     atomic_write_text(out / "runs.md", markdown_table(merged.drop(columns=[c for c in ("reason", "run_key", "row_digest",
                                                                                       "scene_key") if c in merged])))
     orders = _orders_table(out)  # the short-horizon orders study's (`python -m benchmark orders`), never the sweep's
-    failures = runs_report.failure_sentence(merged, out / "stability" / "stability.csv")
+    failures = runs_report.failure_sentence(merged, study_file(out, "stability/stability.csv"))
     failed: list[str] = []  # what of the energy study did not end with a result (a crashed worker)
     figures = _sweep_figures(request, merged, log, failed) if request.figures else []
     _sweep_readme(request, merged, orders, figures, provenance, failures, merged_note=_merged_note(runs, merged))
@@ -211,7 +222,7 @@ def _orders_table(out: Path):
     before the study: the sweep's slopes over chaotic horizons, which are not orders)."""
     import pandas as pd
 
-    path = out / "orders.csv"
+    path = study_file(out, "orders.csv")
     try:
         table = pd.read_csv(path) if path.is_file() else None
     except Exception:
@@ -317,7 +328,8 @@ def _sweep_readme(request: SweepRequest, runs, orders, figures, provenance: Prov
         compared = _earlier_comparisons(history, readme, runs)
     horizons = {"sweep": request.sweep_t_end, "energy study": request.energy_horizon if request.figures else 0.0}
     return runs_report.write_readme(request.out, runs, orders, provenance=provenance, figures=figures,
-                                    compared=compared, horizons=horizons, failures=failures, merged=merged_note)
+                                    compared=compared, horizons=horizons, failures=failures, merged=merged_note,
+                                    energy_csv=study_file(request.out, "energy_horizon.csv"))
 
 
 def _earlier_comparisons(history, readme: Path, runs) -> str:
