@@ -171,12 +171,13 @@ def _add_budget(p, what: str) -> None:
 
 
 def _check_horizon_size(args, overrides: dict) -> None:
-    """The energy study of `run` (--horizon) fits, as any run must (`options.check_size`): e.g.
-    --horizon 1e9 would take 2e11 steps at dt = 0.005 s (it crashed its worker)."""
-    from benchmark import horizon, sweep
+    """The energy study `run` makes when --horizon asks for one fits, as any run must
+    (`options.check_size`): e.g. --horizon 1e9 would take 2e11 steps at dt = 0.005 s (it crashed
+    its worker). Without --horizon (or with 0) there is no study to check."""
+    from benchmark import horizon
     from models import load_scene
 
-    t_end = args.horizon if args.horizon is not None else (sweep.QUICK_HORIZON if args.quick else sweep.FULL_HORIZON)
+    t_end = args.horizon
     if args.no_figures or not t_end:
         return
     ov = {k: v for k, v in overrides.items() if k not in ("t_end", "elements")}
@@ -610,7 +611,7 @@ def _add_run(sub) -> None:
                    "methods); its rows go to --out, which must then be given")
     r.add_argument("--quick", action="store_true", help=f"reduced sweep: {sweep.QUICK_T_END:g} s horizon, "
                    f"{len(sweep.QUICK_DTS)} step sizes, {len(sweep.QUICK_RTOLS)} tolerances, "
-                   f"{sweep.QUICK_HORIZON:g} s energy study")
+                   "no energy study unless --horizon is given")
     r.add_argument("--dts", type=opt.positive_floats, help="comma-separated step sizes (s) for fixed-step methods, "
                    f"any size (saved at the step points nearest the save times; default: {_csv(sweep.FULL_DTS)}; "
                    f"--quick: {_csv(sweep.QUICK_DTS)})")
@@ -630,8 +631,9 @@ def _add_run(sub) -> None:
                    help="where runs execute: worker processes, this process, or a Dask cluster")
     r.add_argument("--scheduler", help="Dask scheduler address, with --executor dask (e.g. tcp://host:8786)")
     r.add_argument("--horizon", type=opt.nonnegative_float,
-                   help=f"length (s) of the long-horizon energy study on the run's fixed-length scenes; 0 = off (default: "
-                        f"{sweep.FULL_HORIZON:g}; --quick: {sweep.QUICK_HORIZON:g})")
+                   help="run the long-horizon energy study too, this long (s), on the run's fixed-length scenes "
+                        "(default: none; the study is its own command, `energy`, e.g. --horizon "
+                        f"{sweep.FULL_HORIZON:g} as it runs by default, {sweep.QUICK_HORIZON:g} for a quick look)")
     _add_budget(r, "the sweep")
     r.add_argument("--no-figures", action="store_true", help="skip the figures and the energy study")
     r.add_argument("--fresh", action="store_true", help="recompute every run, ignoring rows already in OUT/runs.csv")
@@ -822,9 +824,10 @@ def _add_orders(sub) -> None:
 def _add_energy(sub) -> None:
     from benchmark import horizon, sweep  # constants only (no JAX)
 
-    e = sub("energy", "the long-horizon energy study alone: energy error vs time, classified as bounded or "
+    e = sub("energy", "the long-horizon energy study: energy error vs time, classified as bounded or "
                       "drifting -> OUT/energy_horizon.csv and figures",
-            "The energy study of `run` on its own (benchmark/horizon.py): every method that declares "
+            "The long-horizon energy study (benchmark/horizon.py; `run` makes it too only when given --horizon): "
+            "every method that declares "
             f"settings for it, at N = {_csv(horizon.ELEMENTS)} and at its step and {horizon.FINER:g}x finer, on "
             "each scene; the histories already in OUT/energy_horizon.csv for the same settings and code are kept, "
             "rows of other methods and scenes too.")

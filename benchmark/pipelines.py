@@ -51,7 +51,7 @@ class SweepRequest:
     executor: str = "process"
     scheduler: str | None = None
     repeats: int = 3
-    horizon: float | None = None  # of the energy study; None: sweep.FULL_HORIZON (--quick: QUICK_HORIZON)
+    horizon: float | None = None  # of the energy study; None or 0: none (it is `python -m benchmark energy`'s)
     figures: bool = True
     fresh: bool = False
     compare_with: tuple[str, ...] = ()  # earlier runs.csv files, one README section each
@@ -67,9 +67,8 @@ class SweepRequest:
 
     @property
     def energy_horizon(self) -> float:
-        from benchmark import sweep
-
-        return self.horizon if self.horizon is not None else (sweep.QUICK_HORIZON if self.quick else sweep.FULL_HORIZON)
+        """The energy study's horizon, 0 when the run has none (the study is opt-in: --horizon)."""
+        return self.horizon or 0.0
 
     def scene(self, name: str):
         """A scene of the sweep as its runs see it (overrides and --t-end applied)."""
@@ -80,9 +79,9 @@ class SweepRequest:
 
 def run_sweep(request: SweepRequest, log: Callable[[str], None] = log_stderr) -> int:
     """The grid sweep into ``request.out``: runs.csv (written after every run), runs.md, the
-    figures, the energy study and README.md (with the orders of `run_orders` and the stability
-    map's evidence, `study_file`). It ranks nothing:
-    the answer is `benchmark.answer`'s. The run's rows join the table already
+    figures, the energy study when ``request.horizon`` asks for one, and README.md (with the
+    orders of `run_orders` and the stability map's evidence, `study_file`). It ranks nothing: the
+    answer is `benchmark.answer`'s. The run's rows join the table already
     in ``out`` (`benchmark.store.merge_rows`): rows of other scenes, methods or settings are kept,
     and every file is written from the merged table. A stopped sweep keeps its finished rows."""
     from benchmark import runner
