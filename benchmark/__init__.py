@@ -1,8 +1,8 @@
 """The benchmark: composes scenes, integrators and diagnostics into studies, tables and plots.
 
-    python -m benchmark run            # the default sweep of the paper's three scenes -> results/
-    python -m benchmark run --quick --out /tmp/quick   # a reduced sweep, a few minutes on 2 cores
-    python -m benchmark answer --out results/answer    # the searched answer and paired timing
+    python -m benchmark answer         # the main job: the searched answer and paired timing -> results/
+    python -m benchmark run            # the grid sweep of the paper's three scenes -> results/grid/
+    python -m benchmark run --quick --out /tmp/quick   # a reduced grid sweep, a few minutes on 2 cores
 
 By concern, from the command line down:
 
@@ -13,10 +13,11 @@ By concern, from the command line down:
   wall-time verdicts by `paired` timing, at N = 10 and 40); what a sweep runs: `sweep`; its
   metrics: `metrics`; its work: `flops` (one rule for every method), checked against compiled floors by `work_rule` (results/work_rule.md), whose own arithmetic
   `opcount` counts by running their source on counting scalars;
-- their writers: `runs_report`, `stability_report`, `xval_report` (and the baseline in `check`,
-  the speed tables in `lgvi_speed`), on the report layer `report` and the plot layer `plots`;
-  what they conclude from: `properties` (energy growth classified, orthogonality), `cheapest` (the cost at a target, with its spread, and verdicts that
-  call a tie a tie), `reproducibility` (two runs tables compared within stated tolerances),
+- their writers: `answer_report`, `runs_report` (the grid sweep's), `stability_report`,
+  `xval_report` (and the baseline in `check`, the speed tables in `lgvi_speed`), on the report
+  layer `report` and the plot layer `plots`; what they conclude from: `properties` (energy
+  growth classified, orthogonality), `ranking` (what is ranked, work verdicts that call a tie a
+  tie, why runs failed), `reproducibility` (two runs tables compared within stated tolerances),
   `styles` (one look per method in every figure);
 - the plugin contract: `verify` (`python -m benchmark verify NAME`, and `check_integrator` /
   `check_effect` for a plugin's own tests);

@@ -217,7 +217,7 @@ def _one_minute_load() -> float:
 
 def run_timing(job: TimingJob, log: Callable[[str], None] = engine.log_stderr) -> dict:
     """One timing job's row: the paired ratios (`benchmark.paired`) as JSON in ``ratios``."""
-    from benchmark.cheapest import entry_name
+    from benchmark.ranking import entry_name
     from integrators import get_integrator
 
     row = {k: v for k, v in asdict(job).items() if k not in ("candidates", "t_end", "budget")}
@@ -276,12 +276,12 @@ def twins(g: pd.DataFrame) -> dict[tuple[str, str], str]:
     `benchmark.sweep.PRESENTATION_ORDER` is ranked; a search that reached nothing is never a twin."""
     import pandas as pd
 
-    from benchmark.cheapest import _presentation_rank
+    from benchmark.ranking import presentation_rank
 
     out = {}
     found = g[pd.to_numeric(g["setting"], errors="coerce").notna()]
     for _, h in found.groupby(list(TWIN_COLUMNS), sort=False, dropna=False):
-        names = sorted(h["integrator"], key=_presentation_rank)
+        names = sorted(h["integrator"], key=presentation_rank)
         for other in names[1:]:
             out[(other, h["sweep"].iloc[0])] = names[0]
     return out
@@ -411,7 +411,7 @@ def answer_table(searched: pd.DataFrame, timed: pd.DataFrame) -> pd.DataFrame:
     one axis, that reached the target, by its searched cost in flops: winner when its cost, with
     the bracket's 10 % below it, stays below every other's, else tie) and the wall rows (the
     paired timing's ratios, intervals, pairs and verdicts)."""
-    from benchmark.cheapest import _presentation_rank, _verdicts, entry_name
+    from benchmark.ranking import entry_name, presentation_rank, work_verdicts
 
     rows = []
     for (scene, n, metric, target), g in searched.groupby(["scene", "elements", "metric", "target"], sort=True):
@@ -427,7 +427,7 @@ def answer_table(searched: pd.DataFrame, timed: pd.DataFrame) -> pd.DataFrame:
                                  note=f"its search is bit-identical to {same[(integ, sweep)]}'s "
                                       f"({', '.join(TWIN_COLUMNS)}): ranked as one entry"))
                 continue
-            mates = sorted((i for (i, sw), m in same.items() if m == integ and sw == sweep), key=_presentation_rank)
+            mates = sorted((i for (i, sw), m in same.items() if m == integ and sw == sweep), key=presentation_rank)
             entry = entry_name(integ, sweep, axes[integ] > 1, mates)
             spread = r["spread"] if np.isfinite(r.get("spread", np.nan)) else 0.0
             base = dict(scene=scene, elements=int(n), metric=metric, target=target, cost_kind="work",
@@ -451,7 +451,7 @@ def answer_table(searched: pd.DataFrame, timed: pd.DataFrame) -> pd.DataFrame:
             else:
                 base.update(cost=np.nan, verdict="not reached")
             work.append(base)
-        _verdicts([w for w in work if w.get("verdict") != LOWER_BOUND])
+        work_verdicts([w for w in work if w.get("verdict") != LOWER_BOUND])
         _rank_lower_bounds(work)
         rows += work
         t = timed[(timed["scene"] == scene) & (timed["elements"] == n) & (timed["metric"] == metric)

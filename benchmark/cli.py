@@ -153,7 +153,7 @@ def cmd_run(args) -> int:
             opt.check_size(sc, t_end or sc.t_end, sweep.SAVE_EVERY, dt, warn=_log, what=f"{sc.name} at dt = {dt:g} s",
                            save_option=None)  # run saves every SAVE_EVERY: no option to raise
     out = opt.writable_dir(_run_out(args))
-    opt.no_directory_at(out, ("runs.csv", "runs.md", "orders.csv", "cheapest.csv", "README.md", "figures.json"))
+    opt.no_directory_at(out, ("runs.csv", "runs.md", "orders.csv", "README.md", "figures.json"))
     _check_horizon_size(args, ov)  # the registry's declared horizon settings (no JAX)
 
     from benchmark import pipelines
@@ -184,12 +184,13 @@ def _add_budget(p, what: str) -> None:
 
 
 def _check_horizon_size(args, overrides: dict) -> None:
-    """The energy study of `run` (--horizon) fits, as any run must (`options.check_size`): e.g.
-    --horizon 1e9 would take 2e11 steps at dt = 0.005 s (it crashed its worker)."""
-    from benchmark import horizon, sweep
+    """The energy study `run` makes when --horizon asks for one fits, as any run must
+    (`options.check_size`): e.g. --horizon 1e9 would take 2e11 steps at dt = 0.005 s (it crashed
+    its worker). Without --horizon (or with 0) there is no study to check."""
+    from benchmark import horizon
     from models import load_scene
 
-    t_end = args.horizon if args.horizon is not None else (sweep.QUICK_HORIZON if args.quick else sweep.FULL_HORIZON)
+    t_end = args.horizon
     if args.no_figures or not t_end:
         return
     ov = {k: v for k, v in overrides.items() if k not in ("t_end", "elements")}
@@ -200,31 +201,34 @@ def _check_horizon_size(args, overrides: dict) -> None:
                        what=f"--horizon {t_end:g}: the energy study of {m.name} at N = {n}")
 
 
+#: `run`'s default output directory: the committed grid sweep (`pipelines.COMMITTED_RESULTS`).
+GRID_OUT = "results/grid"
+
 #: The options of `run` that make it something other than the default sweep (other rows).
 _SWEEP_OPTIONS = (("scenes", "--scenes"), ("integrators", "--integrators"), ("quick", "--quick"), ("dts", "--dts"),
                   ("rtols", "--rtols"), ("t_end", "--t-end"), ("set", "--set"), ("extended", "--extended"))
 
 
 def _run_out(args) -> str:
-    """`run`'s output directory: the committed results/ only for the default sweep or when named
-    (`--out results`); any other sweep must say where its results go."""
+    """`run`'s output directory: the committed results/grid/ only for the default sweep or when
+    named (`--out results/grid`); any other sweep must say where its results go."""
     from benchmark.sweep import plugin_names
 
     guests = plugin_names(args.integrators or ())
     if args.out is not None:
-        if guests and Path(args.out).resolve() == Path("results").resolve():
+        if guests and Path(args.out).resolve() == Path(GRID_OUT).resolve():
             _log(f"note: {Path(args.out)}/ gets the rows of plugin(s) {_describe(guests)}, as --out asks")
         return args.out
     if guests:
-        raise UsageError(f"this run would add the rows of plugin(s) {_describe(guests)} to the committed results/, "
+        raise UsageError(f"this run would add the rows of plugin(s) {_describe(guests)} to the committed {GRID_OUT}/, "
                          "which hold only the project's own methods: give --out DIR for them (e.g. a scratch "
-                         "directory), or --out results to add them there")
+                         f"directory), or --out {GRID_OUT} to add them there")
     given = [flag for attr, flag in _SWEEP_OPTIONS if getattr(args, attr)]
     if given:
         raise UsageError(f"this run is not the default sweep ({', '.join(given)}): give --out DIR for its results "
-                         "(e.g. a scratch directory), or --out results to merge its rows into the committed results "
-                         "(the rows of other scenes, methods and settings are kept)")
-    return "results"
+                         f"(e.g. a scratch directory), or --out {GRID_OUT} to merge its rows into the committed "
+                         "results (the rows of other scenes, methods and settings are kept)")
+    return GRID_OUT
 
 
 def _describe(names) -> str:
@@ -640,7 +644,7 @@ def _add_run(sub) -> None:
                    "methods); its rows go to --out, which must then be given")
     r.add_argument("--quick", action="store_true", help=f"reduced sweep: {sweep.QUICK_T_END:g} s horizon, "
                    f"{len(sweep.QUICK_DTS)} step sizes, {len(sweep.QUICK_RTOLS)} tolerances, "
-                   f"{sweep.QUICK_HORIZON:g} s energy study")
+                   "no energy study unless --horizon is given")
     r.add_argument("--dts", type=opt.positive_floats, help="comma-separated step sizes (s) for fixed-step methods, "
                    f"any size (saved at the step points nearest the save times; default: {_csv(sweep.FULL_DTS)}; "
                    f"--quick: {_csv(sweep.QUICK_DTS)})")
@@ -658,8 +662,9 @@ def _add_run(sub) -> None:
                         "their median, run_time_low / run_time_high the fastest / the 90th percentile or slowest")
     _add_executor(r, "runs")
     r.add_argument("--horizon", type=opt.nonnegative_float,
-                   help=f"length (s) of the long-horizon energy study on the run's fixed-length scenes; 0 = off (default: "
-                        f"{sweep.FULL_HORIZON:g}; --quick: {sweep.QUICK_HORIZON:g})")
+                   help="run the long-horizon energy study too, this long (s), on the run's fixed-length scenes "
+                        "(default: none; the study is its own command, `energy`, e.g. --horizon "
+                        f"{sweep.FULL_HORIZON:g} as it runs by default, {sweep.QUICK_HORIZON:g} for a quick look)")
     _add_budget(r, "the sweep")
     r.add_argument("--no-figures", action="store_true", help="skip the figures and the energy study")
     r.add_argument("--fresh", action="store_true", help="recompute every run, ignoring rows already in OUT/runs.csv")
@@ -670,10 +675,10 @@ def _add_run(sub) -> None:
                    help="an earlier run's runs.csv: the README then says which conclusions changed and by how much "
                         "(give it more than once to compare with several, e.g. the last committed run and a second "
                         "fresh run of the same code)")
-    r.add_argument("--out", help="output directory, created if missing (default: results); the run's rows join the "
-                                 "table there (rows of other scenes, methods and settings are kept). A run that is not "
-                                 "the default sweep (--quick, --scenes, ...) writes into results/ only when named: "
-                                 "--out results")
+    r.add_argument("--out", help=f"output directory, created if missing (default: {GRID_OUT}); the run's rows join "
+                                 "the table there (rows of other scenes, methods and settings are kept). A run that is "
+                                 f"not the default sweep (--quick, --scenes, ...) writes into {GRID_OUT}/ only when "
+                                 f"named: --out {GRID_OUT}")
     r.set_defaults(func=cmd_run)
 
 
@@ -853,9 +858,10 @@ def _add_orders(sub) -> None:
 def _add_energy(sub) -> None:
     from benchmark import horizon, sweep  # constants only (no JAX)
 
-    e = sub("energy", "the long-horizon energy study alone: energy error vs time, classified as bounded or "
+    e = sub("energy", "the long-horizon energy study: energy error vs time, classified as bounded or "
                       "drifting -> OUT/energy_horizon.csv and figures",
-            "The energy study of `run` on its own (benchmark/horizon.py): every method that declares "
+            "The long-horizon energy study (benchmark/horizon.py; `run` makes it too only when given --horizon): "
+            "every method that declares "
             f"settings for it, at N = {_csv(horizon.ELEMENTS)} and at its step and {horizon.FINER:g}x finer, on "
             "each scene; the histories already in OUT/energy_horizon.csv for the same settings and code are kept, "
             "rows of other methods and scenes too.")

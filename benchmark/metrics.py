@@ -110,8 +110,8 @@ class Metric:
 
 #: Status of a run that finished (the integrator said "ok") with an error beyond a metric's
 #: sanity bound (`Metric.sanity`): its numbers are no longer a solution of the scene, so it is
-#: no point of a work–precision curve and no cost is read from it (`benchmark.cheapest` reads
-#: costs between runs whose status is "ok" only); its accuracy values are not reported, its
+#: no point of a work–precision curve and no cost is read from it (a search, `benchmark.search`,
+#: meets a target only with runs whose status is "ok"); its accuracy values are not reported, its
 #: ``reason`` names the values and bounds it broke. The bounds, each far beyond any error a
 #: benchmark target asks for (targets go down from 1e-2):
 #:

@@ -33,7 +33,7 @@ def _exclusive(out: Path, log: Callable[[str], None]):
 
 
 # ------------------------------------------------------------------------------------------
-# run: the sweep -> results/
+# run: the grid sweep -> results/grid/
 # ------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class SweepRequest:
@@ -51,7 +51,7 @@ class SweepRequest:
     executor: str = "process"
     scheduler: str | None = None
     repeats: int = 3
-    horizon: float | None = None  # of the energy study; None: sweep.FULL_HORIZON (--quick: QUICK_HORIZON)
+    horizon: float | None = None  # of the energy study; None or 0: none (it is `python -m benchmark energy`'s)
     figures: bool = True
     fresh: bool = False
     compare_with: tuple[str, ...] = ()  # earlier runs.csv files, one README section each
@@ -67,9 +67,8 @@ class SweepRequest:
 
     @property
     def energy_horizon(self) -> float:
-        from benchmark import sweep
-
-        return self.horizon if self.horizon is not None else (sweep.QUICK_HORIZON if self.quick else sweep.FULL_HORIZON)
+        """The energy study's horizon, 0 when the run has none (the study is opt-in: --horizon)."""
+        return self.horizon or 0.0
 
     def scene(self, name: str):
         """A scene of the sweep as its runs see it (overrides and --t-end applied)."""
@@ -79,10 +78,10 @@ class SweepRequest:
 
 
 def run_sweep(request: SweepRequest, log: Callable[[str], None] = log_stderr) -> int:
-    """The sweep into ``request.out``: runs.csv (written after every run), runs.md,
-    cheapest.csv, the figures, the energy study and README.md (with the orders of `run_orders`
-    when ``out`` has them); with the committed results/ as
-    ``out``, the answer block of the project README too. The run's rows join the table already
+    """The grid sweep into ``request.out``: runs.csv (written after every run), runs.md, the
+    figures, the energy study when ``request.horizon`` asks for one, and README.md (with the
+    orders of `run_orders` and the stability map's evidence, `study_file`). It ranks nothing: the
+    answer is `benchmark.answer`'s. The run's rows join the table already
     in ``out`` (`benchmark.store.merge_rows`): rows of other scenes, methods or settings are kept,
     and every file is written from the merged table. A stopped sweep keeps its finished rows."""
     from benchmark import runner
@@ -104,8 +103,18 @@ def run_sweep(request: SweepRequest, log: Callable[[str], None] = log_stderr) ->
         return engine.stopped(exc, f"{what}; {resume}", log)
 
 
-#: The committed results directory: a run into it also rewrites the project README's answer block.
-COMMITTED_RESULTS = store.ROOT / "results"
+#: The committed grid sweep's directory (`python -m benchmark run`'s default --out).
+COMMITTED_RESULTS = store.ROOT / "results" / "grid"
+
+
+def study_file(out: Path, name: str) -> Path:
+    """``out``/``name``, a file of another study the sweep's README cites (orders.csv,
+    stability/stability.csv, energy_horizon.csv); for the committed grid without it, the
+    committed one in results/, where those studies write by default."""
+    path = Path(out) / name
+    if not path.exists() and is_committed_results(out):
+        return COMMITTED_RESULTS.parent / name
+    return path
 
 
 def is_committed_results(out: Path) -> bool:
@@ -155,7 +164,7 @@ def _merge_plan(request: SweepRequest, tasks, stored: store.StoredRuns, path: Pa
     there = {store.identity_of(r) for r in stored.rows}
     replaced = len(mine & there)
     kept = len(stored.rows) - replaced
-    where = "the committed results" if is_committed_results(request.out) else str(path)
+    where = "the committed grid results" if is_committed_results(request.out) else str(path)
     log(f"{where}: this run writes {len(mine)} row(s) of {len(scenes)} scene(s) ({replaced} replacing rows there, "
         f"{len(mine) - replaced} new) and keeps the other {kept} row(s) as they are"
         + (f" ({len(legacy)} of them predate row digests: accepted by --accept-legacy, checked by range and "
@@ -194,17 +203,10 @@ def _sweep(request: SweepRequest, runs_csv: store.TableWriter, log) -> int:
     atomic_write_text(out / "runs.md", markdown_table(merged.drop(columns=[c for c in ("reason", "run_key", "row_digest",
                                                                                       "scene_key") if c in merged])))
     orders = _orders_table(out)  # the short-horizon orders study's (`python -m benchmark orders`), never the sweep's
-    table = runs_report.cheapest_table(merged)
-    runs_report.write_cheapest(out, table)
-    failures = runs_report.failure_sentence(merged, out / "stability" / "stability.csv")
+    failures = runs_report.failure_sentence(merged, study_file(out, "stability/stability.csv"))
     failed: list[str] = []  # what of the energy study did not end with a result (a crashed worker)
     figures = _sweep_figures(request, merged, log, failed) if request.figures else []
-    _sweep_readme(request, merged, orders, figures, provenance, table, failures,
-                  merged_note=_merged_note(runs, merged))
-    if is_committed_results(out) and (out / "answer" / "cheapest.csv").exists():  # the searched answer's block
-        log("README.md: the answer block is the searched one (python -m benchmark answer --out results/answer)")
-    elif is_committed_results(out):
-        log(runs_report.write_answer(store.ROOT / "README.md", runs_report.answer_block(merged, table, failures)))
+    _sweep_readme(request, merged, orders, figures, provenance, failures, merged_note=_merged_note(runs, merged))
     log(f"done in {provenance.wall_time():.0f} s: {len(runs)} runs in this run, {len(merged)} in {out}/runs.csv; "
         f"{failures} See {out}/README.md")
     if failed:
@@ -219,7 +221,7 @@ def _orders_table(out: Path):
     before the study: the sweep's slopes over chaotic horizons, which are not orders)."""
     import pandas as pd
 
-    path = out / "orders.csv"
+    path = study_file(out, "orders.csv")
     try:
         table = pd.read_csv(path) if path.is_file() else None
     except Exception:
@@ -303,7 +305,7 @@ def _sweep_figures(request: SweepRequest, merged, log, failed: list | None = Non
     return figures
 
 
-def _sweep_readme(request: SweepRequest, runs, orders, figures, provenance: Provenance, table, failures,
+def _sweep_readme(request: SweepRequest, runs, orders, figures, provenance: Provenance, failures,
                   merged_note: str = "") -> Path:
     """README.md of the whole merged table. A run that keeps rows of earlier runs (``merged_note``)
     keeps what it did not recompute: the header names the run that made the table and those that
@@ -325,8 +327,8 @@ def _sweep_readme(request: SweepRequest, runs, orders, figures, provenance: Prov
         compared = _earlier_comparisons(history, readme, runs)
     horizons = {"sweep": request.sweep_t_end, "energy study": request.energy_horizon if request.figures else 0.0}
     return runs_report.write_readme(request.out, runs, orders, provenance=provenance, figures=figures,
-                                    compared=compared, horizons=horizons, table=table, failures=failures,
-                                    merged=merged_note)
+                                    compared=compared, horizons=horizons, failures=failures, merged=merged_note,
+                                    energy_csv=study_file(request.out, "energy_horizon.csv"))
 
 
 def _earlier_comparisons(history, readme: Path, runs) -> str:

@@ -1,7 +1,8 @@
 """The report layer every generated file is written with: one header (command, UTC time, wall
 time, machine, package versions, load), Markdown tables and small prose helpers.
 
-The writers: `benchmark.runs_report` (results/README.md), `benchmark.stability_report`
+The writers: `benchmark.answer_report` (results/README.md), `benchmark.runs_report` (the grid
+sweep's results/grid/README.md), `benchmark.stability_report`
 (results/stability/README.md), `benchmark.xval_report` (results/xval/README.md),
 `benchmark.lgvi_speed` (results/lgvi_speed.md) and `benchmark.check` (the drift baseline's
 header and the check's report).

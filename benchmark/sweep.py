@@ -48,7 +48,7 @@ QUICK_T_END = 1.0
 #: s of timed solves per run (`benchmark.runner.timing_repeats`): a run is timed
 #: clamp(floor(TIMING_BUDGET / first solve), --repeats, MAX_REPEATS) times, or once when its
 #: first solve alone exceeds the budget (its noise is small next to its length). The timing
-#: noise measured on a shared 2-core machine (`benchmark.cheapest.WALL_RESOLUTION`): medians of
+#: noise measured on a shared 2-core machine (30 interleaved solves each, load 2.1-2.9): medians of
 #: 10 consecutive solves spread 1.2-1.3x, of 5 1.5-1.85x, single solves 2.2-2.7x. 0.5 s: every
 #: run under 50 ms (most of the sweep) still gets 10 or more solves, and the default run of 240
 #: runs stays near its 5-minute target on 2 cores (1 s cost about 60 s more wall time, measured).

@@ -128,7 +128,7 @@ def test_every_option_is_documented_with_its_default(capsys):
                 assert f"(default: {action.default})" in text, (name, action.dest, action.default)
     assert main(["run", "--help"]) == 0
     text = " ".join(capsys.readouterr().out.split())
-    for expected in ("--out OUT", "(default: results)", "--repeats", "(default: 3)", "--horizon", "--fresh"):
+    for expected in ("--out OUT", "(default: results/grid)", "--repeats", "(default: 3)", "--horizon", "--fresh"):
         assert expected in text, expected
     assert main(["simulate", "--help"]) == 0
     text = " ".join(capsys.readouterr().out.split())

@@ -32,7 +32,7 @@ DOCS = (ROOT / "README.md", ROOT / "integrators" / "README.md", ROOT / "models" 
 #: Commands that write elsewhere than runs.csv and take minutes: not run here.
 NOT_RUN = {"check": "results/baseline/ only", "speed": "its --out file only", "stability": "results/stability/ only",
            "xval": "results/xval/ only", "reel-reversal": "stdout and its cache only",
-           "answer": "results/answer/ only (and the README's answer block)",
+           "answer": "results/ (its cheapest.csv, README.md, figures) and the README's answer block",
            "verify": "writes nothing; tests/test_verify.py runs each documented verify"}
 #: Words of a template, not a command (an option to choose, a placeholder).
 TEMPLATE = re.compile(r"\[|\]|\(|\.\.\.|COMMAND|HOST|NAME|FILE|TRAJ|SCENE|DIR\b|\bN\b|\bH\b|\bR\b|\bS\b|\bM\b")
@@ -49,8 +49,8 @@ REACHES = {"run": ("run_sweep", "out"), "check": ("run_check", ""), "speed": ("r
            "reel-reversal": ("run_reel_reversal", ""), "orders": ("run_orders", "out"),
            "energy": ("run_horizon_study", "out"), "answer": ("run_answer", "out"), "list": (None, "")}
 #: The documented outputs, by command: where the docs say its results go.
-DOCUMENTED_OUT = {"run --fresh": "results", "run": "results", "speed": "results/lgvi_speed.md",
-                  "stability": "results/stability", "xval": "results/xval"}
+DOCUMENTED_OUT = {"run --fresh": "results/grid", "run": "results/grid", "answer": "results",
+                  "speed": "results/lgvi_speed.md", "stability": "results/stability", "xval": "results/xval"}
 
 
 def documented_commands() -> list[str]:
@@ -231,20 +231,20 @@ OUTCOME = {"check": 0, "check --update": 0}
 def test_every_documented_command_runs_as_written(tmp_path, command):
     """As written, unshortened (minutes each; the default sweep, the stability map, xval and the
     full check take the longest): its documented exit status, no traceback, and every committed
-    row of results/runs.csv it does not recompute kept."""
+    row of results/grid/runs.csv it does not recompute kept."""
     work, env = _user(tmp_path)
     args = shlex.split(command)
     if args[0] == "xval":
         pytest.importorskip("moordyn")
         pytest.importorskip("mujoco")
-    committed = pd.read_csv(work / "results" / "runs.csv")
+    committed = pd.read_csv(work / "results" / "grid" / "runs.csv")
     scratch = [args[k + 1] for k, a in enumerate(args[:-1]) if a == "--out" and not args[k + 1].startswith("results")]
     started = time.time()  # a scratch --out is the user's (/tmp/...): written, never deleted by the test
     proc = subprocess.run([sys.executable, "-m", "benchmark", *args], cwd=work, env=env, capture_output=True, text=True,
                           timeout=3600)
     assert "Traceback" not in proc.stderr, proc.stderr[-3000:]
     assert proc.returncode == OUTCOME.get(command, 0), (command, proc.stderr[-3000:])
-    after = pd.read_csv(work / "results" / "runs.csv")
+    after = pd.read_csv(work / "results" / "grid" / "runs.csv")
     kept = committed.merge(after, on=["scene", "integrator", "setting"], suffixes=("", "_after"))
     assert len(kept) == len(committed), f"{command}: {len(committed) - len(kept)} committed rows lost"
     for d in scratch:

@@ -149,7 +149,8 @@ def test_benchmark_run_uses_the_plugin_effect_in_its_workers(installed, swings, 
     command line, its runs and its reference are computed in a spawned worker process (`--jobs 1`:
     one pool worker, so one compile of each method)."""
     out = tmp_path / "out"
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), str(installed)]))
+    cache = tmp_path / "cache"  # the user's cache, where every study keeps its references
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), str(installed)]), REELBENCH_CACHE=str(cache))
     cmd = [sys.executable, "-m", "benchmark", "run", "--scenes", str(installed / "tip_force_scene.toml"),
            "--integrators", "lgvi,dop853", "--quick", "--horizon", "0", "--jobs", "1", "--out", str(out)]
     proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=900)
@@ -162,7 +163,7 @@ def test_benchmark_run_uses_the_plugin_effect_in_its_workers(installed, swings, 
     # the workers ran the plugin's physics: their reference is this process's LGVI solution with the
     # force (to its error at dt = 2.5 ms), not the one without it
     scene, plain, (pushed, free) = swings
-    [ref_file] = (out / "cache").glob("reference-tip_force_scene-*.npz")
+    [ref_file] = (cache / "references").glob("reference-tip_force_scene-*.npz")
     ref = np.load(ref_file)
     at = int(np.argmin(np.abs(ref["t"] - pushed.t[-1])))
     assert abs(ref["t"][at] - 0.2) < 1e-12

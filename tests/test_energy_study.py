@@ -61,6 +61,20 @@ def test_bad_input_is_refused_before_any_work(tmp_path, capsys):
     assert main(["energy", "--horizon", "0", "--out", str(tmp_path / "e")]) == 2
 
 
+def test_run_makes_the_energy_study_only_when_given_a_horizon(tmp_path, monkeypatch, capsys):
+    """The study is its own command (`energy`); `run` makes it too only with --horizon T, and
+    only then checks its size (a horizon far too long is refused before any work)."""
+    from benchmark.cli import main
+
+    seen = []
+    monkeypatch.setattr(pipelines, "run_sweep", lambda request, log: seen.append(request) or 0)
+    run = ["run", "--quick", "--scenes", "fixed_length", "--integrators", "lgvi", "--out", str(tmp_path / "o")]
+    assert main(run) == 0 and main([*run, "--horizon", "5"]) == 0 and main([*run, "--horizon", "0"]) == 0
+    assert [r.energy_horizon for r in seen] == [0.0, 5.0, 0.0]
+    assert main([*run, "--horizon", "1e9"]) == 2 and "--horizon 1e+09" in capsys.readouterr().err
+    assert len(seen) == 3
+
+
 def test_merge_study_table_replaces_a_run_as_a_whole_and_keeps_the_others():
     from benchmark.store import merge_study_table
 

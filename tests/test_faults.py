@@ -80,7 +80,11 @@ def test_a_sweep_on_a_disk_that_fills_keeps_the_rows_it_saved(tmp_path, monkeypa
             return len(writes) > 1
         return target.suffix == ".npz"  # the reference cache too
 
+    from benchmark import reference
+
     disk_full(monkeypatch, full_after_first_table)
+    # an empty cache of references (the user's may hold this one already): the run must write it
+    monkeypatch.setattr(reference, "CACHE_DIR", tmp_path / "references")
     out = tmp_path / "out"
     rc = main(TINY + ["--dts", "0.01,0.005", "--out", str(out)])
     err, line = outcome(capsys)

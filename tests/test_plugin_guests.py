@@ -63,8 +63,8 @@ def test_a_run_that_would_add_plugin_rows_to_results_is_refused_in_one_line(site
         assert proc.returncode == 2, (args, proc.stderr)
         [line] = proc.stderr.strip().splitlines()
         assert line.startswith("error: this run would add the rows of plugin(s) symplectic_euler "
-                               "(package my-stepper 0.1) to the committed results/"), line
-        assert "--out DIR" in line and "--out results" in line
+                               "(package my-stepper 0.1) to the committed results/grid/"), line
+        assert "--out DIR" in line and "--out results/grid" in line
     both = _benchmark(site, "run", "--with-plugins", "--integrators", "lgvi", "--out", "/tmp/x")
     assert both.returncode == 2 and "--with-plugins" in both.stderr
 
@@ -114,7 +114,7 @@ def test_with_plugins_or_a_name_brings_them_in(installed, tmp_path, monkeypatch,
     assert cli.main(["run", "--with-plugins", "--quick", "--scenes", "fixed_length", "--out", out]) == 0
     assert NAME in seen[-1].integrators and "lgvi" in seen[-1].integrators
     capsys.readouterr()
-    assert cli.main(["run", "--integrators", NAME, "--quick", "--scenes", "fixed_length", "--out", "results"]) == 0
+    assert cli.main(["run", "--integrators", NAME, "--quick", "--scenes", "fixed_length", "--out", "results/grid"]) == 0
     note = capsys.readouterr().err.strip().splitlines()
-    assert note == ["note: results/ gets the rows of plugin(s) symplectic_euler (package my-stepper 0.1), "
+    assert note == ["note: results/grid/ gets the rows of plugin(s) symplectic_euler (package my-stepper 0.1), "
                     "as --out asks"], note
