@@ -565,16 +565,18 @@ def test_a_signal_in_the_first_moments_is_one_line_without_a_traceback(sig, rc, 
 # Links inside --out, and input quoted in an error line
 # ------------------------------------------------------------------------------------------
 def test_a_link_planted_inside_out_may_not_lead_out_of_it(tmp_path, capsys):
-    """OUT/cache planted as a link to another directory: the reference was written there."""
+    """OUT/work_precision_fixed_length.png planted as a link to a file elsewhere: the figure is
+    refused, nothing is written there, and the finished rows are kept."""
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
     out = tmp_path / "out"
     out.mkdir()
-    (out / "cache").symlink_to(elsewhere, target_is_directory=True)
-    rc = main(TINY + ["--dts", "0.01", "--out", str(out)])
+    (out / "work_precision_fixed_length.png").symlink_to(elsewhere / "evil.png")
+    rc = main(WITH_FIGURES + ["--dts", "0.01", "--out", str(out)])
     err, line = outcome(capsys)
-    assert rc == 2 and "'cache' leads outside" in line and "a link inside it may not lead out of it" in line, err
-    assert list(elsewhere.iterdir()) == [] and not (out / "runs.csv").exists()
+    assert rc == 2 and "leads outside" in line and "a link inside it may not lead out of it" in line, err
+    assert list(elsewhere.iterdir()) == []
+    assert len(__import__("pandas").read_csv(out / "runs.csv")) == 1  # the finished row is kept
     assert not (out / ".reelbench.lock").exists()
 
 
