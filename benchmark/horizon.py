@@ -4,13 +4,14 @@ history per run; a rerun replaces its own runs' histories and keeps the others),
 `benchmark.properties.energy_table`.
 
 Each saved time records, beside the signed energy error (E − E0)/max T, what the state says
-about it: the energy in the string's axial vibration, P = Σ_a EA l (dε_a/dt)² (`axial_measures`,
-relative to max T; 1/s²), its fourth-order companion P4 = Σ_a EA l (d²ε_a/dt²)² (1/s⁴) and the
-least element tension. A symplectic method conserves a modified energy Ẽ = E + h^p H_p + …;
-averaged over a fast axial mode ⟨H_p⟩ = c_p ⟨P_p⟩ (`benchmark.properties.shadow_coefficient`),
-so its energy error carries an offset −c_p h^p ⟨P_p⟩ that grows whenever energy flows into the
-axial modes, without any drift of Ẽ. With `slack` only taut elements count (a slack one stores
-no energy and has no axial stiffness).
+about it (`axial_measures`, relative to max T): the energy in the string's axial vibration, P =
+Σ_a EA l (dε_a/dt)² (1/s²), the transverse part G of the elastic Hessian along the velocity
+(U''(v, v) = P + G), the fourth-order companion P4 = Σ_a EA l (d²ε_a/dt²)² (1/s⁴), the body's
+spin S = |Ω|² T_rot and the least element tension. A symplectic method conserves a modified
+energy Ẽ = E + h^p H_p + …; averaged over the string's fast modes ⟨H_p⟩ = c_p ⟨P_p⟩
+(`benchmark.properties`), so its energy error carries an offset −c_p h^p ⟨P_p⟩ that grows
+whenever energy flows into those modes, without any drift of Ẽ. With `slack` only taut elements
+count (a slack one stores no energy and has no stiffness).
 
 The plan: every run goes to `HORIZON` s on the fixed-length scenes it is given (default
 `DEFAULT_SCENE`; a scene with a reel ends when the reel reaches its limit, too soon for a long
@@ -23,7 +24,6 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-import pandas as pd
 
 from benchmark.options import SOLVE_MAX_STEPS
 from benchmark.sweep import MethodSettings
@@ -47,12 +47,13 @@ COMPOSITION_STEP = 0.005
 #: The accurate reference solve, drawn beside the methods (its energy error is in the table).
 REFERENCE = "dopri8"
 #: (variant, method, sizes, settings) of each run group: settings 2 is the declared setting and
-#: one `FINER` (the h-scaling of the offset needs two steps), 1 the declared one alone. Chosen for
-#: a total of about 16 CPU-minutes at 1000 s: the LGVI (22 s per 1000 s at 5 ms, N = 10) at both
-#: sizes and steps; the compositions (about 30 s) at N = 10 and both steps; RATTLE (150–200 s,
-#: its Newton iteration) and the non-symplectic lie_rk4 (70 s) once at N = 10; the reference
-#: (100 s) at both sizes; with `slack`: the LGVI at both steps, Suzuki and the reference at N = 10.
-#: tsit5 declares settings too, but adds nothing dopri8 and lie_rk4 do not show (both drift).
+#: one `FINER` (the h-scaling of the offset needs two steps), 1 the declared one alone. Chosen to
+#: keep the study to minutes of CPU at 1000 s (its measured cost: README.md, the `energy`
+#: command): the LGVI, the cheapest, at both sizes and steps; the compositions at N = 10 and both
+#: steps; RATTLE (its Newton iteration makes it the dearest) and the non-symplectic lie_rk4 once
+#: at N = 10; the reference at both sizes; with `slack`: the LGVI at both steps, Suzuki and the
+#: reference at N = 10. tsit5 declares settings too, but adds nothing dopri8 and lie_rk4 do not
+#: show (both drift).
 PLAN = (
     ("", "lgvi", ELEMENTS, 2),
     ("", "lgvi_yoshida4", (10,), 2),
@@ -228,7 +229,7 @@ def run_job(job: Job) -> dict:
             "task_time": time.perf_counter() - started}
 
 
-def blocks(history: pd.DataFrame, width: float = BLOCK_S) -> pd.DataFrame:
+def blocks(history, width: float = BLOCK_S):
     """``history`` in blocks (0, width], (width, 2 width], … labelled by their end (the row at
     t = 0 kept alone): the largest ``energy_error`` and the least ``tension_min`` of each block,
     the mean of every other column."""
