@@ -77,6 +77,8 @@ def test_bad_input_is_refused_before_any_work(tmp_path, capsys):
     assert main(["energy", "--integrators", "no_such_method", "--out", str(tmp_path / "e")]) == 2
     assert capsys.readouterr().err.startswith("error:") and not (tmp_path / "e").exists()
     assert main(["energy", "--horizon", "0", "--out", str(tmp_path / "e")]) == 2
+    assert main(["energy", "--variants", "plain,stiff", "--out", str(tmp_path / "e")]) == 2
+    assert "unknown string variant(s) stiff" in capsys.readouterr().err and not (tmp_path / "e").exists()
 
 
 def test_merge_study_table_replaces_a_run_as_a_whole_and_keeps_the_others():
