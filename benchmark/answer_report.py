@@ -170,7 +170,7 @@ def readme(block: list[str], figures_made: list[str], provenance: str, compared:
         "- `search.csv`: every search (its bracket, bound and points); `timing.csv`: every paired timing;",
         "  `cheapest.csv`: the answer's rows.",
         "- `grid/`: the fixed grid sweep (`python -m benchmark run`): one row per method and setting.",
-        "- `energy_horizon.csv`: the long-horizon energy study (`python -m benchmark energy`).",
+        "- `energy_horizon.md` and `energy_horizon.csv`: the long-horizon energy study (`python -m benchmark energy`).",
         "- `stability/`, `xval/`, `orders.csv`, `lgvi_speed.md`, `work_rule.md`: their own commands.", "",
         "## Provenance", "", provenance, ""])
 

@@ -195,7 +195,7 @@ def _check_horizon_size(args, overrides: dict) -> None:
         return
     ov = {k: v for k, v in overrides.items() if k not in ("t_end", "elements")}
     sizes = (int(overrides["elements"]),) if "elements" in overrides else horizon.ELEMENTS
-    for n, m in horizon.runs(args.integrators, sizes):
+    for _, n, m in horizon.runs(args.integrators, sizes, ("",)):
         opt.check_size(load_scene(horizon.DEFAULT_SCENE, elements=n, **ov), t_end, horizon.SAVE_EVERY,
                        m.settings.get("dt"), warn=_log, save_option=None, t_end_option="--horizon",
                        what=f"--horizon {t_end:g}: the energy study of {m.name} at N = {n}")
@@ -558,11 +558,18 @@ def cmd_energy(args) -> int:
     for sc in args.scenes or ():
         load_scene(sc)
     horizon.methods(args.integrators)  # an unknown name, or one without energy-study settings, is refused
+    variants = tuple(args.variants) if args.variants else tuple(horizon.VARIANTS)
+    unknown = [v for v in variants if v not in horizon.VARIANTS and v != "plain"]
+    if unknown:
+        raise ValueError(f"unknown string variant(s) {', '.join(unknown)}: choose from plain, "
+                         + ", ".join(v for v in horizon.VARIANTS if v))
     out = opt.writable_dir(args.out)
     from benchmark import pipelines
 
     figures = pipelines.run_horizon_study(args.horizon, out, scenes=args.scenes, jobs=args.jobs, log=_log,
-                                          selected=args.integrators)
+                                          selected=args.integrators, variants=tuple("" if v == "plain" else v
+                                                                                     for v in variants),
+                                          text=True)
     _log("wrote " + ", ".join(f"{out}/{name}" for name, _ in figures) if figures else "energy study: nothing written")
     return 0
 
@@ -856,19 +863,21 @@ def _add_orders(sub) -> None:
 
 
 def _add_energy(sub) -> None:
-    from benchmark import horizon, sweep  # constants only (no JAX)
+    from benchmark import horizon  # constants only (no JAX)
 
-    e = sub("energy", "the long-horizon energy study: energy error vs time, classified as bounded or "
-                      "drifting -> OUT/energy_horizon.csv and figures",
-            "The long-horizon energy study (benchmark/horizon.py; `run` makes it too only when given --horizon): "
-            "every method that declares "
-            f"settings for it, at N = {_csv(horizon.ELEMENTS)} and at its step and {horizon.FINER:g}x finer, on "
-            "each scene; the histories already in OUT/energy_horizon.csv for the same settings and code are kept, "
-            "rows of other methods and scenes too.")
+    e = sub("energy", "the long-horizon energy study: energy error vs time beside the axial vibration and "
+                      "the least tension, the modified-energy offset told apart from drift -> "
+                      "OUT/energy_horizon.csv, figures and OUT/energy_horizon.md",
+            "The energy study (benchmark/horizon.py): the runs of its plan (horizon.PLAN: methods, N = "
+            f"{_csv(horizon.ELEMENTS)}, the declared step and {horizon.FINER:g}x finer), on each scene and with "
+            "the tension-only string (`slack`); the histories already in OUT/energy_horizon.csv for the same "
+            "settings and code are kept, rows of other methods and scenes too.")
     e.add_argument("--scenes", type=opt.names, help=f"comma-separated scenes (default: {horizon.DEFAULT_SCENE})")
     e.add_argument("--integrators", type=opt.names, help="comma-separated methods (default: every one that "
                                                          "declares energy-study settings)")
-    e.add_argument("--horizon", type=opt.positive_float, default=sweep.FULL_HORIZON, help="length in s")
+    e.add_argument("--horizon", type=opt.positive_float, default=horizon.HORIZON, help="length in s")
+    e.add_argument("--variants", type=opt.names, help="comma-separated string laws: plain (the scene as it is), "
+                                                      "slack (tension-only) (default: both)")
     e.add_argument("--jobs", type=opt.nonnegative_int, help="worker processes (0: in this process)")
     e.add_argument("--out", default="results", help="output directory (created if missing)")
     e.set_defaults(func=cmd_energy)

@@ -376,7 +376,7 @@ def _horizon_key(scene: str, elements: int, method, t_end: float, overrides: tup
     from benchmark import horizon
 
     return store.key_of(scene, elements, method.name, method.settings, float(t_end), list(overrides),
-                        store.code_version(), horizon.MAX_STEPS)
+                        store.code_version(), horizon.MAX_STEPS, store.source_hash((), ("benchmark/horizon.py",)))
 
 
 def _read_horizon(path: Path):
@@ -424,21 +424,42 @@ def energy_scenes(scenes, overrides: tuple = (), log: Callable[[str], None] = lo
 
 def run_horizon_study(t_end: float, out: Path, overrides: tuple = (), jobs: int | None = None,
                       log: Callable[[str], None] = log_stderr, selected=None,
-                      scenes=None, failed: list | None = None) -> list[tuple[str, str]]:
+                      scenes=None, failed: list | None = None, variants=("",),
+                      text: bool = False) -> list[tuple[str, str]]:
     """Energy error vs time over a long horizon (`benchmark.horizon`) on ``scenes`` (default
-    `horizon.DEFAULT_SCENE`), one job per run in parallel workers (``jobs``; 0: in this process;
-    one after another they would be the main job's longest tail): energy_horizon.csv and one
-    figure per scene. ``selected``: the methods a run asked for (None: all); of those that
-    declare horizon settings (`benchmark.sweep.horizon_methods`), a run whose history is already
+    `horizon.DEFAULT_SCENE`) and their string variants (``variants``: "" the scene as it is,
+    "slack" with the tension-only string; None: all of `horizon.VARIANTS`), the runs of `horizon.PLAN`, one job per run in parallel workers
+    (``jobs``; 0: in this process): energy_horizon.csv and one figure per scene and variant.
+    ``selected``: the methods asked for (None: all of the plan); a run whose history is already
     in energy_horizon.csv for the same settings, size, horizon, scene and code is kept, the
     others computed; other runs' histories stay (`store.merge_study_table`). A run whose worker
     dies is left out of both (its progress line says so, and ``failed`` gets what it was and
-    why). Returns [(figure name, note)]."""
+    why). ``text`` (the `energy` command): also the observed orders with and without `slack`
+    (`benchmark.slack_orders`, when the slack variant and every method run; kept when its code did
+    not change) and the energy section of README.md, or energy_horizon.md without one
+    (`properties.write_energy_section`). Returns [(figure name, note)]."""
+    figures = _horizon_study(t_end, out, overrides, jobs, log, selected, scenes, failed, variants)
+    if text:
+        from benchmark import properties, slack_orders
+
+        if (variants is None or "slack" in variants) and selected is None:  # the C¹ potential and the orders (~90 s)
+            if slack_orders.fresh(out):
+                log(f"energy: {out}/{slack_orders.TABLE} kept (same code)")
+            else:
+                log(f"energy: observed orders with and without `slack` -> {out}/{slack_orders.TABLE} ...")
+                slack_orders.study(out, log=log)
+        readme = properties.write_energy_section(out)
+        if readme is not None:
+            log(f"wrote the energy section of {readme}")
+    return figures
+
+
+def _horizon_study(t_end, out, overrides, jobs, log, selected, scenes, failed, variants) -> list[tuple[str, str]]:
     import os
 
     import pandas as pd
 
-    from benchmark import horizon, plots, runner
+    from benchmark import horizon, runner
     from benchmark.sweep import Task
     from models import load_scene
 
@@ -446,67 +467,71 @@ def run_horizon_study(t_end: float, out: Path, overrides: tuple = (), jobs: int 
     earlier = _read_horizon(path)
     scenes = list(scenes or [horizon.DEFAULT_SCENE])
     ov = dict(overrides)
-    sizes = (int(ov.pop("elements")),) if "elements" in ov else horizon.ELEMENTS  # --set elements=N: that N only
+    sizes = (int(ov.pop("elements")),) if "elements" in ov else None  # --set elements=N: that N only
     ov = tuple(sorted(ov.items()))
-    names = {s: load_scene(s, **dict(ov)).name for s in scenes}
-    plan = [(s, n, m) for s in scenes for n, m in horizon.runs(selected, sizes)]
+    loaded = {s: load_scene(s, **dict(ov)) for s in scenes}
+    plan = [(s, v, n, m) for s in scenes for v, n, m in horizon.runs(selected, sizes, variants)]
+    names = {(s, v): horizon.table_scene(loaded[s].name, v) for s, v, _, _ in plan}
+    job_ov = {(s, v): tuple(sorted({**dict(ov), **dict(horizon.variant_overrides(loaded[s], v))}.items()))
+              for s, v, _, _ in plan}
     if not plan:
-        log("horizon: none of the selected methods declares settings for the energy study; "
+        log("horizon: none of the selected methods is in the energy study's plan; "
             + ("energy_horizon.csv kept as it was" if earlier is not None else "no energy study"))
-        return _horizon_figures(out, earlier, names.values(), redraw=False)
-    wanted = {(s, n, m.name, horizon.setting_of(m)): _horizon_key(names[s], n, m, t_end, ov) for s, n, m in plan}
+        return _horizon_figures(out, earlier, (), redraw=False)
 
-    def key(s, n, m):
-        return names[s], n, m.name, horizon.setting_of(m)
+    def key(s, v, n, m):
+        return names[(s, v)], n, m.name, horizon.setting_of(m)
 
+    wanted = {key(s, v, n, m): _horizon_key(names[(s, v)], n, m, t_end, job_ov[(s, v)]) for s, v, n, m in plan}
     done = set()
     if earlier is not None and "job_key" in earlier:
         for k, g in earlier.groupby(list(horizon.RUN_KEY), sort=False):
             done.add((k[0], int(k[1]), k[2], k[3], str(g["job_key"].iloc[0])))
-    todo = [(s, n, m) for s, n, m in plan if (*key(s, n, m), wanted[(s, n, m.name, horizon.setting_of(m))]) not in done]
+    todo = [(s, v, n, m) for s, v, n, m in plan if (*key(s, v, n, m), wanted[key(s, v, n, m)]) not in done]
     kept = len(plan) - len(todo)
     if kept:
         log(f"horizon: kept {kept} of {len(plan)} runs (same settings, size, horizon and code)")
-    new = []
+    new, rows = [], []
     if todo:
-        jobs_ = [horizon.Job(s, n, m, t_end, ov) for s, n, m in todo]
+        jobs_ = [horizon.Job(s, n, m, t_end, job_ov[(s, v)]) for s, v, n, m in todo]
         tasks = [Task(s, m.name, dt=m.settings.get("dt"), rtol=m.settings.get("rtol"), t_end=t_end,
-                      overrides=tuple(sorted({**dict(ov), "elements": n}.items()))) for s, n, m in todo]
+                      overrides=tuple(sorted({**dict(ov), "elements": n}.items()))) for s, v, n, m in todo]
         costs = runner.task_costs(tasks)
         workers = jobs if jobs is not None else min(len(todo), os.cpu_count() or 1)  # 0: this process
-        log(f"horizon: {len(todo)} runs ({', '.join(dict.fromkeys(m.name for _, _, m in todo))} at N = "
-            f"{', '.join(str(n) for n in dict.fromkeys(n for _, n, _ in todo))}) on {', '.join(scenes)} to "
-            f"t = {t_end:g} s ...")
+        log(f"horizon: {len(todo)} runs ({', '.join(dict.fromkeys(m.name for *_, m in todo))} at N = "
+            f"{', '.join(str(n) for n in dict.fromkeys(n for _, _, n, _ in todo))}) on "
+            f"{', '.join(dict.fromkeys(names[(s, v)] for s, v, _, _ in todo))} to t = {t_end:g} s ...")
         with engine.Heartbeat(f"horizon study to t = {t_end:g} s", sum(costs) / max(workers, 1), log=log):
             rows = engine.run_jobs(horizon.run_job, jobs_, workers=workers,
                                    crash_row=lambda i, exc: horizon.crash_row(jobs_[i], exc),
-                                   describe=horizon.describe, cost=lambda i: costs[i], kind=lambda i: todo[i][2].name,
+                                   describe=horizon.describe, cost=lambda i: costs[i], kind=lambda i: todo[i][3].name,
                                    log=log)
         if failed is not None:  # a crashed worker is a failure of the command, not a result
-            failed += [f"{m.name} {horizon.setting_of(m)} N={n} on {s} ({r.get('reason', r['status'])})"
-                       for (s, n, m), r in zip(todo, rows) if r["status"] == "crashed" or r["history"] is None]
-        for (s, n, m), r in zip(todo, rows):
+            failed += [f"{m.name} {horizon.setting_of(m)} N={n} on {names[(s, v)]} ({r.get('reason', r['status'])})"
+                       for (s, v, n, m), r in zip(todo, rows) if r["status"] == "crashed" or r["history"] is None]
+        for (s, v, n, m), r in zip(todo, rows):
             if r["history"] is None:
                 continue
-            scene, elements, name, setting = key(s, n, m)
+            scene, elements, name, setting = key(s, v, n, m)
             new.append(r["history"].assign(method=r["label"], integrator=name, scene=scene, elements=elements,
                                            setting=setting, status=r["status"], t_end=t_end,
-                                           job_key=wanted[(s, n, name, setting)]))
+                                           job_key=wanted[(scene, elements, name, setting)]))
+    drawn = set(names.values())
     if not todo:
-        return _horizon_figures(out, earlier, names.values(), redraw=False)
+        return _horizon_figures(out, earlier, drawn, redraw=False)
     table = store.merge_study_table(earlier, pd.concat(new, ignore_index=True) if new else None, horizon.RUN_KEY)
-    dead = {key(s, n, m) for (s, n, m), r in zip(todo, rows) if r["history"] is None}
+    dead = {key(s, v, n, m) for (s, v, n, m), r in zip(todo, rows) if r["history"] is None}
     if dead and table is not None and len(table):  # a run recomputed without a history is not drawn from stale rows
         stale = table[list(horizon.RUN_KEY)].apply(lambda r: (r.iloc[0], int(r.iloc[1]), r.iloc[2], r.iloc[3]) in dead,
                                                    axis=1)
         table = table[~stale]
     if table is not None and len(table):  # a history of a run the study no longer makes (another method or setting)
-        made = {(m.name, horizon.setting_of(m)) for _, m in horizon.runs()}
+        made = {(m.name, horizon.setting_of(m)) for _, _, m in horizon.runs()}
         table = table[[(i, s) in made for i, s in zip(table["integrator"], table["setting"])]]
     if table is None or table.empty:
         return []
     store.write_table(path, table)
-    return _horizon_figures(out, table, names.values(), redraw=True)
+    return _horizon_figures(out, table, drawn, redraw=True)
 
 
 def _horizon_figures(out: Path, table, scenes, redraw: bool) -> list[tuple[str, str]]:

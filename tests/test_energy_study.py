@@ -16,25 +16,41 @@ def test_the_study_runs_on_the_fixed_length_scenes_it_is_given():
     assert pipelines.energy_scenes(["deployment"], log=said.append) == []
 
 
-def test_every_method_runs_at_two_sizes_and_two_settings():
-    plan = horizon.runs(["lgvi", "tsit5"])
-    assert {(n, m.name, horizon.setting_of(m)) for n, m in plan} == {
-        (n, name, s) for n in horizon.ELEMENTS for name, s in
-        (("lgvi", "dt=0.005"), ("lgvi", "dt=0.0025"), ("tsit5", "rtol=1e-06, atol=1e-08"), ("tsit5", "rtol=1e-08, atol=1e-10"))}
+def test_the_plan_runs_what_it_lists():
+    plan = horizon.runs(["lgvi", "lgvi_suzuki4", "dopri8"])
+    assert {(v, n, m.name, horizon.setting_of(m)) for v, n, m in plan} == {
+        *(("", n, "lgvi", s) for n in horizon.ELEMENTS for s in ("dt=0.005", "dt=0.0025")),
+        *(("", 10, "lgvi_suzuki4", s) for s in ("dt=0.005", "dt=0.0025")),
+        *(("", n, "dopri8", "rtol=1e-08, atol=1e-10") for n in horizon.ELEMENTS),
+        *(("slack", 10, "lgvi", s) for s in ("dt=0.005", "dt=0.0025")),
+        ("slack", 10, "lgvi_suzuki4", "dt=0.005"), ("slack", 10, "dopri8", "rtol=1e-08, atol=1e-10")}
+    # the compositions declare no settings of their own: they get the LGVI's step
+    assert horizon.declared("lgvi_yoshida4").settings == {"dt": horizon.COMPOSITION_STEP}
+    assert {(v, n) for v, n, _ in horizon.runs(["lgvi"], elements=(4,), variants=("",))} == {("", 4)}
     assert horizon.finer(MethodSettings("x", {"dt": 0.01})).settings == {"dt": 0.005}
+
+
+def test_the_slack_variant_adds_the_effect_and_names_its_table_scene():
+    from models import load_scene
+
+    scene = load_scene("fixed_length")
+    assert horizon.variant_overrides(scene, "") == ()
+    (key, effects), = horizon.variant_overrides(scene, "slack")
+    assert key == "effects" and load_scene("fixed_length", effects=list(effects)).has("slack")
+    assert horizon.table_scene("fixed_length", "slack") == "fixed_length_slack"
 
 
 def test_a_rerun_merges_into_the_table_and_keeps_what_it_did_not_recompute(tmp_path):
     def history(name):
         return pd.DataFrame({"t": [0.0, 0.1, 0.2], "energy_error": [0.0, 1e-9, 2e-9], "tension_min": 1.0,
-                             "method": f"{name} rtol=1e-06, atol=1e-08 N=10", "integrator": name, "scene": "fixed_length",
-                             "elements": 10, "setting": "rtol=1e-06, atol=1e-08", "status": "ok", "t_end": 0.2,
+                             "method": f"{name} rtol=1e-08, atol=1e-10 N=10", "integrator": name, "scene": "fixed_length",
+                             "elements": 10, "setting": "rtol=1e-08, atol=1e-10", "status": "ok", "t_end": 0.2,
                              "job_key": "from-an-earlier-run"})
 
-    # tsit5's is a run of the study (kept); rk45 no longer declares energy-study settings: its
-    # history is of a run the study does not make, and is dropped
+    # dopri8's is a run of the study (kept); rk45 is not in its plan: its history is of a run the
+    # study does not make, and is dropped
     assert "rk45" not in {m.name for m in horizon.methods()}
-    pd.concat([history("tsit5"), history("rk45")]).to_csv(tmp_path / "energy_horizon.csv", index=False)
+    pd.concat([history("dopri8"), history("rk45")]).to_csv(tmp_path / "energy_horizon.csv", index=False)
     said = []
     one_size = (("elements", 4),)  # --set elements=4: that size only (one compilation per setting)
     figures = pipelines.run_horizon_study(0.2, tmp_path, one_size, jobs=0, log=said.append, selected=["lgvi"],
@@ -42,10 +58,12 @@ def test_a_rerun_merges_into_the_table_and_keeps_what_it_did_not_recompute(tmp_p
     table = pd.read_csv(tmp_path / "energy_horizon.csv")
     assert figures == [("energy_horizon_fixed_length.png", "")] and (tmp_path / figures[0][0]).is_file()
     runs = table.groupby(list(horizon.RUN_KEY)).size()
-    assert len(runs) == 3 and runs[("fixed_length", 10, "tsit5", "rtol=1e-06, atol=1e-08")] == 3  # kept as it was
+    assert len(runs) == 3 and runs[("fixed_length", 10, "dopri8", "rtol=1e-08, atol=1e-10")] == 3  # kept as it was
     assert "rk45" not in set(table["integrator"])
     assert set(table.loc[table.integrator == "lgvi", "setting"]) == {"dt=0.005", "dt=0.0025"}
-    assert "tension_min" in table and table.loc[table.integrator == "lgvi", "tension_min"].notna().all()
+    lgvi = table[table.integrator == "lgvi"]
+    assert lgvi[["tension_min", "energy_dev", "axial_P", "axial_P4"]].notna().all().all()
+    assert (lgvi["axial_P"] > 0).all() and (lgvi["energy_error"] >= lgvi["energy_dev"].abs() - 1e-15).all()  # block max, mean
     said.clear()
     pipelines.run_horizon_study(0.2, tmp_path, one_size, jobs=0, log=said.append, selected=["lgvi"],
                                 scenes=["fixed_length"])
@@ -59,6 +77,8 @@ def test_bad_input_is_refused_before_any_work(tmp_path, capsys):
     assert main(["energy", "--integrators", "no_such_method", "--out", str(tmp_path / "e")]) == 2
     assert capsys.readouterr().err.startswith("error:") and not (tmp_path / "e").exists()
     assert main(["energy", "--horizon", "0", "--out", str(tmp_path / "e")]) == 2
+    assert main(["energy", "--variants", "plain,stiff", "--out", str(tmp_path / "e")]) == 2
+    assert "unknown string variant(s) stiff" in capsys.readouterr().err and not (tmp_path / "e").exists()
 
 
 def test_run_makes_the_energy_study_only_when_given_a_horizon(tmp_path, monkeypatch, capsys):
@@ -82,3 +102,20 @@ def test_merge_study_table_replaces_a_run_as_a_whole_and_keeps_the_others():
     new = pd.DataFrame({"run": ["a"], "v": [9]})
     assert merge_study_table(old, new, ["run"]).to_dict("list") == {"run": ["b", "a"], "v": [3, 9]}
     assert merge_study_table(None, new, ["run"]).equals(new) and merge_study_table(old, None, ["run"]).equals(old)
+
+
+def test_the_energy_command_rewrites_only_its_section_of_the_readme(tmp_path):
+    from benchmark.properties import SECTION, write_energy_section
+
+    t = [0.0, 10.0, 20.0]
+    pd.DataFrame({"t": t, "energy_error": [0.0, 1e-9, 2e-9], "energy_dev": [0.0, -1e-9, -2e-9], "axial_P": 1.0,
+                  "tension_min": 1.0, "method": "lgvi dt=0.005 N=10", "integrator": "lgvi", "scene": "fixed_length",
+                  "elements": 10, "setting": "dt=0.005", "status": "ok"}).to_csv(tmp_path / "energy_horizon.csv",
+                                                                                  index=False)
+    assert write_energy_section(tmp_path) == tmp_path / "energy_horizon.md"  # no README: the section alone
+    (tmp_path / "README.md").write_text("# Results\nHorizons — sweep: 10 s; energy study: 100 s.\n\n## Before\nkept\n\n"
+                                        f"{SECTION}\nold words\n\n## After\nkept too\n")
+    assert write_energy_section(tmp_path) == tmp_path / "README.md"
+    text = (tmp_path / "README.md").read_text()
+    assert "old words" not in text and "## Before\nkept" in text and "## After\nkept too" in text
+    assert "energy study: 20 s." in text and text.count(SECTION) == 1 and "`lgvi` N=10 dt=0.005" in text
