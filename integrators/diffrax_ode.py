@@ -160,7 +160,7 @@ def _make_advance(model, f, solver_of, constant: bool, dt0_given: bool, n_save: 
             controller = dfx.PIDController(rtol=rtol, atol=atol, dtmin=min_step, force_dtmin=False)
         return solver_of(rtol, atol), controller
 
-    def start(y0, t1, ts, dt0, E0, blowup, solver, controller):
+    def start(y0, t1, dt0, blowup, solver, controller):
         t0 = jnp.zeros((), t1.dtype)
         error_order = solver.error_order(term)
         # diffeqsolve's first step when none is given: its initial-step heuristic applies to a bare
@@ -185,7 +185,7 @@ def _make_advance(model, f, solver_of, constant: bool, dt0_given: bool, n_save: 
 
     def advance(state, fresh, y0, t1, ts, rtol, atol, dt0, min_step, E0, blowup, k_stop):
         solver, controller = pieces(rtol, atol, min_step)
-        state = lax.cond(fresh, lambda s: start(y0, t1, ts, dt0, E0, blowup, solver, controller), lambda s: s, state)
+        state = lax.cond(fresh, lambda s: start(y0, t1, dt0, blowup, solver, controller), lambda s: s, state)
         t1_clip_floor = t1
         for _ in range(100):
             t1_clip_floor = eqxi.prevbefore(t1_clip_floor)
@@ -241,7 +241,7 @@ def _make_advance(model, f, solver_of, constant: bool, dt0_given: bool, n_save: 
 
     def initial(y0, t1, ts, rtol, atol, dt0, min_step, E0, blowup):
         solver, controller = pieces(rtol, atol, min_step)
-        return start(y0, t1, ts, dt0, E0, blowup, solver, controller)
+        return start(y0, t1, dt0, blowup, solver, controller)
 
     def final(s, solver):
         """(t, y, result) where the solve stands: diffrax's root find for a fired condition."""
@@ -488,7 +488,11 @@ def _solve(run: Run, prog: _Program, args, budget: int, timed: bool) -> tuple[di
         box.update(state=state, fresh=np.bool_(False), steps=int(steps), final=final)
         return done, bool(int(result) != successful or float(tprev) >= t1 or int(steps) >= budget)
 
-    timed_out = run_in_chunks(run, advance, budget) if timed else not advance(budget)[1]
+    if timed:
+        timed_out = run_in_chunks(run, advance, budget)
+    else:  # one call: it ends the solve (the budget is its chunk)
+        advance(budget)
+        timed_out = False
     state, (t_final, y_final, result) = jax.device_get((box["state"], box["final"]))
     out = {"ts": state.ts, "ys": state.ys, "errs": state.errs, "save_index": state.save_index,
            "num_steps": state.num_steps, "num_accepted_steps": state.num_accepted_steps,
