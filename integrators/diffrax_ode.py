@@ -15,8 +15,9 @@ The solve runs diffrax's solvers in this module's own compiled loop (`_make_adva
 diffrax's public pieces and mirroring `diffrax.diffeqsolve`'s loop: ``solver.init`` / ``step``,
 ``PIDController`` (``ConstantStepSize`` with dt alone) ``init`` / ``adapt_step_size``, the same
 clip-to-t1 rule, the saved times interpolated by the solver's ``interpolation_cls`` on the step's
-dense output, and the event's root find. Its results equal diffeqsolve's bit for bit (tests/
-test_baselines.py). One compiled function advances up to K steps (a run-time argument) from the
+dense output, and the event's root find; an adaptive solve given no dt starts, as diffeqsolve
+does, with a first step of `DIFFRAX_FIRST_STEP`. Its results equal diffeqsolve's bit for bit
+here (tests/test_diffrax_loop.py). One compiled function advances up to K steps (a run-time argument) from the
 complete loop state (times, next step size, state, solver and controller states, result, step
 counts, next saved slot, saved buffers, the last step's dense output for the root find) and
 returns it, so a solve can be cut anywhere and resumed exactly. It is compiled ahead of time and
@@ -36,9 +37,11 @@ right-hand side keeps its ``jax.debug.callback``.
 
 Counts: for the explicit FSAL methods ``stats["rhs_evals"]`` follows from the steps: (stages −
 1) per attempted step, 1 at the start, and 2 more for the initial step-size guess of an adaptive
-run (diffrax's PID controller evaluates f at y0 and at y0 + h0 f0). Checked against a counting
-right-hand side in tests/test_rhs.py: exact with a constant step; adaptive, XLA may merge the
-repeated f(t0, y0), so the executed count is 1-2 lower. Kvaerno5's Newton iterations are not
+run (the PID controller's initial-step heuristic evaluates f at y0 and at y0 + h0 f0). Checked
+against a counting right-hand side in tests/test_rhs.py: exact with a constant step; adaptive,
+the executed count is up to 2 lower: diffeqsolve, and this loop with it, starts from
+`DIFFRAX_FIRST_STEP` without that heuristic (the 2 stay in the rule, so that recorded counts
+keep their meaning). Kvaerno5's Newton iterations are not
 exposed by diffrax, and counting them inside the compiled solve takes a host callback per
 evaluation (~0.1 ms each here, several times a Newton iteration at small N): so a plain run
 says ``stats["counts_unavailable"]`` (why, in words), and ``solve(..., count_evaluations=True)``
