@@ -192,6 +192,22 @@ def test_xla_flags_are_appended_not_clobbered():
         assert DEFAULT_XLA_FLAGS[0].split("=", 1)[0] in xla_flags()
 
 
+def test_the_persistent_compile_cache_is_in_the_users_cache_directory_unless_turned_off():
+    import os
+
+    from models._jax import compile_cache_dir
+
+    home = os.path.expanduser("~")
+    assert compile_cache_dir({}) == os.path.join(home, ".cache", "reelbench", "jax")
+    assert compile_cache_dir({"XDG_CACHE_HOME": "/x/cache"}) == "/x/cache/reelbench/jax"
+    assert compile_cache_dir({"REELBENCH_COMPILE_CACHE": "0", "XDG_CACHE_HOME": "/x"}) is None
+    assert compile_cache_dir({"REELBENCH_COMPILE_CACHE": "/elsewhere/jax"}) == "/elsewhere/jax"
+    # this process: equinox's runtime checks return NaN unless the user chose otherwise
+    assert os.environ.get("EQX_ON_ERROR") in ("nan", "raise", "off", "breakpoint")
+    expected = compile_cache_dir()
+    assert jax.config.values["jax_compilation_cache_dir"] == expected or expected is None
+
+
 def test_speed_covers_every_registered_fixed_step_method(monkeypatch):
     """`python -m benchmark speed` takes its methods from the registry, not from a list."""
     from benchmark import lgvi_speed
