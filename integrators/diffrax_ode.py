@@ -11,7 +11,7 @@ The right-hand side is the O(N) closed form by default, the autodiff one with
 The solver is a class attribute (``solver``, e.g. diffrax's ``Tsit5``; `make_solver` builds it,
 Kvaerno5's with its Newton root finder).
 
-The solve runs diffrax's solvers in this module's own compiled loop (`_make_advance`), built from
+The solve runs diffrax's solvers in this module's own compiled loop (`_Loop`), built from
 diffrax's public pieces and mirroring `diffrax.diffeqsolve`'s loop: ``solver.init`` / ``step``,
 ``PIDController`` (``ConstantStepSize`` with dt alone) ``init`` / ``adapt_step_size``, the same
 clip-to-t1 rule, the saved times interpolated by the solver's ``interpolation_cls`` on the step's
@@ -122,133 +122,155 @@ class _State(NamedTuple):
     event_mask: Any  # (guard, margin): which condition fired
 
 
-def _make_advance(model, f, solver_of, constant: bool, dt0_given: bool, n_save: int):
-    """The chunk as a function of (state, fresh, y0, t1, ts, rtol, atol, dt0, min_step, E0,
+class _Loop:
+    """The chunk of a solve: `advance` (state, fresh, y0, t1, ts, rtol, atol, dt0, min_step, E0,
     blowup, k_stop) -> (state, final): from ``state`` (or from y0 when ``fresh``), take steps
     until t1, a result other than success (an event, dt_min, a failed solve) or ``k_stop``
     attempted steps. ``final`` = (t, y, result) where the solve stands: at an event, the root
-    find's crossing on the last step's dense output, as `diffrax.diffeqsolve` does.
+    find's crossing on the last step's dense output, as `diffrax.diffeqsolve` does. `initial`
+    (the same arguments less state, fresh and k_stop) is the state a fresh call starts from.
 
     The loop is diffrax's (``diffrax._integrate.loop``, 0.7) with our two conditions for its
     `Event`: ``solver.step``, NaN errors made inf, ``controller.adapt_step_size``, the
     clip-to-t1 rule (t1 minus 100 ulps), the saved times by ``solver.interpolation_cls`` on the
     step's ``dense_info``, then the conditions at the new (tprev, y)."""
-    import diffrax as dfx
-    import equinox.internal as eqxi
-    import optimistix as optx
 
-    from integrators.base import energy_error_ode
-    from models._jax import jax, jnp
+    def __init__(self, model, f, solver_of, constant: bool, dt0_given: bool, n_save: int):
+        import diffrax as dfx
 
-    lax, RESULTS = jax.lax, dfx.RESULTS
-    lay = model.layout
-    term = dfx.ODETerm(lambda t, y, args: f(t, y))
-    reel = lay.has_reel
+        self.model, self.lay, self.reel = model, model.layout, model.layout.has_reel
+        self.term = dfx.ODETerm(lambda t, y, args: f(t, y))
+        self.solver_of, self.constant, self.dt0_given, self.n_save = solver_of, constant, dt0_given, n_save
 
-    def conditions(y, blowup):
+    def conditions(self, y, blowup):
         """(guard, margin): a non-finite / blown-up state (bool) and, with a reel, the deployed
         length's margin (its sign change is the event; 1.0 without a reel)."""
+        from models._jax import jnp
+
         bad = ~jnp.all(jnp.isfinite(y)) | (jnp.max(jnp.abs(y)) >= blowup)
-        margin = model.deployed_length_margin(y[lay.y_x]) if reel else jnp.ones((), y.dtype)
+        margin = self.model.deployed_length_margin(y[self.lay.y_x]) if self.reel else jnp.ones((), y.dtype)
         return bad, margin
 
-    def masks(old_margin, bad, margin):
-        fired = (jnp.sign(old_margin) != jnp.sign(margin)) if reel else jnp.zeros((), bool)
-        return bad, fired & ~bad
+    def pieces(self, rtol, atol, min_step):
+        """(solver, step-size controller) with this run's tolerances (traced)."""
+        import diffrax as dfx
 
-    def pieces(rtol, atol, min_step):
-        if constant:
+        if self.constant:
             controller = dfx.ConstantStepSize()
         else:
             controller = dfx.PIDController(rtol=rtol, atol=atol, dtmin=min_step, force_dtmin=False)
-        return solver_of(rtol, atol), controller
+        return self.solver_of(rtol, atol), controller
 
-    def start(y0, t1, dt0, blowup, solver, controller):
+    def initial(self, y0, t1, ts, rtol, atol, dt0, min_step, E0, blowup):
+        return self.start(y0, t1, dt0, blowup, *self.pieces(rtol, atol, min_step))
+
+    def start(self, y0, t1, dt0, blowup, solver, controller):
+        import diffrax as dfx
+
+        from models._jax import jax, jnp
+
+        RESULTS, term = dfx.RESULTS, self.term
         t0 = jnp.zeros((), t1.dtype)
-        error_order = solver.error_order(term)
         # diffeqsolve's first step when none is given: its initial-step heuristic applies to a bare
         # ODETerm only, and diffeqsolve wraps every term (its time direction), so it starts at 0.01
-        first = dt0 if dt0_given else jnp.asarray(DIFFRAX_FIRST_STEP, t1.dtype)
-        tnext, controller_state = controller.init(term, t0, t1, y0, first, None, solver.func, error_order)
+        first = dt0 if self.dt0_given else jnp.asarray(DIFFRAX_FIRST_STEP, t1.dtype)
+        tnext, controller_state = controller.init(term, t0, t1, y0, first, None, solver.func, solver.error_order(term))
         tnext = jnp.minimum(tnext, t1)
         solver_state = solver.init(term, t0, tnext, y0, None)
         _, _, info_struct, _, _ = jax.eval_shape(lambda: solver.step(term, t0, tnext, y0, None, solver_state, False))
-        bad, margin = conditions(y0, blowup)
-        mask = (bad, jnp.zeros((), bool))
-        i0 = jnp.zeros((), jnp.int32)
+        bad, margin = self.conditions(y0, blowup)
+        i0, n = jnp.zeros((), jnp.int32), self.n_save
         return _State(
             tprev=t0, tnext=tnext, y=y0, solver_state=solver_state,
             controller_state=jax.tree_util.tree_map(jnp.asarray, controller_state),
             result=RESULTS.where(bad, RESULTS.event_occurred, RESULTS.successful),
             num_steps=i0, num_accepted_steps=i0, num_rejected_steps=i0, save_index=i0,
-            ts=jnp.full(n_save, jnp.inf, t1.dtype), ys=jnp.full((n_save,) + y0.shape, jnp.inf, y0.dtype),
-            errs=jnp.full(n_save, jnp.inf, y0.dtype), event_tprev=t0, event_tnext=t0,
+            ts=jnp.full(n, jnp.inf, t1.dtype), ys=jnp.full((n,) + y0.shape, jnp.inf, y0.dtype),
+            errs=jnp.full(n, jnp.inf, y0.dtype), event_tprev=t0, event_tnext=t0,
             event_dense_info=jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), info_struct),
-            event_values=(bad, margin), event_mask=mask)
+            event_values=(bad, margin), event_mask=(bad, jnp.zeros((), bool)))
 
-    def advance(state, fresh, y0, t1, ts, rtol, atol, dt0, min_step, E0, blowup, k_stop):
-        solver, controller = pieces(rtol, atol, min_step)
-        state = lax.cond(fresh, lambda s: start(y0, t1, dt0, blowup, solver, controller), lambda s: s, state)
+    def advance(self, state, fresh, y0, t1, ts, rtol, atol, dt0, min_step, E0, blowup, k_stop):
+        import diffrax as dfx
+        import equinox.internal as eqxi
+
+        from models._jax import jax
+
+        solver, controller = self.pieces(rtol, atol, min_step)
+        state = jax.lax.cond(fresh, lambda s: self.start(y0, t1, dt0, blowup, solver, controller), lambda s: s, state)
         t1_clip_floor = t1
         for _ in range(100):
             t1_clip_floor = eqxi.prevbefore(t1_clip_floor)
-        error_order = solver.error_order(term)
 
         def cond(s):
-            return (s.tprev < t1) & (s.result == RESULTS.successful) & (s.num_steps < k_stop)
+            return (s.tprev < t1) & (s.result == dfx.RESULTS.successful) & (s.num_steps < k_stop)
 
         def body(s):
-            y, y_error, dense_info, solver_state, solver_result = solver.step(term, s.tprev, s.tnext, s.y, None,
-                                                                              s.solver_state, False)
-            y_error = jnp.where(jnp.isnan(y_error), jnp.inf, y_error)
-            keep_step, tprev, tnext, made_jump, controller_state, controller_result = controller.adapt_step_size(
-                s.tprev, s.tnext, s.y, y, None, y_error, error_order, s.controller_state)
-            assert made_jump is False  # no jump times: diffrax keeps it a static False too
-            tprev = jnp.minimum(tprev, t1)
-            clip = tnext > t1_clip_floor
-            tnext = jnp.where(clip, jnp.where(keep_step, t1, tprev + 0.5 * (t1 - tprev)), tnext)
-            keep = lambda a, b: jnp.where(keep_step, a, b)  # noqa: E731
-            y = keep(y, s.y)
-            solver_state = jax.tree_util.tree_map(keep, solver_state, s.solver_state)
-            solver_result = RESULTS.where(keep_step, solver_result, RESULTS.successful)
-            okay = (s.result == RESULTS.successful) | (s.result == RESULTS.event_occurred)
-            result = RESULTS.where(okay, solver_result, s.result)
-            okay = (result == RESULTS.successful) | (result == RESULTS.event_occurred)
-            result = RESULTS.where(okay, controller_result, result)
-            num_accepted = s.num_accepted_steps + jnp.where(keep_step, 1, 0)
-            num_rejected = s.num_rejected_steps + jnp.where(keep_step, 0, 1)
+            return self.step(s, solver, controller, t1, t1_clip_floor, ts, E0, blowup)
 
-            interpolator = solver.interpolation_cls(t0=s.tprev, t1=s.tnext, **dense_info)
+        s = jax.lax.while_loop(cond, body, state)
+        return s, self.final(s, solver)
 
-            def save_cond(c):
-                j = c[0]
-                return keep_step & (ts[j] <= s.tnext) & (j < n_save)
+    def step(self, s, solver, controller, t1, t1_clip_floor, ts, E0, blowup):
+        """One attempted step of diffrax's loop body, its saved times and the conditions."""
+        import diffrax as dfx
 
-            def save_body(c):
-                j, ts_buf, ys_buf, errs_buf = c
-                t = ts[j]
-                y_t = interpolator.evaluate(t)
-                return (j + 1, ts_buf.at[j].set(t), ys_buf.at[j].set(y_t),
-                        errs_buf.at[j].set(energy_error_ode(model, y_t, E0)))
+        from models._jax import jax, jnp
 
-            j, ts_buf, ys_buf, errs_buf = lax.while_loop(save_cond, save_body, (s.save_index, s.ts, s.ys, s.errs))
+        RESULTS = dfx.RESULTS
+        y, y_error, dense_info, solver_state, solver_result = solver.step(self.term, s.tprev, s.tnext, s.y, None,
+                                                                          s.solver_state, False)
+        y_error = jnp.where(jnp.isnan(y_error), jnp.inf, y_error)
+        keep_step, tprev, tnext, made_jump, controller_state, controller_result = controller.adapt_step_size(
+            s.tprev, s.tnext, s.y, y, None, y_error, solver.error_order(self.term), s.controller_state)
+        assert made_jump is False  # no jump times: diffrax keeps it a static False too
+        tprev = jnp.minimum(tprev, t1)
+        tnext = jnp.where(tnext > t1_clip_floor, jnp.where(keep_step, t1, tprev + 0.5 * (t1 - tprev)), tnext)
+        keep = lambda a, b: jnp.where(keep_step, a, b)  # noqa: E731
+        y = keep(y, s.y)
+        solver_state = jax.tree_util.tree_map(keep, solver_state, s.solver_state)
+        solver_result = RESULTS.where(keep_step, solver_result, RESULTS.successful)
+        okay = (s.result == RESULTS.successful) | (s.result == RESULTS.event_occurred)
+        result = RESULTS.where(okay, solver_result, s.result)
+        okay = (result == RESULTS.successful) | (result == RESULTS.event_occurred)
+        result = RESULTS.where(okay, controller_result, result)
+        num_accepted = s.num_accepted_steps + jnp.where(keep_step, 1, 0)
+        num_rejected = s.num_rejected_steps + jnp.where(keep_step, 0, 1)
+        saved = self.save(s, keep_step, solver.interpolation_cls(t0=s.tprev, t1=s.tnext, **dense_info), ts, E0)
+        bad, margin = self.conditions(y, blowup)
+        fired = (jnp.sign(s.event_values[1]) != jnp.sign(margin)) if self.reel else jnp.zeros((), bool)
+        mask = (bad, fired & ~bad)
+        result = RESULTS.where(mask[0] | mask[1], RESULTS.event_occurred, result)
+        return _State(tprev, tnext, y, solver_state, controller_state, result, s.num_steps + 1, num_accepted,
+                      num_rejected, *saved, s.tprev, s.tnext, dense_info, (bad, margin), mask)
 
-            bad, margin = conditions(y, blowup)
-            mask = masks(s.event_values[1], bad, margin)
-            result = RESULTS.where(mask[0] | mask[1], RESULTS.event_occurred, result)
-            return _State(tprev, tnext, y, solver_state, controller_state, result, s.num_steps + 1, num_accepted,
-                          num_rejected, j, ts_buf, ys_buf, errs_buf, s.tprev, s.tnext, dense_info, (bad, margin), mask)
+    def save(self, s, keep_step, interpolator, ts, E0):
+        """(next slot, ts, ys, energy errors): the saved times the accepted step passed."""
+        from integrators.base import energy_error_ode
+        from models._jax import jax
 
-        s = lax.while_loop(cond, body, state)
-        return s, final(s, solver)
+        def save_cond(c):
+            j = c[0]
+            return keep_step & (ts[j] <= s.tnext) & (j < self.n_save)
 
-    def initial(y0, t1, ts, rtol, atol, dt0, min_step, E0, blowup):
-        solver, controller = pieces(rtol, atol, min_step)
-        return start(y0, t1, dt0, blowup, solver, controller)
+        def save_body(c):
+            j, ts_buf, ys_buf, errs_buf = c
+            t = ts[j]
+            y_t = interpolator.evaluate(t)
+            return (j + 1, ts_buf.at[j].set(t), ys_buf.at[j].set(y_t),
+                    errs_buf.at[j].set(energy_error_ode(self.model, y_t, E0)))
 
-    def final(s, solver):
+        return jax.lax.while_loop(save_cond, save_body, (s.save_index, s.ts, s.ys, s.errs))
+
+    def final(self, s, solver):
         """(t, y, result) where the solve stands: diffrax's root find for a fired condition."""
-        if not reel:  # no root finder (diffrax's ``Event(root_finder=None)``): where the loop stopped
+        import diffrax as dfx
+        import optimistix as optx
+
+        from models._jax import jax, jnp
+
+        lax, RESULTS = jax.lax, dfx.RESULTS
+        if not self.reel:  # no root finder (diffrax's ``Event(root_finder=None)``): where the loop stopped
             return s.tprev, s.y, s.result
         happened = s.event_mask[0] | s.event_mask[1]
         root_finder = optx.Newton(rtol=EVENT_TIME_TOL, atol=EVENT_TIME_TOL)
@@ -261,8 +283,8 @@ def _make_advance(model, f, solver_of, constant: bool, dt0_given: bool, n_save: 
                 zero = jnp.zeros_like(from_end)
                 # a boolean condition has its root at the end of the last step; the margin its own
                 guard_value = lax.cond(s.event_mask[0], lambda: from_end, lambda: zero)
-                margin_value = lax.cond(s.event_mask[1], lambda: model.deployed_length_margin(
-                    interpolator.evaluate(t)[lay.y_x]).astype(from_end.dtype), lambda: zero)
+                margin_value = lax.cond(s.event_mask[1], lambda: self.model.deployed_length_margin(
+                    interpolator.evaluate(t)[self.lay.y_x]).astype(from_end.dtype), lambda: zero)
                 return (jnp.where(happened, guard_value, from_end), jnp.where(happened, margin_value, from_end))
 
             found = optx.root_find(distance, root_finder, y0=s.event_tnext,
@@ -273,8 +295,6 @@ def _make_advance(model, f, solver_of, constant: bool, dt0_given: bool, n_save: 
             return t, y, result
 
         return lax.cond(happened, root_find, lambda: (s.tprev, s.y, s.result))
-
-    return advance, initial
 
 
 def _counting(f, counts: list):
@@ -381,7 +401,7 @@ class DiffraxODE(LibraryAdapter):
                 f64(g.blowup))
 
     def _compile(self, run: Run, constant: bool, args, counting: bool) -> "_Program":
-        """The chunk of the solve (`_make_advance`), compiled ahead of time for these argument
+        """The chunk of the solve (`_Loop.advance`), compiled ahead of time for these argument
         shapes, with the zero state its first (fresh) call passes and, when ``counting``, the
         list its counting callbacks add to."""
         from integrators import rhs as _rhs
@@ -391,10 +411,10 @@ class DiffraxODE(LibraryAdapter):
         f = _rhs.ode_rhs(run.model, run.rhs)
         if counts is not None:
             f = _counting(f, counts)
-        advance, initial = _make_advance(run.model, f, self.make_solver, constant, run.dt is not None, len(args[2]))
-        shape = jax.eval_shape(initial, *args)
+        loop = _Loop(run.model, f, self.make_solver, constant, run.dt is not None, len(args[2]))
+        shape = jax.eval_shape(loop.initial, *args)
         zero = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shape)
-        fn = jax.jit(advance).lower(zero, np.bool_(True), *args, np.int32(0)).compile()
+        fn = jax.jit(loop.advance).lower(zero, np.bool_(True), *args, np.int32(0)).compile()
         return _Program(fn, zero, counts)
 
     def _ending(self, run: Run, out: dict, timed_out: bool) -> Outcome:
