@@ -11,17 +11,37 @@ The right-hand side is the O(N) closed form by default, the autodiff one with
 The solver is a class attribute (``solver``, e.g. diffrax's ``Tsit5``; `make_solver` builds it,
 Kvaerno5's with its Newton root finder).
 
-The whole solve is one jitted function of (y0, t1, saved times, rtol, atol, dt0, min_step,
-guards, deadline), compiled ahead of time and cached (`CompileCache`, bounded) per (model, rhs,
-solver, step-size mode, number of saved times, max_steps, time limit or not), so repeated calls
-with other tolerances, horizons or step sizes do not recompile; ``stats["compile_time"]`` is
-that compilation (0 when cached) and ``stats["wall_time"]`` the rest of the ``solve()`` call.
+The solve runs diffrax's solvers in this module's own compiled loop (`_Loop`), built from
+diffrax's public pieces and mirroring `diffrax.diffeqsolve`'s loop: ``solver.init`` / ``step``,
+``PIDController`` (``ConstantStepSize`` with dt alone) ``init`` / ``adapt_step_size``, the same
+clip-to-t1 rule, the saved times interpolated by the solver's ``interpolation_cls`` on the step's
+dense output, and the event's root find; an adaptive solve given no dt starts, as diffeqsolve
+does, with a first step of `DIFFRAX_FIRST_STEP`. Its results equal diffeqsolve's bit for bit
+here (tests/test_diffrax_loop.py). One compiled function advances up to K steps (a run-time argument) from the
+complete loop state (times, next step size, state, solver and controller states, result, step
+counts, next saved slot, saved buffers, the last step's dense output for the root find) and
+returns it, so a solve can be cut anywhere and resumed exactly. It is compiled ahead of time and
+cached (`CompileCache`, bounded) per (model, rhs, solver, step-size mode, first step given or not,
+number of saved times): the step budget, time limit, tolerances, horizon, dt and K are run-time
+values, so the budgeted and timed solves of every setting share one program;
+``stats["compile_time"]`` is that compilation (0 when cached) and ``stats["wall_time"]`` the rest
+of the ``solve()`` call.
+
+No host callback runs inside a compiled solve: with a ``time_limit`` the host reads the clock
+(and `integrators.lifecycle.STOP_REQUESTED`) between chunks (`lifecycle.run_in_chunks`, as for
+the fixed-step methods), and the inputs are checked before the solve (`DiffraxODE._arguments`)
+instead of by equinox's runtime checks. A budgeted solve equals the unbudgeted one bit for bit
+(trajectory, status, counts). The one exception is Kvaerno5's opt-in counting replay
+(``count_evaluations=True``, below): a separate program, not a timed solve, whose counting
+right-hand side keeps its ``jax.debug.callback``.
 
 Counts: for the explicit FSAL methods ``stats["rhs_evals"]`` follows from the steps: (stages −
 1) per attempted step, 1 at the start, and 2 more for the initial step-size guess of an adaptive
-run (diffrax's PID controller evaluates f at y0 and at y0 + h0 f0). Checked against a counting
-right-hand side in tests/test_rhs.py: exact with a constant step; adaptive, XLA may merge the
-repeated f(t0, y0), so the executed count is 1-2 lower. Kvaerno5's Newton iterations are not
+run (the PID controller's initial-step heuristic evaluates f at y0 and at y0 + h0 f0). Checked
+against a counting right-hand side in tests/test_rhs.py: exact with a constant step; adaptive,
+the executed count is up to 2 lower: diffeqsolve, and this loop with it, starts from
+`DIFFRAX_FIRST_STEP` without that heuristic (the 2 stay in the rule, so that recorded counts
+keep their meaning). Kvaerno5's Newton iterations are not
 exposed by diffrax, and counting them inside the compiled solve takes a host callback per
 evaluation (~0.1 ms each here, several times a Newton iteration at small N): so a plain run
 says ``stats["counts_unavailable"]`` (why, in words), and ``solve(..., count_evaluations=True)``
@@ -31,17 +51,16 @@ iteration (the residual is the linearisation's value) and factorises the materia
 by LU: ``rhs_evals`` = evaluations + linearisations, ``jac_evals`` = ``lu_decompositions`` =
 linearisations (measured N = 2, rtol 1e-6: 16 per step, none outside Newton).
 
-Failures never raise (``throw=False``); ``sol.result`` is mapped to a status:
-``max_steps_reached`` -> "max_steps", ``dt_min_reached`` -> "step_size_collapse" (the PID
+Failures never raise; diffrax's result is mapped to a status: ``max_steps_reached`` (the
+budget spent before t_end) -> "max_steps", ``dt_min_reached`` -> "step_size_collapse" (the PID
 controller gets ``dtmin = min_step``, default 1e-12 t_end, with ``force_dtmin=False``), other
-errors -> "failed" with diffrax's message. A terminating `diffrax.Event` stops the run when the
-deployed length leaves (ℓ_min, L - b) ("length_limit", at the crossing found by a root find on
-the dense output, like scipy's events), when the state becomes non-finite or blows up
-("diverged"), or, with a ``time_limit``, when the clock says so ("time_limit": the event reads
-the clock through a host callback after every step, in a separately compiled solve, because a
-compiled diffrax solve cannot be resumed exactly — its next step size is not part of its saved
-state). The energy balance is checked at the saved points (computed inside the same compiled
-solve); the trajectory is kept up to the last saved point before any of these.
+errors -> "failed" with diffrax's message. Two event conditions, checked after every step as
+diffrax's `Event` does, stop the run: a non-finite or blown-up state ("diverged") and, with a
+reel, the deployed length leaving (ℓ_min, L - b) ("length_limit", at the crossing found by a
+root find on the step's dense output, like scipy's events). A ``time_limit`` spent (or a stop
+asked for) between chunks ends it as "time_limit". The energy balance is checked at the saved
+points (computed inside the compiled loop as each is saved); the trajectory is kept up to the
+last saved point before any of these.
 
 The quaternion is not renormalised. No ``@register``: found through the entry-point group.
 """
@@ -49,13 +68,13 @@ The quaternion is not renormalised. No ``@register``: found through the entry-po
 from __future__ import annotations
 
 import time
-from typing import Any, ClassVar
+from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
 
 from integrators.base import Capability, Status, energy_reason, fixed_step_grid, save_times
 from integrators.lifecycle import (CompileCache, LibraryAdapter, Outcome, Run, blowup_reason, length_reason,
-                                   library_attribute, state_ok)
+                                   library_attribute, run_in_chunks, state_ok)
 
 #: Default step budget (diffrax's own default, 4096, is too small for tight tolerances here).
 DEFAULT_MAX_STEPS = 100_000
@@ -63,6 +82,9 @@ DEFAULT_MAX_STEPS = 100_000
 DEFAULT_MIN_STEP_REL = 1e-12
 #: Kvaerno5's Newton tolerances, relative to the step-size controller's rtol/atol.
 NEWTON_TOL_FACTOR = 1e-2
+#: the first step of an adaptive solve given no dt (s): `diffrax.diffeqsolve`'s, whose initial-step
+#: heuristic (`PIDController.init`) applies to a bare ODETerm only, and it wraps every term
+DIFFRAX_FIRST_STEP = 0.01
 #: tolerances of the event time's root find (s; the margin is in m and moves at ~m/s)
 EVENT_TIME_TOL = 1e-10
 
@@ -75,36 +97,204 @@ COUNTS_UNAVAILABLE = ("diffrax does not expose Kvaerno5's Newton iterations; sol
                       "157 steps, 2,600 linearisations: 1.5 s against 0.25 s)")
 
 
-def _stop_condition(model, timed: bool):
-    """Event conditions: a non-finite / blown-up state or, with ``timed``, the deadline passed (a
-    boolean, checked at the end of every step) and, with a reel, the deployed-length margin (a
-    real number: the run stops where it crosses zero, located by a root find on the step's dense
-    output, as scipy's events are). The thresholds are the solve's ``args`` = (blow-up bound,
-    deadline): run-time values, not constants of the compiled solve."""
-    from jax.experimental import io_callback
+class _State(NamedTuple):
+    """The complete state of the step loop between two chunks (diffrax's loop state, less what
+    our solves leave unused: ``made_jump`` stays a static False, as in diffrax for controllers
+    without jump times; no dense or step saving)."""
 
-    from models._jax import jax, jnp
+    tprev: Any
+    tnext: Any
+    y: Any
+    solver_state: Any
+    controller_state: Any
+    result: Any  # a diffrax RESULTS item
+    num_steps: Any
+    num_accepted_steps: Any
+    num_rejected_steps: Any
+    save_index: Any  # the next saved time to write (diffrax's saveat_ts_index = save_index)
+    ts: Any  # saved times, inf where not yet written
+    ys: Any  # saved states
+    errs: Any  # |E - W - E0| at the saved states
+    event_tprev: Any  # the last step's interval and dense output (the event's root find)
+    event_tnext: Any
+    event_dense_info: Any
+    event_values: Any  # (guard, margin): the conditions' values after the last step
+    event_mask: Any  # (guard, margin): which condition fired
 
-    lay = model.layout
 
-    def guards(t, y, args, **kwargs):
-        blowup, deadline = args
+class _Loop:
+    """The chunk of a solve: `advance` (state, fresh, y0, t1, ts, rtol, atol, dt0, min_step, E0,
+    blowup, k_stop) -> (state, final): from ``state`` (or from y0 when ``fresh``), take steps
+    until t1, a result other than success (an event, dt_min, a failed solve) or ``k_stop``
+    attempted steps. ``final`` = (t, y, result) where the solve stands: at an event, the root
+    find's crossing on the last step's dense output, as `diffrax.diffeqsolve` does. `initial`
+    (the same arguments less state, fresh and k_stop) is the state a fresh call starts from.
+
+    The loop is diffrax's (``diffrax._integrate.loop``, 0.7) with our two conditions for its
+    `Event`: ``solver.step``, NaN errors made inf, ``controller.adapt_step_size``, the
+    clip-to-t1 rule (t1 minus 100 ulps), the saved times by ``solver.interpolation_cls`` on the
+    step's ``dense_info``, then the conditions at the new (tprev, y)."""
+
+    def __init__(self, model, f, solver_of, constant: bool, dt0_given: bool, n_save: int):
+        import diffrax as dfx
+
+        self.model, self.lay, self.reel = model, model.layout, model.layout.has_reel
+        self.term = dfx.ODETerm(lambda t, y, args: f(t, y))
+        self.solver_of, self.constant, self.dt0_given, self.n_save = solver_of, constant, dt0_given, n_save
+
+    def conditions(self, y, blowup):
+        """(guard, margin): a non-finite / blown-up state (bool) and, with a reel, the deployed
+        length's margin (its sign change is the event; 1.0 without a reel)."""
+        from models._jax import jnp
+
         bad = ~jnp.all(jnp.isfinite(y)) | (jnp.max(jnp.abs(y)) >= blowup)
-        if timed:
-            from integrators.lifecycle import STOP_REQUESTED  # a stop asked for ends the run as the deadline does
+        margin = self.model.deployed_length_margin(y[self.lay.y_x]) if self.reel else jnp.ones((), y.dtype)
+        return bad, margin
 
-            late = io_callback(lambda d: np.bool_(time.perf_counter() >= d or STOP_REQUESTED.is_set()),
-                               jax.ShapeDtypeStruct((), jnp.bool_), deadline, ordered=False)
-            bad = bad | late
-        return bad
+    def pieces(self, rtol, atol, min_step):
+        """(solver, step-size controller) with this run's tolerances (traced)."""
+        import diffrax as dfx
 
-    if not lay.has_reel:
-        return guards
+        if self.constant:
+            controller = dfx.ConstantStepSize()
+        else:
+            controller = dfx.PIDController(rtol=rtol, atol=atol, dtmin=min_step, force_dtmin=False)
+        return self.solver_of(rtol, atol), controller
 
-    def length_margin(t, y, args, **kwargs):
-        return model.deployed_length_margin(y[lay.y_x])
+    def initial(self, y0, t1, ts, rtol, atol, dt0, min_step, E0, blowup):
+        return self.start(y0, t1, dt0, blowup, *self.pieces(rtol, atol, min_step))
 
-    return (guards, length_margin)
+    def start(self, y0, t1, dt0, blowup, solver, controller):
+        import diffrax as dfx
+
+        from models._jax import jax, jnp
+
+        RESULTS, term = dfx.RESULTS, self.term
+        t0 = jnp.zeros((), t1.dtype)
+        # diffeqsolve's first step when none is given: its initial-step heuristic applies to a bare
+        # ODETerm only, and diffeqsolve wraps every term (its time direction), so it starts at 0.01
+        first = dt0 if self.dt0_given else jnp.asarray(DIFFRAX_FIRST_STEP, t1.dtype)
+        tnext, controller_state = controller.init(term, t0, t1, y0, first, None, solver.func, solver.error_order(term))
+        tnext = jnp.minimum(tnext, t1)
+        solver_state = solver.init(term, t0, tnext, y0, None)
+        _, _, info_struct, _, _ = jax.eval_shape(lambda: solver.step(term, t0, tnext, y0, None, solver_state, False))
+        bad, margin = self.conditions(y0, blowup)
+        i0, n = jnp.zeros((), jnp.int32), self.n_save
+        return _State(
+            tprev=t0, tnext=tnext, y=y0, solver_state=solver_state,
+            controller_state=jax.tree_util.tree_map(jnp.asarray, controller_state),
+            result=RESULTS.where(bad, RESULTS.event_occurred, RESULTS.successful),
+            num_steps=i0, num_accepted_steps=i0, num_rejected_steps=i0, save_index=i0,
+            ts=jnp.full(n, jnp.inf, t1.dtype), ys=jnp.full((n,) + y0.shape, jnp.inf, y0.dtype),
+            errs=jnp.full(n, jnp.inf, y0.dtype), event_tprev=t0, event_tnext=t0,
+            event_dense_info=jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), info_struct),
+            event_values=(bad, margin), event_mask=(bad, jnp.zeros((), bool)))
+
+    def advance(self, state, fresh, y0, t1, ts, rtol, atol, dt0, min_step, E0, blowup, k_stop):
+        import diffrax as dfx
+        import equinox.internal as eqxi
+
+        from models._jax import jax
+
+        solver, controller = self.pieces(rtol, atol, min_step)
+        state = jax.lax.cond(fresh, lambda s: self.start(y0, t1, dt0, blowup, solver, controller), lambda s: s, state)
+        t1_clip_floor = t1
+        for _ in range(100):
+            t1_clip_floor = eqxi.prevbefore(t1_clip_floor)
+
+        def cond(s):
+            return (s.tprev < t1) & (s.result == dfx.RESULTS.successful) & (s.num_steps < k_stop)
+
+        def body(s):
+            return self.step(s, solver, controller, t1, t1_clip_floor, ts, E0, blowup)
+
+        s = jax.lax.while_loop(cond, body, state)
+        return s, self.final(s, solver)
+
+    def step(self, s, solver, controller, t1, t1_clip_floor, ts, E0, blowup):
+        """One attempted step of diffrax's loop body, its saved times and the conditions."""
+        import diffrax as dfx
+
+        from models._jax import jax, jnp
+
+        RESULTS = dfx.RESULTS
+        y, y_error, dense_info, solver_state, solver_result = solver.step(self.term, s.tprev, s.tnext, s.y, None,
+                                                                          s.solver_state, False)
+        y_error = jnp.where(jnp.isnan(y_error), jnp.inf, y_error)
+        keep_step, tprev, tnext, made_jump, controller_state, controller_result = controller.adapt_step_size(
+            s.tprev, s.tnext, s.y, y, None, y_error, solver.error_order(self.term), s.controller_state)
+        assert made_jump is False  # no jump times: diffrax keeps it a static False too
+        tprev = jnp.minimum(tprev, t1)
+        tnext = jnp.where(tnext > t1_clip_floor, jnp.where(keep_step, t1, tprev + 0.5 * (t1 - tprev)), tnext)
+        keep = lambda a, b: jnp.where(keep_step, a, b)  # noqa: E731
+        y = keep(y, s.y)
+        solver_state = jax.tree_util.tree_map(keep, solver_state, s.solver_state)
+        solver_result = RESULTS.where(keep_step, solver_result, RESULTS.successful)
+        okay = (s.result == RESULTS.successful) | (s.result == RESULTS.event_occurred)
+        result = RESULTS.where(okay, solver_result, s.result)
+        okay = (result == RESULTS.successful) | (result == RESULTS.event_occurred)
+        result = RESULTS.where(okay, controller_result, result)
+        num_accepted = s.num_accepted_steps + jnp.where(keep_step, 1, 0)
+        num_rejected = s.num_rejected_steps + jnp.where(keep_step, 0, 1)
+        saved = self.save(s, keep_step, solver.interpolation_cls(t0=s.tprev, t1=s.tnext, **dense_info), ts, E0)
+        bad, margin = self.conditions(y, blowup)
+        fired = (jnp.sign(s.event_values[1]) != jnp.sign(margin)) if self.reel else jnp.zeros((), bool)
+        mask = (bad, fired & ~bad)
+        result = RESULTS.where(mask[0] | mask[1], RESULTS.event_occurred, result)
+        return _State(tprev, tnext, y, solver_state, controller_state, result, s.num_steps + 1, num_accepted,
+                      num_rejected, *saved, s.tprev, s.tnext, dense_info, (bad, margin), mask)
+
+    def save(self, s, keep_step, interpolator, ts, E0):
+        """(next slot, ts, ys, energy errors): the saved times the accepted step passed."""
+        from integrators.base import energy_error_ode
+        from models._jax import jax
+
+        def save_cond(c):
+            j = c[0]
+            return keep_step & (ts[j] <= s.tnext) & (j < self.n_save)
+
+        def save_body(c):
+            j, ts_buf, ys_buf, errs_buf = c
+            t = ts[j]
+            y_t = interpolator.evaluate(t)
+            return (j + 1, ts_buf.at[j].set(t), ys_buf.at[j].set(y_t),
+                    errs_buf.at[j].set(energy_error_ode(self.model, y_t, E0)))
+
+        return jax.lax.while_loop(save_cond, save_body, (s.save_index, s.ts, s.ys, s.errs))
+
+    def final(self, s, solver):
+        """(t, y, result) where the solve stands: diffrax's root find for a fired condition."""
+        import diffrax as dfx
+        import optimistix as optx
+
+        from models._jax import jax, jnp
+
+        lax, RESULTS = jax.lax, dfx.RESULTS
+        if not self.reel:  # no root finder (diffrax's ``Event(root_finder=None)``): where the loop stopped
+            return s.tprev, s.y, s.result
+        happened = s.event_mask[0] | s.event_mask[1]
+        root_finder = optx.Newton(rtol=EVENT_TIME_TOL, atol=EVENT_TIME_TOL)
+
+        def root_find():
+            interpolator = solver.interpolation_cls(t0=s.event_tprev, t1=s.event_tnext, **s.event_dense_info)
+
+            def distance(t, _):
+                from_end = s.event_tnext - t
+                zero = jnp.zeros_like(from_end)
+                # a boolean condition has its root at the end of the last step; the margin its own
+                guard_value = lax.cond(s.event_mask[0], lambda: from_end, lambda: zero)
+                margin_value = lax.cond(s.event_mask[1], lambda: self.model.deployed_length_margin(
+                    interpolator.evaluate(t)[self.lay.y_x]).astype(from_end.dtype), lambda: zero)
+                return (jnp.where(happened, guard_value, from_end), jnp.where(happened, margin_value, from_end))
+
+            found = optx.root_find(distance, root_finder, y0=s.event_tnext,
+                                   options={"lower": s.event_tprev, "upper": s.event_tnext}, throw=False)
+            t = found.value
+            y = lax.cond(s.num_steps == 0, lambda: s.y, lambda: interpolator.evaluate(t))
+            result = RESULTS.where(found.result == optx.RESULTS.successful, s.result, RESULTS.promote(found.result))
+            return t, y, result
+
+        return lax.cond(happened, root_find, lambda: (s.tprev, s.y, s.result))
 
 
 def _counting(f, counts: list):
@@ -144,18 +334,16 @@ class DiffraxODE(LibraryAdapter):
         return self.solver()
 
     def integrate(self, run: Run) -> Outcome:
-        from models._jax import jax
-
         constant = run.mode == "fixed"
         min_step = self._min_step(run, constant)
         t_save, t1, budget = self._grid(run, constant)
         args = self._arguments(run, t_save, t1, min_step)
-        key = (run.model, run.rhs, type(self), constant, len(t_save), int(budget), run.dt is not None,
-               run.time_limit is not None)
-        fn, _ = run.compiled(_SOLVES, key, lambda: self._compile(run, constant, int(budget), args, counting=False))
-        deadline = np.float64(time.perf_counter() + run.time_limit - run.run_time()) if run.time_limit else np.float64(0)
-        out = jax.block_until_ready(fn(*args[:-1], deadline))
-        result = self._ending(run, out, t1)
+        # one program per method, model, rhs, step-size mode and number of saved times: the budget,
+        # the time limit, tolerances, dt and horizon are run-time values
+        key = (run.model, run.rhs, type(self), constant, run.dt is not None, len(t_save))
+        prog = run.compiled(_SOLVES, key, lambda: self._compile(run, constant, args, counting=False))
+        out, timed_out = _solve(run, prog, args, int(budget), timed=run.time_limit is not None)
+        result = self._ending(run, out, timed_out)
         result.stats.update(self._counts(run, key, args, out, constant, int(budget)))
         result.settings.update(max_steps=budget, step_size="constant" if constant else "pid",
                                min_step=None if constant else min_step)
@@ -196,62 +384,51 @@ class DiffraxODE(LibraryAdapter):
 
     @staticmethod
     def _arguments(run: Run, t_save, t1, min_step):
+        """The compiled solve's run-time arguments (y0, t1, saved times, rtol, atol, dt0,
+        min_step, E0, blow-up bound), checked here as diffrax's `diffeqsolve` would check them at
+        run time (saved times increasing inside [0, t1], dt0 > 0): the compiled loop has no
+        runtime checks (no host callbacks)."""
         g = run.guards
         f64 = np.float64
-        return (np.asarray(run.model.initial_ode_state(), dtype=float), f64(t1), np.asarray(t_save, dtype=float),
-                f64(run.rtol or 0.0), f64(run.atol or 0.0), f64(run.dt if run.dt is not None else 0.0),
-                f64(min_step or 0.0), f64(g.E0), f64(g.energy_bound), f64(g.blowup), f64(0.0))
+        t_save = np.asarray(t_save, dtype=float)
+        if not (np.isfinite(t1) and t1 > 0 and np.all(np.diff(t_save) >= 0) and t_save[0] >= 0
+                and t_save[-1] <= t1):  # pragma: no cover - the grid is ours (`_grid`)
+            raise ValueError(f"saved times must increase inside [0, t1 = {t1!r}]")
+        if run.dt is not None and not (np.isfinite(run.dt) and run.dt > 0):  # pragma: no cover - start_run checks it
+            raise ValueError(f"dt = {run.dt!r} is invalid (allowed: a finite number > 0)")
+        return (np.asarray(run.model.initial_ode_state(), dtype=float), f64(t1), t_save, f64(run.rtol or 0.0),
+                f64(run.atol or 0.0), f64(run.dt if run.dt is not None else 0.0), f64(min_step or 0.0), f64(g.E0),
+                f64(g.blowup))
 
-    def _compile(self, run: Run, constant: bool, max_steps: int, args, counting: bool):
-        """(AOT-compiled solve, the list its counting callbacks add to, or None)."""
-        counts = [0, 0] if counting else None
-        return self._build(run, constant, max_steps, counts).lower(*args).compile(), counts
-
-    def _build(self, run: Run, constant: bool, max_steps: int, counts: list | None):
-        """The jitted solve: (saved times, states, their energy errors, result, step counts)."""
-        import diffrax as dfx
-        import optimistix as optx
-
+    def _compile(self, run: Run, constant: bool, args, counting: bool) -> "_Program":
+        """The chunk of the solve (`_Loop.advance`), compiled ahead of time for these argument
+        shapes, with the zero state its first (fresh) call passes and, when ``counting``, the
+        list its counting callbacks add to."""
         from integrators import rhs as _rhs
-        from integrators.base import energy_error_ode
-        from models._jax import jax
+        from models._jax import jax, jnp
 
-        model, dt0_given, timed = run.model, run.dt is not None, run.time_limit is not None
-        f = _rhs.ode_rhs(model, run.rhs)
+        counts = [0, 0] if counting else None
+        f = _rhs.ode_rhs(run.model, run.rhs)
         if counts is not None:
             f = _counting(f, counts)
-        term = dfx.ODETerm(lambda t, y, args: f(t, y))
-        root = optx.Newton(rtol=EVENT_TIME_TOL, atol=EVENT_TIME_TOL) if model.layout.has_reel else None
-        event = dfx.Event(_stop_condition(model, timed), root_finder=root)
+        loop = _Loop(run.model, f, self.make_solver, constant, run.dt is not None, len(args[2]))
+        shape = jax.eval_shape(loop.initial, *args)
+        zero = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shape)
+        fn = jax.jit(loop.advance).lower(zero, np.bool_(True), *args, np.int32(0)).compile()
+        return _Program(fn, zero, counts)
 
-        def solve(y0, t1, ts, rtol, atol, dt0, min_step, E0, e_bound, blowup, deadline):
-            if constant:
-                controller = dfx.ConstantStepSize()
-            else:
-                controller = dfx.PIDController(rtol=rtol, atol=atol, dtmin=min_step, force_dtmin=False)
-            sol = dfx.diffeqsolve(term, self.make_solver(rtol, atol), t0=0.0, t1=t1, dt0=dt0 if dt0_given else None,
-                                  y0=y0, saveat=dfx.SaveAt(ts=ts, t1=True), stepsize_controller=controller,
-                                  event=event, max_steps=max_steps, throw=False, args=(blowup, deadline))
-            errs = jax.vmap(lambda y: energy_error_ode(model, y, E0))(sol.ys)
-            return {"ts": sol.ts, "ys": sol.ys, "errs": errs, "result": sol.result,
-                    "num_steps": sol.stats["num_steps"], "num_accepted_steps": sol.stats["num_accepted_steps"],
-                    "num_rejected_steps": sol.stats["num_rejected_steps"]}
-
-        return jax.jit(solve)
-
-    def _ending(self, run: Run, out: dict, t1: float) -> Outcome:
-        """The saved points the solve reached and how it ended (event, result, energy guard)."""
-        ts, ys, errs = (np.asarray(out[k], dtype=float) for k in ("ts", "ys", "errs"))
-        # diffrax writes the saved points in order and pads the rest with inf; the SaveAt(t1=True)
-        # entry (the state where the solve stopped, for any result) follows the last saved time
-        n_valid = int(np.sum(np.isfinite(ts)))
-        t_final, y_final = float(ts[n_valid - 1]), ys[n_valid - 1]
-        ts, ys, errs = ts[: n_valid - 1], ys[: n_valid - 1], errs[: n_valid - 1]
+    def _ending(self, run: Run, out: dict, timed_out: bool) -> Outcome:
+        """The saved points the solve reached and how it ended (event, result, budgets, energy guard)."""
+        n = int(out["save_index"])
+        ts, ys, errs = (np.asarray(out[k], dtype=float)[:n] for k in ("ts", "ys", "errs"))
+        t_final, y_final = float(out["t_final"]), np.asarray(out["y_final"], dtype=float)
+        before = ts <= t_final  # as diffrax does: nothing saved after an event's crossing
+        ts, ys, errs = ts[before], ys[before], errs[before]
         once = np.r_[True, np.diff(ts) > 0] if len(ts) else np.ones(0, bool)  # a repeated t_end saved once
         ts, ys, errs = ts[once], ys[once], errs[once]
         if len(ts) == 0:  # stopped before the first saved time after 0: keep the initial state
             ts, ys, errs = np.zeros(1), np.asarray(run.model.initial_ode_state(), dtype=float)[None, :], np.zeros(1)
-        status, reason = _result_status(run, out["result"], y_final, t_final)
+        status, reason = _result_status(run, out, y_final, t_final, timed_out)
         # the energy guard at the saved points: the first one beyond the bound ends the trajectory
         # there, and it came before whatever stopped the solve
         over = np.flatnonzero(~(errs <= run.guards.energy_bound))
@@ -281,22 +458,72 @@ class DiffraxODE(LibraryAdapter):
             return stats
         # the counting replay: the solve compiled with the counting right-hand side, run again after
         # the timed run (compilation booked as such, the replay as `count_time`, neither as run time)
-        fn, counts = run.compiled(_SOLVES, key + ("counting",),
-                                  lambda: self._compile(run, constant, budget, args, counting=True))
-        t0 = time.perf_counter()
-        counts[:] = [0, 0]
-        replay = jax_block(fn(*args[:-1], np.float64(np.inf)))
-        stats["count_time"] = time.perf_counter() - t0  # not run time (`stamp_wall_time`)
-        if int(replay["num_steps"]) != stats["attempted_steps"] or run.time_limit is not None:
-            stats["counts_unavailable"] = ("the counting replay did not retrace the run (a time limit stopped it, "
-                                           f"or the replay took {int(replay['num_steps'])} steps, not "
-                                           f"{stats['attempted_steps']})")
+        if out["timed_out"]:
+            stats["counts_unavailable"] = ("the run stopped on its time limit: a counting replay would run past "
+                                           "where it stopped")
             return stats
+        prog = run.compiled(_SOLVES, key + ("counting",), lambda: self._compile(run, constant, args, counting=True))
+        t0 = time.perf_counter()
+        prog.counts[:] = [0, 0]
+        replay, _ = _solve(run, prog, args, budget, timed=False)
+        jax_block(replay["t_final"])
+        stats["count_time"] = time.perf_counter() - t0  # not run time (`stamp_wall_time`)
+        if int(replay["num_steps"]) != stats["attempted_steps"]:  # pragma: no cover - the same program but f
+            stats["counts_unavailable"] = (f"the counting replay did not retrace the run (it took "
+                                           f"{int(replay['num_steps'])} steps, not {stats['attempted_steps']})")
+            return stats
+        counts = prog.counts
         # a Newton iteration linearises f (the residual is the linearisation's value: one evaluation)
         # and factorises the materialised Jacobian by LU
         stats["rhs_evals"] = int(counts[0] + counts[1])
         stats["jac_evals"] = stats["lu_decompositions"] = int(counts[1])
         return stats
+
+
+class _Program(NamedTuple):
+    """A compiled chunk of a solve, the zero state its fresh call passes, and the counting list of
+    a counting replay (else None)."""
+
+    fn: Any
+    zero: Any
+    counts: list | None
+
+
+def _solve(run: Run, prog: _Program, args, budget: int, timed: bool) -> tuple[dict, bool]:
+    """Run the compiled solve from the start: one call, or with ``timed`` chunks of steps with the
+    clock read between them (`run_in_chunks`, as the fixed-step methods are run). Every chunk
+    continues from the complete loop state, so the result is the same bit for bit however the
+    run is cut. Returns (the final state and where the solve stands, on the host; whether the
+    time limit stopped it)."""
+    import diffrax as dfx
+
+    from models._jax import jax
+
+    successful = int(dfx.RESULTS.successful._value)
+    t1 = float(args[1])
+    box = {"state": prog.zero, "fresh": np.bool_(True), "steps": 0, "final": None}
+
+    def advance(chunk: int) -> tuple[int, bool]:
+        k_stop = np.int32(min(budget, box["steps"] + chunk))
+        state, final = prog.fn(box["state"], box["fresh"], *args, k_stop)
+        steps, tprev, result = jax.device_get((state.num_steps, state.tprev, state.result._value))
+        done = int(steps) - box["steps"]
+        box.update(state=state, fresh=np.bool_(False), steps=int(steps), final=final)
+        return done, bool(int(result) != successful or float(tprev) >= t1 or int(steps) >= budget)
+
+    if timed:
+        timed_out = run_in_chunks(run, advance, budget)
+    else:  # one call: it ends the solve (the budget is its chunk)
+        advance(budget)
+        timed_out = False
+    state, (t_final, y_final, result) = jax.device_get((box["state"], box["final"]))
+    out = {"ts": state.ts, "ys": state.ys, "errs": state.errs, "save_index": state.save_index,
+           "num_steps": state.num_steps, "num_accepted_steps": state.num_accepted_steps,
+           "num_rejected_steps": state.num_rejected_steps, "t_final": t_final, "y_final": y_final,
+           "result": int(result._value) if hasattr(result, "_value") else int(result),
+           "max_steps": int(state.num_steps) >= budget and float(state.tprev) < t1
+           and int(state.result._value) == successful, "timed_out": timed_out}
+    return out, timed_out
 
 
 def jax_block(out):
@@ -308,26 +535,40 @@ def jax_block(out):
     return out
 
 
-def _result_status(run: Run, result, y_final, t_final: float) -> tuple[Status, str]:
-    """The status of a (concrete) diffrax result, and for an event which guard stopped the run."""
+def _result_status(run: Run, out: dict, y_final, t_final: float, timed_out: bool) -> tuple[Status, str]:
+    """The status of a finished solve (diffrax's result code, the budgets), and for an event which
+    condition stopped it."""
     import diffrax as dfx
 
-    if bool(result == dfx.RESULTS.event_occurred):
+    code = out["result"]
+
+    def item(r):
+        return int(r._value)
+
+    if timed_out:
+        return Status.TIME_LIMIT, run.time_limit_reason(t_final, "; trajectory kept up to the last saved point")
+    if out["max_steps"]:
+        code = item(dfx.RESULTS.max_steps_reached)
+    if code == item(dfx.RESULTS.event_occurred):
         if not state_ok(y_final, run.guards.blowup):
             return Status.DIVERGED, blowup_reason(f"the step ending at t = {t_final:.6g}", run.guards.blowup)
-        if run.time_limit is not None and run.out_of_time():
-            return Status.TIME_LIMIT, run.time_limit_reason(t_final, "; trajectory kept up to the last saved point")
         ell = float(run.model.L - y_final[0])
         return Status.LENGTH_LIMIT, length_reason(run.model, ell, f"at t = {t_final:.6g} s")
-    if bool(result == dfx.RESULTS.successful):
+    if code == item(dfx.RESULTS.successful):
         return Status.OK, ""
     statuses = ((dfx.RESULTS.max_steps_reached, Status.MAX_STEPS), (dfx.RESULTS.dt_min_reached, Status.STEP_SIZE_COLLAPSE))
-    found = next((s for item, s in statuses if bool(result == item)), Status.FAILED)  # items compare, not hash
+    found = next((s for r, s in statuses if code == item(r)), Status.FAILED)
     try:
-        message = dfx.RESULTS[result]
+        message = next(dfx.RESULTS[r] for r in _results() if item(r) == code)
     except Exception:  # pragma: no cover - depends on the diffrax version
-        message = f"diffrax result {result!r}"
+        message = f"diffrax result {code!r}"
     return found, f"{message} (stopped at t = {t_final:.6g})"
+
+
+def _results():
+    import diffrax as dfx
+
+    return list(dfx.RESULTS._name_to_item.values())
 
 
 class _ExplicitPair(DiffraxODE):

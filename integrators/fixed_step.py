@@ -29,7 +29,7 @@ from integrators import rhs as _rhs
 from integrators.base import (Capability, Integrator, Status, Trajectory, energy_reason, fixed_step_grid, last_step,
                               step_times)
 from integrators.lifecycle import (CompileCache, ODEProblem, Run, blowup_reason, bucket, length_reason,
-                                   ode_trajectory, start_run, step_indices)
+                                   ode_trajectory, run_in_chunks, start_run, step_indices)
 
 __all__ = ["FixedStepMethod", "StepCode", "StepFailure", "StepResult", "run_fixed_step"]
 
@@ -358,13 +358,6 @@ def _compile_loop(method, ode, n_buf, y0, params, rest) -> _Loop:
 # ------------------------------------------------------------------------------------------
 # The lifecycle of a fixed-step run
 # ------------------------------------------------------------------------------------------
-#: With a ``time_limit`` the loop runs in chunks of steps, the clock checked between them: the
-#: first chunk has this many steps, later ones are sized to take about `CHUNK_SECONDS`
-#: (at most a twentieth of the limit). Without a limit the whole run is one call.
-FIRST_CHUNK = 64
-CHUNK_SECONDS = 0.25
-
-
 @dataclass
 class _Progress:
     """Where a (chunked) run is: the loop state, the next saved slot, the saved slots so far."""
@@ -379,26 +372,23 @@ class _Progress:
 
 
 def _run_chunks(run: Run, loop: _Loop, y0, n_run: int, n_save: int, rest: tuple, params) -> _Progress:
-    """Call the compiled loop until the run ends, in chunks when there is a time limit."""
+    """Call the compiled loop until the run ends, in chunks when there is a time limit
+    (`run_in_chunks`: the clock is read between chunks, never inside the compiled loop)."""
     from models._jax import jax
 
     prog = _Progress(state=loop.zero_state)
-    chunk = n_run if run.time_limit is None else FIRST_CHUNK
-    while True:
+
+    def advance(chunk: int) -> tuple[int, bool]:
         k_stop = min(n_run, prog.k + chunk)
-        t0 = time.perf_counter()
         state, j, bufs = loop.fn(y0, prog.state, np.int32(prog.j), np.int32(k_stop), *rest, params)
         j, k, code = (int(v) for v in jax.device_get((j, state.k, state.code)))  # one transfer
         prog.pieces.append((bufs, j - prog.j))
-        took, done = time.perf_counter() - t0, k - prog.k
+        done = k - prog.k
         prog.state, prog.j, prog.k, prog.code = state, j, k, code
-        if code or j >= n_save:
-            return prog
-        if run.out_of_time():
-            prog.timed_out = True
-            return prog
-        target = min(CHUNK_SECONDS, run.time_limit / 20.0)
-        chunk = max(FIRST_CHUNK, int(target / max(took / max(done, 1), 1e-9)))
+        return done, bool(code or j >= n_save)
+
+    prog.timed_out = run_in_chunks(run, advance, n_run)
+    return prog
 
 
 def _device_get(tree):

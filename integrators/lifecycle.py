@@ -56,10 +56,10 @@ def request_stop(stop: bool = True) -> None:
 
 
 __all__ = [
-    "BLOWUP", "CompileCache", "Guards", "LibraryAdapter", "MAX_PLANNED_STEPS", "MAX_SAVED_BYTES", "ODEProblem",
+    "BLOWUP", "CHUNK_SECONDS", "CompileCache", "FIRST_CHUNK", "Guards", "LibraryAdapter", "MAX_PLANNED_STEPS", "MAX_SAVED_BYTES", "ODEProblem",
     "Outcome", "Run", "RunStats", "STOP_REQUESTED", "T_END_MAX", "blowup_reason", "check_max_steps", "check_options",
     "check_positive", "check_tolerances", "energy_reason", "length_reason", "ode_trajectory", "resolve_scene",
-    "library_attribute", "request_stop", "start_run", "step_indices",
+    "library_attribute", "request_stop", "run_in_chunks", "start_run", "step_indices",
 ]
 
 #: A state component beyond this magnitude counts as divergence (positions are tens of metres,
@@ -251,6 +251,32 @@ class CompileCache:
 
     def clear(self) -> None:
         self._entries.clear()
+
+
+#: With a ``time_limit`` a compiled loop runs in chunks of steps, the clock (and `STOP_REQUESTED`)
+#: checked on the host between them, never inside the compiled code: the first chunk has this
+#: many steps, later ones are sized to take about `CHUNK_SECONDS` (at most a twentieth of the
+#: limit). Without a limit the whole run is one call.
+FIRST_CHUNK = 64
+CHUNK_SECONDS = 0.25
+
+
+def run_in_chunks(run: "Run", advance: Callable[[int], tuple[int, bool]], total: int,
+                  first: int = FIRST_CHUNK) -> bool:
+    """Call ``advance(chunk)`` (run up to ``chunk`` more steps; returns (steps taken, finished))
+    until the run is finished or, between two calls, out of time (`Run.out_of_time`). Returns
+    whether the time limit stopped it. Without a time limit: one call of ``total`` steps."""
+    chunk = total if run.time_limit is None else first
+    while True:
+        t0 = time.perf_counter()
+        done, finished = advance(chunk)
+        took = time.perf_counter() - t0
+        if finished:
+            return False
+        if run.out_of_time():
+            return True
+        target = min(CHUNK_SECONDS, run.time_limit / 20.0)
+        chunk = max(first, int(target / max(took / max(done, 1), 1e-9)))
 
 
 # ------------------------------------------------------------------------------------------

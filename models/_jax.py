@@ -10,6 +10,20 @@ Tsit5 1.5-3x faster, with compile times unchanged or shorter. The option is appe
 user's own ``XLA_FLAGS`` (never replacing them) unless the user already set it;
 ``REELBENCH_XLA_DEFAULTS=0`` turns it off (for A/B measurements). `xla_flags()` is what the
 results record as provenance.
+
+Also set here, once, before JAX and equinox are imported:
+
+* ``EQX_ON_ERROR=nan`` unless the user set it: equinox's runtime checks (``error_if``) then
+  return NaN instead of raising through a host callback, so no compiled program carries one
+  (reelbench checks its inputs before a solve instead) and every program can enter JAX's
+  persistent cache. Set before equinox's first import (it reads the variable then).
+* JAX's persistent compilation cache, on by default in the user's cache directory
+  (``$XDG_CACHE_HOME/reelbench/jax``, else ``~/.cache/reelbench/jax``): a second process loads
+  the compiled programs instead of compiling them again. ``REELBENCH_COMPILE_CACHE=0`` turns it
+  off, a path puts it there. Every program is cached, however fast it compiled.
+* Synchronous dispatch on CPU (``jax_cpu_enable_async_dispatch=False``, where this JAX has the
+  option): a small call from Python (scipy's right-hand side) returns its result without the
+  asynchronous machinery's overhead.
 """
 
 import os
@@ -32,10 +46,30 @@ def append_xla_flags(flags, env=os.environ) -> str:
 
 if os.environ.get("REELBENCH_XLA_DEFAULTS", "1") != "0":
     append_xla_flags(DEFAULT_XLA_FLAGS)
+os.environ.setdefault("EQX_ON_ERROR", "nan")
+
+
+def compile_cache_dir(env=os.environ) -> str | None:
+    """Where JAX's persistent compilation cache lives (None: off), from
+    ``REELBENCH_COMPILE_CACHE`` (unset or "1": the user's cache directory; "0": off; else a path)."""
+    value = env.get("REELBENCH_COMPILE_CACHE", "1").strip()
+    if value.lower() in ("0", "off", "false", "no", ""):
+        return None
+    if value.lower() in ("1", "on", "true", "yes"):
+        base = env.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+        return os.path.join(base, "reelbench", "jax")
+    return os.path.expanduser(value)
 
 import jax  # noqa: E402  (after XLA_FLAGS, on purpose)
 
 jax.config.update("jax_enable_x64", True)
+if "jax_cpu_enable_async_dispatch" in jax.config.values:
+    jax.config.update("jax_cpu_enable_async_dispatch", False)
+_CACHE_DIR = compile_cache_dir()
+if _CACHE_DIR is not None:
+    jax.config.update("jax_compilation_cache_dir", _CACHE_DIR)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
 import jax.numpy as jnp  # noqa: E402  (after the flag, on purpose)
 
@@ -48,4 +82,4 @@ def xla_flags() -> str:
     return _XLA_FLAGS_AT_IMPORT
 
 
-__all__ = ["jax", "jnp", "xla_flags", "append_xla_flags", "DEFAULT_XLA_FLAGS"]
+__all__ = ["jax", "jnp", "xla_flags", "append_xla_flags", "compile_cache_dir", "DEFAULT_XLA_FLAGS"]

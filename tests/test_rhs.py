@@ -103,7 +103,7 @@ def test_explicit_diffrax_rhs_evals_match_a_counting_rhs(name, stages, monkeypat
         assert tr.ok and count[0] > 0, kw
         if "dt" in kw:  # exact
             assert tr.stats["rhs_evals"] == count[0], kw
-        else:  # the initial step guess re-evaluates f(t0, y0), which XLA may merge (docstring of diffrax_ode)
+        else:  # the rule counts 2 for an initial-step heuristic diffeqsolve skips (docstring of diffrax_ode)
             assert tr.stats["rhs_evals"] - 2 <= count[0] <= tr.stats["rhs_evals"], kw
     assert tr.stats["rhs_evals"] == (stages - 1) * 50 + 1  # 50 constant steps
 
@@ -190,6 +190,22 @@ def test_xla_flags_are_appended_not_clobbered():
 
     if os.environ.get("REELBENCH_XLA_DEFAULTS", "1") != "0":
         assert DEFAULT_XLA_FLAGS[0].split("=", 1)[0] in xla_flags()
+
+
+def test_the_persistent_compile_cache_is_in_the_users_cache_directory_unless_turned_off():
+    import os
+
+    from models._jax import compile_cache_dir
+
+    home = os.path.expanduser("~")
+    assert compile_cache_dir({}) == os.path.join(home, ".cache", "reelbench", "jax")
+    assert compile_cache_dir({"XDG_CACHE_HOME": "/x/cache"}) == "/x/cache/reelbench/jax"
+    assert compile_cache_dir({"REELBENCH_COMPILE_CACHE": "0", "XDG_CACHE_HOME": "/x"}) is None
+    assert compile_cache_dir({"REELBENCH_COMPILE_CACHE": "/elsewhere/jax"}) == "/elsewhere/jax"
+    # this process: equinox's runtime checks return NaN unless the user chose otherwise
+    assert os.environ.get("EQX_ON_ERROR") in ("nan", "raise", "off", "breakpoint")
+    expected = compile_cache_dir()
+    assert jax.config.values["jax_compilation_cache_dir"] == expected or expected is None
 
 
 def test_speed_covers_every_registered_fixed_step_method(monkeypatch):
