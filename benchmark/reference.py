@@ -28,20 +28,9 @@ from benchmark.engine import log_stderr
 from benchmark.store import (UnreadableFile, read_npz, source_hash, trajectory_from, trajectory_parts,
                              write_npz)
 from integrators import get_integrator
-from models.io import inside
+from models.io import inside, user_cache_dir
 
 REFERENCE_METHOD = {"integrator": "dop853", "rtol": 1e-12, "atol": 1e-14}
-def user_cache_dir() -> Path:
-    """Where reelbench keeps what it can recompute (reference solutions, compiled programs):
-    ``$REELBENCH_CACHE``, else ``$XDG_CACHE_HOME/reelbench``, else ``~/.cache/reelbench``."""
-    import os
-
-    if os.environ.get("REELBENCH_CACHE"):
-        return Path(os.environ["REELBENCH_CACHE"]).expanduser()
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base).expanduser() / "reelbench"
-
-
 #: References are shared by every study and output directory: one file per scene, horizon, save
 #: interval and physics code (`reference_path`).
 CACHE_DIR = user_cache_dir() / "references"

@@ -18,7 +18,8 @@ Also set here, once, before JAX and equinox are imported:
   (reelbench checks its inputs before a solve instead) and every program can enter JAX's
   persistent cache. Set before equinox's first import (it reads the variable then).
 * JAX's persistent compilation cache, on by default in the user's cache directory
-  (``$XDG_CACHE_HOME/reelbench/jax``, else ``~/.cache/reelbench/jax``): a second process loads
+  (``models.io.user_cache_dir()/jax``: ``$REELBENCH_CACHE``, ``$XDG_CACHE_HOME/reelbench`` or
+  ``~/.cache/reelbench``): a second process loads
   the compiled programs instead of compiling them again. ``REELBENCH_COMPILE_CACHE=0`` turns it
   off, a path puts it there. Every program is cached, however fast it compiled.
 * Synchronous dispatch on CPU (``jax_cpu_enable_async_dispatch=False``, where this JAX has the
@@ -56,8 +57,9 @@ def compile_cache_dir(env=os.environ) -> str | None:
     if value.lower() in ("0", "off", "false", "no", ""):
         return None
     if value.lower() in ("1", "on", "true", "yes"):
-        base = env.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-        return os.path.join(base, "reelbench", "jax")
+        from models.io import user_cache_dir
+
+        return str(user_cache_dir(env) / "jax")
     return os.path.expanduser(value)
 
 import jax  # noqa: E402  (after XLA_FLAGS, on purpose)

@@ -33,6 +33,15 @@ def _write_failed(path: Path, exc: OSError) -> WriteFailed:
     return WriteFailed(exc.errno or errno.EIO, why, str(path))
 
 
+
+def user_cache_dir(env=os.environ) -> Path:
+    """Where reelbench keeps what it can recompute (compiled programs, reference solutions):
+    ``$REELBENCH_CACHE``, else ``$XDG_CACHE_HOME/reelbench``, else ``~/.cache/reelbench``."""
+    if env.get("REELBENCH_CACHE"):
+        return Path(env["REELBENCH_CACHE"]).expanduser()
+    base = env.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base).expanduser() / "reelbench"
+
 @contextmanager
 def atomic_path(path: str | os.PathLike):
     """Yield a temporary path beside ``path``; on success rename it over ``path``. A failure of
