@@ -56,7 +56,7 @@ def point_diagnostics(model: StringPendulum, x, R, w, W, t=0.0) -> dict:
         "work": W,
         "energy_minus_work": T + V - W,
         # Q·w of the non-conservative forces: `evaluate` integrates it along the saved path
-        "power": model.power(t, x, w) if lay.has_work else jnp.asarray(0.0),
+        "power": model.power(t, x, w, R) if lay.has_work else jnp.asarray(0.0),
         "pi3": ang[2],
         "orthogonality_error": jnp.linalg.norm(jnp.eye(3) - R.T @ R) if lay.has_attitude else jnp.asarray(0.0),
         "deployed_length": model.L - model.reel_coordinate(x),
