@@ -37,7 +37,13 @@ equations; the work of step k is (f⁻ + f⁺)·Δx / h):
   a mode with rate γ is multiplied by 1 − hγ + (hγ)²/2 per step. The drag's rate is about
   ρ_f d C_n |u|/μ on the string (u the flow relative to it; `models.effects.Drag`). Measured (fixed_length point
   mass, N = 4, h = 5 ms, γ_max = 25.5 c): bounded at hγ_max = 1.95, blows up at 2.05.
-  `node_forcing` / `end_forcing` / `work` are the pieces.
+  `node_forcing` / `end_forcing` / `work` are the pieces;
+* body loads (`models.effects.Effect.body_loads`: forces that depend on R and Ω and a moment on
+  the body, body frame): explicit like the string forces, the moment in the Π rows as −∂_η V is,
+  f⁻ at (t_k, x_k, R_k, w_k) and f⁺ at (t_{k+1}, x_{k+1}, R_k F, w̃_{k+1}) with the predicted
+  Ω̃_{k+1} = 2θ/h − Ω_k, θ = `rotation_vector`(c) the step's rotation (symmetric: both at the
+  midpoint R_k cay(c/(1 + √(1 + |c|²))) with θ/h); their moment's work is ½ (M⁻ + M⁺)·θ
+  (docs/equations.md, "Reel and string forcing").
 """
 
 from __future__ import annotations
