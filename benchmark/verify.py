@@ -704,6 +704,11 @@ _BREAKS = {  # a value that breaks each rule of a key kind, and one of the wrong
 }
 
 
+#: a value of each kind other than the usual defaults (a key at its default is allowed without its effect)
+_OTHER = {"float": 0.5, "int": 2, "vec3": [0.1, 0.2, 0.3], "mat3": [[2.0, 0.0, 0.0], [0.0, 2.0, 0.0], [0.0, 0.0, 2.0]],
+          "str": "other"}
+
+
 def _scene_keys(name: str, scene) -> Check:
     """Each key the effect owns, broken three ways, must be refused by a SceneError naming it."""
     from models import EFFECTS, SceneError, scene_from_dict
@@ -743,7 +748,12 @@ def _scene_keys(name: str, scene) -> Check:
             if name in (spec.required_by or ()) and spec.default is None:
                 refused(changed(None, drop=True), dotted, f"{dotted} missing")
             if spec.only_with_effect:  # the effect removed, with all its keys but this one
-                d = changed(table.get(key, spec.default))
+                value = table.get(key, spec.default)
+                if value == spec.default or (spec.kind in ("vec3", "mat3") and value is not None
+                                             and np.array_equal(value, spec.default)):
+                    # its default is accepted without the effect: give a value other than it
+                    value = _OTHER.get(spec.kind, value)
+                d = changed(value)
                 # and with the effects that need it (drag needs buoyancy), and their keys: else the
                 # scene is refused for the effect they miss, not for this key
                 gone = {name}
