@@ -157,15 +157,12 @@ class Effect:
 # --------------------------------------------------------------------------------------------
 
 
-def _weight_terms(m, per_length, body, point=None):
-    """The potential of a uniform vertical load on the deployed string and a point load on the
-    body: per_length (N/m, along +e3) on each element at its midpoint (exact for linear
-    elements), body (N) at r_p + q_{N+1} (+ R ρ, ρ = ``point``, body frame from the attachment
-    point; default the centre of mass ρ_c). Gravity's weights (μ g, m_b g) and buoyancy's
-    (−ρ_f g A, −ρ_f g V, at the centre of buoyancy) are this one formula with their own signs."""
+def _weight_terms(m, per_length, body):
+    """The potential of a uniform vertical load on the deployed string and a point load at the
+    body's centre of mass: per_length (N/m, along +e3) on each element at its midpoint (exact for
+    linear elements), body (N) at r_p + q_{N+1} (+ R ρ_c). Gravity's weights (μ g, m_b g) and
+    buoyancy's (−ρ_f g A, −ρ_f g V) are this one formula with their own signs."""
     from models._jax import jnp
-
-    rho = m.rho_c if point is None else np.asarray(point, dtype=float)
 
     e3 = jnp.asarray(E3)
 
@@ -187,7 +184,7 @@ def _weight_terms(m, per_length, body, point=None):
     def V_body(x, R):
         tip = m.r_p + m.nodes(x)[-1]
         if m.layout.has_attitude:
-            tip = tip + R @ rho
+            tip = tip + R @ m.rho_c
         return -body * tip[2]
 
     tip_only = np.zeros((m.N, 3))
@@ -195,7 +192,7 @@ def _weight_terms(m, per_length, body, point=None):
 
     def dV_body(x, R):
         # the negative moment of the load about the attachment point
-        deta = -body * jnp.cross(rho, R.T @ e3) if m.layout.has_attitude else None
+        deta = -body * jnp.cross(m.rho_c, R.T @ e3) if m.layout.has_attitude else None
         return m.over_w(dq=jnp.asarray(tip_only), deta=deta)
 
     return PotentialTerm(V_string, dV_string), PotentialTerm(V_body, dV_body)
@@ -451,11 +448,9 @@ class AxialDamping(Effect):
 class Buoyancy(Effect):
     """The weight of the displaced fluid, upward (−e3): on every element of the deployed string
     through its volume-equivalent diameter d (ρ_f g π d²/4 per unstretched length, at the
-    element's midpoint like gravity) and on the body through its volume V, at its centre of
-    buoyancy: the centre of mass (a homogeneous body's) moved by `body.buoyancy_offset` (body
-    frame; a rigid body only). An offset centre of buoyancy puts a righting moment on the body,
-    −∂V/∂η of the same potential (no body load needed: buoyancy is conservative). The deployed
-    string and the body are taken as wholly immersed; the reel and the guide way are not."""
+    element's midpoint like gravity) and on the body through its volume V (at its centre of
+    mass: a homogeneous body's centre of buoyancy). The deployed string and the body are taken
+    as wholly immersed; the reel and the guide way are not."""
 
     name = "buoyancy"
     needs = ("gravity",)
@@ -463,11 +458,9 @@ class Buoyancy(Effect):
     keys = {
         "fluid": {"density": Key("float", "positive", required_by=("buoyancy",), only_with_effect=True)},
         "string": {"diameter": Key("float", "positive", required_by=("buoyancy",), only_with_effect=True)},
-        "body": {"volume": Key("float", "nonnegative", default=0.0, only_with_effect=True),
-                 "buoyancy_offset": Key("vec3", default=(0.0, 0.0, 0.0), only_with_effect=True)},
+        "body": {"volume": Key("float", "nonnegative", default=0.0, only_with_effect=True)},
     }
-    plausible = {"fluid.density": (1e-6, 1e5), "string.diameter": (1e-6, 1e2), "body.volume": (1e-12, 1e9),
-                 "body.buoyancy_offset": (0.0, 1e4)}
+    plausible = {"fluid.density": (1e-6, 1e5), "string.diameter": (1e-6, 1e2), "body.volume": (1e-12, 1e9)}
 
     @staticmethod
     def displaced_per_length(scene) -> float:
@@ -489,10 +482,6 @@ class Buoyancy(Effect):
     def check(self, checks, d, effects):
         if self.name not in effects:
             return
-        offset = d["body"]["buoyancy_offset"]
-        if "rigid_body" not in effects and any(c != 0.0 for c in offset):
-            raise checks.fail("body.buoyancy_offset", list(offset), "[0, 0, 0] without effect 'rigid_body' (a point "
-                              "mass has no attitude for the centre of buoyancy to turn)")
         displaced = d["fluid"]["density"] * np.pi * d["string"]["diameter"] ** 2 / 4.0
         if d["string"]["mass_per_length"] < displaced:
             import warnings
@@ -503,17 +492,14 @@ class Buoyancy(Effect):
 
     def potentials(self, m):
         rho = m.scene.section("fluid")["density"]
-        offset = np.asarray(m.scene.section("body")["buoyancy_offset"], dtype=float)
-        point = m.rho_c + offset if np.any(offset != 0.0) else None  # the centre of buoyancy
         string, body = _weight_terms(m, -rho * m.g * np.pi * m.scene.string.diameter ** 2 / 4.0,
-                                     -rho * m.g * m.scene.section("body")["volume"], point)
+                                     -rho * m.g * m.scene.section("body")["volume"])
         return {"V_string_buoyancy": string, "V_body_buoyancy": body}
 
     def energy_scale(self, m):
         rho = m.scene.section("fluid")["density"]
         volume = np.pi * m.scene.string.diameter ** 2 / 4.0 * m.L + m.scene.section("body")["volume"]
-        offset = float(np.linalg.norm(m.scene.section("body")["buoyancy_offset"]))
-        return m.g * rho * volume * (_reach(m) + offset)
+        return m.g * rho * volume * _reach(m)
 
 
 class FloatingStringWarning(UserWarning):

@@ -39,9 +39,9 @@ def scenes_for(name, **extra):
         out.append(scene_with_effects(names, elements=3, **kw))
     if name in ("buoyancy", "drag"):  # the lumped string takes the fluid forces per node (MoorDyn's)
         out.append(scene_with_effects(closure([name]), elements=3, mass_model="lumped", **extra))
-    if name == "buoyancy":  # an offset centre of buoyancy: a righting moment, −∂V/∂η
+    if name == "buoyancy":  # a rigid body with an offset centre of mass (and of buoyancy): a moment, −∂V/∂η
         out.append(scene_with_effects(closure(["rigid_body", name]), elements=3, attachment_to_com=[0.2, -0.1, 0.3],
-                                      **{"body.buoyancy_offset": [0.05, 0.0, -0.1]}, **extra))
+                                      **extra))
     if name == "drag":  # a rigid body with an offset centre of mass: the body's drag is a body load
         out.append(scene_with_effects(closure(["rigid_body", name]), elements=3, attachment_to_com=[0.2, -0.1, 0.3],
                                       **extra))
