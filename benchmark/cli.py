@@ -267,7 +267,8 @@ def cmd_figures(args) -> int:
     ov = _overrides(args.set)
     if args.scene:
         load_scene(args.scene, **ov)  # a bad scene is refused before the trajectory is read
-    out = opt.writable_file(args.out if args.out is not None else inside(Path.cwd(), f"{src.stem}.png"))
+    # beside the trajectory (as simulate puts its .csv beside it), unless --out says where
+    out = opt.writable_file(args.out if args.out is not None else inside(src.resolve().parent, f"{src.stem}.png"))
     try:
         traj = read_trajectory(src)
     except UnreadableFile as exc:
@@ -664,7 +665,7 @@ def _add_figures(sub) -> None:
     f.add_argument("trajectory", help="a trajectory .npz written by `simulate`")
     f.add_argument("--scene", help="scene name or path (default: the one recorded in the file)")
     _add_set(f, "scene overrides the trajectory was computed with, e.g. --set elements=20")
-    f.add_argument("--out", help="figure file (.png; default: ./TRAJECTORY.png in the current directory)")
+    f.add_argument("--out", help="figure file (.png; default: TRAJECTORY.png beside the trajectory file)")
     f.set_defaults(func=cmd_figures)
 
 
