@@ -525,12 +525,17 @@ def cmd_list(args) -> int:
     for name in names:
         integ = get_integrator(name)
         caps = ", ".join(sorted(c.value for c in integ.capabilities))
-        sweep = "default" if integ.default_sweep else "extended"
-        guest = "" if origin(name).own else f"  ({origin(name).label()})"
-        print(f"  {name:{width}s}  order {integ.order}  {sweep:8s}  [{caps}]  {integ.description}{guest}")
+        own = origin(name).own
+        # a plugin is a guest: it joins no sweep unasked, whatever its default_sweep says
+        sweep = ("default" if integ.default_sweep else "extended") if own else (
+            "plugins" if integ.default_sweep else "named")
+        guest = "" if own else f"  ({origin(name).label()})"
+        print(f"  {name:{width}s}  order {integ.order}  {sweep:10s}  [{caps}]  {integ.description}{guest}")
     for name, err in failed_methods.items():
         print(f"  {name:{width}s}  FAILED TO LOAD: {err}")
-    print("  (default: in the default sweep; extended: only in the extended sweep, or when --integrators names it)")
+    print("  (default: in the default sweep; extended: only in the extended sweep, or when --integrators names it; "
+          "plugins: a plugin, swept with --with-plugins or when --integrators names it; named: a plugin swept only "
+          "when --integrators names it)")
     from models import EFFECTS
     from models.effects import effect_origin, plugin_errors as effect_plugin_errors
 
