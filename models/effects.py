@@ -621,7 +621,7 @@ class Drag(Effect):
         from models._jax import jnp
 
         _, _, kb, U = self._params(m)
-        v = m.node_velocities(w)[-1] + R @ jnp.cross(m.omega(w), jnp.asarray(m.rho_c))
+        v = m.node_velocities(w)[-1] + R @ jnp.cross(m.omega(w), np.asarray(m.rho_c, dtype=float))
         u = U - v
         return kb * _norm(u) * u, v
 
@@ -660,7 +660,7 @@ class Drag(Effect):
 
         if not self._offset(m):
             return {}
-        rho = jnp.asarray(m.rho_c)
+        rho = np.asarray(m.rho_c, dtype=float)  # constants (numpy): the hook may be first called inside a trace
         tip = np.zeros((m.N, 1))
         tip[-1] = 1.0
 
