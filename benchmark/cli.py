@@ -284,7 +284,8 @@ def cmd_figures(args) -> int:
     ov = _overrides(args.set)
     if args.scene:
         load_scene(args.scene, **ov)  # a bad scene is refused before the trajectory is read
-    out = opt.writable_file(args.out if args.out is not None else inside(Path.cwd(), f"{src.stem}.png"))
+    # beside the trajectory (as simulate puts its .csv beside it), unless --out says where
+    out = opt.writable_file(args.out if args.out is not None else inside(src.resolve().parent, f"{src.stem}.png"))
     try:
         traj = read_trajectory(src)
     except UnreadableFile as exc:
@@ -599,12 +600,17 @@ def cmd_list(args) -> int:
     for name in names:
         integ = get_integrator(name)
         caps = ", ".join(sorted(c.value for c in integ.capabilities))
-        sweep = "default" if integ.default_sweep else "extended"
-        guest = "" if origin(name).own else f"  ({origin(name).label()})"
-        print(f"  {name:{width}s}  order {integ.order}  {sweep:8s}  [{caps}]  {integ.description}{guest}")
+        own = origin(name).own
+        # a plugin is a guest: it joins no sweep unasked, whatever its default_sweep says
+        sweep = ("default" if integ.default_sweep else "extended") if own else (
+            "plugins" if integ.default_sweep else "named")
+        guest = "" if own else f"  ({origin(name).label()})"
+        print(f"  {name:{width}s}  order {integ.order}  {sweep:10s}  [{caps}]  {integ.description}{guest}")
     for name, err in failed_methods.items():
         print(f"  {name:{width}s}  FAILED TO LOAD: {err}")
-    print("  (default: in the default sweep; extended: only in the extended sweep, or when --integrators names it)")
+    print("  (default: in the default sweep; extended: only in the extended sweep, or when --integrators names it; "
+          "plugins: a plugin, swept with --with-plugins or when --integrators names it; named: a plugin swept only "
+          "when --integrators names it)")
     from models import EFFECTS
     from models.effects import effect_origin, plugin_errors as effect_plugin_errors
 
@@ -738,7 +744,7 @@ def _add_figures(sub) -> None:
     f.add_argument("trajectory", help="a trajectory .npz written by `simulate`")
     f.add_argument("--scene", help="scene name or path (default: the one recorded in the file)")
     _add_set(f, "scene overrides the trajectory was computed with, e.g. --set elements=20")
-    f.add_argument("--out", help="figure file (.png; default: ./TRAJECTORY.png in the current directory)")
+    f.add_argument("--out", help="figure file (.png; default: TRAJECTORY.png beside the trajectory file)")
     f.set_defaults(func=cmd_figures)
 
 

@@ -18,7 +18,7 @@ from matplotlib.lines import Line2D  # noqa: E402
 from benchmark import styles  # noqa: E402
 from benchmark.metrics import FLOPS_DEFINITION, WORK_DEFINITION, pi3_deviation  # noqa: E402
 from models import build_model  # noqa: E402
-from models.diagnostics import energy_deviation  # noqa: E402
+from models.diagnostics import effect_energy_columns, energy_deviation  # noqa: E402
 from models.io import atomic_path, inside  # noqa: E402
 
 ERROR_LABELS = {
@@ -229,6 +229,10 @@ def paper_panels(scene, traj, df: pd.DataFrame, out_path: Path, n_snapshots: int
     ax.plot(df["t"], df["T_rot"], "g--", label="T_rot")
     ax.plot(df["t"], df["V_gravity"], "m-.", label="V_gravity")
     ax.plot(df["t"], df["V_elastic"], "r:", label="V_elastic")
+    # every other effect's potential (buoyancy, a plugin's): with these the parts add up to E
+    for k, column in enumerate(effect_energy_columns(model)):
+        if column in df:
+            ax.plot(df["t"], df[column], linestyle=(0, (3, 1, 1, 1, 1, 1)), color=f"C{(k + 5) % 10}", label=column)
     ax.set_xlabel("t (s)"), ax.set_ylabel("J"), ax.legend(fontsize=8), ax.set_title("(b) energy exchange")
 
     ax = fig.add_subplot(2, 2, 3)

@@ -6,9 +6,14 @@ changes nobody else's style. The shipped methods have hand-picked styles (`SHIPP
 its own colour (matplotlib's "tab10", colour-blind safer than the default cycle, then dark tones
 far from it) and its own marker; line style by family (solid: the variational LGVIs, dashed: explicit
 Runge–Kutta, dash-dot: implicit). Any other name gets a colour from a second palette (none of
-the shipped colours) and a marker, both picked by a hash of the name (`style`): two plugins can
-share a look only if their names hash alike (one chance in `len(PLUGIN_COLOURS) *
-len(PLUGIN_MARKERS)` per pair); `clashes` lists such pairs so a figure can say so.
+the shipped colours) and a marker, both picked by a hash of the name (`style`). Registered
+methods never share a look: a registered plugin whose hashed colour and marker another
+registered plugin (earlier by name) already has takes the next free combination, so every
+registered method is drawn distinctly, however many there are (distinct colour and marker for
+up to `len(PLUGIN_COLOURS) * len(PLUGIN_MARKERS)` plugins, then distinct line styles too, up to
+four times that). Only a name that is not registered can share a look with another (one chance
+in `len(PLUGIN_COLOURS) * len(PLUGIN_MARKERS)` per pair); `clashes` lists such pairs so a figure
+can say so.
 
 How a sweep is drawn: filled markers for a fixed-step sweep (``dt``), hollow ones for an
 adaptive sweep (``rtol``), so a method with both (``tsit5``) keeps its colour and marker.
@@ -70,19 +75,67 @@ PLUGIN_MARKERS = ("o", "s", "^", "v", "D", "p", ">", "d", "8", "H")
 PLUGIN_LINESTYLES = (":", (0, (5, 1, 1, 1, 1, 1)), (0, (3, 1, 1, 1)), (0, (1, 1)))
 
 
+#: every plugin look, colour and marker varying fastest: index i of a hash
+_LOOKS = len(PLUGIN_COLOURS) * len(PLUGIN_MARKERS) * len(PLUGIN_LINESTYLES)
+
+
+def _look(i: int) -> Style:
+    i %= _LOOKS
+    colour = PLUGIN_COLOURS[i % len(PLUGIN_COLOURS)]
+    i //= len(PLUGIN_COLOURS)
+    marker = PLUGIN_MARKERS[i % len(PLUGIN_MARKERS)]
+    i //= len(PLUGIN_MARKERS)
+    return Style(colour, marker, PLUGIN_LINESTYLES[i % len(PLUGIN_LINESTYLES)])
+
+
+def _hashed(name: str) -> int:
+    return int.from_bytes(hashlib.sha256(name.encode()).digest()[:8], "big") % _LOOKS
+
+
+_registered_cache: dict[tuple, dict[str, Style]] = {}
+_scanned = False
+
+
+def _registered_looks() -> dict[str, Style]:
+    """The registered plugins' looks, distinct: by name, each takes its hashed look, or the next
+    one (by index) whose colour and marker no earlier plugin has (when all are taken: whose
+    colour, marker and line style none has)."""
+    global _scanned
+    try:
+        from integrators import registry
+
+        if not _scanned:  # the installed plugins, once (a scan of the entry points costs ~30 ms)
+            registry.available()
+            _scanned = True
+        names = tuple(sorted(n for n in registry._REGISTRY if n not in SHIPPED))
+    except Exception:  # no registry to read (a broken plugin environment): the hashed looks
+        return {}
+    if names not in _registered_cache:
+        looks: dict[str, Style] = {}
+        pairs, full = set(), set()
+        for n in names:
+            start = _hashed(n)
+            cand = [_look(start + k) for k in range(_LOOKS)]
+            pick = next((c for c in cand if (c.color, c.marker) not in pairs), None) \
+                or next((c for c in cand if c not in full), cand[0])
+            looks[n] = pick
+            pairs.add((pick.color, pick.marker))
+            full.add(pick)
+        _registered_cache.clear()
+        _registered_cache[names] = looks
+    return _registered_cache[names]
+
+
 def style(name: str) -> Style:
-    """The style of method ``name``: `SHIPPED`'s, else one picked by a hash of the name
+    """The style of method ``name``: `SHIPPED`'s; a registered plugin's, distinct from every
+    other registered method's (`_registered_looks`); else one picked by a hash of the name
     (SHA-256, so the same on every machine and in every process)."""
     if not isinstance(name, str) or not name:
         raise ValueError(f"style: a method name must be a non-empty string, got {name!r}")
     if name in SHIPPED:
         return SHIPPED[name]
-    h = int.from_bytes(hashlib.sha256(name.encode()).digest()[:8], "big")
-    colour = PLUGIN_COLOURS[h % len(PLUGIN_COLOURS)]
-    h //= len(PLUGIN_COLOURS)
-    marker = PLUGIN_MARKERS[h % len(PLUGIN_MARKERS)]
-    h //= len(PLUGIN_MARKERS)
-    return Style(colour, marker, PLUGIN_LINESTYLES[h % len(PLUGIN_LINESTYLES)])
+    registered = _registered_looks().get(name)
+    return registered if registered is not None else _look(_hashed(name))
 
 
 def styles(names: Iterable[str]) -> dict[str, Style]:

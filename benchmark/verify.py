@@ -35,8 +35,9 @@ An effect (`check_effect`) is checked in a scene that lists it:
 * ``declarations``: its needs are registered, a dissipative effect has forces, forces imply
   ``forcing`` (their work W is carried) and a claimed ``power``;
 * ``gradient <term>``: each potential term's closed-form gradient equals autodiff of its energy;
-* ``power``: its forces' Q·w equals the power it claims, ≤ 0 when it says it is dissipative,
-  and string forces leave Ω alone;
+* ``power``: its forces' Q·w equals the power it claims (`power`; for its body loads
+  `body_power`, the moment's Ω·M included), ≤ 0 when it says it is dissipative, and string
+  forces leave Ω alone;
 * ``energy balance``: DOP853 on the closed-form equations keeps E − W (E without forces) to
   `ENERGY_TOLERANCE` of the largest kinetic energy;
 * ``scene keys``: each of its keys is refused with a message naming it when it breaks its rule,
@@ -549,13 +550,19 @@ def _forces_of(name: str, model):
             [model.string_forces[k] for k in sorted(own & set(model.string_forces))])
 
 
+def _body_loads_of(name: str, model):
+    own = set(model.terms_of(name))
+    return [model.body_loads[k] for k in sorted(own & set(model.body_loads))]
+
+
 def _effect_declarations(name: str, model) -> Check:
     from models import EFFECTS
 
     effect = EFFECTS[name]
     reel, string = _forces_of(name, model)
+    body = _body_loads_of(name, model)
     problems = [f"needs {n!r}, which is not registered" for n in effect.needs if n not in EFFECTS]
-    if (reel or string) and not effect.forcing:
+    if (reel or string or body) and not effect.forcing:
         problems.append("has forces but forcing = False: their work W would not be carried")
     if effect.dissipative and not effect.forcing:
         problems.append("dissipative = True without forcing")
@@ -604,19 +611,42 @@ def _power(name: str, model, rng, n: int = 3) -> Check:
 
     effect = EFFECTS[name]
     reel, string = _forces_of(name, model)
-    if not reel and not string:
-        claimed = effect.power(model, 0.0, *_random_state(model, rng)[::2])
-        return Check("power", claimed is None, "no forces, no power claimed" if claimed is None else
-                     f"claims power {float(claimed):g} W without forces")
-    worst, most, on_omega = 0.0, -np.inf, 0.0
+    body = _body_loads_of(name, model)
+    if not reel and not string and not body:
+        x, R, w = _random_state(model, rng)
+        claimed = effect.power(model, 0.0, x, w)
+        claimed_body = effect.body_power(model, 0.0, x, R, w)
+        ok = claimed is None and claimed_body is None
+        return Check("power", ok, "no forces, no power claimed" if ok else
+                     f"claims power {float(claimed if claimed is not None else claimed_body):g} W without forces")
+    worst = worst_body = 0.0
+    most, on_omega = -np.inf, 0.0
+    omega_power = []  # Ω·M of the body loads' moments, where they have one
     for _ in range(n):
         x, R, w = _random_state(model, rng)
         t = float(rng.uniform(0, 2))
         P = sum(float(f(t, x, w)) * float(w[0]) for f in reel) + sum(float(f(t, x, w) @ w) for f in string)
-        claimed = effect.power(model, t, x, w)
-        if claimed is None:
-            return Check("power", False, "has forces but power() returns None: give Q·w in closed form")
-        worst = max(worst, abs(P - float(claimed)) / (1e-12 + abs(P)))
+        if reel or string:
+            claimed = effect.power(model, t, x, w)
+            if claimed is None:
+                return Check("power", False, "has forces but power() returns None: give Q·w in closed form")
+            worst = max(worst, abs(P - float(claimed)) / (1e-12 + abs(P)))
+        if body:
+            Qb = [np.asarray(f(t, x, R, w)) for f in body]
+            if any(q.shape != (model.layout.nw,) for q in Qb):
+                return Check("power", False, f"a body load has shape {[q.shape for q in Qb]}, expected "
+                                             f"({model.layout.nw},) (w's layout: model.over_w(dq=..., deta=M))")
+            Pb = sum(float(q @ np.asarray(w)) for q in Qb)
+            claimed_b = effect.body_power(model, t, x, R, w)
+            if claimed_b is None:
+                return Check("power", False, "has body loads but body_power() returns None: give Q·w (Ω·M "
+                                             "included) in closed form")
+            worst_body = max(worst_body, abs(Pb - float(claimed_b)) / (1e-12 + abs(Pb)))
+            if model.layout.has_attitude:
+                M = sum(q[model.layout.omega] for q in Qb)
+                if np.any(M != 0.0):
+                    omega_power.append(float(M @ np.asarray(w)[model.layout.omega]))
+            P += Pb
         most = max(most, P)
         for f in string:
             if model.layout.has_attitude:
@@ -624,12 +654,16 @@ def _power(name: str, model, rng, n: int = 3) -> Check:
     problems = []
     if worst > 1e-10:
         problems.append(f"claimed power differs from Q·w by {worst:.2g} (relative)")
+    if worst_body > 1e-10:
+        problems.append(f"claimed body power differs from Q·w (Ω·M included) by {worst_body:.2g} (relative)")
     if effect.dissipative and most > 1e-14:
         problems.append(f"dissipative, yet Q·w = {most:.3g} W > 0")
     if on_omega:
         problems.append(f"a string force acts on Ω ({on_omega:.3g})")
     return Check("power", not problems, "; ".join(problems) if problems else
-                 f"Q·w = claimed power to {worst:.2g} (relative) over {n} random states"
+                 f"Q·w = claimed power to {max(worst, worst_body):.2g} (relative) over {n} random states"
+                 + (f" (body loads' Ω·M {', '.join(f'{p:.3g}' for p in omega_power)} W included)" if omega_power
+                    else "")
                  + (f"; largest {most:.3g} W ≤ 0 (dissipative)" if effect.dissipative else ""))
 
 
@@ -668,6 +702,11 @@ _BREAKS = {  # a value that breaks each rule of a key kind, and one of the wrong
     ("mat3", "rotation"): [[2.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
     ("str", "finite"): 1.0, ("str", "line"): "two\nlines", ("str", "name"): "../x",
 }
+
+
+#: a value of each kind other than the usual defaults (a key at its default is allowed without its effect)
+_OTHER = {"float": 0.5, "int": 2, "vec3": [0.1, 0.2, 0.3], "mat3": [[2.0, 0.0, 0.0], [0.0, 2.0, 0.0], [0.0, 0.0, 2.0]],
+          "str": "other"}
 
 
 def _scene_keys(name: str, scene) -> Check:
@@ -709,7 +748,12 @@ def _scene_keys(name: str, scene) -> Check:
             if name in (spec.required_by or ()) and spec.default is None:
                 refused(changed(None, drop=True), dotted, f"{dotted} missing")
             if spec.only_with_effect:  # the effect removed, with all its keys but this one
-                d = changed(table.get(key, spec.default))
+                value = table.get(key, spec.default)
+                if value == spec.default or (spec.kind in ("vec3", "mat3") and value is not None
+                                             and np.array_equal(value, spec.default)):
+                    # its default is accepted without the effect: give a value other than it
+                    value = _OTHER.get(spec.kind, value)
+                d = changed(value)
                 # and with the effects that need it (drag needs buoyancy), and their keys: else the
                 # scene is refused for the effect they miss, not for this key
                 gone = {name}

@@ -37,7 +37,13 @@ equations; the work of step k is (f⁻ + f⁺)·Δx / h):
   a mode with rate γ is multiplied by 1 − hγ + (hγ)²/2 per step. The drag's rate is about
   ρ_f d C_n |u|/μ on the string (u the flow relative to it; `models.effects.Drag`). Measured (fixed_length point
   mass, N = 4, h = 5 ms, γ_max = 25.5 c): bounded at hγ_max = 1.95, blows up at 2.05.
-  `node_forcing` / `end_forcing` / `work` are the pieces.
+  `node_forcing` / `end_forcing` / `work` are the pieces;
+* body loads (`models.effects.Effect.body_loads`: forces that depend on R and Ω and a moment on
+  the body, body frame): explicit like the string forces, the moment in the Π rows as −∂_η V is,
+  f⁻ at (t_k, x_k, R_k, w_k) and f⁺ at (t_{k+1}, x_{k+1}, R_k F, w̃_{k+1}) with the predicted
+  Ω̃_{k+1} = 2θ/h − Ω_k, θ = `rotation_vector`(c) the step's rotation (symmetric: both at the
+  midpoint R_k cay(c/(1 + √(1 + |c|²))) with θ/h); their moment's work is ½ (M⁻ + M⁺)·θ
+  (docs/equations.md, "Reel and string forcing").
 """
 
 from __future__ import annotations
@@ -60,6 +66,17 @@ def cayley(c):
     """F = (I + ĉ)(I − ĉ)⁻¹ = ((1 − |c|²) I + 2 ĉ + 2 c cᵀ) / (1 + |c|²)."""
     cc = c @ c
     return ((1.0 - cc) * jnp.eye(3) + 2.0 * hat(c) + 2.0 * jnp.outer(c, c)) / (1.0 + cc)
+
+
+def rotation_vector(c):
+    """θ with F = cay(c) = exp(θ^): θ = 2 atan(|c|) c/|c| (|c| = tan(|θ|/2)); its series
+    2 c (1 − |c|²/3 + |c|⁴/5) near c = 0, where the quotient would lose digits (and its
+    derivative would be NaN at 0)."""
+    cc = c @ c
+    small = cc < 1e-6
+    r = jnp.sqrt(jnp.where(small, 1.0, cc))
+    factor = jnp.where(small, 2.0 * (1.0 - cc / 3.0 + cc * cc / 5.0), 2.0 * jnp.arctan(r) / r)
+    return factor * c
 
 
 def cayley_apply_jac(c, rho):
@@ -300,8 +317,11 @@ class DiscreteLagrangian:
         self.rho = jnp.asarray(model.rho_c)
         self.J_o = jnp.asarray(model.J_o)
         self.J_d = jnp.asarray(model.J_d)
-        #: string forces (axial damping) present: explicit forcing from w_k = M⁻¹ p_k
-        self.node_forced = bool(model.string_forces)
+        #: body loads present (`Effect.body_loads`): forces that depend on R and Ω and may put a
+        #: moment on the body; explicit like the string forces, and their f⁺ needs the rotation
+        self.body_forced = bool(model.body_loads) and self.rigid
+        #: string forces (axial damping) or body loads present: explicit forcing from w_k = M⁻¹ p_k
+        self.node_forced = bool(model.string_forces) or bool(model.body_loads)
         #: w = M(x, R)⁻¹ p by the structured O(N) solve (string forcing, the LGVI's energy guard)
         self.legendre = ClosedFormEOM(model).velocity_from_momentum
         #: at a fixed length the string rows' matrix is a constant: factored once
@@ -352,7 +372,7 @@ class DiscreteLagrangian:
         if p is None:
             raise ValueError("DiscreteLagrangian.context needs p_k when the model has string forces")
         w = self.legendre(x, R, p)
-        return w, self.split_force(self.model.string_force(t, x, w))
+        return w, self.split_force(self.model.loads(t, x, R, w))
 
     def step_vector(self, ds, dq):
         """Δx over x's layout."""
@@ -361,28 +381,50 @@ class DiscreteLagrangian:
     def midpoint(self, ctx: StepContext, h, ds, dq):
         """(t_k + h/2, x_{k+½}, secant velocity) of the symmetric forcing.
 
-        The Ω slot of the velocity is zero: the forces act on (s_p, q) and depend on Ω not at all.
+        The Ω slot of the velocity is zero: the reel and string forces act on (s_p, q) and depend
+        on Ω not at all (the body loads take `body_midpoint`).
         """
         dx = self.step_vector(ds, dq)
         w = jnp.concatenate([dx / h, jnp.zeros(self.nw - dx.shape[0])])
         return ctx.t + 0.5 * h, ctx.x + 0.5 * dx, w
 
-    def end_forcing(self, ctx: StepContext, h, ds, dq):
+    def body_midpoint(self, ctx: StepContext, h, ds, dq, c):
+        """(t_k + h/2, x_{k+½}, R_{k+½}, secant velocity) of the symmetric body loads: the attitude
+        halfway along the step's rotation, R_k cay(c/(1 + √(1 + |c|²))) (half the angle), and the
+        secant angular velocity θ/h, θ = `rotation_vector`(c)."""
+        t, x, w = self.midpoint(ctx, h, ds, dq)
+        half = c / (1.0 + jnp.sqrt(1.0 + c @ c))
+        w = jax.lax.dynamic_update_slice(w, rotation_vector(c) / h, (self.model.layout.omega.start,))
+        return t, x, ctx.R @ cayley(half), w
+
+    def end_forcing(self, ctx: StepContext, h, ds, dq, c=None):
         """(Q_s, Q_q, Q_Ω) of f⁺ = (h/2) Q⁺.
 
-        Paper's: Q⁺ = Q(t_k + h, x_{k+1}, 2Δx/h − ẋ_k) (Heun predictor). Symmetric: Q⁺ = Q⁻ =
-        Q(t_k + h/2, x_{k+½}, Δx/h), the same midpoint force on both ends.
+        Paper's: Q⁺ = Q(t_k + h, x_{k+1}, 2Δx/h − ẋ_k) (Heun predictor); with body loads also at
+        R_{k+1} = R_k cay(c) and the predicted Ω̃_{k+1} = 2θ/h − Ω_k, θ = `rotation_vector`(c).
+        Symmetric: Q⁺ = Q⁻ = Q(t_k + h/2, x_{k+½}, Δx/h) (with body loads at R_{k+½} and θ/h:
+        `body_midpoint`), the same midpoint force on both ends. ``c`` is needed with body loads.
         """
         if not self.node_forced:
             return jnp.asarray(0.0), jnp.zeros((self.N, 3)), jnp.zeros(3)
+        if self.body_forced:
+            if c is None:
+                raise ValueError("DiscreteLagrangian.end_forcing: body loads need the step's rotation c")
+            if self.symmetric:
+                return self.split_force(self.model.loads(*self.body_midpoint(ctx, h, ds, dq, c)))
+            nx = self.model.layout.nx
+            dx = self.step_vector(ds, dq)
+            w1 = jnp.concatenate([2.0 * dx / h - ctx.w[:nx], 2.0 * rotation_vector(c) / h - ctx.w[nx:]])
+            return self.split_force(self.model.loads(ctx.t + h, ctx.x + dx, ctx.R @ cayley(c), w1))
         if self.symmetric:
-            return self.split_force(self.model.string_force(*self.midpoint(ctx, h, ds, dq)))
+            tm, xm, wm = self.midpoint(ctx, h, ds, dq)
+            return self.split_force(self.model.loads(tm, xm, ctx.R, wm))
         nx = self.model.layout.nx
         dx = self.step_vector(ds, dq)
         w1 = jnp.concatenate([2.0 * dx / h - ctx.w[:nx], ctx.w[nx:]])
-        return self.split_force(self.model.string_force(ctx.t + h, ctx.x + dx, w1))
+        return self.split_force(self.model.loads(ctx.t + h, ctx.x + dx, ctx.R, w1))
 
-    def with_forcing(self, ctx: StepContext, h, ds, dq) -> StepContext:
+    def with_forcing(self, ctx: StepContext, h, ds, dq, c=None) -> StepContext:
         """The symmetric scheme's context with f⁻ = (h/2) Q(t_k + h/2, x_{k+½}, Δx/h) at (Δs, Δq).
 
         The midpoint string force depends on the step itself, and through the element
@@ -394,20 +436,24 @@ class DiscreteLagrangian:
         """
         if not (self.symmetric and self.node_forced):
             return ctx
-        fs, fq, feta = self.end_forcing(ctx, h, ds, dq)
+        fs, fq, feta = self.end_forcing(ctx, h, ds, dq, c)
         return dataclasses.replace(ctx, fs=fs, fq=fq, feta=feta)
 
-    def work(self, ctx: StepContext, h, ds, dq):
-        """Work of the forcing on step k: Q_k Δs (reel) + ½ (Q⁻ + Q⁺)·Δx (string forces).
+    def work(self, ctx: StepContext, h, ds, dq, c=None):
+        """Work of the forcing on step k: Q_k Δs (reel) + ½ (Q⁻ + Q⁺)·Δx (string forces and body
+        loads) + ½ (M⁻ + M⁺)·θ (the body loads' moments, θ = `rotation_vector`(c) the step's
+        rotation in the body frame).
 
-        Symmetric: Q_{k+½} Δs + Q_{k+½}·Δx, the same forces as in f⁻ and f⁺.
+        Symmetric: Q_{k+½} Δs + Q_{k+½}·Δx + M_{k+½}·θ, the same forces as in f⁻ and f⁺.
         """
         dW = self.forcing(ctx, ds, h, dq) * ds
         if self.node_forced:
-            fs1, fq1, _ = self.end_forcing(ctx, h, ds, dq)
+            fs1, fq1, feta1 = self.end_forcing(ctx, h, ds, dq, c)
             dW = dW + 0.5 * jnp.sum((ctx.fq + fq1) * dq)
             if self.reel:
                 dW = dW + 0.5 * (ctx.fs + fs1) * ds
+            if self.body_forced:
+                dW = dW + 0.5 * (ctx.feta + feta1) @ rotation_vector(c)
         return dW
 
     def split_momentum(self, p):
@@ -627,7 +673,7 @@ class DiscreteLagrangian:
             dqf = jnp.concatenate([jnp.zeros((1, 3)), dq, jnp.zeros((1, 3))], axis=0)
             lin = (mul * self.msub)[:, None] * dqf[:-2] + diag[:, None] * dqf[1:-1] + (mul * self.msup)[:, None] * dqf[2:]
             lin = lin + ctx.C * ds + self.e_last[:, None] * self.body_term(ctx, F)[None, :]
-        fs1, fq1, feta1 = self.end_forcing(ctx, h, ds, dq)  # f⁺ of the string forces (zeros without)
+        fs1, fq1, feta1 = self.end_forcing(ctx, h, ds, dq, c)  # f⁺ of the string forces and body loads (zeros without)
         hpq = lin - 0.5 * h * h * (gradV1[lay.nodes].reshape(N, 3) - fq1)
         hps = 0.0
         if self.reel:

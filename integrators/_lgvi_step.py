@@ -123,15 +123,17 @@ class LGVIStep:
 
         def fp_body(c_):
             ds_, c_prev, F_, dq_, it_, zz, n, _, _ = c_
-            ctx_ = dl.with_forcing(ctx, h, ds_, dq_)
+            ctx_ = dl.with_forcing(ctx, h, ds_, dq_, c_prev)
             d_ = None if dl.reel else dl.string_forward(ctx_, pq, h)
             ds1, c1, F1, dq1, it1, ok1, z1 = self.newton(ctx_, p, h, zz, d_, tol, maxit)
             conv = (jnp.max(jnp.abs(dq1 - dq_)) <= tol) & (jnp.abs(ds1 - ds_) <= tol)
+            if dl.body_forced:  # the body loads depend on the rotation too
+                conv = conv & (jnp.max(jnp.abs(c1 - c_prev)) <= tol)
             return ds1, c1, F1, dq1, it_ + it1, z1, n + 1, conv, ok1
 
         ds, c, F, dq, it, z_sol, _, conv, ok = jax.lax.while_loop(
             fp_cond, fp_body, (ds, c, F, dq, it, z_sol, jnp.asarray(0, jnp.int32), jnp.asarray(False), newton_ok))
-        return (ds, c, F, dq, it, z_sol), conv & ok, dl.with_forcing(ctx, h, ds, dq)
+        return (ds, c, F, dq, it, z_sol), conv & ok, dl.with_forcing(ctx, h, ds, dq, c)
 
     # -------------------------------------------------------------------------------------
     def substep(self, x, R, p, gV, z, t, h, prm, check_state: bool):
@@ -156,7 +158,7 @@ class LGVIStep:
         R1 = R @ F if dl.rigid else R
         gV1 = model.potential_gradient(x1, R1)
         p1 = dl.hp_k1(ctx, h, ds, dq, c, gV1, pq=pq) / h
-        dW = dl.work(ctx, h, ds, dq)
+        dW = dl.work(ctx, h, ds, dq, c)
         code = jnp.where(~newton_ok, StepCode.NEWTON_FAILED, 0)
         if check_state:
             finite = (jnp.all(jnp.isfinite(x1)) & jnp.all(jnp.isfinite(p1)) & jnp.all(jnp.isfinite(R1))

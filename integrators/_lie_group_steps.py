@@ -121,7 +121,7 @@ def pendulum_field(model, equations):
         x, w = v[:nx], v[nx:nx + nw]
         parts = [w[:nx], equations.accelerations(t, x, R, w)]
         if lay.has_work:
-            parts.append(jnp.atleast_1d(model.power(t, x, w)))
+            parts.append(jnp.atleast_1d(model.power(t, x, w, R)))
         om = w[lay.omega] if lay.has_attitude else jnp.zeros(3)
         return om, jnp.concatenate(parts)
 

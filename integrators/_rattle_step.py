@@ -286,10 +286,10 @@ def pendulum_system(model) -> QuaternionSystem:
         return jnp.concatenate([w[:nx], 0.5 * G.T @ w[lay.omega] + along * Q])
 
     force = None
-    if model.reel_forces or model.string_forces:
+    if model.reel_forces or model.string_forces or model.body_loads:
         def force(t, q, v):
-            x, _, w = to_model(q, v)
-            Fw = model.generalized_force(t, x, w)
+            x, R, w = to_model(q, v)
+            Fw = model.generalized_force(t, x, w, R)
             if not quat:
                 return Fw
             return jnp.concatenate([Fw[:nx], 2.0 * quat_matrix(q[nx:]).T @ Fw[lay.omega]])

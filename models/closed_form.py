@@ -3,7 +3,7 @@
 `ClosedFormEOM(model)` wraps a `StringPendulum` and evaluates the same equations as its
 autodiff path (`mass_matrix`, `momentum`, `accelerations`, `ode_rhs`) without any
 `jax.grad` / `jacfwd` / `jvp`. It reuses the model's parameters, its closed-form
-`potential_gradient` and its forces (`reel_force`, `string_force`); no energy term is re-derived here except the
+`potential_gradient` and its forces (`reel_force`, `string_force`, `body_load`); no energy term is re-derived here except the
 kinetic energy's derivatives, which are written out below.
 
 Notation (nodes a = 1 … N+1, q_1 ≡ 0, v_a = q̇_a, v_1 = 0, ṡ = ṡ_p, l = (L − s_p)/N):
@@ -407,8 +407,9 @@ class ClosedFormEOM:
         dV_s, dV_q, dV_om = self._parts(m.potential_gradient(x, R))
         Fq = -dV_q
         Fs = F_om = None
-        if m.string_forces:
-            Q_s, Q_q, _ = self._parts(m.string_force(t, x, w))
+        Q_om = None
+        if m.string_forces or m.body_loads:
+            Q_s, Q_q, Q_om = self._parts(m.loads(t, x, R, w))
             Fq = Fq + Q_q
         if lay.has_reel:
             mu, sd = self.mu, w[0]
@@ -418,7 +419,7 @@ class ClosedFormEOM:
             Cdot = self._coupling(va - vf)
             Fs = (mu / 3.0 - 2.0 * mu / 3.0) * sd * sd - mu / (6.0 * N) * quad - jnp.sum(Cdot * vf)
             Fs = Fs - dV_s + m.reel_force(t, x, w)
-            if m.string_forces:
+            if m.string_forces or m.body_loads:
                 Fs = Fs + Q_s
             G = self._c31_rows * va + self._c23_rows * vf  # G_a, rows a = 1 … N
             Fq = Fq + sd * (_from_next(G) - G - Cdot) + (sd / (N * l)) * self._string_apply(vf, l)
@@ -434,6 +435,8 @@ class ClosedFormEOM:
             F_om = (_cross(Pi, om) + mb * _cross(c, u) + mb * _cross(rho, _cross(om, u)) - dV_om
                     # terms that vanish for orthogonal R (P = RᵀR = I): M_R and Ṁ w of ½ m_b cᵀ P c
                     + mb * (_cross(c, Pc) - _cross(rho, Pdot_c)))
+            if m.body_loads:  # the moment on the body (body frame)
+                F_om = F_om + Q_om
         return Fs, Fq, F_om
 
     def force(self, t, x, R, w):
@@ -555,7 +558,7 @@ class ClosedFormEOM:
         if lay.has_attitude:
             placed.append((lay.y_quat.start, quat_rate(y[lay.y_quat], w[lay.omega])))
         if lay.has_work:
-            placed.append((lay.y_work.start, jnp.reshape(m.power(t, x, w), (1,))))
+            placed.append((lay.y_work.start, jnp.reshape(m.power(t, x, w, R), (1,))))
         buf = _assemble(lay.ny, *placed)
         return self._join_solution(*self._solve_parts(x, R, *self._force_parts(t, x, R, w)), lay.y_w.start, buf)
 

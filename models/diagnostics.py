@@ -11,7 +11,10 @@ work of a trajectory that carries none), pi3, orthogonality_error, deployed_leng
 body_x..z (the attachment point r_p + q_{N+1}), tension_min, tension_max.
 ``energy`` holds only the terms of the scene's effects; ``V_gravity`` is the sum of the terms
 the `gravity` effect contributes (`StringPendulum.terms_of`); ``V_reel`` is one of them (the
-reel-side string) and is reported separately for reel scenes.
+reel-side string) and is reported separately for reel scenes. Every other effect with
+potential terms (buoyancy, a plugin's spring) has its own column ``V_<effect>``, the sum of its
+terms (`effect_energy_columns`), so that T + V_gravity + V_elastic + the ``V_<effect>`` columns
+add up to ``energy``.
 """
 
 from __future__ import annotations
@@ -25,6 +28,17 @@ from models._jax import jax, jnp
 from models.model import StringPendulum, build_model, quat_to_rot
 
 E3 = jnp.array([0.0, 0.0, 1.0])
+
+
+#: effects whose potential terms have columns of their own (V_gravity, V_elastic)
+_NAMED_ENERGY = ("gravity", "elasticity")
+
+
+def effect_energy_columns(model: StringPendulum) -> tuple[str, ...]:
+    """``V_<effect>`` of every listed effect but gravity and elasticity that has potential terms
+    (buoyancy, a plugin's potential), in the model's order."""
+    owners = [model.term_owner[k] for k in model.potential_terms]
+    return tuple(f"V_{e}" for e in dict.fromkeys(owners) if e not in _NAMED_ENERGY)
 
 
 def point_diagnostics(model: StringPendulum, x, R, w, W, t=0.0) -> dict:
@@ -46,7 +60,11 @@ def point_diagnostics(model: StringPendulum, x, R, w, W, t=0.0) -> dict:
     # gravity's own terms (string, body and, with a reel, the reel-side string), whatever they are named
     v_gravity = sum((pot[k] for k in model.terms_of("gravity")), 0.0)
     body = model.r_p + q[-1]
+    # every other effect's potential terms, by effect (the parts then add up to E)
+    effect_energy = {c: jnp.asarray(sum(pot[k] for k in model.terms_of(c[2:]) if k in pot))
+                     for c in effect_energy_columns(model)}
     return {
+        **effect_energy,
         "energy": T + V,
         "kinetic": T,
         "T_rot": 0.5 * om @ (model.J_c @ om) if lay.has_attitude else jnp.asarray(0.0),
@@ -56,7 +74,7 @@ def point_diagnostics(model: StringPendulum, x, R, w, W, t=0.0) -> dict:
         "work": W,
         "energy_minus_work": T + V - W,
         # Q·w of the non-conservative forces: `evaluate` integrates it along the saved path
-        "power": model.power(t, x, w) if lay.has_work else jnp.asarray(0.0),
+        "power": model.power(t, x, w, R) if lay.has_work else jnp.asarray(0.0),
         "pi3": ang[2],
         "orthogonality_error": jnp.linalg.norm(jnp.eye(3) - R.T @ R) if lay.has_attitude else jnp.asarray(0.0),
         "deployed_length": model.L - model.reel_coordinate(x),
@@ -93,7 +111,7 @@ def evaluate(scene, trajectory) -> pd.DataFrame:
     model = build_model(scene)
     tr = trajectory
     n = len(tr.t)
-    columns = ["t"] + list(_COLUMNS) + ["work_path"]
+    columns = ["t"] + list(_COLUMNS) + list(effect_energy_columns(model)) + ["work_path"]
     if n == 0:
         return pd.DataFrame(columns=columns)
     from_momentum = tr.velocity is None
@@ -108,6 +126,7 @@ def evaluate(scene, trajectory) -> pd.DataFrame:
     )
     data = {"t": np.asarray(tr.t, dtype=float)}
     data.update({k: np.asarray(out[k], dtype=float) for k in _COLUMNS})
+    data.update({k: np.asarray(out[k], dtype=float) for k in effect_energy_columns(model)})
     # the work of the scene's forces along the saved path (trapezoidal rule over the saved
     # times): the balance of a trajectory that carries no work of its own (a method that does
     # not know the scene's forces) is taken with it, so ignoring a force shows as an imbalance
@@ -137,6 +156,11 @@ def energy_deviation(df: pd.DataFrame, *, has_work: bool) -> pd.Series:
 
 def summary(df: pd.DataFrame, *, has_work: bool) -> dict:
     """The paper's conservation metrics of one run (models/README.md, "What is reported").
+
+    ``df``: `evaluate`'s table of the run; ``has_work`` (keyword only): whether the scene does
+    non-conservative work (``build_model(scene).layout.has_work``), which makes the energy error
+    that of E − W. Returns {"energy_error", "pi3_error", "orthogonality_error"} (floats; NaN
+    for an empty table).
 
     energy_error: max |E - E0| / max T   (or max |(E - W) - (E0 - W0)| / max T with forcing)
     pi3_error: max |π3 - π3(0)| / |π3(0)|  (absolute if π3(0) = 0)

@@ -10,12 +10,13 @@ An effect declares everything it contributes, and nothing else needs to know its
   non-conservative work (`forcing`, which puts W in the ODE state);
 * physics (`models.model.StringPendulum`, assembled once per scene): potential terms with
   their closed-form gradients (`potentials`), reel forces on s_p (`reel_forces`), string
-  forces over w's layout (`string_forces`), a change of the elastic law (`elastic_law`), its
-  share of the energy scale (`energy_scale`) and the power its forces claim (`power`, checked
-  by the tests).
+  forces over w's layout (`string_forces`), loads on the body that may turn it (`body_loads`:
+  a moment in the body frame and forces that depend on the attitude), a change of the elastic
+  law (`elastic_law`), its share of the energy scale (`energy_scale`) and the power its forces
+  claim (`power`, `body_power`; checked by the tests and `benchmark.verify`).
 
 The integrators read only the model's totals (`potential_gradient`, `reel_force`,
-`string_force`, `generalized_force`, `potential`, `kinetic`), so a new potential or force
+`string_force`, `body_load`, `generalized_force`, `potential`, `kinetic`), so a new potential or force
 needs no integrator edit. An effect is added at run time by `register_effect`, or by an
 installed package through the entry-point group `reelbench.effects` (`ENTRY_POINT_GROUP`),
 loaded the first time a scene is validated, in every process (the benchmark's workers too).
@@ -121,6 +122,16 @@ class Effect:
         """{name: Q(t, x, w)}, vectors over w's layout acting on (s_p, q), not on Ω."""
         return {}
 
+    def body_loads(self, model) -> dict[str, Callable]:
+        """{name: Q(t, x, R, w)}, vectors over w's layout that may act on the body's rotation and
+        depend on its attitude R and angular velocity Ω: the Ω slot is a moment on the body about
+        the attachment point, in the body frame (N m), ``model.over_w(deta=M)``; a force f
+        (inertial frame) at the body point ρ (body frame, from the attachment point) is
+        ``model.over_w(dq=f on the last node, deta=ρ × Rᵀ f)``. Only with `rigid_body` (a
+        point-mass scene has no Ω slot: `over_w` drops the moment). Its power Q·w includes Ω·M;
+        give it in closed form in `body_power`."""
+        return {}
+
     def elastic_law(self, model) -> tuple[Callable, Callable] | None:
         """(taut_length(stretch, l), clip_tension(tension)) replacing the two-sided law, or None."""
         return None
@@ -130,7 +141,11 @@ class Effect:
         return 0.0
 
     def power(self, model, t, x, w):
-        """Q·w of this effect's forces in closed form (None: no forces)."""
+        """Q·w of this effect's reel and string forces in closed form (None: no forces)."""
+        return None
+
+    def body_power(self, model, t, x, R, w):
+        """Q·w of this effect's body loads in closed form, Ω·M included (None: no body loads)."""
         return None
 
     def __repr__(self) -> str:
@@ -519,8 +534,13 @@ class Drag(Effect):
     linear shape functions, at the material velocity (with a reel the material slides through
     the nodes: v = (1−ξ) v_a + ξ v_{a+1} + Δ_a ṡ_p ((a−1+ξ)/N − 1)/l, the same axial flow as in
     the kinetic energy), and gives s_p its share ∫ f·∂r/∂s_p. On the body, at its centre of
-    mass: ½ ρ_f (C_d A) |U − v| (U − v). With a current the fluid can do positive work, so the
-    effect does not claim to be dissipative."""
+    mass: f_b = ½ ρ_f (C_d A) |U − v_c| (U − v_c) with v_c the velocity of the centre of mass. A
+    rigid body whose centre of mass is offset from the attachment point (ρ_c ≠ 0) takes it as a
+    body load (`Effect.body_loads`): v_c = q̇_{N+1} + R (Ω × ρ_c), f_b on the last node and its
+    moment about the attachment point, ρ_c × Rᵀ f_b (body frame), on the rotation; the body has
+    no rotational drag of its own (a damper effect adds one: models/README.md). Otherwise (no
+    offset, or a point mass) v_c = q̇_{N+1} and f_b is part of the string force. With a current
+    the fluid can do positive work, so the effect does not claim to be dissipative."""
 
     name = "drag"
     needs = ("buoyancy",)
@@ -534,19 +554,6 @@ class Drag(Effect):
     }
     plausible = {"fluid.current": (0.0, 1e3), "string.normal_drag": (1e-6, 1e3), "string.tangential_drag": (1e-6, 1e3),
                  "body.drag_area": (1e-12, 1e6)}
-
-    def check(self, checks, d, effects):
-        if self.name not in effects or "rigid_body" not in effects:
-            return
-        rho_c = d["body"]["attachment_to_com"]
-        if d["body"]["drag_area"] > 0 and any(c != 0.0 for c in rho_c):
-            # the body's drag at its centre of mass would put a moment on the attitude and depend
-            # on Ω and R, which forces on (s_p, q) (`Effect.string_forces`) cannot carry
-            raise checks.refuse(
-                f"key 'body.drag_area' = {d['body']['drag_area']!r} with effect 'rigid_body' needs "
-                f"body.attachment_to_com = [0, 0, 0] (the drag then acts at the attachment point, the centre of "
-                f"mass; with an offset it would put a moment on the body, which is not modelled): allowed "
-                f"drag_area = 0, a zero offset, or a point-mass body", "body.drag_area")
 
     # -- the pieces ---------------------------------------------------------------------------
     @staticmethod
@@ -604,11 +611,26 @@ class Drag(Effect):
         u = U - m.node_velocities(w)[-1]
         return kb * _norm(u) * u
 
+    @staticmethod
+    def _offset(m) -> bool:
+        """The body's drag is a body load: a rigid body with ρ_c ≠ 0 and a drag area."""
+        return m.layout.has_attitude and bool(np.any(m.rho_c != 0.0)) and m.scene.section("body")["drag_area"] > 0
+
+    def _com_load(self, m, R, w):
+        """(f_b, v_c): the drag at the centre of mass of an offset body and that point's velocity."""
+        from models._jax import jnp
+
+        _, _, kb, U = self._params(m)
+        v = m.node_velocities(w)[-1] + R @ jnp.cross(m.omega(w), np.asarray(m.rho_c, dtype=float))
+        u = U - v
+        return kb * _norm(u) * u, v
+
     # -- the hooks ----------------------------------------------------------------------------
     def string_forces(self, m):
         from models._jax import jnp
 
         lumped = m.scene.string.mass_model == "lumped"
+        offset = self._offset(m)
 
         def Q(t, x, w):
             """Drag as a generalized force: on the nodes (and s_p) by the virtual work ∫ f·δr."""
@@ -627,10 +649,34 @@ class Drag(Effect):
                 # node b = 2 … N+1 ends element b−1 (right share) and starts element b (left share)
                 fq = right + jnp.concatenate([left[1:], jnp.zeros((1, 3))], axis=0)
                 ds = ds if m.layout.has_reel else None
-            fq = fq.at[-1].add(self._body_load(m, w))
+            if not offset:
+                fq = fq.at[-1].add(self._body_load(m, w))
             return m.over_w(ds=ds, dq=fq)
 
         return {"Q_drag": Q}
+
+    def body_loads(self, m):
+        from models._jax import jnp
+
+        if not self._offset(m):
+            return {}
+        rho = np.asarray(m.rho_c, dtype=float)  # constants (numpy): the hook may be first called inside a trace
+        tip = np.zeros((m.N, 1))
+        tip[-1] = 1.0
+
+        def Q(t, x, R, w):
+            """f_b at the centre of mass: f_b on node N+1, ρ_c × Rᵀ f_b on the rotation."""
+            f, _ = self._com_load(m, R, w)
+            return m.over_w(dq=jnp.asarray(tip) * f[None, :], deta=jnp.cross(rho, R.T @ f))
+
+        return {"Q_drag_body": Q}
+
+    def body_power(self, m, t, x, R, w):
+        """f_b·v_c (offset body only)."""
+        if not self._offset(m):
+            return None
+        f, v = self._com_load(m, R, w)
+        return f @ v
 
     def power(self, m, t, x, w):
         """∫ f·v over the string (the same quadrature, at the material velocity) + f_body·v_body."""
@@ -642,6 +688,8 @@ class Drag(Effect):
         else:
             l = m.element_length(x)
             P = sum(wg * l * jnp.sum(f * vg) for wg, (f, vg, _) in zip(GAUSS_WEIGHTS, self._element_loads(m, x, w)))
+        if self._offset(m):  # the body's share is `body_power`
+            return P
         return P + self._body_load(m, w) @ m.node_velocities(w)[-1]
 
     def energy_scale(self, m):
@@ -673,8 +721,9 @@ def _overrides_kinetic(effect: Effect) -> bool:
     return type(effect).kinetic is not Effect.kinetic
 
 
-def register_effect(effect: Effect) -> Effect:
-    """Add ``effect`` to the registry (at the end of the canonical order); returns it.
+def register_effect(effect: Effect | type[Effect]) -> Effect:
+    """Add ``effect`` (an `Effect` instance, or an `Effect` subclass, instantiated without
+    arguments) to the registry (at the end of the canonical order); returns the instance.
 
     Its scene keys become valid at once (scenes are validated against the registry as it is
     when they are loaded); a model built afterwards composes its terms. Refused (ValueError,
@@ -682,8 +731,10 @@ def register_effect(effect: Effect) -> Effect:
     taken, a need not registered, a key kind or rule the schema does not know, a plausible
     range for a key the effect does not own, and an override of `Effect.kinetic`.
     """
+    if isinstance(effect, type) and issubclass(effect, Effect):
+        effect = effect()
     if not isinstance(effect, Effect) or not effect.name:
-        raise TypeError(f"register_effect needs an Effect instance with a name, not {effect!r}")
+        raise TypeError(f"register_effect needs an Effect subclass or instance with a name, not {effect!r}")
     if not isinstance(effect.name, str) or not EFFECT_NAME.fullmatch(effect.name):
         raise ValueError(f"effect name {effect.name!r} is invalid: allowed a lower-case identifier "
                          f"({EFFECT_NAME.pattern}; it names a TOML section and a keyword)")

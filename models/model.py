@@ -174,18 +174,23 @@ class StringPendulum:
         self.potential_gradients: dict[str, Callable] = {}
         #: which effect contributed each term (diagnostics group the potential terms by it)
         self.term_owner: dict[str, str] = {}
-        # Non-conservative generalized forces, two kinds, composed by `generalized_force`:
+        # Non-conservative generalized forces, three kinds, composed by `generalized_force`:
         # reel forces act on s_p only and depend on w only through ṡ_p (scalar terms);
-        # string forces are vectors over w's layout acting on (s_p, q) (not on Ω).
+        # string forces are vectors over w's layout acting on (s_p, q) (not on Ω);
+        # body loads may also act on Ω and depend on R.
         self.reel_forces: dict[str, Callable] = {}
         self.string_forces: dict[str, Callable] = {}
+        #: loads on the body (`Effect.body_loads`): vectors over w's layout of (t, x, R, w) that
+        #: may act on Ω (a moment in the body frame) and depend on the attitude
+        self.body_loads: dict[str, Callable] = {}
         for effect in self.effects:
             self.kinetic_terms.update(effect.kinetic(self))
             for name, term in effect.potentials(self).items():
                 self.potential_terms[name] = term.energy
                 self.potential_gradients[name] = term.gradient
                 self.term_owner[name] = effect.name
-            for kind, hook in ((self.reel_forces, effect.reel_forces), (self.string_forces, effect.string_forces)):
+            for kind, hook in ((self.reel_forces, effect.reel_forces), (self.string_forces, effect.string_forces),
+                               (self.body_loads, effect.body_loads)):
                 for name, f in hook(self).items():
                     kind[name] = f
                     self.term_owner[name] = effect.name
@@ -318,10 +323,23 @@ class StringPendulum:
         """Sum of the string forces (axial damping) as a vector over w; zeros without them."""
         return sum((f(t, x, w) for f in self.string_forces.values()), jnp.zeros(self.layout.nw))
 
-    def generalized_force(self, t, x, w):
-        """Q over w's layout: the reel forces in the s_p row plus the string forces.
+    def body_load(self, t, x, R, w):
+        """Sum of the body loads (`Effect.body_loads`) over w's layout; zeros without them. The
+        Ω slot is the moment on the body about the attachment point, body frame."""
+        return sum((f(t, x, R, w) for f in self.body_loads.values()), jnp.zeros(self.layout.nw))
 
-        (`accelerations` and `models.closed_form` add the same two parts to their force side
+    def loads(self, t, x, R, w):
+        """The string forces plus the body loads: every non-conservative force but the reel
+        forces (what the LGVI applies explicitly). Equal to `string_force` without body loads."""
+        if not self.body_loads:
+            return self.string_force(t, x, w)
+        return self.string_force(t, x, w) + self.body_load(t, x, R, w)
+
+    def generalized_force(self, t, x, w, R=None):
+        """Q over w's layout: the reel forces in the s_p row plus the string forces plus the body
+        loads (which need the attitude ``R``; a scene without them ignores it).
+
+        (`accelerations` and `models.closed_form` add the same parts to their force side
         one by one: adding the reel force in place keeps scenes without string forces
         bit-identical to what they were before string forces existed.)
         """
@@ -330,11 +348,16 @@ class StringPendulum:
             Q = Q.at[0].set(self.reel_force(t, x, w))
         if self.string_forces:
             Q = Q + self.string_force(t, x, w)
+        if self.body_loads:
+            if R is None:
+                raise ValueError("generalized_force: this scene's body loads need the attitude R")
+            Q = Q + self.body_load(t, x, R, w)
         return Q
 
-    def power(self, t, x, w):
-        """Power of the non-conservative forces, Q · w (accumulated as W)."""
-        return self.generalized_force(t, x, w) @ w
+    def power(self, t, x, w, R=None):
+        """Power of the non-conservative forces, Q · w (accumulated as W): a body load's moment
+        contributes Ω·M. ``R`` is needed only with body loads."""
+        return self.generalized_force(t, x, w, R) @ w
 
     def potential_gradient(self, x, R):
         """Closed-form gradient of V over w's layout: (∂V/∂s_p, ∂V/∂q_2..q_{N+1}, ∂V/∂η).
@@ -423,6 +446,8 @@ class StringPendulum:
             rhs = jnp.concatenate([rhs, jnp.cross(Pi, om) + M_R])
         if self.string_forces:
             rhs = rhs + self.string_force(t, x, w)
+        if self.body_loads:
+            rhs = rhs + self.body_load(t, x, R, w)
         return jnp.linalg.solve(M, rhs - Mdot_w)
 
     # ------------------------------------------------------------------------------------
@@ -444,7 +469,7 @@ class StringPendulum:
             parts.append(quat_rate(y[lay.y_quat], self.omega(w)))
         parts.append(self.accelerations(t, x, R, w))
         if lay.has_work:
-            parts.append(jnp.atleast_1d(self.power(t, x, w)))
+            parts.append(jnp.atleast_1d(self.power(t, x, w, R)))
         return jnp.concatenate(parts)
 
     # ------------------------------------------------------------------------------------

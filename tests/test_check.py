@@ -66,6 +66,9 @@ def test_unmodified_code_passes_bit_identically_against_the_baseline_it_wrote(tm
     code, report = run_check(cache, path, tasks)
     assert code == 0, report
     assert "3 rows compared" in report and "3 bit-identical" in report and "check passed" in report
+    # what is informational, said in the report, with the machine's load now
+    assert "informational (never a failure): the bit-identical count" in report, report
+    assert re.search(r"this machine now: load average \d+\.\d over \d+ cores", report), report
 
 
 def test_degraded_integrator_fails_naming_the_metric(tmp_path, cache, sloppy):

@@ -170,6 +170,11 @@ def test_simulate_and_figures_write_next_to_the_user(tmp_path, monkeypatch, caps
     assert main(["figures", "simulate_fixed_length_lgvi.npz", "--set", "elements=1", "--out", "sub/f.png"]) == 0
     assert (tmp_path / "sub" / "f.png").exists()
     assert not (tmp_path / "results").exists()
+    # a trajectory elsewhere: its figure goes beside it, not into the current directory
+    (tmp_path / "runs").mkdir()
+    (tmp_path / "simulate_fixed_length_lgvi.npz").rename(tmp_path / "runs" / "t.npz")
+    assert main(["figures", "runs/t.npz", "--set", "elements=1"]) == 0
+    assert (tmp_path / "runs" / "t.png").exists() and not (tmp_path / "t.png").exists()
 
 
 def test_size_estimate_warns_about_a_long_run_and_refuses_what_cannot_fit():

@@ -109,6 +109,17 @@ def test_closed_form_matches_autodiff(effects, rng):
             assert _rel_err(ref(t, y)[2], cf.ode_rhs_jit(t, y)) < RTOL
 
 
+@pytest.mark.parametrize("mass_model", ["consistent", "lumped"])
+def test_closed_form_matches_autodiff_with_an_off_centre_drag(mass_model, rng):
+    """The body's drag at an offset centre of mass is a body load (a force and its moment on the
+    rotation, depending on R and Ω): the closed form takes it as the autodiff path does."""
+    effects = ["elasticity", "gravity", "rigid_body", "buoyancy", "drag"]
+    model = build_model(scene_with_effects(effects, elements=SWEEP_ELEMENTS, attachment_to_com=[0.2, -0.1, 0.3],
+                                           mass_model=mass_model))
+    assert model.body_loads
+    _check(model, [ClosedFormEOM(model)], rng)
+
+
 @pytest.mark.parametrize("elements", [1, 4])
 def test_structured_solve_sizes_and_variants(elements, rng):
     """N = 1 (no interior nodes) and 5 (N = 2 is the sweep above); both interior solvers."""

@@ -195,8 +195,12 @@ def test_integrators_run_the_new_effect_unchanged(plugins, tmp_path, drag):
     T = 1.0
     ref = get_integrator("dop853").solve(scene, t_end=T, rtol=1e-11, atol=1e-12, save_every=0.05)
     assert ref.ok, ref.reason
-    s_ref = summary(evaluate(scene, ref), has_work=drag)
+    df_ref = evaluate(scene, ref)
+    s_ref = summary(df_ref, has_work=drag)
     assert s_ref["energy_error"] < 1e-8, s_ref
+    # the plugin's potential has its own column: the parts add up to E
+    parts = df_ref["kinetic"] + df_ref["V_gravity"] + df_ref["V_elastic"] + df_ref["V_tip_spring"]
+    np.testing.assert_allclose(parts, df_ref["energy"], rtol=1e-13, atol=1e-12)
     if drag:
         assert ref.work[-1] < 0  # the drag dissipates
     for name in ("lgvi", "lgvi_sym"):

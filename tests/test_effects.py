@@ -39,6 +39,12 @@ def scenes_for(name, **extra):
         out.append(scene_with_effects(names, elements=3, **kw))
     if name in ("buoyancy", "drag"):  # the lumped string takes the fluid forces per node (MoorDyn's)
         out.append(scene_with_effects(closure([name]), elements=3, mass_model="lumped", **extra))
+    if name == "buoyancy":  # a rigid body with an offset centre of mass (and of buoyancy): a moment, −∂V/∂η
+        out.append(scene_with_effects(closure(["rigid_body", name]), elements=3, attachment_to_com=[0.2, -0.1, 0.3],
+                                      **extra))
+    if name == "drag":  # a rigid body with an offset centre of mass: the body's drag is a body load
+        out.append(scene_with_effects(closure(["rigid_body", name]), elements=3, attachment_to_com=[0.2, -0.1, 0.3],
+                                      **extra))
     return out
 
 
@@ -76,6 +82,17 @@ def check_effect(model, name, rng, n=3):
                 assert P <= 1e-14 * (1 + abs(P))
             for f in string:  # string forces act on (s_p, q), never on Ω
                 assert np.all(np.asarray(f(t, x, w))[model.layout.omega] == 0.0)
+            checked += 1
+        body = [model.body_loads[k] for k in own & set(model.body_loads)]
+        if body:  # body loads: Q·w (the moment's Ω·M included) is the claimed body power
+            assert effect.forcing, f"{name} has body loads but forcing = False"
+            t = float(rng.uniform(0, 2))
+            P = sum(float(f(t, x, R, w) @ w) for f in body)
+            claimed = effect.body_power(model, t, x, R, w)
+            assert claimed is not None, f"{name} has body loads but claims no body power"
+            assert P == pytest.approx(float(claimed), rel=1e-11, abs=1e-12), name
+            if effect.dissipative:
+                assert P <= 1e-14 * (1 + abs(P))
             checked += 1
     return checked
 

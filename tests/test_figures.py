@@ -120,3 +120,24 @@ def _rgb(bar, names, scenes):
     k = bar.axes.patches.index(bar) // len(scenes)
     h = style(names[k]).color.lstrip("#")
     return h[0:2], h[2:4], h[4:6]
+
+
+def test_the_energy_panel_draws_every_effects_potential_so_the_parts_add_up(figures):
+    """towed_offset lists buoyancy: its potential is a diagnostics column of its own (V_buoyancy)
+    and a line of the paper figure's energy panel (b), and T + V_gravity + V_elastic + V_buoyancy = E."""
+    from integrators import Trajectory
+    from models import build_model, load_scene
+    from models.diagnostics import evaluate
+
+    scene = load_scene("towed_offset", elements=2, t_end=0.1)
+    x, R, w = build_model(scene).initial_state()
+    traj = Trajectory(t=np.array([0.0, 0.1]), x=np.array([x, x + 0.01]), attitude=np.array([R, R]),
+                      attitude_kind="matrix", velocity=np.array([w, w + 0.1]), work=np.zeros(2), integrator="made")
+    df = evaluate(scene, traj)
+    assert "V_buoyancy" in df
+    parts = df["kinetic"] + df["V_gravity"] + df["V_elastic"] + df["V_buoyancy"]
+    np.testing.assert_allclose(parts, df["energy"], rtol=1e-14, atol=1e-12)
+    plots.paper_panels(scene, traj, df, "unused.png")
+    (fig,) = figures
+    labels = [line.get_label() for line in fig.axes[1].get_lines()]
+    assert {"E", "T", "V_gravity", "V_elastic", "V_buoyancy"} <= set(labels), labels

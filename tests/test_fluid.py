@@ -65,13 +65,10 @@ def test_fluid_keys_need_their_effects():
         load_scene("fixed_length", **{"fluid.density": 1025.0})
     with pytest.raises(SceneError, match="key 'string.normal_drag' = 1.3 is only allowed with effect 'drag'"):
         load_scene("fixed_length", normal_drag=1.3)
-    # a body's drag at an offset centre of mass would need a moment on the attitude: refused, saying so
-    with pytest.raises(SceneError, match="body.drag_area.*attachment_to_com = \\[0, 0, 0\\]"):
-        load_scene("fixed_length", effects=["gravity", "elasticity", "rigid_body", "buoyancy", "drag"],
-                   **WATER, **{"body.drag_area": 0.05})
-    # ... and allowed with a zero offset or without body drag
-    load_scene("fixed_length", effects=["gravity", "elasticity", "rigid_body", "buoyancy", "drag"], **WATER,
-               attachment_to_com=[0.0, 0.0, 0.0], **{"body.drag_area": 0.05})
+    # a body's drag at an offset centre of mass is a body load (a force and its moment): allowed
+    for offset in ([0.0, 0.0, 0.0], [0.3, 0.2, 0.1]):
+        load_scene("fixed_length", effects=["gravity", "elasticity", "rigid_body", "buoyancy", "drag"], **WATER,
+                   attachment_to_com=offset, **{"body.drag_area": 0.05})
     # scenes without fluid keep their key (the fluid keys exist only with their effects)
     assert load_scene("fixed_length").to_dict().get("fluid") is None
 

@@ -74,6 +74,9 @@ def test_list_marks_plugins_with_their_package_and_version(site):
     assert proc.returncode == 0, proc.stderr
     lines = {ln.split()[0]: ln for ln in proc.stdout.splitlines() if ln.startswith("  ")}
     assert lines[NAME].endswith("(plugin, package my-stepper 0.1)"), lines[NAME]
+    # a guest joins no sweep unasked: not marked "default" as the project's own methods are
+    assert lines[NAME].split()[3] == "plugins" and lines["lgvi"].split()[3] == "default", lines[NAME]
+    assert "swept with --with-plugins or when --integrators names it" in proc.stdout
     assert "plugin" not in lines["lgvi"] and "plugin" not in lines["rk45"]
 
 

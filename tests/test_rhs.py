@@ -44,9 +44,15 @@ def _states(model, rng, n=2):
     return out
 
 
-@pytest.mark.parametrize("effects", COMBOS, ids="+".join)
+#: the fluid effects with a rigid body whose centre of mass is offset: the body's drag is a body
+#: load (a force and its moment on the rotation, depending on R and Ω)
+OFF_CENTRE = ["elasticity", "gravity", "rigid_body", "buoyancy", "drag"]
+
+
+@pytest.mark.parametrize("effects", COMBOS + [OFF_CENTRE], ids="+".join)
 def test_closed_form_and_autodiff_rhs_and_jacobians_agree(effects, rng):
-    model = build_model(_scene(effects))
+    model = build_model(_scene(effects) if effects is not OFF_CENTRE else
+                        scene_with_effects(effects, elements=2, attachment_to_com=[0.2, -0.1, 0.3]))
 
     def both(rhs):
         f = rhs_module.ode_rhs(model, rhs)

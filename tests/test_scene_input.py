@@ -36,6 +36,8 @@ SHIPPED = {
     "retrieval_to_limit": "c83b6b61137bb40b", "stiff_string": "b31f94537d6f16ec",
     # the fluid scenes (added with the buoyancy and drag effects)
     "deployment_in_water": "6efa15e901743d9d", "strong_drag": "d15c547f65ed3673", "towed": "0d82fba9eee8b1df",
+    # a rigid body off its centre of mass in the current (added with body loads)
+    "towed_offset": "4df61c1a42983eaa",
 }
 
 

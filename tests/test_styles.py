@@ -92,3 +92,28 @@ def test_a_figure_keeps_each_method_look_across_panels_and_lists_the_one_it_cann
     for ax in fig.axes:
         assert not box.overlaps(ax.get_window_extent()), "the legend covers an axes"
     plt.close(fig)
+
+
+def test_registered_plugins_never_share_a_look():
+    """Two plugins whose names hash to the same colour and marker, both registered: the later
+    one by name takes the next free look, so a figure of every registered method tells them
+    apart (the unregistered names keep their hashed look)."""
+    from integrators import registry
+    from integrators.base import Integrator
+
+    a = "my_method"
+    twin = next(f"m{k}" for k in range(10_000) if (style(f"m{k}").color, style(f"m{k}").marker)
+                == (style(a).color, style(a).marker))
+    hashed = style(a)
+    made = [type(f"Plugin_{n}", (Integrator,), {"name": n}) for n in (a, twin)]
+    try:
+        for cls in made:
+            registry.register(cls)
+        first, second = sorted((a, twin))
+        assert style(first) == hashed if first == a else True
+        assert (style(a).color, style(a).marker) != (style(twin).color, style(twin).marker)
+        assert clashes(registry.available()) == []
+    finally:
+        for n in (a, twin):
+            registry.unregister(n)
+    assert style(a) == hashed  # unregistered again: the hashed look

@@ -35,8 +35,13 @@ def test_list_aligns_every_name_and_marks_the_extended_sweep(capsys):
     rows = {line.split()[0]: line for line in out if line.startswith("  ") and " order " in line}
     assert set(rows) == set(available())
     assert len({line.index(" order ") for line in rows.values()}) == 1  # one column, long names included
+    from integrators import origin
+
     for name, line in rows.items():
-        assert line.split()[3] == ("default" if get_integrator(name).default_sweep else "extended"), line
+        own = origin(name).own
+        expect = ("default" if get_integrator(name).default_sweep else "extended") if own else (
+            "plugins" if get_integrator(name).default_sweep else "named")
+        assert line.split()[3] == expect, line
     assert any(line.split()[3] == "extended" for line in rows.values())
 
 

@@ -147,6 +147,16 @@ def test_every_builtin_effect_passes(name):
     check_effect(name, scene=EFFECT_SCENES.get(name), log=print)
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["buoyancy", "drag"])
+def test_the_fluid_effects_pass_on_an_off_centre_body(name):
+    """towed_offset: the body's drag at its offset centre of mass is a body load (its moment's
+    power Ω·M is checked); its buoyancy there turns the body through ∂V/∂η."""
+    checks = check_effect(name, scene="towed_offset", log=print)
+    if name == "drag":
+        assert "body loads' Ω·M" in next(c for c in checks if c.name == "power").figure
+
+
 def test_an_effect_another_needs_is_removed_with_it_when_its_keys_are_checked():
     """buoyancy's keys given without it must be refused naming the key, in a scene where drag
     (which needs buoyancy) is listed too: the check removes drag and its keys as well."""
@@ -218,18 +228,19 @@ def test_the_documented_effect_plugin_passes_verify(tmp_path):
     readme = ROOT / "models" / "README.md"
     site = tmp_path / "site"
     pyproject = install_documented(readme, '"""my_effects.py', site)
-    assert set(pyproject["project"]["entry-points"][EFFECT_GROUP]) == {"tip_spring", "tip_damper"}
+    assert set(pyproject["project"]["entry-points"][EFFECT_GROUP]) == {"tip_spring", "tip_damper", "spin_damper"}
     work = tmp_path / "work"
     work.mkdir()
     (work / "tip_spring_demo.toml").write_text(_readme_block(readme, 'name = "tip_spring_demo"', lang="toml"))
     text = " ".join(readme.read_text().split())
-    assert "`python -m benchmark verify tip_spring tip_damper --scene tip_spring_demo.toml`" in text
-    proc = _benchmark(site, "verify", "tip_spring", "tip_damper", "--scene", "tip_spring_demo.toml", cwd=work)
+    assert "`python -m benchmark verify tip_spring tip_damper spin_damper --scene tip_spring_demo.toml`" in text
+    proc = _benchmark(site, "verify", "tip_spring", "tip_damper", "spin_damper", "--scene", "tip_spring_demo.toml",
+                      cwd=work)
     print(proc.stdout)
     assert proc.returncode == 0, proc.stdout + proc.stderr[-2000:]
     reports = proc.stdout.split("verify effect ")[1:]
-    assert [r.split(":")[0] for r in reports] == ["'tip_spring'", "'tip_damper'"]
-    for report, term in zip(reports, ("gradient V_tip_spring", "power")):
+    assert [r.split(":")[0] for r in reports] == ["'tip_spring'", "'tip_damper'", "'spin_damper'"]
+    for report, term in zip(reports, ("gradient V_tip_spring", "power", "power")):
         checks = _check_lines(report)
         assert checks and all(ln.startswith("ok ") for ln in checks)
         names = {ln.split(":")[0].split(maxsplit=1)[1] for ln in checks}
@@ -237,6 +248,8 @@ def test_the_documented_effect_plugin_passes_verify(tmp_path):
         keys = next(ln for ln in checks if ln.startswith("ok    scene keys"))
         assert re.search(r"(\d+) of \1 broken values refused", keys), keys
     assert "Q·w = claimed power" in reports[1] and "≤ 0 (dissipative)" in reports[1]
+    # the spin damper's moment: its power Ω·M checked against body_power, and E − W kept
+    assert "body loads' Ω·M" in reports[2] and "≤ 0 (dissipative)" in reports[2], reports[2]
     # without a scene, its required keys are named and the command refuses (exit 2) before any work
     bare = _benchmark(site, "verify", "tip_spring", cwd=work)
     assert bare.returncode == 2 and "tip_spring.stiffness" in bare.stderr and "--scene" in bare.stderr, bare.stderr
