@@ -46,8 +46,6 @@ TARGETS = (("energy_error", 1e-4, "energy error (relative to max T)"),
 #: The string sizes of the main job, and of the extended answer.
 ELEMENTS = (10,)
 EXTENDED_ELEMENTS = (10, 40)
-#: The scenes of the extended answer: the paper's three, the string in water, the tow.
-EXTENDED_SCENES = ("fixed_length", "deployment", "retrieval", "deployment_in_water", "towed")
 #: The search's range and start per axis: (start, lowest, highest, factor). dt: seconds; a
 #: step above 0.1 s is beyond every shipped method's stability on these scenes (the search
 #: would say "largest setting"); rtol: the adapters' own range, 1e-13 above the reference's 1e-12.

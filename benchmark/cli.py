@@ -432,7 +432,7 @@ def cmd_answer(args) -> int:
     for name in args.integrators or ():
         _check_integrator(name)
     targets = _targets(args.targets) if args.targets else tuple((m, t) for m, t, _ in answer.TARGETS)
-    scenes = tuple(args.scenes or (answer.EXTENDED_SCENES if args.extended else sweep.PAPER_SCENES))
+    scenes = tuple(args.scenes or (sweep.EXTENDED_SCENES if args.extended else sweep.PAPER_SCENES))
     elements = tuple(args.elements or (answer.EXTENDED_ELEMENTS if args.extended else answer.ELEMENTS))
     for sc in scenes:
         for n in elements:

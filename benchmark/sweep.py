@@ -14,7 +14,7 @@ from typing import NamedTuple
 
 PAPER_SCENES = ("fixed_length", "deployment", "retrieval")
 #: A string in water (buoyancy and Morison drag): `run --extended` sweeps them after the paper's
-FLUID_SCENES = ("deployment_in_water", "towed")
+FLUID_SCENES = ("deployment_in_water", "towed", "towed_offset")
 EXTENDED_SCENES = PAPER_SCENES + FLUID_SCENES
 #: The order in which the shipped methods appear in tables and plots (an order only: every
 #: registered method runs, plugins after these; which settings a method gets follows from its
