@@ -105,8 +105,8 @@ def sentences(h: pd.DataFrame, labels: dict) -> list[str]:
                 continue
             work = t[(t["cost_kind"] == "work") & (t["entry"] == best["entry"])]
             bound = work["bound"].iloc[0] if len(work) else ""
-            held = f", its setting held by {LIMITED_BY[bound]}" if bound in LIMITED_BY else ""
-            tie = " (a tie)" if best["verdict"] == "tie" else ""
+            held = f"; its setting held by {LIMITED_BY[bound]}" if bound in LIMITED_BY else ""
+            tie = ", in a tie" if best["verdict"] == "tie" else ""
             parts.append(f"for {_target_text(metric, target, labels)} use {family(best['integrator'])} "
                          f"(`{best['entry']}`{tie}{held})")
         lines.append(f"**{scene}**: " + "; ".join(parts) + ".")

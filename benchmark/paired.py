@@ -12,8 +12,9 @@ reference is the fastest by paired ratio.
 Rounds are added until every ratio's interval lies within ±``precision`` (10 %) of the ratio, or
 the time budget of the target (`BUDGET`, 20 s of timing) ends. The timing races: from
 `RACE_ROUNDS` rounds on, a method whose interval lies wholly above 1 + `RACE_MARGIN` (clearly
-slower than the margin that makes a tie) leaves, so the rounds go to the contenders; its ratio
-stays the one of the rounds it ran, paired with the same rounds of the reference. The verdict comes from the
+slower than the margin that makes a tie) leaves, so the rounds go to the contenders; it keeps
+the ratio, interval and ``slower`` verdict it left with (a bootstrap of its few rounds against
+a reference chosen later could read as a tie it had already been shown out of). The verdict comes from the
 intervals: the fastest method is the ``winner`` only when every other method's interval lies
 above 1 + `EQUIVALENCE`; otherwise it and every method whose interval reaches that are a
 ``tie``; the rest are ``slower``. The margin is measured, not chosen: a pass's bootstrap interval
@@ -137,25 +138,32 @@ def time_paired(solves: dict[str, Callable[[], float]], *, budget: float = BUDGE
     rng = np.random.default_rng(seed)
     times: dict[str, list[float]] = {m: [] for m in names}
     racing = list(names)
+    left: dict[str, Ratio] = {}  # the methods that left the race, as they left it
     started = clock()
     rounds = 0
     ratios: list[Ratio] = []
+
+    def current() -> list[Ratio]:
+        return verdicts(compare({m: times[m] for m in racing}, rng, level) + list(left.values()))
+
     while rounds < max_rounds:
         for k in range(len(racing)):  # rotate who goes first: no method always follows another
             m = racing[(rounds + k) % len(racing)]
             times[m].append(float(solves[m]()))
         rounds += 1
         if len(racing) > 1 and rounds >= race_rounds:
-            gone = leaving(compare({m: times[m] for m in racing}, rng, level), race_margin)
+            now = compare({m: times[m] for m in racing}, rng, level)
+            gone = set(leaving(now, race_margin))
+            left.update({r.method: r for r in now if r.method in gone})
             racing = [m for m in racing if m not in gone]
         if rounds >= min_rounds or len(names) == 1:
-            ratios = compare(times, rng, level)
+            ratios = current()
             if progress:
                 progress(rounds, clock() - started, ratios)
             contenders = [r for r in ratios if r.method in racing]
             if len(names) == 1 or resolved(contenders, precision) or clock() - started >= budget:
                 break
-    return ratios or compare(times, rng, level)
+    return ratios or current()
 
 
 @contextlib.contextmanager
