@@ -10,7 +10,7 @@ By concern, from the command line down:
 - the studies, as jobs: `runner` (the runs table), `stability`, `check`, `horizon` (the energy
   study), `orders` (observed orders on a short horizon), `xval`, `lgvi_speed` (speed),
   `reel_reversal`, `answer` (each method's cheapest setting at each target by `search`,
-  wall-time verdicts by `paired` timing, at N = 10 and 40); what a sweep runs: `sweep`; its
+  wall-time verdicts by `paired` timing, racing; N = 10, `--extended` also 40); what a sweep runs: `sweep`; its
   metrics: `metrics`; its work: `flops` (one rule for every method), checked against compiled floors by `work_rule` (results/work_rule.md), whose own arithmetic
   `opcount` counts by running their source on counting scalars;
 - their writers: `answer_report`, `runs_report` (the grid sweep's), `stability_report`,
