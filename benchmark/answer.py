@@ -687,6 +687,7 @@ def run_answer(request: AnswerRequest, log: Callable[[str], None] = engine.log_s
     # a run joins the rows already there: rows of other scenes, sizes, methods or targets are kept
     # (`merged`), this run's replace theirs (so the extended answer adds to the main job's)
     earlier = {name: read_rows(out / name, log) for name in ("search.csv", "timing.csv")}
+    others = [(p, pd.read_csv(p)) for p in request.compare_with]  # read now: one may be this run's own output
     search_csv = TableWriter(out / "search.csv",
                              lambda rows: frame(merged(earlier["search.csv"], rows, SEARCH_IDENTITY), SEARCH_COLUMNS))
     timing_csv = TableWriter(out / "timing.csv",
@@ -718,7 +719,7 @@ def run_answer(request: AnswerRequest, log: Callable[[str], None] = engine.log_s
             block = answer_block(table, labels, request.command, _shown(out / "cheapest.csv"))
             atomic_write_text(out / "answer.md", block)
             made = answer_report.figures(searched, out)
-            compared = [answer_report.agreement_text(table, pd.read_csv(p), f"`{p}`") for p in request.compare_with]
+            compared = [answer_report.agreement_text(table, other, f"`{p}`") for p, other in others]
             for text in compared:
                 log(text.rstrip())
             spent = answer_report.accounting(searched, timed, provenance.wall_time(), workers)

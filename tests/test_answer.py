@@ -238,3 +238,23 @@ def test_bad_answer_options_are_refused_before_any_work(tmp_path, capsys, args, 
     assert main(["answer", *args, "--out", str(tmp_path / "o")]) == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_two_answers_agree_on_a_winner_or_on_ties_that_contain_each_others_best(tables):
+    from benchmark import answer_report
+
+    table = answer.answer_table(*tables)
+    same = answer_report.agreement(table, table)
+    assert len(same) and same["agree"].all()
+    other = table.copy()
+    wall10 = (other["elements"] == 10) & (other["cost_kind"] == "wall")
+    # the other run: lie_rk4 ahead of lgvi, the two apart (a different winner) -> they disagree
+    other.loc[wall10 & (other["integrator"] == "lie_rk4"), ["ratio", "verdict"]] = [1.0, "winner"]
+    other.loc[wall10 & (other["integrator"] == "lgvi"), ["ratio", "ratio_low", "verdict"]] = [1.6, 1.5, "slower"]
+    a = answer_report.agreement(table, other).set_index(["elements", "cost_kind"])
+    assert not a.loc[(10, "wall"), "agree"] and a.loc[(10, "work"), "agree"]
+    # a tie that contains the other's winner agrees
+    other.loc[wall10 & (other["integrator"] == "lgvi"), ["ratio", "ratio_low", "verdict"]] = [1.04, 0.97, "tie"]
+    other.loc[wall10 & (other["integrator"] == "lie_rk4"), "verdict"] = "tie"
+    assert answer_report.agreement(table, other).set_index(["elements", "cost_kind"]).loc[(10, "wall"), "agree"]
+    assert "1 of 2" not in answer_report.agreement_text(table, table, "itself")
