@@ -186,7 +186,8 @@ def _front(g: pd.DataFrame) -> tuple[str, set]:
 
 def agreement(mine: pd.DataFrame, other: pd.DataFrame) -> pd.DataFrame:
     """Per scene × N × metric × target × cost kind both tables answer: whether they agree (the
-    same winner, or ties that contain each other's best), and each one's best and front."""
+    same winner, ties that contain each other's best, or a winner inside the other's tie), and
+    each one's best and front."""
     keys = ["scene", "elements", "metric", "target", "cost_kind"]
     rows = []
     theirs = {k: g for k, g in other.groupby(keys, sort=True)}
@@ -194,7 +195,9 @@ def agreement(mine: pd.DataFrame, other: pd.DataFrame) -> pd.DataFrame:
         if k not in theirs:
             continue
         (a, front_a), (b, front_b) = _front(g), _front(theirs[k])
-        agree = a == b or (a in front_b and b in front_a)
+        # the same winner; two ties, each holding the other's best; or a winner inside the other's tie
+        agree = (a == b or (a in front_b and b in front_a) or (front_a == {a} and a in front_b)
+                 or (front_b == {b} and b in front_a))
         rows.append({**dict(zip(keys, k)), "agree": bool(agree), "best": a, "front": ", ".join(sorted(front_a)),
                      "other_best": b, "other_front": ", ".join(sorted(front_b))})
     return pd.DataFrame(rows, columns=keys + ["agree", "best", "front", "other_best", "other_front"])
@@ -205,8 +208,8 @@ def agreement_text(mine: pd.DataFrame, other: pd.DataFrame, label: str) -> str:
     a = agreement(mine, other)
     if a.empty:
         return f"Compared with {label}: no scene, N and target in common.\n"
-    lines = [f"Compared with {label}: {int(a['agree'].sum())} of {len(a)} answers agree (the same winner, or ties "
-             "that contain each other's best)."]
+    lines = [f"Compared with {label}: {int(a['agree'].sum())} of {len(a)} answers agree (the same winner, ties "
+             "that contain each other's best, or a winner inside the other's tie)."]
     for r in a[~a["agree"]].itertuples():
         lines.append(f"- {r.scene}, N = {r.elements}, {r.metric} ≤ {r.target:g}, by {r.cost_kind}: `{r.best}` here "
                      f"({r.front}), `{r.other_best}` there ({r.other_front})")

@@ -253,7 +253,7 @@ def test_two_answers_agree_on_a_winner_or_on_ties_that_contain_each_others_best(
     other.loc[wall10 & (other["integrator"] == "lgvi"), ["ratio", "ratio_low", "verdict"]] = [1.6, 1.5, "slower"]
     a = answer_report.agreement(table, other).set_index(["elements", "cost_kind"])
     assert not a.loc[(10, "wall"), "agree"] and a.loc[(10, "work"), "agree"]
-    # a tie that contains the other's winner agrees
+    # a tie that contains the other's winner agrees (and two ties holding each other's best)
     other.loc[wall10 & (other["integrator"] == "lgvi"), ["ratio", "ratio_low", "verdict"]] = [1.04, 0.97, "tie"]
     other.loc[wall10 & (other["integrator"] == "lie_rk4"), "verdict"] = "tie"
     assert answer_report.agreement(table, other).set_index(["elements", "cost_kind"]).loc[(10, "wall"), "agree"]
