@@ -104,7 +104,8 @@ def _user(tmp_path: Path) -> tuple[Path, dict]:
 
 def test_the_docs_show_the_commands_this_test_runs():
     commands = concrete()
-    assert {"run --fresh", "check", "check --update", "stability", "xval", "reel-reversal", "list"} <= set(commands)
+    assert {"answer --fresh", "answer --extended", "check", "check --update", "stability", "xval", "reel-reversal",
+            "list"} <= set(commands)
     assert any("symplectic_euler" in c and "--out" in c for c in commands)  # the plugin example
     assert any(c.startswith("run --quick") and "--out" in c for c in commands)
     assert {"speed", "speed --elements 10,40,160,640 --scenes fixed_length,deployment"} <= set(commands)
