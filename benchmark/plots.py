@@ -129,7 +129,7 @@ def work_precision(runs: pd.DataFrame, scene: str, out_dir: Path, *, searched: b
     failed = sel[sel["status"] != "ok"]
     source = "search.csv" if searched else "runs.csv"
     fig.suptitle(f"{scene}: work–precision" + (f"  ({len(failed)} runs failed, see {source})" if len(failed) else "")
-                 + f"\n{'work' if searched else 'bottom row'}: {FLOPS_DEFINITION if by_flops else WORK_DEFINITION}"
+                 + f"\n{'' if searched else 'bottom row: '}{FLOPS_DEFINITION if by_flops else WORK_DEFINITION}"
                  + (f"; no {'flops' if by_flops else 'work'} count for {', '.join(missing_below)}" if missing_below else "")
                  + _clash_caption(set(g["integrator"])), fontsize=10)
     return save_figure(fig, path)
