@@ -116,7 +116,10 @@ def sentences(h: pd.DataFrame, labels: dict) -> list[str]:
 def how_made(command: str, bounded: list[str], equivalence: float, confirm: int, table_file: str) -> list[str]:
     bounds = (f" {', '.join(f'`{b}`' for b in bounded)} by work: its flops leave out its Newton solves, a lower bound (`≥`), "
               "never a winner." if bounded else "")
-    return [f"Each setting is the cheapest found by search (to 10 % in cost) that stands: the {confirm} settings just "
+    from benchmark.search import RESOLUTION
+
+    return [f"Each setting is the cheapest found by search (to {RESOLUTION * 100:g} % in cost) that stands: the {confirm} "
+            "settings just "
             "finer meet the target too. Wall time is timed in pairs on one pinned core: the ratio to the fastest and its "
             f"90 % interval; a winner needs every other interval above {1 + equivalence:g}, else a tie. scipy's methods "
             f"are ranked by work only.{bounds}",
