@@ -438,10 +438,6 @@ def cmd_answer(args) -> int:
         for n in elements:
             load_scene(sc, elements=n, **({"t_end": args.t_end} if args.t_end else {}))  # validated before work
     out = opt.writable_dir(args.out)
-    compared = []
-    for path in args.compare_with or ():
-        compared.append(_readable_table(path, "--compare-with", ("scene", "elements", "metric", "target", "cost_kind",
-                                                                 "entry", "verdict", "ratio")))
     if args.integrators:
         names = tuple(args.integrators)
     else:
@@ -451,22 +447,8 @@ def cmd_answer(args) -> int:
     return answer.run_answer(AnswerRequest(out=out, scenes=scenes, integrators=names, elements=elements,
                                            targets=targets, t_end=args.t_end, max_runs=args.max_runs,
                                            timing_budget=args.timing_budget, jobs=args.jobs, fresh=args.fresh,
-                                           command=_command(args), compare_with=tuple(compared),
+                                           command=_command(args), compare_with=tuple(args.compare_with or ()),
                                            executor=args.executor, scheduler=args.scheduler), log=_log)
-
-
-def _readable_table(path: str, option: str, columns: tuple) -> str:
-    """``path``, once it reads as a CSV table with ``columns`` (else a usage error naming the option)."""
-    import pandas as pd
-
-    try:
-        have = set(pd.read_csv(path, nrows=1).columns)
-    except Exception as exc:
-        raise UsageError(f"{option} {path}: cannot be read as a CSV table ({type(exc).__name__})") from None
-    missing = [c for c in columns if c not in have]
-    if missing:
-        raise UsageError(f"{option} {path}: not an answer table (cheapest.csv): no column {', '.join(missing)}")
-    return path
 
 
 def _targets(text: str) -> tuple:
@@ -813,7 +795,7 @@ def _add_answer(sub) -> None:
     _add_executor(an, "the searches (the paired timing stays in this process, on one pinned core)")
     an.add_argument("--fresh", action="store_true", help="recompute every row this command writes (default: keep "
                                                          "the finished ones)")
-    an.add_argument("--compare-with", action="append", metavar="CHEAPEST.csv",
+    an.add_argument("--compare-with", type=opt.answer_table, action="append", metavar="CHEAPEST.csv",
                     help="an earlier answer table: README.md says which answers agree (repeatable)")
     an.add_argument("--out", default=str(answer.COMMITTED_ANSWER), help="output directory (created if missing; "
                                                                        "results/ also rewrites the README's answer)")

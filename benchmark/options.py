@@ -97,20 +97,30 @@ def check_tolerance_rules(factor: float, order_margin: float) -> None:
         raise UsageError(f"--order-margin = {order_margin!r} is invalid (allowed: finite, >= 0; e.g. 0.5)")
 
 
-def runs_table(text: str) -> str:
-    """An existing runs.csv with the columns a comparison needs (checked without pandas)."""
-    path = Path(text)
-    if not path.is_file():
-        raise argparse.ArgumentTypeError(f"{text!r} is not a file (allowed: the runs.csv of an earlier run)")
-    try:
-        with open(path, encoding="utf-8") as fh:
-            header = fh.readline().strip().split(",")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise argparse.ArgumentTypeError(f"{text!r} cannot be read ({exc})") from None
-    missing = [c for c in ("scene", "integrator", "setting", "status", "run_time") if c not in header]
-    if missing:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a runs table: no column(s) {', '.join(missing)}")
-    return text
+def csv_table(columns: tuple, what: str):
+    """An argparse type: an existing CSV file whose header has ``columns`` (checked without pandas);
+    ``what`` names the table a user should give."""
+    def check(text: str) -> str:
+        path = Path(text)
+        if not path.is_file():
+            raise argparse.ArgumentTypeError(f"{text!r} is not a file (allowed: {what})")
+        try:
+            with open(path, encoding="utf-8") as fh:
+                header = fh.readline().strip().split(",")
+        except (OSError, UnicodeDecodeError) as exc:
+            raise argparse.ArgumentTypeError(f"{text!r} cannot be read ({exc})") from None
+        missing = [c for c in columns if c not in header]
+        if missing:
+            raise argparse.ArgumentTypeError(f"{text!r} is not {what}: no column(s) {', '.join(missing)}")
+        return text
+    return check
+
+
+#: The runs.csv of an earlier run (`run --compare-with`), and an earlier answer's cheapest.csv
+#: (`answer --compare-with`).
+runs_table = csv_table(("scene", "integrator", "setting", "status", "run_time"), "the runs.csv of an earlier run")
+answer_table = csv_table(("scene", "elements", "metric", "target", "cost_kind", "entry", "verdict", "ratio"),
+                         "the cheapest.csv of an earlier answer")
 
 
 def names(text: str) -> list[str]:
