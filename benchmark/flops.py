@@ -37,6 +37,8 @@ number and ``flops_note`` says why (never a zero). Compiled pieces are cached pe
 from __future__ import annotations
 
 import functools
+import hashlib
+import json
 
 import numpy as np
 
@@ -79,6 +81,63 @@ def use_program_count(which: str) -> None:
         cached.cache_clear()
 
 
+#: The source a count depends on (besides the scene's physics and JAX's version).
+COUNT_CODE = (("models", "integrators"), ("benchmark/flops.py",))
+
+
+def _count_path(fn_name: str, args: tuple):
+    """Where a count is kept on disk (None: not kept), beside JAX's compiled programs
+    (`models._jax.compile_cache_dir`, off with it): one JSON file per count, named by what
+    determines it, so that every worker process and every later run reads a count once traced."""
+    from models._jax import compile_cache_dir, jax, xla_flags
+    from models.io import inside, user_cache_dir
+    from benchmark.store import source_hash
+
+    if compile_cache_dir() is None:
+        return None
+    if isinstance(args[0], str):  # a method's step: kept only when its code is in COUNT_CODE (not a plugin's)
+        from integrators import get_integrator
+
+        if not type(get_integrator(args[0])).__module__.startswith(COUNT_CODE[0]):
+            return None
+    what = [a.scene.key() if hasattr(a, "scene") else a for a in args]
+    key = json.dumps({"count": fn_name, "args": what, "program": PROGRAM_COUNT, "jax": jax.__version__,
+                      "xla_flags": xla_flags() if PROGRAM_COUNT == "compiled" else "",
+                      "code": source_hash(*COUNT_CODE)}, sort_keys=True)
+    return inside(user_cache_dir() / "flops", f"{fn_name}-{hashlib.sha256(key.encode()).hexdigest()[:20]}.json")
+
+
+def _tupled(value):
+    """``value`` with every list a tuple (JSON reads tuples back as lists)."""
+    return tuple(_tupled(v) for v in value) if isinstance(value, (list, tuple)) else value
+
+
+def _kept_on_disk(count):
+    """``count(*args)``, read from its file when one was written (`_count_path`), else traced
+    and written. Tracing a step and asking XLA for its cost takes 0.3-6 s a method and scene; a
+    count is a pure function of the code, the physics and JAX, so it is kept like a compiled
+    program. A file that cannot be read or written costs a recount, never the row."""
+    from models.io import WriteFailed, atomic_write_text
+
+    @functools.wraps(count)
+    def kept(*args):
+        path = _count_path(count.__name__, args)
+        if path is not None:
+            try:
+                return _tupled(json.loads(path.read_text()))
+            except (OSError, ValueError):
+                pass
+        value = _tupled(count(*args))
+        if path is not None:
+            try:
+                atomic_write_text(path, json.dumps(value))
+            except WriteFailed:
+                pass
+        return value
+
+    return kept
+
+
 def _counted(lowered):
     return lowered.compile() if PROGRAM_COUNT == "compiled" else lowered
 
@@ -99,6 +158,7 @@ def compiled_flops(compiled) -> float:
 
 
 @functools.lru_cache(maxsize=64)
+@_kept_on_disk
 def rhs_flops(model, rhs: str, jacobian: bool = False) -> float:
     """Flops of one evaluation of the right-hand side ``rhs`` (``jacobian``: of one forward-mode
     Jacobian of it). Through the jitted functions the scipy methods call (`integrators.rhs`),
@@ -180,6 +240,7 @@ def extra_flops(terms, while_trips: float) -> float:
 
 
 @functools.lru_cache(maxsize=64)
+@_kept_on_disk
 def step_cost(name: str, model, rhs: str | None = None) -> tuple[float, tuple, bool]:
     """(XLA's one-pass flops of one step, its loop terms, whether it has an uneven cond
     (`has_uneven_cond`)) of the fixed-step method ``name`` (``rhs``: the right-hand side its
@@ -226,6 +287,7 @@ def _ode_term_and_state(model, rhs: str):
 
 
 @functools.lru_cache(maxsize=64)
+@_kept_on_disk
 def diffrax_step_cost(name: str, model, rhs: str, adaptive: bool) -> float:
     """Flops of one attempted step of the diffrax explicit pair ``name``: diffrax's
     ``solver.step`` (its stage loop, a while loop, at the stages it evaluates per step) plus,
@@ -260,6 +322,7 @@ _SAFETY, _MAX_FACTOR = 0.9, 10.0
 
 
 @functools.lru_cache(maxsize=64)
+@_kept_on_disk
 def scipy_twin_step(name: str, model, rhs: str) -> float:
     """Flops of one attempted step of scipy's explicit pair behind ``name`` (RK45, DOP853),
     as its compiled twin: scipy's ``rk_step`` (stages from the tableau ``A``, ``B``, ``C``,

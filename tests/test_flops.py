@@ -158,3 +158,32 @@ def test_a_run_without_counts_gets_a_reason_not_a_zero(model):
     value, note = flops.run_flops("rk45", model, {"steps": 10}, "closed_form")
     assert math.isnan(value) and note.startswith("no flops")
     assert np.isnan(flops.run_flops("no_such_method", model, {"steps": 10}, None)[0])
+
+
+def test_a_count_kept_on_disk_is_the_traced_count(model, tmp_path, monkeypatch):
+    """Counts are kept beside the compiled programs: one read back equals one traced, a plugin's
+    step (code outside the hashed source) is never kept, and the compile cache's switch turns
+    the keeping off."""
+    from integrators import registry
+
+    monkeypatch.setenv("REELBENCH_CACHE", str(tmp_path))
+    monkeypatch.delenv("REELBENCH_COMPILE_CACHE", raising=False)
+    fresh = [flops._tupled(f.__wrapped__.__wrapped__(*args)) for f, args in ((flops.step_cost, ("lgvi", model, None)),
+                                                   (flops.rhs_flops, (model, "closed_form")))]
+    for f, args in ((flops.step_cost, ("lgvi", model, None)), (flops.rhs_flops, (model, "closed_form"))):
+        f.cache_clear()
+        written = f(*args)
+        f.cache_clear()
+        assert f(*args) == written
+    assert [flops.step_cost("lgvi", model, None), flops.rhs_flops(model, "closed_form")] == fresh
+    assert len(list((tmp_path / "flops").glob("*.json"))) == 2
+    _, rk4, _ = _linear_methods(model.layout.ny)
+    registry.register(rk4)
+    try:
+        assert flops._count_path("step_cost", (rk4.name, model, None)) is None
+    finally:
+        registry.unregister(rk4.name)
+    monkeypatch.setenv("REELBENCH_COMPILE_CACHE", "0")
+    assert flops._count_path("rhs_flops", (model, "closed_form")) is None
+    for f in (flops.step_cost, flops.rhs_flops):
+        f.cache_clear()
