@@ -14,7 +14,7 @@ from models._lazy import lazy_function
 build_model = lazy_function("models.model", "build_model")
 energy_deviation = lazy_function("models.diagnostics", "energy_deviation")
 evaluate = lazy_function("models.diagnostics", "evaluate")
-quat_to_rot = lazy_function("models.model", "quat_to_rot")
+quat_to_rot_many = lazy_function("models.model", "quat_to_rot_many")
 
 #: The sum of a run's counts (column ``work_evals``; rankings and figures use ``flops``, see
 #: `FLOPS_DEFINITION`, and this sum is kept to compare with tables from before it), in
@@ -188,7 +188,7 @@ def attitude_matrices(traj) -> np.ndarray | None:
     if traj.attitude is None:
         return None
     if traj.attitude_kind == "quaternion":
-        return np.stack([np.asarray(quat_to_rot(q)) for q in traj.attitude]) if len(traj.attitude) else np.zeros((0, 3, 3))
+        return quat_to_rot_many(np.reshape(traj.attitude, (-1, 4)))
     return np.asarray(traj.attitude)
 
 

@@ -62,6 +62,18 @@ def quat_to_rot(quat):
     )
 
 
+def quat_to_rot_many(quats) -> np.ndarray:
+    """`quat_to_rot` of each row of ``quats`` (n, 4), in numpy: the same formula in the same order
+    (equal bit for bit, tested), for the host's per-run metrics, where one eager JAX call per
+    saved quaternion took 0.25 ms each (0.1-0.2 s a run)."""
+    q = np.asarray(quats, dtype=float)
+    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    rows = [[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]]
+    return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
+
+
 def rot_to_quat(R) -> np.ndarray:
     """Unit quaternion (w, x, y, z) of a rotation matrix (numpy; Shepperd's method)."""
     R = np.asarray(R, dtype=float)

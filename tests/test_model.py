@@ -140,3 +140,15 @@ def test_stiff_light_string_is_a_simple_pendulum():
     crossings = _crossing_times(traj.t, traj.x[:, -3])
     measured = np.mean(np.diff(crossings))
     assert abs(measured / period - 1) < 1e-3, (measured, period)
+
+
+def test_quat_to_rot_many_is_quat_to_rot_bit_for_bit():
+    """The host's batched twin (the metrics' attitude matrices) equals the JAX formula exactly,
+    unit and non-unit quaternions (the baselines' are not renormalised)."""
+    from models.model import quat_to_rot_many
+
+    q = np.random.default_rng(3).normal(size=(50, 4))
+    q[:25] /= np.linalg.norm(q[:25], axis=1, keepdims=True)
+    expected = np.stack([np.asarray(quat_to_rot(row)) for row in q])
+    assert np.array_equal(quat_to_rot_many(q), expected)
+    assert quat_to_rot_many(np.zeros((0, 4))).shape == (0, 3, 3)
