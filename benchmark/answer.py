@@ -340,18 +340,11 @@ SOLVE_SECONDS = 0.05
 def search_costs(jobs: list[SearchJob]) -> list[float]:
     """Predicted seconds of each search: the method's declared compile time on the first search of
     its (scene, N, method) group, then its solves, scaled by N (scipy's by its interpreter factor)."""
-    from benchmark.runner import PYTHON_STEP_FACTOR
-    from integrators import get_integrator
+    from benchmark.runner import method_cost
 
     seen, out = set(), []
     for j in jobs:
-        try:
-            integ = get_integrator(j.integrator)
-            compile_s, per_step = integ.cost_hint
-            if integ.implementation == "scipy-python":
-                per_step *= PYTHON_STEP_FACTOR
-        except (ValueError, AttributeError, TypeError):
-            compile_s, per_step = 30.0, 1.0
+        compile_s, per_step = method_cost(j.integrator)
         group = (j.scene, j.elements, j.integrator)
         first = group not in seen
         seen.add(group)

@@ -243,21 +243,29 @@ ADAPTIVE_STEPS_PER_S = 50.0
 PYTHON_STEP_FACTOR = 20.0
 
 
+def method_cost(integrator: str) -> tuple[float, float]:
+    """(seconds to compile, cost of a step relative to one of `STEP_SECONDS`) the method declares
+    (`Integrator.cost_hint`; scipy's interpreted steps × `PYTHON_STEP_FACTOR`); an unknown or
+    undeclared method is guessed dear (30 s, 1)."""
+    from integrators import get_integrator
+
+    try:
+        integ = get_integrator(integrator)
+        compile_s, per_step = integ.cost_hint
+        if getattr(integ, "implementation", "") == "scipy-python":
+            per_step *= PYTHON_STEP_FACTOR
+    except (ValueError, AttributeError, TypeError):
+        compile_s, per_step = 30.0, 1.0
+    return compile_s, per_step
+
+
 def task_costs(tasks: list[Task]) -> list[float]:
     """Predicted seconds of each task in its worker: its method's declared compile time
     (`Integrator.cost_hint`) on the first task of each (scene, integrator), plus its steps at
     the declared per-step cost, times the timed solves (`timing_repeats`)."""
-    from integrators import get_integrator
-
     seen, out = set(), []
     for t in tasks:
-        try:
-            integ = get_integrator(t.integrator)
-            compile_s, per_step = integ.cost_hint
-            if getattr(integ, "implementation", "") == "scipy-python":
-                per_step *= PYTHON_STEP_FACTOR
-        except (ValueError, AttributeError, TypeError):
-            compile_s, per_step = 30.0, 1.0
+        compile_s, per_step = method_cost(t.integrator)
         horizon = t.t_end if t.t_end is not None else 10.0
         steps = horizon / t.dt if t.dt else horizon * ADAPTIVE_STEPS_PER_S * (1e-4 / t.rtol) ** 0.2
         solve = steps * per_step * STEP_SECONDS
