@@ -43,6 +43,23 @@ from benchmark.store import code_version, frame, kept_rows, key_of
 #: of `benchmark.metrics.METRICS`.
 TARGETS = (("energy_error", 1e-4, "energy error (relative to max T)"),
            ("position_error_final", 1e-6, "body position error at t_end (m)"))
+#: Methods the main job runs beside the default sweep's: the compiled eighth-order pair, which is
+#: the fastest at the position targets of all three paper scenes at N = 10 (the extended
+#: methods' trial, results/previous/extended_methods_trial.csv); an answer without it would
+#: name a slower method.
+MAIN_JOB_EXTRA = ("dopri8",)
+
+
+def default_methods(extended: bool = False) -> tuple[str, ...]:
+    """The methods the answer searches unless named: the project's own default-sweep methods and
+    `MAIN_JOB_EXTRA`, or every own method (``extended``)."""
+    from benchmark.sweep import default_names
+    from integrators import get_integrator
+
+    return tuple(n for n in default_names()
+                 if extended or get_integrator(n).default_sweep or n in MAIN_JOB_EXTRA)
+
+
 #: The string sizes of the main job, and of the extended answer.
 ELEMENTS = (10,)
 EXTENDED_ELEMENTS = (10, 40)

@@ -438,12 +438,7 @@ def cmd_answer(args) -> int:
         for n in elements:
             load_scene(sc, elements=n, **({"t_end": args.t_end} if args.t_end else {}))  # validated before work
     out = opt.writable_dir(args.out)
-    if args.integrators:
-        names = tuple(args.integrators)
-    else:
-        from integrators import get_integrator
-
-        names = tuple(n for n in sweep.default_names() if args.extended or get_integrator(n).default_sweep)
+    names = tuple(args.integrators) if args.integrators else answer.default_methods(args.extended)
     return answer.run_answer(AnswerRequest(out=out, scenes=scenes, integrators=names, elements=elements,
                                            targets=targets, t_end=args.t_end, max_runs=args.max_runs,
                                            timing_budget=args.timing_budget, jobs=args.jobs, fresh=args.fresh,
@@ -776,14 +771,14 @@ def _add_answer(sub) -> None:
              "For every scene x N x method x target, search the cheapest setting meeting the target that stands "
              "(bracket, bisect to 10 % in cost, confirm the three settings just finer; benchmark/search.py), then "
              "time the compiled methods at their settings paired and interleaved on one pinned core, racing "
-             "(benchmark/paired.py). Default: the paper's three scenes at N = 10 with the default methods; "
+             "(benchmark/paired.py). Default: the paper's three scenes at N = 10 with the default methods and dopri8; "
              "--extended: every method, the scenes in water and the off-centre tow too, at N = 10 and 40, its rows "
              "merged into the same table. Resumable: rerun to continue.")
     an.add_argument("--extended", action="store_true",
                     help="every one of the project's methods on the paper's and the fluid scenes at N = 10 and 40")
     an.add_argument("--scenes", type=opt.names, help="comma-separated scene names (default: the paper's three)")
     an.add_argument("--integrators", type=opt.names, help="comma-separated integrator names (default: the "
-                                                          "default sweep's; --extended: all of the project's)")
+                                                          "default sweep's and dopri8; --extended: all of the project's)")
     an.add_argument("--elements", type=opt.positive_ints, help="comma-separated N (default 10; --extended 10,40)")
     an.add_argument("--targets", help="comma-separated metric=target pairs on any accuracy metric of the runs "
                                       "table (default: energy_error=1e-4,position_error_final=1e-6)")
