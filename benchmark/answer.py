@@ -732,7 +732,8 @@ def run_answer(request: AnswerRequest, log: Callable[[str], None] = engine.log_s
             compared = [answer_report.agreement_text(table, other, f"`{p}`") for p, other in others]
             for text in compared:
                 log(text.rstrip())
-            spent = answer_report.accounting(searched, timed, provenance.wall_time(), workers)
+            kept = {r.get("row_digest") for name in ("search.csv", "timing.csv") for r in earlier[name]}
+            spent = answer_report.accounting(searched, timed, provenance.wall_time(), workers, kept)
             log(spent)
             atomic_write_text(out / "README.md", answer_report.readme(block.splitlines(), made,
                                                                       provenance.header() + "\n\n" + spent, compared))

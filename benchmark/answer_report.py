@@ -219,13 +219,19 @@ def agreement_text(mine: pd.DataFrame, other: pd.DataFrame, label: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def accounting(searched: pd.DataFrame, timed: pd.DataFrame, wall: float, workers: int) -> str:
+def accounting(searched: pd.DataFrame, timed: pd.DataFrame, wall: float, workers: int, kept=frozenset()) -> str:
     """Where a run's time went, against its floor: the searches' solves, their compilation and the
     rest (metrics, flops), each solve counted once, on ``workers`` processes; the paired timing; the
-    floor (the solves it must run plus the compilation, shared by the workers, plus the timing)."""
+    floor (the solves it must run plus the compilation, shared by the workers, plus the timing).
+    Rows whose ``row_digest`` is in ``kept`` were read from an earlier run: not counted (their
+    time is not in this run's wall)."""
+    def this_run(df):
+        return df[~df["row_digest"].isin(list(kept))] if kept and "row_digest" in df else df
+
+    searched, timed = this_run(searched), this_run(timed)
     pts = points(searched)
     if pts.empty or "run_time" not in pts:
-        return ""
+        return "Time: every search was kept from an earlier run." if kept else ""
     total = {k: float(pd.to_numeric(pts.get(k), errors="coerce").fillna(0.0).sum())
              for k in ("run_time", "compile_time", "other_time")}
     timing = float(pd.to_numeric(timed.get("seconds", pd.Series(dtype=float)), errors="coerce").fillna(0.0).sum())
@@ -234,4 +240,4 @@ def accounting(searched: pd.DataFrame, timed: pd.DataFrame, wall: float, workers
             f"of solving, {total['compile_time']:.0f} s of compilation, {total['other_time']:.0f} s of metrics and "
             f"flops (worker seconds); the paired timing took {timing:.0f} s. Floor (solves and compilation over the "
             f"workers, plus the timing): {floor:.0f} s, so this run took {wall / floor if floor else float('nan'):.2f}× "
-            "its floor. Rows kept from earlier runs count here as they were measured then.")
+            "its floor." + (" Rows kept from earlier runs are not counted." if kept else ""))

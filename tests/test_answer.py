@@ -267,3 +267,28 @@ def test_the_main_job_runs_the_default_methods_and_dopri8_and_extended_runs_ever
     main = answer.default_methods()
     assert "dopri8" in main and set(main) == {n for n in sweep.default_names() if get_integrator(n).default_sweep} | {"dopri8"}
     assert set(answer.default_methods(extended=True)) == set(sweep.default_names())
+
+
+def test_the_time_accounting_counts_only_the_rows_this_run_made():
+    """A resumed run's wall holds only its own work: rows read from an earlier run are left out
+    of the solves, the timing and the floor."""
+    import json
+
+    import pandas as pd
+
+    from benchmark.answer_report import accounting
+
+    def search_row(digest, seconds, setting):
+        pts = [{"setting": setting, "status": "ok", "cost": 1.0, "cost_column": "flops", "run_time": seconds,
+                "compile_time": 1.0, "other_time": 0.5}]
+        return {"scene": "fixed_length", "elements": 10, "integrator": "lgvi", "sweep": "dt",
+                "points": json.dumps(pts), "row_digest": digest}
+
+    searched = pd.DataFrame([search_row("old", 100.0, 0.01), search_row("new", 3.0, 0.02)])
+    timed = pd.DataFrame([{"seconds": 50.0, "row_digest": "old"}, {"seconds": 2.0, "row_digest": "new"}])
+    everything = accounting(searched, timed, 10.0, 1)
+    assert "ran 2 solves: 103 s of solving" in everything
+    own = accounting(searched, timed, 10.0, 1, kept={"old"})
+    assert "ran 1 solves: 3 s of solving, 1 s of compilation" in own and "the paired timing took 2 s" in own
+    assert "Floor (solves and compilation over the workers, plus the timing): 6 s" in own and "not counted" in own
+    assert accounting(searched.iloc[:1], timed.iloc[:1], 10.0, 1, kept={"old"}).startswith("Time: every search")
