@@ -739,7 +739,7 @@ def run_answer(request: AnswerRequest, log: Callable[[str], None] = engine.log_s
                                                                       provenance.header() + "\n\n" + spent, compared))
             log(f"{out}/README.md and {len(made)} work–precision figure(s) written")
             if is_committed_answer(out):
-                from benchmark.runs_report import write_answer
+                from benchmark.answer_report import write_answer
                 from benchmark.store import ROOT
 
                 log(write_answer(ROOT / "README.md", block))

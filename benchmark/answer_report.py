@@ -4,7 +4,7 @@ sentence per scene on which family to use and what limits it, the work–precisi
 from every setting the searches ran, and results/README.md around them.
 
 Reads `benchmark.answer`'s tables (cheapest.csv's rows, search.csv's points); writes nothing but
-the files it is asked for.
+the files it is asked for, the project README's answer block among them (`write_answer`).
 """
 
 from __future__ import annotations
@@ -15,6 +15,9 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+
+#: The markers of the project README's generated answer block.
+ANSWER_START, ANSWER_END = "<!-- answer:start -->", "<!-- answer:end -->"
 
 #: What limits a setting, in words (`benchmark.search` bounds).
 LIMITED_BY = {"target": "accuracy", "stability": "stability", "largest setting": "the largest setting allowed",
@@ -241,3 +244,28 @@ def accounting(searched: pd.DataFrame, timed: pd.DataFrame, wall: float, workers
             f"flops (worker seconds); the paired timing took {timing:.0f} s. Floor (solves and compilation over the "
             f"workers, plus the timing): {floor:.0f} s, so this run took {wall / floor if floor else float('nan'):.2f}× "
             "its floor." + (" Rows kept from earlier runs are not counted." if kept else ""))
+
+
+# ------------------------------------------------------------------------------------------
+# The project README's answer block
+# ------------------------------------------------------------------------------------------
+def write_answer(readme: Path, block: str) -> str:
+    """Replace the text between `ANSWER_START` and `ANSWER_END` in ``readme`` with ``block``,
+    atomically; the rest of the file is untouched. Returns what it did, in words (without both
+    markers, in order, it writes nothing)."""
+    readme = Path(readme)
+    try:
+        text = readme.read_text(encoding="utf-8")
+    except OSError as exc:
+        return f"{readme} cannot be read ({exc.strerror or exc}): the answer block was not written"
+    start, end = text.find(ANSWER_START), text.find(ANSWER_END)
+    if start < 0 or end < start or text.count(ANSWER_START) != 1 or text.count(ANSWER_END) != 1:
+        return (f"{readme} has no single {ANSWER_START} ... {ANSWER_END} pair: the answer block was not written "
+                "(add the two markers where it belongs)")
+    new = text[: start + len(ANSWER_START)] + "\n" + block + text[end:]
+    if new == text:
+        return f"{readme}: the answer block is unchanged"
+    from models.io import atomic_write_text
+
+    atomic_write_text(readme, new)
+    return f"{readme}: the answer block between {ANSWER_START} and {ANSWER_END} was rewritten"

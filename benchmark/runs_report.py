@@ -1,5 +1,4 @@
-"""The grid sweep's words: results/grid/README.md from its runs table, and the project
-README's answer block writer (`write_answer`, used by `benchmark.answer`).
+"""The grid sweep's words: results/grid/README.md from its runs table.
 
 The grid sweep (`python -m benchmark run`) measures every method on a fixed step and tolerance
 grid; its README describes the table, the time per evaluation, the failures and why they were
@@ -23,10 +22,6 @@ from benchmark.reference import REFERENCE_METHOD
 from benchmark.sweep import MAX_REPEATS, MIN_REPEATS, TIMING_BUDGET
 from benchmark.report import Provenance, code_list, markdown_table
 from models.io import atomic_write_text
-
-#: The markers of the project README's generated answer block.
-ANSWER_START, ANSWER_END = "<!-- answer:start -->", "<!-- answer:end -->"
-
 
 def horizons_text(horizons: dict | None) -> str:
     """One sentence on the horizons a result covers, e.g. {"sweep": 1.0, "energy study": 10.0};
@@ -90,29 +85,6 @@ def timing_text(runs: pd.DataFrame) -> str:
     return ("Timing: " + "; ".join(parts) + ". " if parts else "") + (
         "Run times of a few ms move by up to 2× between sweeps on a shared machine, so the sweep's single solves "
         "rank nothing; paired timing does (`python -m benchmark answer`).")
-
-
-# ------------------------------------------------------------------------------------------
-# The project README's answer block
-# ------------------------------------------------------------------------------------------
-def write_answer(readme: Path, block: str) -> str:
-    """Replace the text between `ANSWER_START` and `ANSWER_END` in ``readme`` with ``block``,
-    atomically; the rest of the file is untouched. Returns what it did, in words (without both
-    markers, in order, it writes nothing)."""
-    readme = Path(readme)
-    try:
-        text = readme.read_text(encoding="utf-8")
-    except OSError as exc:
-        return f"{readme} cannot be read ({exc.strerror or exc}): the answer block was not written"
-    start, end = text.find(ANSWER_START), text.find(ANSWER_END)
-    if start < 0 or end < start or text.count(ANSWER_START) != 1 or text.count(ANSWER_END) != 1:
-        return (f"{readme} has no single {ANSWER_START} ... {ANSWER_END} pair: the answer block was not written "
-                "(add the two markers where it belongs)")
-    new = text[: start + len(ANSWER_START)] + "\n" + block + text[end:]
-    if new == text:
-        return f"{readme}: the answer block is unchanged"
-    atomic_write_text(readme, new)
-    return f"{readme}: the answer block between {ANSWER_START} and {ANSWER_END} was rewritten"
 
 
 # ------------------------------------------------------------------------------------------

@@ -200,7 +200,7 @@ def test_a_run_keeps_the_rows_of_other_sizes_and_replaces_its_own():
 def test_the_readme_answer_block_is_what_the_main_job_wrote():
     """The project README's block between the answer markers is results/answer.md, as the main job
     (`python -m benchmark answer`, into results/) wrote it: no hand edit, no stale block."""
-    from benchmark.runs_report import ANSWER_END, ANSWER_START
+    from benchmark.answer_report import ANSWER_END, ANSWER_START
     from benchmark.store import ROOT
 
     text = (ROOT / "README.md").read_text(encoding="utf-8")

@@ -111,7 +111,7 @@ def test_the_committed_grid_cites_the_other_studies_where_they_write_by_default(
     ("<!-- answer:end -->\n<!-- answer:start -->\n", False),
 ])
 def test_the_answer_block_replaces_only_the_text_between_its_markers(tmp_path, text, wrote):
-    from benchmark.runs_report import write_answer
+    from benchmark.answer_report import write_answer
 
     readme = tmp_path / "README.md"
     readme.write_text(text)
