@@ -674,12 +674,12 @@ def run_xval(scene_name: str, elements, t_end: float, out: Path, *, command: str
              log: Callable[[str], None] = log_stderr, cases=None) -> int:
     """The cross-validation against MoorDyn and MuJoCo into ``out``; returns the exit status. The runs
     of an earlier study in ``out`` that this one does not recompute (other N) are kept and every
-    file is written from the merged study (`benchmark.study_store.earlier_xval`, which refuses,
+    file is written from the merged study (`benchmark.xval.earlier_xval`, which refuses,
     before any work, earlier runs that cannot be kept). The study writes when it ends: a stopped
     one leaves ``out`` as it was."""
     from benchmark import xval, xval_report
     from benchmark.report import earlier_runs
-    from benchmark.study_store import earlier_xval
+    from benchmark.xval import earlier_xval
     from models import load_scene
 
     out = Path(out)

@@ -6,7 +6,7 @@ other studies do the same with their own tables and row identities:
 * `stability`: ``stability.csv``, one row per (scene, integrator, kind);
 * `speed`: the rows table beside its Markdown file (``lgvi_speed.csv`` beside
   ``lgvi_speed.md``), one row per (kind, method, right-hand side, scene, N);
-* `xval`: its study, rebuilt from ``tips.npz`` and ``cost.csv`` (`benchmark.xval_report`).
+* `xval`: its study, rebuilt from ``tips.npz`` and ``cost.csv`` (`benchmark.xval.earlier_xval`).
 
 A study's table, figure and README are then written from the whole merged table, and an
 interrupted study has already merged each finished row: it never drops a row it did not
@@ -82,67 +82,3 @@ class MergedTable(store.TableWriter):
                     else "no row had finished, nothing saved")
         return (f"{self.saved} finished row(s) are merged into {self.path}"
                 + (f" (its earlier rows that this run did not recompute are kept)" if self.earlier else ""))
-
-
-# ------------------------------------------------------------------------------------------
-# xval: its study, rebuilt from the raw tips and the cost table it wrote
-# ------------------------------------------------------------------------------------------
-def earlier_xval(out: Path, scene, t_end: float, this_run: set) -> tuple[dict, dict]:
-    """The (case, N) runs of the cross-validation already in ``out`` that this run (``this_run``:
-    its (case, N)) does not recompute, rebuilt from ``tips.npz`` (the tips), ``cost.csv`` (steps,
-    time, strain) and ``settings.json`` (scene, horizon, each run's physics hash): ({(case, N):
-    {code: CodeRun}}, {(case, N): its settings entry}). ValueError before any work when ``out``
-    holds such runs that cannot join this run's (another scene, horizon or scene values, or files
-    missing): writing the study would drop them."""
-    import json
-
-    import numpy as np
-    import pandas as pd
-
-    from benchmark.store import UnreadableFile, read_npz
-    from benchmark.xval import OUTPUT_INTERVAL, CodeRun, case_scene
-
-    out = Path(out)
-    files = [out / n for n in ("settings.json", "cost.csv", "tips.npz")]
-    if not any(f.exists() for f in files):
-        return {}, {}
-    refuse = (f"{out} holds an earlier cross-validation that this run cannot merge with and would overwrite ({{}}): "
-              "give --elements (and --scene, --t-end) covering it, another --out, or move it away")
-    try:
-        settings = json.loads(files[0].read_text(encoding="utf-8"))
-        cost = pd.read_csv(files[1])
-        tips = read_npz(files[2])
-        earlier = {(str(r["case"]), int(r["N"])): r for r in settings["runs"]}
-    except (OSError, ValueError, KeyError, TypeError, UnreadableFile, pd.errors.ParserError) as exc:
-        raise ValueError(refuse.format(f"its files cannot be read: {type(exc).__name__}")) from None
-    outside = sorted(k for k in earlier if k not in this_run)
-    if not outside:
-        return {}, {}
-    times = np.linspace(0.0, t_end, round(t_end / OUTPUT_INTERVAL) + 1)
-    if settings.get("scene") != scene.name or not np.isclose(float(settings.get("t_end", -1)), t_end):
-        raise ValueError(refuse.format(f"scene {settings.get('scene')!r} to t = {settings.get('t_end')} s, this run's "
-                                       f"{scene.name!r} to {t_end:g} s"))
-    if tips.get("times") is None or np.shape(tips["times"]) != times.shape or not np.allclose(tips["times"], times):
-        raise ValueError(refuse.format("its tips are at other times"))
-    stale = [f"{c} N={n}" for c, n in outside
-             if case_scene(scene, c).with_(elements=n, mass_model="lumped", t_end=t_end).key()
-             != earlier[(c, n)].get("scene_key_lumped")]
-    if stale:
-        raise ValueError(refuse.format(f"{', '.join(stale)} computed with other scene values or an older model"))
-    runs = {}
-    for case, n in outside:
-        rows = cost[(cost["case"] == case) & (cost["N"] == n)]
-        runs[(case, n)] = {}
-        for r in rows.to_dict("records"):
-            tip = tips.get(f"{case}_N{n}_{r['code']}")
-            if tip is None:
-                raise ValueError(refuse.format(f"no tips of {r['code']} for {case} N={n} in tips.npz"))
-            extra = {"min_strain": r["min_strain"]}
-            if np.isfinite(r["us_per_step"]):  # the time per step it measured: one interval of that time
-                extra.update(interval_s=[r["us_per_step"] * 1e-6], steps_per_interval=1)
-            if np.isfinite(r["us_per_rhs"]) and r["us_per_rhs"] > 0:
-                extra["rhs_evals"] = 1e6 * r["wall_s"] / r["us_per_rhs"]
-            dt = r["dt_s"] if np.isfinite(r["dt_s"]) else None
-            runs[(case, n)][str(r["code"])] = CodeRun(str(r["code"]), n, dt, np.asarray(tip), int(r["steps"]),
-                                                       float(r["wall_s"]), extra)
-    return runs, {k: earlier[k] for k in outside}

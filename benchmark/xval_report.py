@@ -237,7 +237,7 @@ def _write_inputs(study: Study, scene: Scene, out: Path, kept: dict | None = Non
 def write_outputs(study: Study, scene: Scene, out: Path, provenance: Provenance, kept: dict | None = None) -> Path:
     """Tables (CSV + README), plots, the exact inputs given to MoorDyn and MuJoCo and the raw tip
     trajectories (so that the tables can be recomputed without rerunning). ``kept``: the settings
-    entries of the earlier runs merged into ``study`` (`benchmark.study_store.earlier_xval`)."""
+    entries of the earlier runs merged into ``study`` (`benchmark.xval.earlier_xval`)."""
     out.mkdir(parents=True, exist_ok=True)
     tabs = tables(study)
     err = pd.concat([error_vs_limit(study, c) for c in study.cases()], ignore_index=True)
