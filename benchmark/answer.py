@@ -378,7 +378,6 @@ def run_search_stage(jobs: list[SearchJob], *, workers: int, cache_dir: str, pre
                            setup_labels=[f"reference {p.scene} N={dict(p.overrides)['elements']}" for p in problems],
                            group=lambda i: (jobs[i].scene, jobs[i].elements, jobs[i].integrator),
                            cost=search_costs(jobs).__getitem__,
-                           kind=lambda i: jobs[i].integrator,
                            crash_row=lambda i, exc: {**asdict(jobs[i]), "bound": "crashed",
                                                      "note": engine.crash_reason(exc)},
                            done=kept, finish=lambda i, row: _finish(row, keys[i]), describe=_describe_search,
@@ -392,7 +391,7 @@ def run_timing_stage(jobs: list[TimingJob], *, previous=(), on_row=None, log=eng
     keys = [j.key(code) for j in jobs]
     kept = kept_rows(keys, previous)
     rows = engine.run_jobs(run_timing, jobs, workers=0, cost=lambda i: jobs[i].budget + 5.0,
-                           kind=lambda i: "timing", done=kept, finish=lambda i, row: _finish(row, keys[i]),
+                           done=kept, finish=lambda i, row: _finish(row, keys[i]),
                            describe=_describe_timing, on_row=on_row, log=log)
     return frame(rows, TIMING_COLUMNS)
 

@@ -321,8 +321,8 @@ def execute(
     one after another, so what that worker compiled for the first (JAX solves are cached per
     model and solver) serves the others; e.g. ``lambda t: (t.scene, t.integrator)``. ``cost``:
     a task's expected seconds (default `task_costs`); the groups start longest first, and the
-    progress line's ETA scales them by the measured rows of the same integrator. ``budget``
-    bounds each run's first solve (`SolveBudget`)."""
+    progress line's ETA weighs the tasks by it. ``budget`` bounds each run's first solve
+    (`SolveBudget`)."""
     if executor not in EXECUTORS:
         raise ValueError(f"executor = {executor!r} is invalid (allowed: {', '.join(EXECUTORS)})")
     if jobs is not None and jobs < 1:
@@ -350,7 +350,6 @@ def execute(
         workers=0 if executor == "serial" else (jobs or min(len(todo), os.cpu_count() or 1) or 1),
         scheduler=scheduler if executor == "dask" else None, crash_row=crashed,
         group=(lambda i: group(tasks[i])) if group else None, cost=lambda i: costs[i],
-        kind=lambda i: tasks[i].integrator,
         setup=[functools.partial(prepare_reference, p, cache_dir) for p in problems],
         setup_labels=[f"reference {Path(p.scene).stem}" + (f" to t = {p.t_end:g} s" if p.t_end else "")
                       for p in problems],
