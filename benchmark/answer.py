@@ -204,18 +204,10 @@ def _search_note(sweep: str, found) -> str:
     return ""
 
 
-def _one_minute_load() -> float:
-    import os
-
-    try:
-        return os.getloadavg()[0]
-    except OSError:
-        return math.nan
-
-
 def run_timing(job: TimingJob, log: Callable[[str], None] = engine.log_stderr) -> dict:
     """One timing job's row: the paired ratios (`benchmark.paired`) as JSON in ``ratios``."""
     from benchmark.ranking import entry_name
+    from benchmark.report import one_minute_load
     from integrators import get_integrator
 
     row = {k: v for k, v in asdict(job).items() if k not in ("candidates", "t_end", "budget")}
@@ -234,7 +226,7 @@ def run_timing(job: TimingJob, log: Callable[[str], None] = engine.log_stderr) -
     with _paired.pinned() as core:
         ratios = _paired.time_paired(solves, budget=job.budget)
     row.update(ratios=json.dumps([asdict(r) for r in ratios]), rounds=ratios[0].pairs,
-               seconds=time.perf_counter() - started, core=core, load_avg=_one_minute_load(),
+               seconds=time.perf_counter() - started, core=core, load_avg=one_minute_load(),
                note="" if _paired.resolved(ratios) else "the budget ended before every interval was within ±10 %")
     return row
 
