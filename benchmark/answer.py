@@ -221,18 +221,10 @@ def _search_note(sweep: str, found) -> str:
     return ""
 
 
-def _one_minute_load() -> float:
-    import os
-
-    try:
-        return os.getloadavg()[0]
-    except OSError:
-        return math.nan
-
-
 def run_timing(job: TimingJob, log: Callable[[str], None] = engine.log_stderr) -> dict:
     """One timing job's row: the paired ratios (`benchmark.paired`) as JSON in ``ratios``."""
     from benchmark.ranking import entry_name
+    from benchmark.report import one_minute_load
     from integrators import get_integrator
 
     row = {k: v for k, v in asdict(job).items() if k not in ("candidates", "t_end", "budget")}
@@ -251,7 +243,7 @@ def run_timing(job: TimingJob, log: Callable[[str], None] = engine.log_stderr) -
     with _paired.pinned() as core:
         ratios = _paired.time_paired(solves, budget=job.budget)
     row.update(ratios=json.dumps([asdict(r) for r in ratios]), rounds=ratios[0].pairs,
-               seconds=time.perf_counter() - started, core=core, load_avg=_one_minute_load(),
+               seconds=time.perf_counter() - started, core=core, load_avg=one_minute_load(),
                note="" if _paired.resolved(ratios) else "the budget ended before every interval was within ±10 %")
     return row
 
@@ -388,7 +380,6 @@ def run_search_stage(jobs: list[SearchJob], *, workers: int, cache_dir: str, pre
                            setup_labels=[f"reference {p.scene} N={dict(p.overrides)['elements']}" for p in problems],
                            group=lambda i: (jobs[i].scene, jobs[i].elements, jobs[i].integrator),
                            cost=search_costs(jobs).__getitem__,
-                           kind=lambda i: jobs[i].integrator,
                            crash_row=lambda i, exc: {**asdict(jobs[i]), "bound": "crashed",
                                                      "note": engine.crash_reason(exc)},
                            done=kept, finish=lambda i, row: _finish(row, keys[i]), describe=_describe_search,
@@ -402,7 +393,7 @@ def run_timing_stage(jobs: list[TimingJob], *, previous=(), on_row=None, log=eng
     keys = [j.key(code) for j in jobs]
     kept = kept_rows(keys, previous)
     rows = engine.run_jobs(run_timing, jobs, workers=0, cost=lambda i: jobs[i].budget + 5.0,
-                           kind=lambda i: "timing", done=kept, finish=lambda i, row: _finish(row, keys[i]),
+                           done=kept, finish=lambda i, row: _finish(row, keys[i]),
                            describe=_describe_timing, on_row=on_row, log=log)
     return frame(rows, TIMING_COLUMNS)
 

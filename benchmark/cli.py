@@ -26,12 +26,9 @@ import threading
 from pathlib import Path
 
 from benchmark import options as opt
+from benchmark.engine import log_stderr as _log  # the engine's: its lines go above a progress bar
 from benchmark.options import UsageError
 from models.io import inside, printable
-
-
-def _log(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
 
 
 def _overrides(items: list[str] | None) -> dict:

@@ -15,8 +15,8 @@ check, the long-horizon energy study, the speed tables and the reel-reversal ord
   thread; the pools terminate their workers, a Dask run withdraws its tasks, and every row
   finished so far has been handed to ``on_row`` (a stopped run keeps them).
 * Progress: a line per finished setup call (e.g. each reference solution) and per finished
-  job, ``[done/total] <describe(row)>  (elapsed, ETA)``; the ETA comes from measured costs
-  (`Progress`).
+  job, ``[done/total] <describe(row)>  (elapsed, ETA)``, with a progress bar below them on a
+  terminal; the ETA is measured, each job weighted by its predicted cost (`Progress`).
 """
 
 from __future__ import annotations
@@ -35,8 +35,12 @@ from typing import Callable, Hashable, Iterable
 
 
 def log_stderr(msg: str) -> None:
-    """The default log of every study: progress and warnings go to stderr, results elsewhere."""
-    print(msg, file=sys.stderr, flush=True)
+    """The default log of every study: progress and warnings go to stderr, results elsewhere;
+    above the progress bar while one is drawn (`Progress`)."""
+    if _bar is not None:
+        _bar.write(msg, file=sys.stderr)
+    else:
+        print(msg, file=sys.stderr, flush=True)
 
 
 # ------------------------------------------------------------------------------------------
@@ -193,14 +197,8 @@ def crash_reason(exc: BaseException) -> str:
 # ------------------------------------------------------------------------------------------
 # Progress
 # ------------------------------------------------------------------------------------------
-def job_seconds(row: dict) -> float | None:
-    """The seconds a job took in its worker, when its row says (``task_time``: the runs table,
-    ``job_time``: the stability map)."""
-    for key in ("task_time", "job_time"):
-        v = row.get(key)
-        if isinstance(v, (int, float)) and v == v and v >= 0:
-            return float(v)
-    return None
+#: The progress bar drawn on stderr, if any: `log_stderr` writes its lines above it.
+_bar = None
 
 
 class Progress:
@@ -209,72 +207,72 @@ class Progress:
     ``on_row`` gets the rows so far (to write partial results atomically), so a stopped run keeps
     every finished row. ``rows`` are jobs already done (resumed); they count in the total.
 
-    The ETA is measured, not guessed from the first rows' wall clock (which includes the setup
-    and the first compilations): each job has a predicted cost ``cost(i)`` (s; e.g. a method's
-    declared `cost_hint`, compilation on the first job of a group), each finished row says how
-    long it took in its worker (`job_seconds`), and the jobs left are their predicted costs
-    times the measured / predicted ratio of the finished jobs of their class (``kind(i)``, e.g.
-    the integrator; all finished jobs until one of its class has), over ``workers`` running at
-    once. Without costs, each job left counts as the mean measured time of its class."""
+    The ETA is measured and weighted by each job's predicted cost ``cost(i)`` (s; e.g. a method's
+    declared `cost_hint`, compilation on the first job of a group): the predicted cost left over
+    the rate at which predicted cost has been done, in wall time since the jobs started
+    (`restart_clock`: not the setup's). A job without a prediction counts as the mean of the
+    others; without any, every job counts as one. A progress bar (tqdm, its total the predicted
+    costs) is drawn below the lines when they go to a terminal (`log_stderr`); in a CI log or a
+    file there are only the lines."""
 
     def __init__(self, total: int, *, rows: dict[int, dict] | None = None, finish: Callable | None = None,
                  describe: Callable[[dict], str] = str, on_row: Callable[[list[dict]], None] | None = None,
-                 log: Callable[[str], None] = log_stderr, cost: Callable[[int], float] | None = None,
-                 kind: Callable[[int], Hashable] | None = None, workers: int = 1):
+                 log: Callable[[str], None] = log_stderr, cost: Callable[[int], float] | None = None):
         self.total, self.rows = total, dict(rows or {})
-        self.todo = total - len(self.rows)
         self.finish, self.describe, self.on_row, self.log = finish, describe, on_row, log
-        self.cost, self.kind, self.workers = cost, kind, max(1, workers)
-        self.new = 0
-        self.measured: dict = {}  # class -> [seconds measured, seconds predicted, jobs]
+        predicted = [cost(i) for i in range(total)] if cost else [1.0] * total
+        known = [c for c in predicted if math.isfinite(c) and c >= 0]
+        fill = sum(known) / len(known) if known else 1.0
+        self.weight = [c if math.isfinite(c) and c >= 0 else fill for c in predicted]
+        if not sum(self.weight):  # no job predicted to take any time: count jobs
+            self.weight = [1.0] * total
+        self.bar = None
+        self.restart_clock(draw=False)
+
+    def restart_clock(self, draw: bool = True) -> None:
+        """Count elapsed time and the rate from now (the jobs start: the setup is over), so the
+        ETA is not the setup's; the bar is drawn from now on (the setup's workers write lines
+        of their own, which a bar would break)."""
+        global _bar
+        from tqdm import tqdm
+
+        self.close()
+        drawn = draw and self.log is log_stderr and sys.stderr.isatty()
+        # not drawn: an endless delay keeps the counts and never writes (no carriage returns in a log)
+        self.bar = tqdm(total=sum(self.weight), initial=sum(self.weight[i] for i in self.rows), file=sys.stderr,
+                        delay=0 if drawn else math.inf, desc=self._jobs(), leave=False, smoothing=0,
+                        mininterval=0, miniters=1, bar_format="{desc} {percentage:3.0f}%|{bar}| [{elapsed}<{remaining}]")
+        if drawn:
+            _bar = self.bar
         self.start = time.perf_counter()
 
-    def restart_clock(self) -> None:
-        """Count elapsed time from now (after the setup), so the first ETA is not the setup's."""
-        self.start = time.perf_counter()
-
-    def _class(self, i: int):
-        return self.kind(i) if self.kind else None
-
-    def _learn(self, i: int, row: dict) -> None:
-        took = job_seconds(row)
-        if took is None:
-            return
-        m = self.measured.setdefault(self._class(i), [0.0, 0.0, 0])
-        m[0] += took
-        m[1] += self.cost(i) if self.cost else 0.0  # a NaN prediction: the class is estimated per job
-        m[2] += 1
+    def _jobs(self) -> str:
+        return f"{len(self.rows)}/{self.total} jobs"
 
     def seconds_left(self) -> float | None:
-        """The estimate of the wall time left (None until a finished job says how long it took)."""
-        left = [i for i in range(self.total) if i not in self.rows]
-        if not self.measured:
-            if not self.new:
-                return None
-            return (time.perf_counter() - self.start) / self.new * len(left)  # no row says: the wall clock
-        total = [sum(v) for v in zip(*self.measured.values())]
-        work = 0.0
-        for i in left:
-            seconds, predicted, jobs = self.measured.get(self._class(i), total)
-            cost = self.cost(i) if self.cost else math.nan
-            if predicted > 0 and math.isfinite(predicted) and math.isfinite(cost):
-                work += cost * seconds / predicted
-            else:
-                work += seconds / jobs
-        return work / min(self.workers, max(1, len(left)))
+        """The estimate of the wall time left (None until a job has finished since the clock started)."""
+        done = self.bar.n - self.bar.initial
+        return (self.bar.total - self.bar.n) * (time.perf_counter() - self.start) / done if done > 0 else None
 
     def done(self, i: int, row: dict) -> None:
         if self.finish:
             self.finish(i, row)
         self.rows[i] = row
-        self.new += 1
-        self._learn(i, row)
+        self.bar.set_description_str(self._jobs(), refresh=False)
+        self.bar.update(self.weight[i])
         elapsed = time.perf_counter() - self.start
-        left = self.seconds_left() if self.new < self.todo else None
-        # no estimate yet (or none that is a number: a job without its time) says nothing, not "nan s"
-        eta = f", about {left:.0f} s left" if left is not None and math.isfinite(left) else ""
+        left = self.seconds_left() if len(self.rows) < self.total else None
+        eta = f", about {left:.0f} s left" if left is not None else ""
         self.saved()  # on disk first: a row printed as finished is never lost to a stop that follows
         self.log(f"[{len(self.rows)}/{self.total}] {self.describe(row)}  ({elapsed:.0f} s elapsed{eta})")
+
+    def close(self) -> None:
+        """Take the bar away (the lines stay)."""
+        global _bar
+        if self.bar is not None:
+            if _bar is self.bar:
+                _bar = None
+            self.bar.close()
 
     def saved(self) -> None:
         if self.on_row:
@@ -330,7 +328,6 @@ def run_jobs(
     describe: Callable[[dict], str] = str,
     on_row: Callable[[list[dict]], None] | None = None,
     log: Callable[[str], None] = log_stderr,
-    kind: Callable[[int], Hashable] | None = None,
 ) -> list[dict]:
     """Run ``fn(jobs[i])`` (a row, a dict) for every job not in ``done`` and return all rows in
     job order. ``fn``, the jobs and the ``setup`` calls must pickle for the workers (module-level
@@ -342,30 +339,32 @@ def run_jobs(
     from a cache; each logs a line when it is done (``setup_labels``: what each is). ``crash_row(i,
     exc)``: the row of a job whose worker died (without it, the death is raised). ``finish(i,
     row)`` completes a row before it is logged. ``cost(i)``: a job's predicted seconds (the
-    longest groups start first) and, with ``kind(i)`` (its class), the ETA (`Progress`)."""
+    longest groups start first, and the ETA weighs the jobs by it: `Progress`)."""
     if crash_row is None:
         crash_row = _raise
-    progress = Progress(len(jobs), rows=done, finish=finish, describe=describe, on_row=on_row, log=log, cost=cost,
-                        kind=kind if kind is not None else group, workers=workers or 1)
-    todo = [i for i in range(len(jobs)) if i not in progress.rows]
-    if progress.rows:
-        progress.saved()
-    if not todo:
+    progress = Progress(len(jobs), rows=done, finish=finish, describe=describe, on_row=on_row, log=log, cost=cost)
+    try:
+        todo = [i for i in range(len(jobs)) if i not in progress.rows]
+        if progress.rows:
+            progress.saved()
+        if not todo:
+            return progress.ordered()
+        setup = _Setup(list(setup), setup_labels, progress, log)
+        if scheduler:
+            _run_on_dask(fn, jobs, todo, scheduler, setup, crash_row, progress)
+        elif workers == 0:
+            for k, call in enumerate(setup.calls):
+                call()
+                setup.finished(k)
+            setup.over()
+            for batch in _batches(todo, group, cost):
+                for i in batch:
+                    progress.done(i, fn(jobs[i]))
+        else:
+            _run_in_workers(fn, jobs, _batches(todo, group, cost), workers, setup, crash_row, progress)
         return progress.ordered()
-    setup = _Setup(list(setup), setup_labels, progress, log)
-    if scheduler:
-        _run_on_dask(fn, jobs, todo, scheduler, setup, crash_row, progress)
-    elif workers == 0:
-        for k, call in enumerate(setup.calls):
-            call()
-            setup.finished(k)
-        setup.over()
-        for batch in _batches(todo, group, cost):
-            for i in batch:
-                progress.done(i, fn(jobs[i]))
-    else:
-        _run_in_workers(fn, jobs, _batches(todo, group, cost), workers, setup, crash_row, progress)
-    return progress.ordered()
+    finally:
+        progress.close()
 
 
 def _raise(i: int, exc: BaseException) -> dict:
@@ -387,8 +386,7 @@ class _Setup:
 
     def over(self) -> None:
         """The jobs start now: their elapsed time and ETA count from here."""
-        if self.calls:
-            self.progress.restart_clock()
+        self.progress.restart_clock()
 
 
 def _batches(todo: list[int], group, cost) -> list[list[int]]:
@@ -409,7 +407,6 @@ def _run_in_workers(fn, jobs, batches, workers: int, setup, crash_row, progress:
     queue = collections.deque(batches)
     with contextlib.ExitStack() as stack:
         pools = [stack.enter_context(worker_pool(1)) for _ in range(min(workers, len(queue)))]
-        progress.workers = len(pools)
         futures = {pools[k % len(pools)].submit(call): k for k, call in enumerate(setup.calls)}
         for fut in cf.as_completed(futures):
             fut.result()

@@ -73,14 +73,17 @@ class Ratio:
 
 def ratio_interval(mine: np.ndarray, ref: np.ndarray, rng: np.random.Generator, level: float = LEVEL,
                    resamples: int = RESAMPLES) -> tuple[float, float, float]:
-    """(median of mine / ref per round, the bootstrap interval of that median at ``level``)."""
+    """(median of mine / ref per round, the bootstrap interval of that median at ``level``).
+    Percentile, not BCa: the interval is the spread of the median over resampled rounds, and
+    BCa's jackknife of a median over a few rounds (4 at the first race check) is degenerate."""
+    from scipy.stats import bootstrap
+
     r = np.asarray(mine, float) / np.asarray(ref, float)
     if len(r) < 2:
         return float(np.median(r)), 0.0, np.inf
-    idx = rng.integers(0, len(r), size=(resamples, len(r)))
-    meds = np.median(r[idx], axis=1)
-    a = (1.0 - level) / 2.0
-    return float(np.median(r)), float(np.quantile(meds, a)), float(np.quantile(meds, 1.0 - a))
+    ci = bootstrap((r,), np.median, n_resamples=resamples, confidence_level=level, method="percentile",
+                   rng=rng).confidence_interval
+    return float(np.median(r)), float(ci.low), float(ci.high)
 
 
 def verdicts(ratios: list[Ratio], equivalence: float = EQUIVALENCE) -> list[Ratio]:

@@ -504,7 +504,7 @@ def _horizon_study(t_end, out, overrides, jobs, log, selected, scenes, failed, v
         with engine.Heartbeat(f"horizon study to t = {t_end:g} s", sum(costs) / max(workers, 1), log=log):
             rows = engine.run_jobs(horizon.run_job, jobs_, workers=workers,
                                    crash_row=lambda i, exc: horizon.crash_row(jobs_[i], exc),
-                                   describe=horizon.describe, cost=lambda i: costs[i], kind=lambda i: todo[i][3].name,
+                                   describe=horizon.describe, cost=lambda i: costs[i],
                                    log=log)
         if failed is not None:  # a crashed worker is a failure of the command, not a result
             failed += [f"{m.name} {horizon.setting_of(m)} N={n} on {names[(s, v)]} ({r.get('reason', r['status'])})"

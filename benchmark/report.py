@@ -28,21 +28,23 @@ def utc_now() -> str:
     return datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
 
 
-def _one_minute_load() -> float | None:
+def one_minute_load() -> float:
+    """The machine's 1-minute load average, NaN where the platform does not say (every table's
+    missing number): a run's row records it, and every header states it."""
     try:
         return os.getloadavg()[0]
-    except OSError:  # not available on this platform
-        return None
+    except (AttributeError, OSError):  # no getloadavg on Windows; OSError where it cannot be read
+        return float("nan")
 
 
-def load_average(at_start: float | None = None) -> str:
+def load_average(at_start: float = float("nan")) -> str:
     """The machine's load when a result was made: run times depend on it (other processes share
     the cores), so every generated file states it, at the end and (when known) at the start."""
     try:
         one, five, fifteen = os.getloadavg()
-    except OSError:
+    except (AttributeError, OSError):
         return "load average unknown"
-    start = f", 1-minute {at_start:.2f} at the start" if at_start is not None else ""
+    start = f", 1-minute {at_start:.2f} at the start" if at_start == at_start else ""
     return f"load average {one:.2f} / {five:.2f} / {fifteen:.2f} (1 / 5 / 15 min){start}"
 
 
@@ -57,7 +59,7 @@ def versions(packages=PACKAGES) -> str:
     return ", ".join(out)
 
 
-def environment(extra_packages=(), load_at_start: float | None = None) -> str:
+def environment(extra_packages=(), load_at_start: float = float("nan")) -> str:
     """The machine, the load, the package versions and the XLA options, in one paragraph."""
     from models._jax import xla_flags
 
@@ -76,7 +78,7 @@ class Provenance:
     command: str
     workers: int | None = None
     started: float = field(default_factory=time.perf_counter)
-    load_at_start: float | None = field(default_factory=_one_minute_load)
+    load_at_start: float = field(default_factory=one_minute_load)
     #: ((command, UTC time), ...) of the earlier runs whose rows a merged file keeps (`earlier_runs`)
     history: tuple = ()
 

@@ -43,7 +43,7 @@ from benchmark.flops import run_flops
 from benchmark.options import SOLVE_MAX_STEPS, SOLVE_TIME_LIMIT
 from benchmark.metrics import ACCURACY, COLUMNS, INACCURATE, inaccurate_reason, run_metrics, work_evals
 from benchmark.reference import CACHE_DIR, ReferenceProblem, get_reference, prepare_reference
-from benchmark.report import shorten
+from benchmark.report import one_minute_load, shorten
 from benchmark.store import code_version, frame, key_of, kept_rows, row_digest, run_key
 from benchmark.sweep import EXECUTORS, MAX_REPEATS, MIN_REPEATS, TIMING_BUDGET, Task
 
@@ -155,13 +155,6 @@ def us_per_eval(run_time: float, evals: float) -> float:
     return np.nan
 
 
-def _one_minute_load() -> float:
-    try:
-        return os.getloadavg()[0]
-    except OSError:  # not available on this platform
-        return np.nan
-
-
 def run_task(task: Task, cache_dir: str = str(CACHE_DIR), repeats: int = MIN_REPEATS, *, reference: bool = True,
              finished=("ok",), budget: SolveBudget = SolveBudget()) -> dict:
     """Run one task; always returns a row (never raises for a failed run).
@@ -179,7 +172,7 @@ def run_task(task: Task, cache_dir: str = str(CACHE_DIR), repeats: int = MIN_REP
         row = _empty_row(task, loaded[0] if loaded else None)
         row.update(status="error", reason=shorten(f"{type(exc).__name__}: {exc}".splitlines()[0], 300))
         row["traceback"] = traceback.format_exc()[-2000:]
-    row.update(load_avg=_one_minute_load(), task_time=time.perf_counter() - started)
+    row.update(load_avg=one_minute_load(), task_time=time.perf_counter() - started)
     return row
 
 
@@ -329,8 +322,8 @@ def execute(
     one after another, so what that worker compiled for the first (JAX solves are cached per
     model and solver) serves the others; e.g. ``lambda t: (t.scene, t.integrator)``. ``cost``:
     a task's expected seconds (default `task_costs`); the groups start longest first, and the
-    progress line's ETA scales them by the measured rows of the same integrator. ``budget``
-    bounds each run's first solve (`SolveBudget`)."""
+    progress line's ETA weighs the tasks by it. ``budget`` bounds each run's first solve
+    (`SolveBudget`)."""
     if executor not in EXECUTORS:
         raise ValueError(f"executor = {executor!r} is invalid (allowed: {', '.join(EXECUTORS)})")
     if jobs is not None and jobs < 1:
@@ -358,7 +351,6 @@ def execute(
         workers=0 if executor == "serial" else (jobs or min(len(todo), os.cpu_count() or 1) or 1),
         scheduler=scheduler if executor == "dask" else None, crash_row=crashed,
         group=(lambda i: group(tasks[i])) if group else None, cost=lambda i: costs[i],
-        kind=lambda i: tasks[i].integrator,
         setup=[functools.partial(prepare_reference, p, cache_dir) for p in problems],
         setup_labels=[f"reference {Path(p.scene).stem}" + (f" to t = {p.t_end:g} s" if p.t_end else "")
                       for p in problems],

@@ -109,3 +109,44 @@ def test_a_horizon_run_whose_worker_died_is_a_row_without_history():
 
 if __name__ == "__main__":
     pytest.main([__file__])
+
+
+def test_progress_in_a_log_or_a_file_is_lines_only(capsys):
+    """Not a terminal (a CI log, a file): one line per job, no bar, no carriage returns."""
+    rows = engine.run_jobs(lambda x: {"x": x}, list(range(5)), workers=0, cost=lambda i: 1.0 + i,
+                           describe=lambda r: f"job {r['x']}")
+    err = capsys.readouterr().err
+    assert len(rows) == 5 and "\r" not in err and "%|" not in err, err
+    assert err.splitlines()[0].startswith("[1/5] job 4  (") and len(err.splitlines()) == 5, err
+
+
+def test_on_a_terminal_a_bar_is_drawn_below_the_lines_and_taken_away():
+    import fcntl
+    import pty
+    import struct
+    import subprocess
+    import sys
+    import termios
+
+    script = ("from benchmark import engine\nimport time\n"
+              "engine.run_jobs(lambda x: time.sleep(0.05) or {'x': x}, list(range(3)), workers=0,"
+              " cost=lambda i: 1.0, describe=lambda r: f\"job {r['x']}\")\n"
+              "engine.log_stderr('after')\n")
+    leader, follower = pty.openpty()
+    fcntl.ioctl(follower, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 80, 0, 0))  # a terminal 80 wide
+    proc = subprocess.Popen([sys.executable, "-c", script], stderr=follower, cwd=os.path.dirname(os.path.dirname(__file__)))
+    os.close(follower)
+    out = b""
+    while True:
+        try:
+            chunk = os.read(leader, 4096)
+        except OSError:  # the child is gone
+            break
+        if not chunk:
+            break
+        out += chunk
+    assert proc.wait(timeout=60) == 0
+    text = out.decode()
+    assert "3 jobs" in text and "%|" in text and "\r" in text, text  # the bar, redrawn in place
+    assert [line for line in ("job 0", "job 1", "job 2", "after") if line in text] == ["job 0", "job 1", "job 2", "after"]
+    assert text.rstrip().endswith("after"), repr(text[-200:])  # the bar was taken away before the last line

@@ -74,3 +74,19 @@ def test_the_sweeps_readme_ranks_nothing_and_names_the_answers_command(tmp_path)
     assert "All 6 runs ok." in text and "| scipy-python | dop853 |" in text
     assert "winner" not in text and " tie" not in text and "cheapest.csv" not in text
     assert "- [work_precision_s.png](work_precision_s.png)" in text
+
+
+def test_one_load_helper_nan_where_the_platform_does_not_say(monkeypatch):
+    """The 1-minute load of a run's row and of every header: NaN where unknown (no getloadavg on
+    Windows, or it fails), and the header then says so instead of failing."""
+    import math
+    import os
+
+    from benchmark import report
+    from benchmark.report import Provenance
+
+    assert report.one_minute_load() >= 0
+    monkeypatch.delattr(os, "getloadavg")
+    assert math.isnan(report.one_minute_load())
+    assert math.isnan(Provenance("x").load_at_start)
+    assert report.load_average(report.one_minute_load()) == "load average unknown"

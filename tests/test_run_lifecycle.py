@@ -136,13 +136,13 @@ def test_killed_sweep_leaves_no_worker_and_a_rerun_resumes(tmp_path, plugin_env)
     proc.kill()  # kill -9: no handler runs; the workers must notice by themselves
     proc.communicate(timeout=10)
     _wait_for(lambda: not any(_alive(w) for w in workers), 10, "the orphaned workers to exit")
-    assert (out / ".reelbench.lock").exists()  # left behind by the killed run ...
+    assert (out / ".reelbench.lock").exists()  # left behind by the killed run, its kernel lock gone with it ...
 
     env = dict(plugin_env, REELBENCH_TEST_SLEEP="0")
     again = _sweep(out, env)
     _, err = again.communicate(timeout=240)
-    assert again.returncode == 0, err
-    assert "taking over the stale lock" in err  # ... and taken over, its pid being dead
+    assert again.returncode == 0, err  # ... so it blocks nobody
+    assert not (out / ".reelbench.lock").exists()
     assert "resuming: 1 of 2 runs already done" in err, err
     assert err.count("] fixed_length test_slow") == 1, err  # only the missing run was computed
     rows = pd.read_csv(out / "runs.csv")
@@ -192,18 +192,49 @@ def test_a_second_run_into_a_locked_out_is_refused_naming_the_lock_and_holder(tm
     assert not lock.path.exists()  # released
 
 
-def test_a_stale_lock_of_a_dead_process_is_taken_over(tmp_path):
+def test_the_lock_file_of_a_dead_process_blocks_nobody(tmp_path):
     from benchmark.store import OutputLock
 
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()
     import socket
 
-    (tmp_path / OutputLock.NAME).write_text(json.dumps({"pid": dead.pid, "host": socket.gethostname()}))
-    said = []
-    with OutputLock(tmp_path, log=said.append) as lock:
-        assert json.loads(lock.path.read_text())["pid"] == os.getpid()
-    assert said and "stale lock" in said[0] and str(dead.pid) in said[0]
+    (tmp_path / OutputLock.NAME).write_text(json.dumps({"pid": dead.pid, "host": socket.gethostname(),
+                                                        "command": "an earlier run with a longer command line"}))
+    with OutputLock(tmp_path) as lock:
+        assert json.loads(lock.path.read_text())["pid"] == os.getpid()  # the holder, rewritten whole
+
+
+def test_a_second_process_is_refused_at_once_naming_the_directory_and_holder(tmp_path):
+    """The lock is the kernel's: another process is refused while this one holds it, and takes
+    it as soon as this one is gone, even killed with -9."""
+    from benchmark.store import OutputLock
+
+    probe = ("import sys, time\nfrom benchmark.store import OutputLock, LockedError\nt = time.perf_counter()\n"
+             "try:\n    OutputLock(sys.argv[1]).acquire()\nexcept LockedError as e:\n"
+             "    print(f'{time.perf_counter() - t:.3f}', e)\nelse:\n    print('taken')\n")
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+
+    def other() -> str:
+        return subprocess.run([sys.executable, "-c", probe, str(tmp_path)], capture_output=True, text=True,
+                              env=env, cwd=ROOT, timeout=120).stdout.strip()
+
+    with OutputLock(tmp_path):
+        said = other()
+        took, message = said.split(" ", 1)
+        assert float(took) < 1.0, said
+        assert f"{tmp_path}/ is in use by another run (pid {os.getpid()} on " in message, said
+    assert other() == "taken"
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time\nfrom benchmark.store import OutputLock\n"
+                               "held = OutputLock(sys.argv[1]).acquire()\nprint('held', flush=True)\ntime.sleep(600)",
+                               str(tmp_path)], stdout=subprocess.PIPE, text=True, env=env, cwd=ROOT)
+    try:
+        assert holder.stdout.readline() == "held\n"
+        assert f"(pid {holder.pid} on " in other()
+    finally:
+        holder.kill()
+        holder.wait()
+    assert other() == "taken"
 
 
 def test_resume_keeps_only_rows_of_the_same_sweep():

@@ -185,24 +185,38 @@ def test_describe_run_never_cuts_a_reason_mid_word():
 
 
 # ---- the ETA ------------------------------------------------------------------------------
-def test_the_eta_scales_the_predicted_costs_by_the_measured_ones_of_the_same_class():
+def test_the_eta_weighs_the_jobs_left_by_their_predicted_cost(monkeypatch):
+    clock = [100.0]
+    monkeypatch.setattr(engine.time, "perf_counter", lambda: clock[0])
     said = []
     cost = [10.0, 1.0, 1.0, 10.0, 1.0, 1.0]  # per job: compile on the first of each method
-    kind = ["a", "a", "a", "b", "b", "b"]
-    p = engine.Progress(6, cost=lambda i: cost[i], kind=lambda i: kind[i], workers=2, log=said.append)
-    p.done(0, {"task_time": 5.0})  # a's jobs take half their prediction; b's as predicted so far
-    left = p.seconds_left()
-    # a: 2 x 1 x 0.5 = 1; b (no row yet): all rows so far, 5 / 10 = 0.5: 12 x 0.5 = 6; over 2 workers
-    assert left == pytest.approx((1.0 + 6.0) / 2)
-    p.done(3, {"task_time": 20.0})  # b is twice its prediction
-    assert p.seconds_left() == pytest.approx((2 * 1 * 0.5 + 2 * 1 * 2.0) / 2)
-    assert "about" in said[0] and said[0].startswith("[1/6]")
+    p = engine.Progress(6, cost=lambda i: cost[i], log=said.append)
+    clock[0] += 5.0
+    p.done(0, {})  # 10 s of predicted cost done in 5 s: the 14 left take 7
+    assert p.seconds_left() == pytest.approx(7.0)
+    clock[0] += 15.0
+    p.done(3, {})  # 20 in 20 s: the 4 left take 4
+    assert p.seconds_left() == pytest.approx(4.0)
+    assert "about 7 s left" in said[0] and said[0].startswith("[1/6]")
 
 
-def test_without_costs_the_eta_is_the_mean_measured_time_of_the_class():
-    p = engine.Progress(4, kind=lambda i: "x", workers=1, log=lambda s: None)
-    p.done(0, {"job_time": 3.0})
+def test_without_costs_every_job_counts_the_same(monkeypatch):
+    clock = [0.0]
+    monkeypatch.setattr(engine.time, "perf_counter", lambda: clock[0])
+    p = engine.Progress(4, log=lambda s: None)
+    clock[0] = 3.0
+    p.done(0, {})
     assert p.seconds_left() == pytest.approx(9.0)
+
+
+def test_resumed_jobs_count_in_the_total_not_in_the_rate(monkeypatch):
+    clock = [0.0]
+    monkeypatch.setattr(engine.time, "perf_counter", lambda: clock[0])
+    said = []
+    p = engine.Progress(4, rows={0: {}, 1: {}}, cost=lambda i: [1.0, 1.0, 2.0, 4.0][i], log=said.append)
+    clock[0] = 4.0
+    p.done(2, {})  # 2 of predicted cost in 4 s (the kept jobs took none of them): the 4 left take 8
+    assert said == ["[3/4] {}  (4 s elapsed, about 8 s left)"]
 
 
 def test_setup_calls_each_say_when_they_are_done():
