@@ -57,6 +57,7 @@ import pandas as pd
 from benchmark import runner, sweep
 from benchmark.metrics import ACCURACY, DIRECTIONS, observed_orders
 from benchmark.options import check_tolerance_rules
+from benchmark.policy import axis_of
 from benchmark.metrics import FLOORS as METRIC_FLOORS
 from benchmark.reference import CACHE_DIR, REFERENCE_METHOD
 from benchmark.report import Provenance, fmt, markdown_table
@@ -356,7 +357,7 @@ def row_problems(df: pd.DataFrame) -> list[tuple[int, str]]:
                 continue
             err = "position_error_final"
             if row[err] > FLOORS[err] and row.get("steps", 1.0) != 0:
-                usable.setdefault((key[0], key[1], key[2].split("=")[0]), [0, line])[0] += 1
+                usable.setdefault((key[0], key[1], axis_of(key[2])), [0, line])[0] += 1
     for (scene, name, axis), (n, line) in usable.items():
         if n >= 2 and (scene, name, f"order({axis})") not in first:
             out.append((line, f"no {ORDER} row for {scene} / {name} / order({axis}), though {n} of its runs give one"))

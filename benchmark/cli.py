@@ -26,6 +26,7 @@ import threading
 from pathlib import Path
 
 from benchmark import options as opt
+from benchmark import policy
 from benchmark.options import UsageError
 from models.io import inside, printable
 
@@ -143,14 +144,14 @@ def cmd_run(args) -> int:
     sweep.check_settings(args.dts, args.rtols)
     t_end = args.t_end or (sweep.QUICK_T_END if args.quick else None)
     for sc in scenes:
-        if (t_end or sc.t_end) < sweep.SAVE_EVERY:  # every run would end in an error row
+        if (t_end or sc.t_end) < policy.SAVE_EVERY:  # every run would end in an error row
             raise UsageError(f"{'--t-end' if t_end else sc.name + ': t_end'} = {t_end or sc.t_end:g} s is shorter than "
-                             f"the sweep's save interval {sweep.SAVE_EVERY:g} s: give --t-end >= {sweep.SAVE_EVERY:g}")
+                             f"the sweep's save interval {policy.SAVE_EVERY:g} s: give --t-end >= {policy.SAVE_EVERY:g}")
         for dt in args.dts or (sweep.QUICK_DTS if args.quick else sweep.FULL_DTS):
             if dt > (t_end or sc.t_end):  # any smaller step is allowed (the last one lands on t_end)
                 raise UsageError(f"--dts: dt = {dt:g} s is longer than the run ({sc.name}: t_end = {t_end or sc.t_end:g} s; "
                                  "allowed: 0 < dt <= t_end)")
-            opt.check_size(sc, t_end or sc.t_end, sweep.SAVE_EVERY, dt, warn=_log, what=f"{sc.name} at dt = {dt:g} s",
+            opt.check_size(sc, t_end or sc.t_end, policy.SAVE_EVERY, dt, warn=_log, what=f"{sc.name} at dt = {dt:g} s",
                            save_option=None)  # run saves every SAVE_EVERY: no option to raise
     out = opt.writable_dir(_run_out(args))
     opt.no_directory_at(out, ("runs.csv", "runs.md", "orders.csv", "README.md", "figures.json"))
@@ -176,9 +177,9 @@ def _budget(args):
 
 def _add_budget(p, what: str) -> None:
     """--max-steps and --time-limit, the budget of every solve of a study (`runner.SolveBudget`)."""
-    p.add_argument("--max-steps", type=opt.positive_int, default=opt.SOLVE_MAX_STEPS,
+    p.add_argument("--max-steps", type=opt.positive_int, default=policy.SOLVE_MAX_STEPS,
                    help=f"step budget of each solve: a run past it ends with status max_steps and {what} goes on")
-    p.add_argument("--time-limit", type=opt.positive_float, default=opt.SOLVE_TIME_LIMIT,
+    p.add_argument("--time-limit", type=opt.positive_float, default=policy.SOLVE_TIME_LIMIT,
                    help=f"wall-clock budget of each solve in s (after compilation): a run past it ends with status "
                         f"time_limit and {what} goes on (such a row is recomputed on resume)")
 
@@ -264,7 +265,7 @@ def cmd_simulate(args) -> int:
     if args.dt is not None:
         settings["dt"] = args.dt
     if args.rtol is not None:
-        settings.update(rtol=args.rtol, atol=args.atol if args.atol is not None else args.rtol * 1e-2)
+        settings.update(policy.Setting.adaptive(args.rtol, args.atol).solve_kwargs())
 
     from benchmark import pipelines
 
@@ -644,7 +645,7 @@ def _add_run(sub) -> None:
                    f"any size (saved at the step points nearest the save times; default: {_csv(sweep.FULL_DTS)}; "
                    f"--quick: {_csv(sweep.QUICK_DTS)})")
     r.add_argument("--rtols", type=opt.tolerances, help="comma-separated relative tolerances for adaptive methods, "
-                   f"atol = rtol × {sweep.ATOL_FACTOR:g} (default: {_csv(sweep.FULL_RTOLS)}; implicit methods "
+                   f"atol = rtol × {policy.ATOL_FACTOR:g} (default: {_csv(sweep.FULL_RTOLS)}; implicit methods "
                    f"{_csv(sweep.IMPLICIT_FULL_RTOLS)}; --quick: {_csv(sweep.QUICK_RTOLS)}, implicit "
                    f"{_csv(sweep.IMPLICIT_QUICK_RTOLS)})")
     r.add_argument("--t-end", type=opt.positive_float,
@@ -707,13 +708,14 @@ def _add_simulate(sub) -> None:
     setting = s.add_mutually_exclusive_group()
     setting.add_argument("--dt", type=opt.positive_float, help="fixed step size in s (fixed-step methods)")
     setting.add_argument("--rtol", type=opt.tolerance, help="relative tolerance (adaptive methods); atol defaults "
-                                                            "to rtol/100")
-    s.add_argument("--atol", type=opt.positive_float, help="absolute tolerance, with --rtol (default: rtol/100)")
+                                                            f"to rtol × {policy.ATOL_FACTOR:g}")
+    s.add_argument("--atol", type=opt.positive_float,
+                   help=f"absolute tolerance, with --rtol (default: rtol × {policy.ATOL_FACTOR:g})")
     s.add_argument("--t-end", type=opt.positive_float, help="horizon in s (default: the scene's t_end)")
-    s.add_argument("--save-every", type=opt.positive_float, default=0.02, help="save interval in s")
-    s.add_argument("--max-steps", type=opt.positive_int, default=opt.SOLVE_MAX_STEPS,
+    s.add_argument("--save-every", type=opt.positive_float, default=policy.SAVE_EVERY, help="save interval in s")
+    s.add_argument("--max-steps", type=opt.positive_int, default=policy.SOLVE_MAX_STEPS,
                    help="step budget: the run ends with status max_steps there, its trajectory saved")
-    s.add_argument("--time-limit", type=opt.positive_float, default=opt.SOLVE_TIME_LIMIT,
+    s.add_argument("--time-limit", type=opt.positive_float, default=policy.SOLVE_TIME_LIMIT,
                    help="wall-clock budget of the run in s (after compilation): it ends with status time_limit "
                         "there, its trajectory saved (a first Ctrl-C ends it the same way, a second at once)")
     _add_set(s)
@@ -769,12 +771,12 @@ def _add_stability(sub) -> None:
 
 
 def _add_answer(sub) -> None:
-    from benchmark import answer, paired, search  # constants only (no JAX)
+    from benchmark import answer, search  # constants only (no JAX)
 
     an = sub("answer", "the main job: each method's cheapest setting at each target by search, wall-time verdicts "
                        "by paired timing -> --out/cheapest.csv, README.md, figures (and the README's answer block)",
              "For every scene x N x method x target, search the cheapest setting meeting the target that stands "
-             "(bracket, bisect to 10 % in cost, confirm the three settings just finer; benchmark/search.py), then "
+             f"(bracket, bisect to {policy.RESOLUTION * 100:g} % in cost, confirm the three settings just finer; benchmark/search.py), then "
              "time the compiled methods at their settings paired and interleaved on one pinned core, racing "
              "(benchmark/paired.py). Default: the paper's three scenes at N = 10 with the default methods; "
              "--extended: every method, the scenes in water and the off-centre tow too, at N = 10 and 40, its rows "
@@ -789,7 +791,7 @@ def _add_answer(sub) -> None:
                                       "table (default: energy_error=1e-4,position_error_final=1e-6)")
     an.add_argument("--t-end", type=opt.positive_float, help="horizon in s (default: each scene's t_end)")
     an.add_argument("--max-runs", type=opt.positive_int, default=search.MAX_RUNS, help="runs per search at most")
-    an.add_argument("--timing-budget", type=opt.positive_float, default=paired.BUDGET,
+    an.add_argument("--timing-budget", type=opt.positive_float, default=policy.PAIRED_BUDGET,
                     help="seconds of paired timing per scene x N x target at most")
     an.add_argument("--jobs", type=opt.positive_int, help="worker processes for the search (default: one per CPU)")
     _add_executor(an, "the searches (the paired timing stays in this process, on one pinned core)")

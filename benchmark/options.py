@@ -14,6 +14,8 @@ import os
 import tempfile
 from pathlib import Path
 
+from benchmark.policy import SOLVE_MAX_STEPS, SOLVE_TIME_LIMIT  # noqa: F401 (the commands' budget defaults)
+
 
 class UsageError(ValueError):
     """Bad input found before any work; the command line prints it as ``error: ...`` (exit 2)."""
@@ -204,12 +206,6 @@ MEMORY_WARN = 1 * 2**30
 #: same): exactly 1e9 runs, one more is refused. At the estimate below, 1e9 steps is over half an
 #: hour at N = 10 and days at N = 1000; below it the time estimate warns instead.
 STEPS_REFUSE = 1e9
-#: Every solve's default budgets (raised by --max-steps / --time-limit on `simulate`, `run`,
-#: `stability` and `check`): a request that would run for hours (a tolerance near round-off over a
-#: long horizon) ends with status max_steps / time_limit (`simulate` saves its trajectory), and a
-#: sweep goes on with its other runs.
-SOLVE_MAX_STEPS = 10_000_000
-SOLVE_TIME_LIMIT = 1800.0
 #: Warn when the estimated wall time of one run exceeds this (s).
 TIME_WARN = 600.0
 #: LGVI time per step ≈ STEP_COST_10 × (N/10)^0.9 (results/lgvi_speed.md, one core: 1.07 µs on

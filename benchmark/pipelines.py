@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from benchmark import engine, store
+from benchmark.policy import SAVE_EVERY
 from benchmark.engine import log_stderr
 from benchmark.report import Provenance
 from models.io import inside, printable
@@ -282,7 +283,7 @@ def _sweep_figures(request: SweepRequest, merged, log, failed: list | None = Non
             log(f"figure: {name} kept (same scene, method, horizon and code)")
         else:
             log(f"figure: {name}: solving {scene.name} with {paper.label} ...")
-            traj = get_integrator(paper.name).solve(scene, t_end=request.sweep_t_end or scene.t_end, save_every=0.02,
+            traj = get_integrator(paper.name).solve(scene, t_end=request.sweep_t_end or scene.t_end, save_every=SAVE_EVERY,
                                                     **paper.settings)
             plots.paper_panels(scene, traj, evaluate(scene, traj), inside(out, name))
             keys.record(name, key)

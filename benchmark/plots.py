@@ -16,6 +16,7 @@ import pandas as pd  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 
 from benchmark import styles  # noqa: E402
+from benchmark.policy import setting_value  # noqa: E402
 from benchmark.metrics import FLOPS_DEFINITION, WORK_DEFINITION, pi3_deviation  # noqa: E402
 from models import build_model  # noqa: E402
 from models.diagnostics import effect_energy_columns, energy_deviation  # noqa: E402
@@ -202,10 +203,7 @@ def energy_horizon(table: pd.DataFrame, scene: str, out_dir: Path) -> Path:
 
 def _setting_size(setting: str) -> float:
     """The step or tolerance of a setting "dt=0.005" / "rtol=1e-06, atol=1e-08" (larger: coarser)."""
-    try:
-        return float(str(setting).split(",")[0].split("=")[1])
-    except (IndexError, ValueError):
-        return 0.0
+    return setting_value(setting, missing=0.0)
 
 
 def paper_panels(scene, traj, df: pd.DataFrame, out_path: Path, n_snapshots: int = 20) -> Path:

@@ -43,6 +43,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from benchmark.policy import axis_of, setting_value
+
 #: Equal windows of the horizon whose largest energy error the classification fits, and the
 #: fraction of the horizon after which they are fitted.
 WINDOWS, LATE_FROM = 20, 0.5
@@ -116,7 +118,7 @@ def correction_of(name: str, setting: str) -> tuple[int, float, float] | None:
     method with none (not symplectic, or adaptive: no fixed h)."""
     from integrators import get_integrator
 
-    if not is_symplectic(name) or not str(setting).startswith("dt="):
+    if not is_symplectic(name) or axis_of(setting) != "dt":
         return None
     integ = get_integrator(name)
     gammas = getattr(getattr(integ, "scheme", None), "gammas", None)
@@ -125,10 +127,7 @@ def correction_of(name: str, setting: str) -> tuple[int, float, float] | None:
 
 
 def _setting_value(setting: str) -> float:
-    try:
-        return float(str(setting).split(",")[0].split("=")[1])
-    except (IndexError, ValueError):
-        return np.nan
+    return setting_value(setting)
 
 
 def window_means(t, *series, width: float = WINDOW_S) -> tuple[np.ndarray, ...]:

@@ -25,12 +25,12 @@ from typing import NamedTuple
 import numpy as np
 
 from benchmark.engine import log_stderr
+from benchmark.policy import REFERENCE_METHOD  # noqa: F401 (its settings: the one rule)
 from benchmark.store import (UnreadableFile, read_npz, source_hash, trajectory_from, trajectory_parts,
                              write_npz)
 from integrators import get_integrator
 from models.io import inside, user_cache_dir
 
-REFERENCE_METHOD = {"integrator": "dop853", "rtol": 1e-12, "atol": 1e-14}
 #: References are shared by every study and output directory: one file per scene, horizon, save
 #: interval and physics code (`reference_path`).
 CACHE_DIR = user_cache_dir() / "references"

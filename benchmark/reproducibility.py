@@ -48,6 +48,7 @@ import numpy as np
 import pandas as pd
 
 from benchmark.metrics import ACCURACY, FLOORS
+from benchmark.policy import axis_of
 
 KEY = ["scene", "integrator", "setting"]
 _REQUIRED = (*KEY, "dt", "rtol", "status", "steps")
@@ -202,7 +203,7 @@ def statement(comparison: pd.DataFrame, tol: Tolerance = DEFAULT_TOLERANCE) -> s
     documented exceptions, and every row that breaks it."""
     c = comparison
     n = c["verdict"].value_counts()
-    fixed = c["setting"].astype(str).str.startswith("dt=")
+    fixed = c["setting"].map(axis_of) == "dt"
     within = c["verdict"] == "within tolerance"
     text = (f"{len(c)} runs compared: {n.get('equal', 0)} equal to the last digit, "
             f"{n.get('within tolerance', 0)} within tolerance (fixed-step: same steps, errors within "

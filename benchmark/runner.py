@@ -40,7 +40,7 @@ import pandas as pd
 
 from benchmark import engine
 from benchmark.flops import run_flops
-from benchmark.options import SOLVE_MAX_STEPS, SOLVE_TIME_LIMIT
+from benchmark.policy import SOLVE_MAX_STEPS, SOLVE_TIME_LIMIT
 from benchmark.metrics import ACCURACY, COLUMNS, INACCURATE, inaccurate_reason, run_metrics, work_evals
 from benchmark.reference import CACHE_DIR, ReferenceProblem, get_reference, prepare_reference
 from benchmark.report import shorten
@@ -62,7 +62,7 @@ RUN_COLUMNS = COLUMNS + TIMING_COLUMNS + IDENTITY_COLUMNS
 @dataclass(frozen=True)
 class SolveBudget:
     """The budget of a run's first solve (`integrators.base.Integrator.solve`'s ``max_steps`` and
-    ``time_limit``); `benchmark.options` holds the defaults, the commands' --max-steps and
+    ``time_limit``); `benchmark.policy` holds the defaults, the commands' --max-steps and
     --time-limit raise them."""
 
     max_steps: int = SOLVE_MAX_STEPS

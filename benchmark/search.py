@@ -38,8 +38,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Callable
 
-#: Two settings whose costs are within this relative distance are close enough (the issue's 10 %).
-RESOLUTION = 0.10
+from benchmark.policy import RESOLUTION  # two settings this close in cost are close enough (the 10 %)
+
 #: The most runs of one search (bracket, bisection and confirmation together).
 MAX_RUNS = 24
 #: The lattice ratio of each axis: a step on the 2^(1/8) grid, a tolerance on the 1/8-decade grid.

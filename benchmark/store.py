@@ -64,7 +64,8 @@ def source_hash(dirs: tuple = (), files: tuple = ()) -> str:
 #: The source that determines a row of the runs table: the model, the integrators, and the
 #: benchmark code that runs a task, measures it and computes its reference.
 _CODE_DIRS = ("models", "integrators")
-_CODE_FILES = ("benchmark/runner.py", "benchmark/metrics.py", "benchmark/reference.py", "benchmark/sweep.py")
+_CODE_FILES = ("benchmark/runner.py", "benchmark/metrics.py", "benchmark/reference.py", "benchmark/sweep.py",
+               "benchmark/policy.py")
 
 
 def code_version() -> str:

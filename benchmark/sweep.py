@@ -12,6 +12,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
+from benchmark.policy import ATOL_FACTOR, SAVE_EVERY, Setting  # noqa: F401 (the sweep's names for them)
+
 PAPER_SCENES = ("fixed_length", "deployment", "retrieval")
 #: A string in water (buoyancy and Morison drag): `run --extended` sweeps them after the paper's
 FLUID_SCENES = ("deployment_in_water", "towed", "towed_offset")
@@ -21,11 +23,10 @@ EXTENDED_SCENES = PAPER_SCENES + FLUID_SCENES
 #: declared capabilities and attributes).
 PRESENTATION_ORDER = ("lgvi", "lgvi_sym", "lgvi_yoshida4", "lgvi_suzuki4", "rk45", "dop853", "radau", "tsit5",
                       "kvaerno5")
-SAVE_EVERY = 0.02  # s; the save times (a fixed step saves at its step points nearest them)
 #: The words for a sweep axis in labels: a run with ``dt`` set, or an adaptive one (``rtol``).
 SWEEP_WORDS = {"dt": "fixed dt", "rtol": "adaptive"}
 
-# step sizes (s) and relative tolerances (atol = rtol * ATOL_FACTOR)
+# step sizes (s) and relative tolerances (atol = rtol * ATOL_FACTOR, `benchmark.policy`)
 #: One step grid for every fixed-step method (like with like: a method's curve is never cut
 #: shorter or longer than another's by its own list): 20 ms halved 8 times, down to 78.125 µs,
 #: from beyond the explicit methods' stability limits (a failed or inaccurate run is a status
@@ -43,7 +44,6 @@ QUICK_RTOLS = (1e-5, 1e-8)
 # under an hour on 2 cores.
 IMPLICIT_FULL_RTOLS = (1e-3, 1e-4, 1e-6)
 IMPLICIT_QUICK_RTOLS = (1e-4, 1e-6)
-ATOL_FACTOR = 1e-2
 QUICK_T_END = 1.0
 #: s of timed solves per run (`benchmark.runner.timing_repeats`): a run is timed
 #: clamp(floor(TIMING_BUDGET / first solve), --repeats, MAX_REPEATS) times, or once when its
@@ -77,18 +77,17 @@ class Task:
     overrides: tuple = field(default_factory=tuple)  # ((key, value), ...)
 
     @property
+    def step(self) -> Setting:
+        """The task's setting as a value (`benchmark.policy.Setting`)."""
+        return Setting(dt=self.dt, rtol=self.rtol, atol=self.atol)
+
+    @property
     def setting(self) -> str:
-        if self.dt is not None:
-            return f"dt={self.dt:g}"
-        return f"rtol={self.rtol:g}"
+        """The setting's label, the runs table's ``setting`` column ("dt=0.005", "rtol=1e-06")."""
+        return self.step.label()
 
     def solve_kwargs(self) -> dict:
-        kw = {"t_end": self.t_end, "save_every": self.save_every}
-        if self.dt is not None:
-            kw["dt"] = self.dt
-        else:
-            kw.update(rtol=self.rtol, atol=self.atol)
-        return kw
+        return {"t_end": self.t_end, "save_every": self.save_every, **self.step.solve_kwargs()}
 
 
 def check_settings(dts=(), rtols=()) -> None:
@@ -201,6 +200,6 @@ def build_tasks(
             if integ.has(Capability.FIXED_STEP):  # one grid for all of them
                 tasks += [Task(scene, name, dt=dt, t_end=t_end, overrides=ov) for dt in dts]
             if integ.has(Capability.ADAPTIVE):
-                tasks += [Task(scene, name, rtol=r, atol=r * ATOL_FACTOR, t_end=t_end, overrides=ov)
+                tasks += [Task(scene, name, **vars(Setting.adaptive(r)), t_end=t_end, overrides=ov)
                           for r in own_rtols[name]]
     return tasks
