@@ -120,6 +120,7 @@ def _solve_once(job: SearchJob, setting: float, cache_dir: str) -> tuple[str, di
     from benchmark.metrics import INACCURATE, inaccurate_reason, run_metrics
     from benchmark.reference import get_reference
     from integrators import get_integrator
+    from integrators.base import is_finished
     from models import build_model
 
     scene = _scene(job.scene, job.elements, job.t_end)
@@ -139,7 +140,7 @@ def _solve_once(job: SearchJob, setting: float, cache_dir: str) -> tuple[str, di
     model = build_model(scene)
     metrics = run_metrics(scene, traj, ref, SAVE_EVERY)
     status = traj.status
-    if status == "ok" and inaccurate_reason(metrics, scene):  # finished, but no solution: not a point
+    if is_finished(status) and inaccurate_reason(metrics, scene):  # finished, but no solution: not a point
         status = INACCURATE
     flops, _ = run_flops(job.integrator, model, traj.stats, traj.stats.get("rhs", traj.settings.get("rhs")),
                          adaptive=job.sweep == "rtol")
@@ -217,7 +218,7 @@ def run_timing(job: TimingJob, log: Callable[[str], None] = engine.log_stderr) -
     for integrator, sweep, setting in job.candidates:
         integ, kw = get_integrator(integrator), solve_kwargs(sweep, setting, scene.t_end)
         first = integ.solve(scene, **kw)  # compiles; its time is not a sample
-        if first.status != "ok":
+        if not first.ok:
             continue
         solves[entry_name(integrator, sweep, integrator in two_axes)] = functools.partial(_wall_time, integ, scene, kw)
     if not solves:

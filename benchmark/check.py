@@ -63,6 +63,7 @@ from benchmark.reference import CACHE_DIR, REFERENCE_METHOD
 from benchmark.report import Provenance, fmt, markdown_table
 from integrators import Capability, available, get_integrator, plugin_errors
 from models.io import atomic_write_text
+from integrators.base import is_finished
 
 BASELINE = Path("results") / "baseline" / "drift.csv"
 UPDATE_COMMAND = "python -m benchmark check --update"
@@ -339,7 +340,7 @@ def row_problems(df: pd.DataFrame) -> list[tuple[int, str]]:
         if status not in known:
             out.append((line, f"{what}: status {status!r} is not a status of the runs table "
                               f"(known: {', '.join(known)})"))
-        elif status != "ok":
+        elif not is_finished(status):
             out.append((line, f"{what}: status {status}: a run of the check sweep that is not ok cannot fail a "
                               "check (only an improvement is possible); every run of a usable baseline is ok"))
         else:
@@ -544,14 +545,14 @@ def _compare_status(out: Comparison, key, b: pd.Series, c: pd.Series) -> bool:
     (then their metrics are compared)."""
     bs, cs = b["status"], c["status"]
     if bs != cs:
-        text = f"{cs}: {c['reason']}"[:80] if cs != "ok" else cs
-        if bs == "ok":
+        text = f"{cs}: {c['reason']}"[:80] if not is_finished(cs) else cs
+        if is_finished(bs):
             out.regression(key, "status", bs, text, "no longer ok", "ok")
-        elif cs == "ok":
+        elif is_finished(cs):
             out.improvement(key, "status", bs, cs, "now ok")
         else:
             out.notes.append(f"{_name(key)}: status {bs} -> {text}")
-    return bs == "ok" and cs == "ok"
+    return is_finished(bs) and is_finished(cs)
 
 
 def _compare_metrics(out: Comparison, key, b: pd.Series, c: pd.Series, tol: Tolerance) -> None:

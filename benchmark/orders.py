@@ -181,11 +181,13 @@ def summarise(ladder: pd.DataFrame) -> pd.DataFrame:
     """orders.csv from the ladder rows: per scene and method, the slope of the last halving above
     the reference's floor, the one before it, and the flags (see the module's docstring)."""
     import pandas as pd  # not at import: the command line reads this module's constants without it
+
+    from integrators.base import FINISHED_STATUSES  # here too: the command line imports this module at start
     rows = []
     for (scene, name), g in ladder.groupby(list(LADDER_KEY), sort=False):
         g = g.sort_values("dt", ascending=False)
         floor = FLOOR_FACTOR * float(g["reference_error"].max())
-        counted = (g["status"] == "ok") & np.isfinite(g["error"]) & (g["error"] >= floor)
+        counted = g["status"].isin(FINISHED_STATUSES) & np.isfinite(g["error"]) & (g["error"] >= floor)
         s = slopes(g["dt"].to_numpy(), g["error"].to_numpy())
         pair_ok = counted.to_numpy()[:-1] & counted.to_numpy()[1:]
         valid = [k for k in range(len(s)) if pair_ok[k]]
@@ -202,8 +204,8 @@ def summarise(ladder: pd.DataFrame) -> pd.DataFrame:
             note.append("not asymptotic: the last two slopes differ by more than "
                         f"{ASYMPTOTIC_SPREAD:g}" if np.isfinite(prev) else "one halving only: not confirmed")
         if (~counted).any():
-            below = g.loc[~counted & (g["status"] == "ok"), "dt"]
-            failed = g.loc[g["status"] != "ok", "dt"]
+            below = g.loc[~counted & g["status"].isin(FINISHED_STATUSES), "dt"]
+            failed = g.loc[~g["status"].isin(FINISHED_STATUSES), "dt"]
             if len(failed):
                 note.append("did not finish at dt = " + ", ".join(f"{h:g}" for h in failed))
             if len(below):

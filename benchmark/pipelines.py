@@ -23,6 +23,7 @@ from benchmark.policy import SAVE_EVERY
 from benchmark.engine import log_stderr
 from benchmark.report import Provenance
 from models.io import inside, printable
+from integrators.base import is_finished
 
 
 @contextlib.contextmanager
@@ -808,7 +809,7 @@ def run_orders(scenes=None, integrators=None, *, out: Path = Path("results"), jo
         except KeyboardInterrupt as exc:
             return engine.stopped(exc, f"nothing written: {out}/orders.csv is as it was", log)
         for r in rows:
-            if r["status"] != "ok":
+            if not is_finished(r["status"]):
                 log(f"warning: orders of {r['integrator']} on {r['scene']}: {r['status']} ({r.get('reason', '')}); "
                     "its earlier rows are kept")
         new = pd.DataFrame([x for r in rows for x in r["ladder"]])

@@ -49,6 +49,7 @@ import pandas as pd
 
 from benchmark.metrics import ACCURACY, FLOORS
 from benchmark.policy import axis_of
+from integrators.base import FINISHED_STATUSES, is_finished
 
 KEY = ["scene", "integrator", "setting"]
 _REQUIRED = (*KEY, "dt", "rtol", "status", "steps")
@@ -109,11 +110,11 @@ def stability_limits(table: pd.DataFrame) -> set[tuple[str, str, float]]:
     above it at which it failed."""
     out = set()
     for (scene, integ), g in table[table["dt"].notna()].groupby(["scene", "integrator"]):
-        ok = g.loc[g["status"] == "ok", "dt"]
+        ok = g.loc[g["status"].isin(FINISHED_STATUSES), "dt"]
         if ok.empty:
             continue
         out.add((scene, integ, float(ok.max())))
-        above = g.loc[(g["status"] != "ok") & (g["dt"] > ok.max()), "dt"]
+        above = g.loc[~g["status"].isin(FINISHED_STATUSES) & (g["dt"] > ok.max()), "dt"]
         if len(above):
             out.add((scene, integ, float(above.min())))
     return out
@@ -161,7 +162,7 @@ def compare_runs(a: pd.DataFrame, b: pd.DataFrame, tol: Tolerance = DEFAULT_TOLE
             out.update(verdict="at stability limit" if at_limit else "differs",
                        reason=f"status {r['status_a']} vs {r['status_b']}"
                               + (" at the method's stability limit" if at_limit else ""))
-        elif r["status_a"] != "ok":
+        elif not is_finished(r["status_a"]):
             same = r["steps_a"] == r["steps_b"]
             out.update(verdict="equal" if same else "stopped elsewhere",
                        reason="" if same else f"both {r['status_a']}, after {r['steps_a']:.0f} vs {r['steps_b']:.0f} steps")

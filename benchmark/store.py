@@ -89,13 +89,9 @@ def run_key(task, code: str | None = None) -> str:
 # ------------------------------------------------------------------------------------------
 # Trust: what a row of the runs table may hold, and its digest
 # ------------------------------------------------------------------------------------------
-#: Rows with these statuses are recomputed on resume (the cause may have been transient: a
-#: wall-clock budget runs out sooner on a loaded machine).
-RETRY_STATUSES = ("crashed", "error", "time_limit")
-#: Statuses of the runs table besides the integrators' own (`integrators.Status`); "inaccurate":
-#: finished beyond a sanity bound (`benchmark.metrics.INACCURATE`). Every reader that validates a
-#: status (resume, the drift gate, figures) asks `statuses`: extend the list here.
-TABLE_STATUSES = ("time_limit", "max_steps", "error", "crashed", "inaccurate")
+#: Rows with these statuses are recomputed on resume, and the statuses of the runs table besides
+#: the integrators' own: `integrators.base` names both beside `Status`. Every reader that
+#: validates a status (resume, the drift gate, figures) asks `statuses`.
 
 #: The columns a row's digest leaves out: the digest itself, and the traceback of a failed run
 #: (never written to the table). Every other column is covered, measurements included (run
@@ -162,9 +158,9 @@ def legacy_digest(row: dict) -> str:
 
 def statuses() -> tuple[str, ...]:
     """Every status a row of the runs table may have."""
-    from integrators import Status
+    from integrators.base import TABLE_ONLY_STATUSES, Status
 
-    return tuple(s.value for s in Status) + TABLE_STATUSES
+    return tuple(s.value for s in Status) + TABLE_ONLY_STATUSES
 
 
 def _number(v) -> float | None:
@@ -186,6 +182,8 @@ def check_row(row: dict, known_statuses=None) -> str | None:
     ordered (low <= median <= high), accuracy values for a finished run and none for another,
     and its digest (`row_digest`) the one written with it (a row without a digest, from an
     older table, is checked by the other rules alone)."""
+    from integrators.base import is_finished  # here: the command line imports this module at start
+
     for c in ("scene", "integrator", "setting", "status"):
         if _missing(row.get(c)) or not isinstance(row.get(c), str):
             return f"no {c}"
@@ -210,9 +208,9 @@ def check_row(row: dict, known_statuses=None) -> str | None:
     for c in ("dt", "rtol", "atol", "t_end"):
         if numbers.get(c) == 0:
             return f"{c} = 0 is outside its range (> 0)"
-    if status != "ok" and any(numbers.get(c, np.nan) == numbers.get(c, np.nan) for c in ERROR_COLUMNS):
+    if not is_finished(status) and any(numbers.get(c, np.nan) == numbers.get(c, np.nan) for c in ERROR_COLUMNS):
         return f"status {status} with accuracy values (only a finished run has them)"
-    if status == "ok":
+    if is_finished(status):
         if not numbers.get("run_time", np.nan) == numbers.get("run_time", np.nan):
             return "a finished run without a run_time"
         present = [c for c in ERROR_COLUMNS if c in row]
@@ -257,6 +255,8 @@ class StoredRuns:
     def resumable(self) -> list[dict]:
         """The trusted rows a run may keep instead of computing (transient failures retried, rows
         that predate full digests recomputed unless accepted)."""
+        from integrators.base import RETRY_STATUSES
+
         legacy = {id(r) for r in self.legacy}
         return [r for r in self.rows if r.get("status") not in RETRY_STATUSES and r.get("run_key")
                 and id(r) not in legacy]

@@ -375,7 +375,7 @@ def _energy_guard(integ) -> Check:
     df = evaluate(scene, tr)
     worst = float(np.max(np.abs(df["energy_minus_work"] - df["energy_minus_work"].iloc[0])))
     within = worst <= bound * (1 + 1e-9)
-    ok = within and (tr.ok or (bool(tr.reason) and tr.status != "ok"))
+    ok = within and (tr.ok or (bool(tr.reason) and not tr.ok))
     return Check("energy guard", ok, f"{_words(setting)}: status {tr.status} after {len(tr.t)} saved point(s), "
                                      f"largest |E − W − E0| kept {worst:.3g} J of the bound {bound:.3g} J"
                  + ("" if within else ": a point beyond the bound returned as good"))

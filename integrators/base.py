@@ -48,6 +48,26 @@ class Status(str, enum.Enum):
     FAILED = "failed"  # any other solver failure, with the solver's message as reason
 
 
+# The sets of statuses every reader asks, named here beside `Status` so that none re-lists them.
+#: A finished run: the only status whose errors, costs and curve points count (`Trajectory.ok`).
+FINISHED_STATUSES = (Status.OK.value,)
+#: A run stopped by its own budget (steps, seconds): a finer setting costs more, so a search goes
+#: no finer after one, and a ranking names the budget as the cause.
+BUDGET_STATUSES = (Status.MAX_STEPS.value, Status.TIME_LIMIT.value)
+#: Statuses a benchmark table has besides the integrators' own: the task raised (a bug), its
+#: worker died, or it finished beyond a sanity bound (no solution: `benchmark.metrics.INACCURATE`).
+ERROR, CRASHED, INACCURATE = "error", "crashed", "inaccurate"
+TABLE_ONLY_STATUSES = (ERROR, CRASHED, INACCURATE)
+#: Rows with these statuses are recomputed on resume (the cause may have been transient: a
+#: wall-clock budget runs out sooner on a loaded machine).
+RETRY_STATUSES = (CRASHED, ERROR, Status.TIME_LIMIT.value)
+
+
+def is_finished(status) -> bool:
+    """Whether ``status`` is a finished run's (`FINISHED_STATUSES`)."""
+    return status in FINISHED_STATUSES
+
+
 @dataclass
 class Trajectory:
     """Saved states of one run, in the integrator's own state, plus stats and status.
@@ -93,7 +113,7 @@ class Trajectory:
 
     @property
     def ok(self) -> bool:
-        return self.status == Status.OK.value
+        return is_finished(self.status)
 
     def __len__(self) -> int:
         return len(self.t)
