@@ -197,14 +197,16 @@ def writable_file(path: str | os.PathLike, option: str = "--out") -> Path:
 # --------------------------------------------------------------------------------------------
 # Size of a run, before it starts
 # --------------------------------------------------------------------------------------------
-#: Refuse a run whose saved trajectory would need more memory than this (bytes) ...
-MEMORY_REFUSE = 8 * 2**30
-#: ... and warn above this.
+#: Warn when a run's saved trajectory would need more memory than this (bytes). A run is refused
+#: beyond the integrators' own limits: `integrators.lifecycle.MAX_SAVED_BYTES` (of the size
+#: `lifecycle.saved_size`) and `lifecycle.MAX_PLANNED_STEPS` (counted as the fixed-step loop runs:
+#: `integrators.base.fixed_step_count`): exactly 1e9 steps run, one more is refused. At the
+#: estimate below, 1e9 steps is over half an hour at N = 10 and days at N = 1000; below it the time
+#: estimate warns instead.
 MEMORY_WARN = 1 * 2**30
-#: A fixed-step run takes at most this many planned steps (the fixed-step loop's count,
-#: floor(t_end / dt); the integrators' own limit `integrators.lifecycle.MAX_PLANNED_STEPS` is the
-#: same): exactly 1e9 runs, one more is refused. At the estimate below, 1e9 steps is over half an
-#: hour at N = 10 and days at N = 1000; below it the time estimate warns instead.
+#: The refusal limits, the integrators' own (`integrators.lifecycle`), restated for the reason in
+#: `run_size`; tests/test_policy.py pins them equal.
+MEMORY_REFUSE = 8 * 2**30
 STEPS_REFUSE = 1e9
 #: Warn when the estimated wall time of one run exceeds this (s).
 TIME_WARN = 600.0
@@ -219,15 +221,16 @@ def run_size(scene, t_end: float, save_every: float, dt: float | None = None) ->
     wall time of one run of ``scene``; no JAX needed."""
     from models.layout import StateLayout  # JAX-free: the sizes the listed effects give
 
-    n = scene.string.elements
+    # The integrators' own rules, restated: importing them would import the integrators package
+    # (its registry) on every refusal. tests/test_policy.py pins both to them.
     lay = StateLayout.from_scene(scene)
-    nx, nw = lay.nx, lay.nw
-    per_point = 8 * (nx + nw + 9 + 1 + 1)  # x, velocity, attitude, work, t (float64)
-    points = math.floor(t_end / save_every) + 2
-    out = {"points": points, "bytes": points * per_point, "steps": None, "seconds": None}
+    interval = save_every if dt is None else max(save_every, dt)  # lifecycle.saved_interval
+    points = math.floor(t_end / interval) + 2
+    size = points * 8 * (lay.nx + 2 * lay.nw + 9 + 2)  # lifecycle.saved_size: x, velocity, momentum, attitude, work, t
+    out = {"points": points, "bytes": size, "steps": None, "seconds": None}
     if dt is not None:
-        out["steps"] = math.floor(t_end / dt + 1e-9)  # what the fixed-step loop runs (lifecycle.step_indices)
-        out["seconds"] = out["steps"] * STEP_COST_10 * (n / 10.0) ** 0.9
+        out["steps"] = max(1, math.ceil(t_end / dt - 1e-9))  # base.fixed_step_count: what the fixed-step loop runs
+        out["seconds"] = out["steps"] * STEP_COST_10 * (scene.string.elements / 10.0) ** 0.9
     return out
 
 
