@@ -635,8 +635,8 @@ def run_check(*, update: bool = False, baseline=None, integrators=None, factor: 
 
     baseline = check.BASELINE if baseline is None else baseline
     provenance = Provenance(command or check.UPDATE_COMMAND)
-    tol = check.Tolerance(factor=check.DEFAULT_FACTOR if factor is None else factor,
-                          order_margin=check.DEFAULT_ORDER_MARGIN if order_margin is None else order_margin)
+    tol = check.RegressionTolerance(factor=check.DEFAULT_FACTOR if factor is None else factor,
+                                    order_margin=check.DEFAULT_ORDER_MARGIN if order_margin is None else order_margin)
     if jobs is not None and jobs < 1:
         raise ValueError(f"--jobs = {jobs!r} is invalid (allowed: >= 1)")
     tasks = check.build_check_tasks(integrators) if tasks is None else tasks
