@@ -14,7 +14,7 @@ import os
 import tempfile
 from pathlib import Path
 
-from benchmark.policy import SOLVE_MAX_STEPS, SOLVE_TIME_LIMIT  # noqa: F401 (the commands' budget defaults)
+from benchmark.policy import ROW_IDENTITY, SOLVE_MAX_STEPS, SOLVE_TIME_LIMIT  # noqa: F401 (the budget defaults)
 
 
 class UsageError(ValueError):
@@ -120,7 +120,7 @@ def csv_table(columns: tuple, what: str):
 
 #: The runs.csv of an earlier run (`run --compare-with`), and an earlier answer's cheapest.csv
 #: (`answer --compare-with`).
-runs_table = csv_table(("scene", "integrator", "setting", "status", "run_time"), "the runs.csv of an earlier run")
+runs_table = csv_table((*ROW_IDENTITY, "status", "run_time"), "the runs.csv of an earlier run")
 answer_table = csv_table(("scene", "elements", "metric", "target", "cost_kind", "entry", "verdict", "ratio"),
                          "the cheapest.csv of an earlier answer")
 

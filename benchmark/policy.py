@@ -117,6 +117,11 @@ def setting_value(label, missing: float = math.nan) -> float:
         return missing
 
 
+#: A run's place in a runs table (and in the drift gate's baseline and a reproducibility
+#: comparison): one row per scene, integrator and setting label.
+ROW_IDENTITY = ("scene", "integrator", "setting")
+
+
 # ------------------------------------------------------------------------------------------
 # What one solve may spend
 # ------------------------------------------------------------------------------------------

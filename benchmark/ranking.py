@@ -24,11 +24,12 @@ import numpy as np
 import pandas as pd
 
 from benchmark.metrics import INACCURATE
+from benchmark.policy import ROW_IDENTITY
 from benchmark.sweep import PRESENTATION_ORDER, SWEEP_WORDS
 from integrators.base import BUDGET_STATUSES, ERROR, FINISHED_STATUSES  # a budget ends a run, not a failure of the method
 
 #: The columns `failure_causes` reads from a runs table.
-_KEY_COLUMNS = ("scene", "integrator", "setting", "dt", "rtol", "status")
+_KEY_COLUMNS = (*ROW_IDENTITY, "dt", "rtol", "status")
 
 
 def entry_name(integrator: str, sweep: str, both_sweeps: bool, twins: Sequence[str] = ()) -> str:

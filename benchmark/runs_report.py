@@ -18,6 +18,7 @@ import numpy as np
 import pandas as pd
 
 from benchmark.metrics import ACCURACY, WORK_DEFINITION
+from benchmark.policy import ROW_IDENTITY
 from benchmark.ranking import failure_summary
 from benchmark.reference import REFERENCE_METHOD
 from benchmark.sweep import MAX_REPEATS, MIN_REPEATS, TIMING_BUDGET
@@ -147,7 +148,7 @@ def changes_since(before: pd.DataFrame, runs: pd.DataFrame, label: str) -> str:
                            "t_end", *ACCURACY) if c in before]
     before = before.assign(**{c: pd.to_numeric(before[c], errors="coerce") for c in numeric})
     out = [f"## Compared with {label}\n\n", reproducibility(before, runs, label)]
-    key = ["scene", "integrator", "setting"]
+    key = list(ROW_IDENTITY)
     both = before[before["status"].isin(FINISHED_STATUSES)].merge(runs[runs["status"].isin(FINISHED_STATUSES)], on=key, suffixes=("_then", "_now"))
     if not both.empty and "run_time_then" in both:
         speed = (both["run_time_then"] / both["run_time_now"]).groupby(both["integrator"]).median()

@@ -39,6 +39,7 @@ from typing import Callable, Iterable
 
 import numpy as np
 
+from benchmark.policy import ROW_IDENTITY
 from models.io import atomic_path, atomic_write_text
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -105,14 +106,21 @@ LEGACY_DIGEST_COLUMNS = (
     "energy_error", "pi3_error", "orthogonality_error", "position_error_final", "position_error_max",
     "attitude_error_final", "attitude_error_max", "t_reached", "implementation", "run_key")
 #: Numeric columns: counts (non-negative), errors (non-negative; NaN where a run did not
-#: finish), costs (finite and non-negative where present), settings (positive where present).
+#: finish: the accuracy metrics' columns, `error_columns`), costs (finite and non-negative where
+#: present), settings (positive where present).
 COUNT_COLUMNS = ("steps", "rhs_evals", "jac_evals", "lu_decompositions", "newton_iterations", "work_evals",
                  "timing_repeats", "rejected_steps", "max_newton_iterations")
-ERROR_COLUMNS = ("energy_error", "pi3_error", "orthogonality_error", "position_error_final", "position_error_max",
-                 "attitude_error_final", "attitude_error_max")
 COST_COLUMNS = ("run_time", "run_time_low", "run_time_high", "compile_time", "us_per_eval", "load_avg",
                 "task_time", "t_reached", "min_step", "median_step", "max_step", "flops")
 SETTING_COLUMNS = ("dt", "rtol", "atol", "t_end")
+
+
+def error_columns() -> tuple[str, ...]:
+    """The accuracy metrics' columns, read from their registry (`benchmark.metrics.METRICS`), so that
+    a new `Metric` is range-checked on read-back too."""
+    from benchmark.metrics import ACCURACY  # here: it imports pandas, which the command line's start does not
+
+    return tuple(ACCURACY)
 
 
 def _missing(v) -> bool:
@@ -184,7 +192,8 @@ def check_row(row: dict, known_statuses=None) -> str | None:
     older table, is checked by the other rules alone)."""
     from integrators.base import is_finished  # here: the command line imports this module at start
 
-    for c in ("scene", "integrator", "setting", "status"):
+    errors = error_columns()
+    for c in (*ROW_IDENTITY, "status"):
         if _missing(row.get(c)) or not isinstance(row.get(c), str):
             return f"no {c}"
     from models.schema import is_safe_name  # the names become parts of file names (figures)
@@ -196,7 +205,7 @@ def check_row(row: dict, known_statuses=None) -> str | None:
     if status not in (known_statuses or statuses()):
         return f"status {status!r} is not a status of the runs table"
     numbers = {}
-    for c in (*COUNT_COLUMNS, *ERROR_COLUMNS, *COST_COLUMNS, *SETTING_COLUMNS):
+    for c in (*COUNT_COLUMNS, *errors, *COST_COLUMNS, *SETTING_COLUMNS):
         if c not in row:
             continue
         v = _number(row[c])
@@ -208,12 +217,12 @@ def check_row(row: dict, known_statuses=None) -> str | None:
     for c in ("dt", "rtol", "atol", "t_end"):
         if numbers.get(c) == 0:
             return f"{c} = 0 is outside its range (> 0)"
-    if not is_finished(status) and any(numbers.get(c, np.nan) == numbers.get(c, np.nan) for c in ERROR_COLUMNS):
+    if not is_finished(status) and any(numbers.get(c, np.nan) == numbers.get(c, np.nan) for c in errors):
         return f"status {status} with accuracy values (only a finished run has them)"
     if is_finished(status):
         if not numbers.get("run_time", np.nan) == numbers.get("run_time", np.nan):
             return "a finished run without a run_time"
-        present = [c for c in ERROR_COLUMNS if c in row]
+        present = [c for c in errors if c in row]
         if present and not any(numbers[c] == numbers[c] for c in present):
             return "a finished run without any accuracy value"
         lo, mid, hi = (numbers.get(c, np.nan) for c in ("run_time_low", "run_time", "run_time_high"))
@@ -435,7 +444,7 @@ def read_runs(path: str | os.PathLike, log: Callable[[str], None] | None = None)
 
 def describe_row(row: dict) -> str:
     """scene/integrator/setting of a row, for messages."""
-    return "/".join(str(row.get(c, "?")) for c in ("scene", "integrator", "setting"))
+    return "/".join(str(row.get(c, "?")) for c in ROW_IDENTITY)
 
 
 def read_previous(path: str | os.PathLike, log: Callable[[str], None] | None = None) -> list[dict]:
@@ -453,11 +462,8 @@ def kept_rows(keys: list[str], previous: Iterable[dict] | None) -> dict[int, dic
 # ------------------------------------------------------------------------------------------
 # Merging a run into the table already in its output directory
 # ------------------------------------------------------------------------------------------
-#: A row's place in a runs table: one row per scene, integrator and setting.
-ROW_IDENTITY = ("scene", "integrator", "setting")
-
-
 def identity_of(row: dict, identity: tuple = ROW_IDENTITY) -> tuple:
+    """A row's place in its table (by default `benchmark.policy.ROW_IDENTITY`)."""
     return tuple(row.get(c) for c in identity)
 
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
-from benchmark.policy import ATOL_FACTOR, SAVE_EVERY, Setting  # noqa: F401 (the sweep's names for them)
+from benchmark.policy import ATOL_FACTOR, ROW_IDENTITY, SAVE_EVERY, Setting  # noqa: F401 (the sweep's names)
 
 PAPER_SCENES = ("fixed_length", "deployment", "retrieval")
 #: A string in water (buoyancy and Morison drag): `run --extended` sweeps them after the paper's
@@ -85,6 +85,11 @@ class Task:
     def setting(self) -> str:
         """The setting's label, the runs table's ``setting`` column ("dt=0.005", "rtol=1e-06")."""
         return self.step.label()
+
+    @property
+    def identity(self) -> tuple:
+        """The task's row's place in the runs table (`benchmark.policy.ROW_IDENTITY`)."""
+        return tuple(getattr(self, c) for c in ROW_IDENTITY)
 
     def solve_kwargs(self) -> dict:
         return {"t_end": self.t_end, "save_every": self.save_every, **self.step.solve_kwargs()}

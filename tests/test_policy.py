@@ -96,3 +96,16 @@ def test_the_longest_horizon_is_the_scene_files():
     from models.schema import PLAUSIBLE
 
     assert lifecycle.T_END_MAX == PLAUSIBLE["t_end"][1]
+
+
+def test_a_row_s_identity_is_one_rule_and_a_new_metric_is_range_checked_on_read_back(monkeypatch):
+    from benchmark import check, metrics, reproducibility, store
+    from benchmark.sweep import Task
+
+    task = Task("fixed_length", "lgvi", dt=0.01)
+    row = {"scene": "fixed_length", "integrator": "lgvi", "setting": task.setting, "status": "ok", "run_time": 0.1,
+           "energy_error": 1e-5}
+    assert task.identity == store.identity_of(row) and check.KEY == reproducibility.KEY == list(policy.ROW_IDENTITY)
+    assert store.error_columns() == tuple(metrics.ACCURACY) and store.check_row(row) is None
+    monkeypatch.setattr(metrics, "ACCURACY", [*metrics.ACCURACY, "new_error"])
+    assert "new_error" in store.check_row({**row, "new_error": -1.0})
