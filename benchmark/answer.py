@@ -37,7 +37,7 @@ import numpy as np
 from benchmark import engine
 from benchmark import paired as _paired
 from benchmark import search as _search
-from benchmark.policy import PAIRED_BUDGET, SAVE_EVERY, SEARCH_TIME_LIMIT, Setting
+from benchmark.policy import CHEAPEST_FILE, PAIRED_BUDGET, RESULTS, SAVE_EVERY, SEARCH_TIME_LIMIT, Setting
 from benchmark.store import code_version, frame, kept_rows, key_of
 
 #: The default targets: (metric, target, label); ``--targets`` asks for others, on any metric
@@ -549,7 +549,7 @@ def answer_lines(table: pd.DataFrame, labels: dict | None = None) -> list[str]:
 
 
 def answer_block(table: pd.DataFrame, labels: dict | None = None, command: str = "python -m benchmark answer",
-                 table_file: str = "results/cheapest.csv") -> str:
+                 table_file: str = str(CHEAPEST_FILE)) -> str:
     """The project README's answer block: one table per N, one sentence per scene, how it was made."""
     from benchmark import answer_report
 
@@ -559,7 +559,7 @@ def answer_block(table: pd.DataFrame, labels: dict | None = None, command: str =
 
 
 #: Where the committed answer lives: an `answer` run into it also rewrites the README's answer block.
-COMMITTED_ANSWER = Path("results")
+COMMITTED_ANSWER = RESULTS
 
 
 def is_committed_answer(out: Path) -> bool:

@@ -57,7 +57,7 @@ import pandas as pd
 from benchmark import runner, sweep
 from benchmark.metrics import ACCURACY, DIRECTIONS, observed_orders
 from benchmark.options import check_tolerance_rules
-from benchmark.policy import ROW_IDENTITY, axis_of
+from benchmark.policy import BASELINE_FILE, ROW_IDENTITY, axis_of
 from benchmark.metrics import FLOORS as METRIC_FLOORS
 from benchmark.reference import CACHE_DIR, REFERENCE_METHOD
 from benchmark.report import Provenance, fmt, markdown_table
@@ -65,7 +65,7 @@ from integrators import Capability, available, get_integrator, plugin_errors
 from models.io import atomic_write_text
 from integrators.base import is_finished
 
-BASELINE = Path("results") / "baseline" / "drift.csv"
+BASELINE = BASELINE_FILE
 UPDATE_COMMAND = "python -m benchmark check --update"
 
 # The check sweep: short, so the whole check costs about 140 CPU-seconds (measured; mostly JAX

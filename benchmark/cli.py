@@ -203,7 +203,7 @@ def _check_horizon_size(args, overrides: dict) -> None:
 
 
 #: `run`'s default output directory: the committed grid sweep (`pipelines.COMMITTED_RESULTS`).
-GRID_OUT = "results/grid"
+GRID_OUT = str(policy.GRID_DIR)
 
 #: The options of `run` that make it something other than the default sweep (other rows).
 _SWEEP_OPTIONS = (("scenes", "--scenes"), ("integrators", "--integrators"), ("quick", "--quick"), ("dts", "--dts"),
@@ -751,7 +751,7 @@ def _add_speed(sub) -> None:
     sp.add_argument("--rhs", default=_csv(default.rhs), help="right-hand sides to time per call ('' = none)")
     sp.add_argument("--autodiff-max-n", type=opt.positive_int, default=default.autodiff_max_n,
                     help="largest N for the O(N^3) autodiff right-hand side")
-    sp.add_argument("--out", default="results/lgvi_speed.md",
+    sp.add_argument("--out", default=str(policy.LGVI_SPEED_FILE),
                     help="the tables (Markdown, with the command and machine): this run's rows join those of the "
                          "rows table beside it (.csv; rows of other methods, scenes and N are kept) and the file is "
                          "written from the whole table; - = only print them")
@@ -766,7 +766,7 @@ def _add_stability(sub) -> None:
                                                           "methods, implicit baselines last; a plugin runs when named)")
     st.add_argument("--jobs", type=opt.nonnegative_int, default=2, help="worker processes (0: run in this process)")
     _add_budget(st, "the map")
-    st.add_argument("--out", default="results/stability", help="output directory (created if missing)")
+    st.add_argument("--out", default=str(policy.STABILITY_DIR), help="output directory (created if missing)")
     st.set_defaults(func=cmd_stability)
 
 
@@ -812,7 +812,7 @@ def _add_xval(sub) -> None:
     xv.add_argument("--t-end", type=opt.positive_float, help="horizon in s (default 5)")
     xv.add_argument("--cases", type=opt.names, help="comma-separated cases of point_mass, rigid_body, in_water "
                                                     "(default: every case the scene has)")
-    xv.add_argument("--out", default="results/xval", help="output directory (created if missing)")
+    xv.add_argument("--out", default=str(policy.XVAL_DIR), help="output directory (created if missing)")
     xv.set_defaults(func=cmd_xval)
 
 
@@ -848,7 +848,7 @@ def _add_orders(sub) -> None:
                                                          "registered one)")
     o.add_argument("--jobs", type=opt.nonnegative_int, help="worker processes (0: in this process; default: one "
                                                             "per method, at most the CPU count)")
-    o.add_argument("--out", default="results", help="output directory (created if missing)")
+    o.add_argument("--out", default=str(policy.RESULTS), help="output directory (created if missing)")
     o.set_defaults(func=cmd_orders)
 
 
@@ -869,7 +869,7 @@ def _add_energy(sub) -> None:
     e.add_argument("--variants", type=opt.names, help="comma-separated string laws: plain (the scene as it is), "
                                                       "slack (tension-only) (default: both)")
     e.add_argument("--jobs", type=opt.nonnegative_int, help="worker processes (0: in this process)")
-    e.add_argument("--out", default="results", help="output directory (created if missing)")
+    e.add_argument("--out", default=str(policy.RESULTS), help="output directory (created if missing)")
     e.set_defaults(func=cmd_energy)
 
 

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from benchmark import engine, store
-from benchmark.policy import SAVE_EVERY
+from benchmark.policy import GRID_DIR, RESULTS, SAVE_EVERY, STABILITY_DIR
 from benchmark.engine import log_stderr
 from benchmark.report import Provenance
 from models.io import inside, printable
@@ -106,7 +106,7 @@ def run_sweep(request: SweepRequest, log: Callable[[str], None] = log_stderr) ->
 
 
 #: The committed grid sweep's directory (`python -m benchmark run`'s default --out).
-COMMITTED_RESULTS = store.ROOT / "results" / "grid"
+COMMITTED_RESULTS = store.ROOT / GRID_DIR
 
 
 def study_file(out: Path, name: str) -> Path:
@@ -560,7 +560,7 @@ def _horizon_figures(out: Path, table, scenes, redraw: bool) -> list[tuple[str, 
 STABILITY_IDENTITY = ("scene", "integrator", "kind")
 
 
-def run_stability(scenes=None, integrators=None, *, workers: int = 2, out: Path = Path("results/stability"),
+def run_stability(scenes=None, integrators=None, *, workers: int = 2, out: Path = STABILITY_DIR,
                   budget=None,
                   command: str = "python -m benchmark stability", log: Callable[[str], None] = log_stderr) -> int:
     """The stability map into ``out``: stability.csv (written after every job), stability.md,
@@ -782,7 +782,7 @@ def run_reel_reversal(scene_name: str = "reel_reversal", elements: int = 5, t_en
     return 0
 
 
-def run_orders(scenes=None, integrators=None, *, out: Path = Path("results"), jobs: int | None = None,
+def run_orders(scenes=None, integrators=None, *, out: Path = RESULTS, jobs: int | None = None,
                log: Callable[[str], None] = log_stderr, echo: Callable[[str], None] = print) -> int:
     """The observed orders (`benchmark.orders`) into ``out``: orders_errors.csv (every run of
     every ladder) and orders.csv (a row per scene and method); a rerun of some scenes or methods

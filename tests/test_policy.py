@@ -109,3 +109,10 @@ def test_a_row_s_identity_is_one_rule_and_a_new_metric_is_range_checked_on_read_
     assert store.error_columns() == tuple(metrics.ACCURACY) and store.check_row(row) is None
     monkeypatch.setattr(metrics, "ACCURACY", [*metrics.ACCURACY, "new_error"])
     assert "new_error" in store.check_row({**row, "new_error": -1.0})
+
+
+def test_the_output_places_are_the_policy_s():
+    from benchmark import answer, check, cli, pipelines, store
+
+    assert check.BASELINE == policy.BASELINE_FILE and answer.COMMITTED_ANSWER == policy.RESULTS
+    assert cli.GRID_OUT == str(policy.GRID_DIR) and pipelines.COMMITTED_RESULTS == store.ROOT / policy.GRID_DIR
