@@ -39,6 +39,7 @@ from benchmark import paired as _paired
 from benchmark import search as _search
 from benchmark.policy import CHEAPEST_FILE, PAIRED_BUDGET, RESULTS, SAVE_EVERY, SEARCH_TIME_LIMIT, Setting
 from benchmark.store import code_version, frame, kept_rows, key_of
+from benchmark.sweep import DEFAULT_EXECUTOR
 
 #: The default targets: (metric, target, label); ``--targets`` asks for others, on any metric
 #: of `benchmark.metrics.METRICS`.
@@ -636,7 +637,7 @@ class AnswerRequest:
     fresh: bool = False
     command: str = "python -m benchmark answer"
     compare_with: tuple = ()  # earlier cheapest.csv files, one agreement paragraph each
-    executor: str = "process"  # where the searches run (`benchmark.sweep.EXECUTORS`); the timing stays here
+    executor: str = DEFAULT_EXECUTOR  # where the searches run (`benchmark.sweep.EXECUTORS`); the timing stays here
     scheduler: str | None = None
 
 

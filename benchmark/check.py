@@ -57,7 +57,7 @@ import pandas as pd
 from benchmark import runner, sweep
 from benchmark.metrics import ACCURACY, DIRECTIONS, observed_orders
 from benchmark.options import check_tolerance_rules
-from benchmark.policy import BASELINE_FILE, ROW_IDENTITY, axis_of
+from benchmark.policy import BASELINE_FILE, CHECK_FACTOR, CHECK_ORDER_MARGIN, ROW_IDENTITY, axis_of
 from benchmark.metrics import FLOORS as METRIC_FLOORS
 from benchmark.reference import CACHE_DIR, REFERENCE_METHOD
 from benchmark.report import Provenance, fmt, markdown_table
@@ -81,8 +81,7 @@ FINER_DTS = {"lgvi_yoshida4": (0.00125, 0.000625)}
 ADAPTIVE_RTOLS = (1e-4, 1e-6)
 IMPLICIT_RTOLS = (1e-3, 1e-4)  # implicit solves cost 10-100x more per step: loose tolerances only
 
-DEFAULT_FACTOR = 2.0
-DEFAULT_ORDER_MARGIN = 0.5
+DEFAULT_FACTOR, DEFAULT_ORDER_MARGIN = CHECK_FACTOR, CHECK_ORDER_MARGIN
 #: Absolute floors (below them a value is round-off or the reference's own error) and directions:
 #: the metric registry's (`benchmark.metrics.METRICS`).
 FLOORS = dict(METRIC_FLOORS)
@@ -125,7 +124,7 @@ def build_check_tasks(integrators=None, *, scenes=SCENES, t_end: float = T_END, 
     return tasks
 
 
-def measure(tasks, *, executor: str = "process", jobs: int | None = None, cache_dir: str = str(CACHE_DIR),
+def measure(tasks, *, executor: str = sweep.DEFAULT_EXECUTOR, jobs: int | None = None, cache_dir: str = str(CACHE_DIR),
             costs: dict | None = None, budget=None, log: Callable[[str], None] | None = None) -> pd.DataFrame:
     """Run ``tasks`` (no timing repeats) and return the table in the baseline's layout.
 

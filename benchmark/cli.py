@@ -114,7 +114,7 @@ def _add_executor(p, what: str) -> None:
     """--executor and --scheduler, the same on every command that runs jobs on the engine."""
     from benchmark import sweep
 
-    p.add_argument("--executor", default="process", choices=list(sweep.EXECUTORS),
+    p.add_argument("--executor", default=sweep.DEFAULT_EXECUTOR, choices=list(sweep.EXECUTORS),
                    help=f"where {what} execute: worker processes, this process, or a Dask cluster")
     p.add_argument("--scheduler", help="Dask scheduler address, with --executor dask (e.g. tcp://host:8786)")
 
@@ -142,12 +142,12 @@ def cmd_run(args) -> int:
     with_t_end = {"t_end": args.t_end, **ov} if args.t_end is not None else ov  # validated with the scene
     scenes = [load_scene(s, **with_t_end) for s in scene_names]
     sweep.check_settings(args.dts, args.rtols)
-    t_end = args.t_end or (sweep.QUICK_T_END if args.quick else None)
+    t_end = sweep.sweep_t_end(args.t_end, args.quick)
     for sc in scenes:
         if (t_end or sc.t_end) < policy.SAVE_EVERY:  # every run would end in an error row
             raise UsageError(f"{'--t-end' if t_end else sc.name + ': t_end'} = {t_end or sc.t_end:g} s is shorter than "
                              f"the sweep's save interval {policy.SAVE_EVERY:g} s: give --t-end >= {policy.SAVE_EVERY:g}")
-        for dt in args.dts or (sweep.QUICK_DTS if args.quick else sweep.FULL_DTS):
+        for dt in sweep.sweep_dts(args.dts, args.quick):
             if dt > (t_end or sc.t_end):  # any smaller step is allowed (the last one lands on t_end)
                 raise UsageError(f"--dts: dt = {dt:g} s is longer than the run ({sc.name}: t_end = {t_end or sc.t_end:g} s; "
                                  "allowed: 0 < dt <= t_end)")
@@ -360,8 +360,8 @@ def cmd_check(args) -> int:
     names = args.integrators  # a list (opt.names: "," is refused by the parser, it would select every method)
     for name in names or ():
         _check_integrator(name)  # before the baseline is read
-    opt.check_tolerance_rules(2.0 if args.factor is None else args.factor,
-                              0.5 if args.order_margin is None else args.order_margin)  # before any import of JAX
+    opt.check_tolerance_rules(policy.CHECK_FACTOR if args.factor is None else args.factor,
+                              policy.CHECK_ORDER_MARGIN if args.order_margin is None else args.order_margin)
     if args.allow_new and args.update:
         raise UsageError("--allow-new is for a check against the baseline; --update writes the rows of every "
                          "integrator it runs")
@@ -683,13 +683,14 @@ def _add_check(sub) -> None:
                      "exit 1 on a regression (rules in benchmark/check.py)")
     c.add_argument("--update", action="store_true", help="rewrite the baseline from this run instead of failing")
     _add_budget(c, "the check")
-    c.add_argument("--baseline", help="baseline CSV (default: results/baseline/drift.csv, run from the repository root)")
+    c.add_argument("--baseline", help=f"baseline CSV (default: {policy.BASELINE_FILE}, run from the repository root)")
     c.add_argument("--integrators", type=opt.names,
                    help="comma-separated names (default: all registered except test_*)")
     c.add_argument("--factor", type=opt.number,
-                   help="a drift or error fails when worse than FACTOR x baseline, above its floor (default: 2)")
+                   help=f"a drift or error fails when worse than FACTOR x baseline, above its floor (default: "
+                        f"{policy.CHECK_FACTOR:g})")
     c.add_argument("--order-margin", type=opt.number,
-                   help="an observed order fails when lower than baseline - MARGIN (default: 0.5)")
+                   help=f"an observed order fails when lower than baseline - MARGIN (default: {policy.CHECK_ORDER_MARGIN:g})")
     c.add_argument("--jobs", type=opt.positive_int, help="worker processes (default: CPU count)")
     c.add_argument("--allow-new", type=opt.names, metavar="NAMES",
                    help="comma-separated integrators that may lack baseline rows (new methods); any other selected "
@@ -788,7 +789,8 @@ def _add_answer(sub) -> None:
                                                           "default sweep's; --extended: all of the project's)")
     an.add_argument("--elements", type=opt.positive_ints, help="comma-separated N (default 10; --extended 10,40)")
     an.add_argument("--targets", help="comma-separated metric=target pairs on any accuracy metric of the runs "
-                                      "table (default: energy_error=1e-4,position_error_final=1e-6)")
+                                      "table (default: "
+                                      f"{','.join(f'{m}={t:g}' for m, t, _ in answer.TARGETS)})")
     an.add_argument("--t-end", type=opt.positive_float, help="horizon in s (default: each scene's t_end)")
     an.add_argument("--max-runs", type=opt.positive_int, default=search.MAX_RUNS, help="runs per search at most")
     an.add_argument("--timing-budget", type=opt.positive_float, default=policy.PAIRED_BUDGET,

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-from benchmark import engine, store
+from benchmark import engine, store, sweep
 from benchmark.policy import GRID_DIR, RESULTS, SAVE_EVERY, STABILITY_DIR
 from benchmark.engine import log_stderr
 from benchmark.report import Provenance
@@ -50,9 +50,9 @@ class SweepRequest:
     t_end: float | None = None  # None: each scene's own (--quick: sweep.QUICK_T_END)
     overrides: tuple = ()  # ((key, value), ...) of the scenes, t_end apart
     jobs: int | None = None
-    executor: str = "process"
+    executor: str = sweep.DEFAULT_EXECUTOR
     scheduler: str | None = None
-    repeats: int = 3
+    repeats: int = sweep.MIN_REPEATS
     horizon: float | None = None  # of the energy study; None or 0: none (it is `python -m benchmark energy`'s)
     figures: bool = True
     fresh: bool = False
@@ -63,9 +63,7 @@ class SweepRequest:
 
     @property
     def sweep_t_end(self) -> float | None:
-        from benchmark import sweep
-
-        return self.t_end or (sweep.QUICK_T_END if self.quick else None)
+        return sweep.sweep_t_end(self.t_end, self.quick)
 
     @property
     def energy_horizon(self) -> float:
@@ -623,7 +621,7 @@ def _stability_files(out: Path, table, rows: list[dict], provenance: Provenance)
 
 
 def run_check(*, update: bool = False, baseline=None, integrators=None, factor: float | None = None,
-              order_margin: float | None = None, jobs: int | None = None, executor: str = "process",
+              order_margin: float | None = None, jobs: int | None = None, executor: str = sweep.DEFAULT_EXECUTOR,
               cache_dir: str | None = None, tasks=None, command: str | None = None, allow_new=(), budget=None,
               log: Callable[[str], None] | None = None, echo: Callable[[str], None] = print) -> int:
     """Recompute the check sweep and compare it with the baseline (or with ``update``, rewrite

@@ -150,6 +150,13 @@ RESOLUTION = 0.10
 #: 10.7 %; `benchmark.paired`). Equal to `RESOLUTION` by measurement, not by definition.
 TIE_MARGIN = 0.10
 
+#: The drift gate's defaults (`benchmark check`, `check.RegressionTolerance`): a metric fails when
+#: worse than CHECK_FACTOR × its baseline above its floor (×2 lets a refactoring's reordered
+#: floating-point work through, a real regression moves by orders of magnitude), an observed order
+#: when lower than its baseline by more than CHECK_ORDER_MARGIN.
+CHECK_FACTOR = 2.0
+CHECK_ORDER_MARGIN = 0.5
+
 # ------------------------------------------------------------------------------------------
 # References: what each study compares with (they differ where their purpose does)
 # ------------------------------------------------------------------------------------------

@@ -45,7 +45,7 @@ from benchmark.metrics import ACCURACY, COLUMNS, INACCURATE, inaccurate_reason, 
 from benchmark.reference import CACHE_DIR, ReferenceProblem, get_reference, prepare_reference
 from benchmark.report import shorten
 from benchmark.store import code_version, frame, key_of, kept_rows, row_digest, run_key
-from benchmark.sweep import EXECUTORS, MAX_REPEATS, MIN_REPEATS, TIMING_BUDGET, Task
+from benchmark.sweep import DEFAULT_EXECUTOR, EXECUTORS, MAX_REPEATS, MIN_REPEATS, TIMING_BUDGET, Task
 from integrators.base import CRASHED, ERROR, FINISHED_STATUSES, is_finished
 
 #: Step statistics some integrators report (`Trajectory.stats`), copied into the row when present.
@@ -300,7 +300,7 @@ def execute(
     tasks: list[Task],
     *,
     jobs: int | None = None,
-    executor: str = "process",
+    executor: str = DEFAULT_EXECUTOR,
     scheduler: str | None = None,
     repeats: int = MIN_REPEATS,
     cache_dir: str = str(CACHE_DIR),

@@ -57,8 +57,9 @@ TIMING_BUDGET = 0.5
 MAX_REPEATS = 30
 #: The least timed solves of one run whose first solve fits in the budget (`--repeats`).
 MIN_REPEATS = 3
-#: Where the runs execute: worker processes, this process, or a Dask cluster.
-EXECUTORS = ("process", "serial", "dask")
+#: Where the runs execute: worker processes (the default), this process, or a Dask cluster.
+DEFAULT_EXECUTOR = "process"
+EXECUTORS = (DEFAULT_EXECUTOR, "serial", "dask")
 #: Length (s) of the long-horizon energy study on fixed_length (`run --horizon`), full and --quick.
 FULL_HORIZON, QUICK_HORIZON = 100.0, 10.0
 
@@ -112,6 +113,16 @@ def check_settings(dts=(), rtols=()) -> None:
         for v in rtols:
             if not MIN_RTOL <= v < 1:
                 raise ValueError(f"--rtols: rtol = {v!r} is invalid (allowed: {RTOL_RULE})")
+
+
+def sweep_dts(dts=None, quick: bool = False) -> tuple:
+    """The step sizes of a sweep: ``dts`` if given, else the --quick or the full grid."""
+    return tuple(dts) if dts else (QUICK_DTS if quick else FULL_DTS)
+
+
+def sweep_t_end(t_end: float | None = None, quick: bool = False) -> float | None:
+    """The horizon of a sweep: ``t_end`` if given, else --quick's, else None (each scene's own)."""
+    return t_end if t_end is not None else (QUICK_T_END if quick else None)
 
 
 def default_names(plugins: bool = False) -> list[str]:
@@ -187,12 +198,11 @@ def build_tasks(
     from integrators import Capability, get_integrator  # JAX: only once the input is known good
 
     names = list(integrators) if integrators else [n for n in default_names() if get_integrator(n).default_sweep]
-    dts = tuple(dts) if dts else (QUICK_DTS if quick else FULL_DTS)
+    dts = sweep_dts(dts, quick)
     given_rtols = bool(rtols)
     implicit_rtols = tuple(rtols) if rtols else (IMPLICIT_QUICK_RTOLS if quick else IMPLICIT_FULL_RTOLS)
     rtols = tuple(rtols) if rtols else (QUICK_RTOLS if quick else FULL_RTOLS)
-    if quick and t_end is None:
-        t_end = QUICK_T_END
+    t_end = sweep_t_end(t_end, quick)
     methods = {name: get_integrator(name) for name in names}  # raises for unknown names, before any work
     own_rtols = {name: _own(implicit_rtols if integ.has(Capability.IMPLICIT) else rtols, integ.sweep_rtols,
                             given_rtols or quick) for name, integ in methods.items()}
