@@ -26,7 +26,7 @@ import numpy as np
 
 from benchmark.engine import log_stderr
 from benchmark.policy import REFERENCE_METHOD  # noqa: F401 (its settings: the one rule)
-from benchmark.store import (UnreadableFile, read_npz, source_hash, trajectory_from, trajectory_parts,
+from benchmark.store import (PHYSICS_DIRS, UnreadableFile, read_npz, source_hash, trajectory_from, trajectory_parts,
                              write_npz)
 from integrators import get_integrator
 from models.io import inside, user_cache_dir
@@ -37,10 +37,8 @@ CACHE_DIR = user_cache_dir() / "references"
 #: Version of the file layout below; a file of another format is recomputed (3: with the dense
 #: output of the compared components, `DenseSolution`).
 FORMAT = 3
-
-#: The source a reference is computed by: the model and the integrators (DOP853 through the
-#: scipy adapter, on the closed-form right-hand side).
-PHYSICS_DIRS = ("models", "integrators")
+# The source a reference is computed by (DOP853 through the scipy adapter, on the closed-form
+# right-hand side) is `benchmark.store.PHYSICS_DIRS`, the physics every row's code version covers.
 
 
 def identity(scene, t_end: float, save_every: float) -> dict:

@@ -62,9 +62,12 @@ def source_hash(dirs: tuple = (), files: tuple = ()) -> str:
     return h.hexdigest()[:12]
 
 
-#: The source that determines a row of the runs table: the model, the integrators, and the
-#: benchmark code that runs a task, measures it and computes its reference.
-_CODE_DIRS = ("models", "integrators")
+#: The physics source: the model and the integrators (a reference's identity, `benchmark.reference`,
+#: and part of every row's code version).
+PHYSICS_DIRS = ("models", "integrators")
+#: The source that determines a row of the runs table: the physics, and the benchmark code that
+#: runs a task, measures it and computes its reference.
+_CODE_DIRS = PHYSICS_DIRS
 _CODE_FILES = ("benchmark/runner.py", "benchmark/metrics.py", "benchmark/reference.py", "benchmark/sweep.py",
                "benchmark/policy.py")
 
