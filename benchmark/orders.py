@@ -162,7 +162,9 @@ def describe(row: dict) -> str:
 
 
 def slopes(dts, errors) -> np.ndarray:
-    """log2 of the error ratio of each halving (the order p of error ∝ h^p)."""
+    """The observed order p of error ∝ h^p between each two successive steps: log of the error ratio
+    over log of the step ratio (log2 of the error ratio of a halving). The order ladders' and the
+    reel-reversal table's."""
     e = np.asarray(errors, float)
     return np.log(e[:-1] / e[1:]) / np.log(np.asarray(dts[:-1], float) / np.asarray(dts[1:], float))
 

@@ -126,3 +126,15 @@ def test_the_defaults_of_a_request_are_the_command_line_s():
     assert request.sweep_t_end == sweep.sweep_t_end(None, True) == sweep.QUICK_T_END
     assert sweep.sweep_dts(None, True) == sweep.QUICK_DTS and sweep.sweep_dts((0.3,), True) == (0.3,)
     assert check.RegressionTolerance() == check.RegressionTolerance(policy.CHECK_FACTOR, policy.CHECK_ORDER_MARGIN)
+
+
+def test_the_reel_reversal_table_and_the_order_ladders_compute_an_order_alike():
+    from types import SimpleNamespace
+
+    from benchmark import orders, reel_reversal
+
+    errors = [reel_reversal.Errors(1e-3, 2e-3, 4e-3), reel_reversal.Errors(2.5e-4, 2.5e-4, 1e-3)]
+    rows = [{"method": "lgvi", "h": h, "errors": e} for h, e in zip((0.01, 0.005), errors)]
+    text = reel_reversal.table(SimpleNamespace(name="s", string=SimpleNamespace(elements=2)), 1.0, [0.5], rows)
+    assert text.splitlines()[-1].endswith("| 2.00 / 3.00 / 2.00 |")
+    assert orders.slopes((0.01, 0.005), (1e-3, 2.5e-4))[0] == pytest.approx(2.0)
