@@ -66,10 +66,10 @@ def nonnegative_float(text: str) -> float:
 
 
 def tolerance(text: str) -> float:
-    from integrators.lifecycle import MIN_RTOL  # the API's floor (imported only when a tolerance is given)
+    from integrators.lifecycle import MIN_RTOL, rtol_allowed  # the API's rule (imported only when one is given)
 
     v = _number(text)
-    if not MIN_RTOL <= v < 1:
+    if not rtol_allowed(v):
         raise argparse.ArgumentTypeError(f"{text!r} is invalid (allowed: {MIN_RTOL:g} <= tolerance < 1; "
                                          "tighter is below float64 rounding)")
     return v

@@ -108,10 +108,10 @@ def check_settings(dts=(), rtols=()) -> None:
         if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
             raise ValueError(f"--dts: dt = {v!r} is invalid (allowed: a finite number > 0)")
     if rtols:
-        from integrators.lifecycle import MIN_RTOL, RTOL_RULE
+        from integrators.lifecycle import RTOL_RULE, rtol_allowed
 
         for v in rtols:
-            if not MIN_RTOL <= v < 1:
+            if not rtol_allowed(v):
                 raise ValueError(f"--rtols: rtol = {v!r} is invalid (allowed: {RTOL_RULE})")
 
 

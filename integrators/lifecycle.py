@@ -102,6 +102,12 @@ MIN_RTOL = 1e-14
 RTOL_RULE = f"a finite number, {MIN_RTOL:g} <= rtol < 1"
 
 
+def rtol_allowed(rtol) -> bool:
+    """Whether a run may ask for the relative tolerance ``rtol`` (`RTOL_RULE`; the command line's
+    checks ask this too)."""
+    return MIN_RTOL <= rtol < 1
+
+
 def check_tolerances(rtol, atol) -> None:
     """rtol in [MIN_RTOL, 1), atol > 0; both required."""
     if rtol is None:
@@ -109,7 +115,7 @@ def check_tolerances(rtol, atol) -> None:
     if atol is None:
         raise ValueError("atol is required for an adaptive method (allowed: a finite number > 0)")
     check_positive("rtol", rtol)
-    if not MIN_RTOL <= rtol < 1:
+    if not rtol_allowed(rtol):
         raise ValueError(f"rtol = {rtol!r} is invalid (allowed: {RTOL_RULE})")
     check_positive("atol", atol)
 
