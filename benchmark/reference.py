@@ -1,5 +1,6 @@
-"""Reference solutions, the one path every study compares with: DOP853 at rtol 1e-12 / atol
-1e-14 on the closed-form right-hand side (the scipy adapter's default), computed once per
+"""Reference solutions of the runs table and the answer: DOP853 at rtol 1e-12 / atol 1e-14 on the
+closed-form right-hand side (the scipy adapter's default; `benchmark.policy.REFERENCE_METHOD`, which
+also says why the order ladders and `verify` use references of their own), computed once per
 problem, cached, reused.
 
 The cache key is a hash of the scene (its physics, not its name), the horizon, the save
