@@ -6,7 +6,7 @@
 * Resume: every row of the runs table carries a `run_key` (scene physics, integrator,
   setting, horizon, save interval, code version); `kept_rows` keeps the rows of an earlier
   table (`read_runs`) with the same key, so only the rest is computed. Rows whose status
-  may have been transient (`RETRY_STATUSES`) are never kept.
+  may have been transient (`integrators.base.RETRY_STATUSES`) are never kept.
 * Trust: a row read back is used only when it passes `check_row` -- its types, ranges and
   status vocabulary (`statuses`, the one list of them), finite non-negative costs, and the
   digest of every column recorded when it was written (`row_digest`; a row without one in a
@@ -93,9 +93,9 @@ def run_key(task, code: str | None = None) -> str:
 # ------------------------------------------------------------------------------------------
 # Trust: what a row of the runs table may hold, and its digest
 # ------------------------------------------------------------------------------------------
-#: Rows with these statuses are recomputed on resume, and the statuses of the runs table besides
-#: the integrators' own: `integrators.base` names both beside `Status`. Every reader that
-#: validates a status (resume, the drift gate, figures) asks `statuses`.
+# The statuses recomputed on resume (`RETRY_STATUSES`) and those of the runs table besides the
+# integrators' own (`TABLE_ONLY_STATUSES`) are named in `integrators.base`, beside `Status`. Every
+# reader that validates a status (resume, the drift gate, figures) asks `statuses`.
 
 #: The columns a row's digest leaves out: the digest itself, and the traceback of a failed run
 #: (never written to the table). Every other column is covered, measurements included (run
