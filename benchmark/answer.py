@@ -37,7 +37,9 @@ import numpy as np
 from benchmark import engine
 from benchmark import paired as _paired
 from benchmark import search as _search
+from benchmark.policy import CHEAPEST_FILE, PAIRED_BUDGET, RESULTS, SAVE_EVERY, SEARCH_TIME_LIMIT, Setting
 from benchmark.store import code_version, frame, kept_rows, key_of
+from benchmark.sweep import DEFAULT_EXECUTOR
 
 #: The default targets: (metric, target, label); ``--targets`` asks for others, on any metric
 #: of `benchmark.metrics.METRICS`.
@@ -67,11 +69,6 @@ EXTENDED_ELEMENTS = (10, 40)
 #: step above 0.1 s is beyond every shipped method's stability on these scenes (the search
 #: would say "largest setting"); rtol: the adapters' own range, 1e-13 above the reference's 1e-12.
 AXES = {"dt": (0.005, 1e-5, 0.1, 2.0), "rtol": (1e-6, 1e-13, 1e-1, 10.0)}
-#: Budgets of one solve in the search: its run time and its steps (a run past them is
-#: ``time_limit`` / ``max_steps``: not finished, finer settings cost more).
-RUN_TIME_LIMIT = 60.0
-SAVE_EVERY = 0.02
-ATOL_FACTOR = 1e-2
 
 SEARCH_COLUMNS = ["scene", "elements", "integrator", "sweep", "metric", "target", "setting", "cost", "cost_column",
                   "error", "setting_low", "setting_high", "setting_finer", "high_status", "bound", "runs", "spread",
@@ -107,7 +104,7 @@ class TimingJob:
     target: float
     candidates: tuple  # ((integrator, sweep, setting), ...)
     t_end: float | None = None
-    budget: float = _paired.BUDGET
+    budget: float = PAIRED_BUDGET
 
     def key(self, code: str) -> str:
         return key_of("timing", asdict(self), code)
@@ -120,12 +117,8 @@ def _scene(name: str, elements: int, t_end: float | None):
 
 
 def solve_kwargs(sweep: str, setting: float, t_end: float) -> dict:
-    kw = {"t_end": t_end, "save_every": SAVE_EVERY}
-    if sweep == "dt":
-        kw["dt"] = float(setting)
-    else:
-        kw.update(rtol=float(setting), atol=float(setting) * ATOL_FACTOR)
-    return kw
+    """A search's or a timing's solve of ``setting`` on axis ``sweep`` (the sweep's save interval)."""
+    return {"t_end": t_end, "save_every": SAVE_EVERY, **Setting.on_axis(sweep, setting).solve_kwargs()}
 
 
 #: The solves this worker ran: (scene, N, t_end, method, axis, setting) -> (status, metrics, cost,
@@ -145,6 +138,7 @@ def _solve_once(job: SearchJob, setting: float, cache_dir: str) -> tuple[str, di
     from benchmark.metrics import INACCURATE, inaccurate_reason, run_metrics
     from benchmark.reference import get_reference
     from integrators import get_integrator
+    from integrators.base import is_finished
     from models import build_model
 
     scene = _scene(job.scene, job.elements, job.t_end)
@@ -155,7 +149,7 @@ def _solve_once(job: SearchJob, setting: float, cache_dir: str) -> tuple[str, di
     ref = _REFERENCES[ref_key]
     started = time.perf_counter()
     try:
-        traj = get_integrator(job.integrator).solve(scene, time_limit=RUN_TIME_LIMIT,
+        traj = get_integrator(job.integrator).solve(scene, time_limit=SEARCH_TIME_LIMIT,
                                                     **solve_kwargs(job.sweep, setting, t_end))
     except ValueError:  # a setting the method refuses (e.g. dt beyond t_end): not finished
         out = ("failed", {}, math.nan, "flops", {})
@@ -164,7 +158,7 @@ def _solve_once(job: SearchJob, setting: float, cache_dir: str) -> tuple[str, di
     model = build_model(scene)
     metrics = run_metrics(scene, traj, ref, SAVE_EVERY)
     status = traj.status
-    if status == "ok" and inaccurate_reason(metrics, scene):  # finished, but no solution: not a point
+    if is_finished(status) and inaccurate_reason(metrics, scene):  # finished, but no solution: not a point
         status = INACCURATE
     flops, _ = run_flops(job.integrator, model, traj.stats, traj.stats.get("rhs", traj.settings.get("rhs")),
                          adaptive=job.sweep == "rtol")
@@ -234,7 +228,7 @@ def run_timing(job: TimingJob, log: Callable[[str], None] = engine.log_stderr) -
     for integrator, sweep, setting in job.candidates:
         integ, kw = get_integrator(integrator), solve_kwargs(sweep, setting, scene.t_end)
         first = integ.solve(scene, **kw)  # compiles; its time is not a sample
-        if first.status != "ok":
+        if not first.ok:
             continue
         solves[entry_name(integrator, sweep, integrator in two_axes)] = functools.partial(_wall_time, integ, scene, kw)
     if not solves:
@@ -244,7 +238,7 @@ def run_timing(job: TimingJob, log: Callable[[str], None] = engine.log_stderr) -
         ratios = _paired.time_paired(solves, budget=job.budget)
     row.update(ratios=json.dumps([asdict(r) for r in ratios]), rounds=ratios[0].pairs,
                seconds=time.perf_counter() - started, core=core, load_avg=one_minute_load(),
-               note="" if _paired.resolved(ratios) else "the budget ended before every interval was within ±10 %")
+               note="" if _paired.resolved(ratios) else f"the budget ended before every interval was within ±{_paired.PRECISION * 100:g} %")
     return row
 
 
@@ -294,7 +288,7 @@ def twins(g: pd.DataFrame) -> dict[tuple[str, str], str]:
     return out
 
 
-def timing_jobs(searched: pd.DataFrame, t_end=None, budget=_paired.BUDGET) -> list[TimingJob]:
+def timing_jobs(searched: pd.DataFrame, t_end=None, budget=PAIRED_BUDGET) -> list[TimingJob]:
     """One per scene × N × metric × target: the compiled entries that met it (a method with a
     fixed-step and an adaptive axis is two entries, like with like), each at its searched setting;
     a search bit-identical to another's (`twins`) is timed once, as the method ranked."""
@@ -402,7 +396,7 @@ def run_timing_stage(jobs: list[TimingJob], *, previous=(), on_row=None, log=eng
 # cheapest.csv and the answer block
 # ------------------------------------------------------------------------------------------
 def _setting_text(sweep: str, v: float) -> str:
-    return f"{sweep}={v:.4g}" if np.isfinite(v) else ""
+    return Setting.on_axis(sweep, v).label(digits=4) if np.isfinite(v) else ""
 
 
 def answer_table(searched: pd.DataFrame, timed: pd.DataFrame) -> pd.DataFrame:
@@ -557,7 +551,7 @@ def answer_lines(table: pd.DataFrame, labels: dict | None = None) -> list[str]:
 
 
 def answer_block(table: pd.DataFrame, labels: dict | None = None, command: str = "python -m benchmark answer",
-                 table_file: str = "results/cheapest.csv") -> str:
+                 table_file: str = str(CHEAPEST_FILE)) -> str:
     """The project README's answer block: one table per N, one sentence per scene, how it was made."""
     from benchmark import answer_report
 
@@ -567,7 +561,7 @@ def answer_block(table: pd.DataFrame, labels: dict | None = None, command: str =
 
 
 #: Where the committed answer lives: an `answer` run into it also rewrites the README's answer block.
-COMMITTED_ANSWER = Path("results")
+COMMITTED_ANSWER = RESULTS
 
 
 def is_committed_answer(out: Path) -> bool:
@@ -639,12 +633,12 @@ class AnswerRequest:
     targets: tuple = tuple((m, t) for m, t, _ in TARGETS)
     t_end: float | None = None
     max_runs: int = _search.MAX_RUNS
-    timing_budget: float = _paired.BUDGET
+    timing_budget: float = PAIRED_BUDGET
     jobs: int | None = None
     fresh: bool = False
     command: str = "python -m benchmark answer"
     compare_with: tuple = ()  # earlier cheapest.csv files, one agreement paragraph each
-    executor: str = "process"  # where the searches run (`benchmark.sweep.EXECUTORS`); the timing stays here
+    executor: str = DEFAULT_EXECUTOR  # where the searches run (`benchmark.sweep.EXECUTORS`); the timing stays here
     scheduler: str | None = None
 
 

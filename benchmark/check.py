@@ -57,13 +57,15 @@ import pandas as pd
 from benchmark import runner, sweep
 from benchmark.metrics import ACCURACY, DIRECTIONS, observed_orders
 from benchmark.options import check_tolerance_rules
+from benchmark.policy import BASELINE_FILE, CHECK_FACTOR, CHECK_ORDER_MARGIN, ROW_IDENTITY, axis_of
 from benchmark.metrics import FLOORS as METRIC_FLOORS
 from benchmark.reference import CACHE_DIR, REFERENCE_METHOD
 from benchmark.report import Provenance, fmt, markdown_table
 from integrators import Capability, available, get_integrator, plugin_errors
 from models.io import atomic_write_text
+from integrators.base import is_finished
 
-BASELINE = Path("results") / "baseline" / "drift.csv"
+BASELINE = BASELINE_FILE
 UPDATE_COMMAND = "python -m benchmark check --update"
 
 # The check sweep: short, so the whole check costs about 140 CPU-seconds (measured; mostly JAX
@@ -79,18 +81,22 @@ FINER_DTS = {"lgvi_yoshida4": (0.00125, 0.000625)}
 ADAPTIVE_RTOLS = (1e-4, 1e-6)
 IMPLICIT_RTOLS = (1e-3, 1e-4)  # implicit solves cost 10-100x more per step: loose tolerances only
 
-DEFAULT_FACTOR = 2.0
-DEFAULT_ORDER_MARGIN = 0.5
+DEFAULT_FACTOR, DEFAULT_ORDER_MARGIN = CHECK_FACTOR, CHECK_ORDER_MARGIN
 #: Absolute floors (below them a value is round-off or the reference's own error) and directions:
 #: the metric registry's (`benchmark.metrics.METRICS`).
 FLOORS = dict(METRIC_FLOORS)
 ORDER = "observed_order"
-KEY = ["scene", "integrator", "setting"]
+KEY = list(ROW_IDENTITY)
 COLUMNS = KEY + ["status", *ACCURACY, ORDER, "steps", "run_time", "compile_time", "reason"]
 
 
 @dataclass(frozen=True)
-class Tolerance:
+class RegressionTolerance:
+    """What the drift gate calls a regression of a run against its baseline (the module's
+    docstring): a metric worse than ``factor`` × baseline above its floor, an order lower by more
+    than ``order_margin``. Not `benchmark.reproducibility.AgreementTolerance`, which decides
+    whether two runs of the same sweep on two machines agree."""
+
     factor: float = DEFAULT_FACTOR
     order_margin: float = DEFAULT_ORDER_MARGIN
     floors: dict = field(default_factory=lambda: dict(FLOORS))
@@ -118,7 +124,7 @@ def build_check_tasks(integrators=None, *, scenes=SCENES, t_end: float = T_END, 
     return tasks
 
 
-def measure(tasks, *, executor: str = "process", jobs: int | None = None, cache_dir: str = str(CACHE_DIR),
+def measure(tasks, *, executor: str = sweep.DEFAULT_EXECUTOR, jobs: int | None = None, cache_dir: str = str(CACHE_DIR),
             costs: dict | None = None, budget=None, log: Callable[[str], None] | None = None) -> pd.DataFrame:
     """Run ``tasks`` (no timing repeats) and return the table in the baseline's layout.
 
@@ -338,7 +344,7 @@ def row_problems(df: pd.DataFrame) -> list[tuple[int, str]]:
         if status not in known:
             out.append((line, f"{what}: status {status!r} is not a status of the runs table "
                               f"(known: {', '.join(known)})"))
-        elif status != "ok":
+        elif not is_finished(status):
             out.append((line, f"{what}: status {status}: a run of the check sweep that is not ok cannot fail a "
                               "check (only an improvement is possible); every run of a usable baseline is ok"))
         else:
@@ -356,7 +362,7 @@ def row_problems(df: pd.DataFrame) -> list[tuple[int, str]]:
                 continue
             err = "position_error_final"
             if row[err] > FLOORS[err] and row.get("steps", 1.0) != 0:
-                usable.setdefault((key[0], key[1], key[2].split("=")[0]), [0, line])[0] += 1
+                usable.setdefault((key[0], key[1], axis_of(key[2])), [0, line])[0] += 1
     for (scene, name, axis), (n, line) in usable.items():
         if n >= 2 and (scene, name, f"order({axis})") not in first:
             out.append((line, f"no {ORDER} row for {scene} / {name} / order({axis}), though {n} of its runs give one"))
@@ -409,11 +415,11 @@ def comparable(baseline: pd.DataFrame, tasks, path, allow_new=(), *, registered=
                          f"(reelbench's own method{'s' if len(lacking) > 1 else ''}). Add them with "
                          f"`{UPDATE_COMMAND} --integrators {names}`, or pass --allow-new {names} to check the others "
                          "without them")
-    missing = [t for t in tasks if t.integrator in based and (t.scene, t.integrator, t.setting) not in have]
+    missing = [t for t in tasks if t.integrator in based and t.identity not in have]
     if missing:
-        shown = ", ".join(_name((t.scene, t.integrator, t.setting)) for t in missing[:6])
+        shown = ", ".join(_name(t.identity) for t in missing[:6])
         more = f" and {len(missing) - 6} more" if len(missing) > 6 else ""
-        why = ("rows of other scenes or settings only" if not any((t.scene, t.integrator, t.setting) in have
+        why = ("rows of other scenes or settings only" if not any(t.identity in have
                                                                   for t in tasks) else "its coverage shrank")
         raise ValueError(f"baseline {path} lacks {len(missing)} run(s) of this check's sweep ({why}): {shown}{more}. "
                          f"A check cannot pass on runs it does not compare: regenerate the baseline with "
@@ -481,7 +487,7 @@ def _name(key) -> str:
     return " / ".join(key)
 
 
-def compare(baseline: pd.DataFrame, current: pd.DataFrame, tol: Tolerance = Tolerance(), *,
+def compare(baseline: pd.DataFrame, current: pd.DataFrame, tol: RegressionTolerance = RegressionTolerance(), *,
             registered: list[str] | None = None, load_errors: dict[str, str] | None = None) -> Comparison:
     """Compare ``current`` with ``baseline`` (both in the `to_table` layout) under ``tol``.
     ``registered`` / ``load_errors`` default to the registry's `available()` / `plugin_errors()`."""
@@ -526,7 +532,7 @@ def _compare_membership(out: Comparison, base: pd.DataFrame, cur: pd.DataFrame, 
             out.notes.append(f"{_name(key)}: in the baseline but not in this sweep")
 
 
-def _compare_order(out: Comparison, key, bo: float, co: float, tol: Tolerance) -> None:
+def _compare_order(out: Comparison, key, bo: float, co: float, tol: RegressionTolerance) -> None:
     if np.isfinite(bo) and np.isfinite(co):
         if co < bo - tol.order_margin:
             out.regression(key, ORDER, _g(bo), _g(co), f"{co - bo:+.2f}", f">= {bo - tol.order_margin:.3g}")
@@ -543,17 +549,17 @@ def _compare_status(out: Comparison, key, b: pd.Series, c: pd.Series) -> bool:
     (then their metrics are compared)."""
     bs, cs = b["status"], c["status"]
     if bs != cs:
-        text = f"{cs}: {c['reason']}"[:80] if cs != "ok" else cs
-        if bs == "ok":
+        text = f"{cs}: {c['reason']}"[:80] if not is_finished(cs) else cs
+        if is_finished(bs):
             out.regression(key, "status", bs, text, "no longer ok", "ok")
-        elif cs == "ok":
+        elif is_finished(cs):
             out.improvement(key, "status", bs, cs, "now ok")
         else:
             out.notes.append(f"{_name(key)}: status {bs} -> {text}")
-    return bs == "ok" and cs == "ok"
+    return is_finished(bs) and is_finished(cs)
 
 
-def _compare_metrics(out: Comparison, key, b: pd.Series, c: pd.Series, tol: Tolerance) -> None:
+def _compare_metrics(out: Comparison, key, b: pd.Series, c: pd.Series, tol: RegressionTolerance) -> None:
     for m in ACCURACY:
         bv, cv = float(b[m]), float(c[m])
         if not np.isfinite(bv):
@@ -610,7 +616,8 @@ def machine_load() -> str:
         return ""
 
 
-def format_report(cmp: Comparison, tol: Tolerance, baseline_path, baseline_header: list[str] | None = None) -> str:
+def format_report(cmp: Comparison, tol: RegressionTolerance, baseline_path,
+                  baseline_header: list[str] | None = None) -> str:
     """The readable outcome: regressions, improvements, notes, timing, verdict."""
     # "Produced by": the header of baselines written before the shared report header
     made = next((h for h in baseline_header or [] if h.startswith(("Generated by", "Produced by"))), "")

@@ -26,6 +26,7 @@ import threading
 from pathlib import Path
 
 from benchmark import options as opt
+from benchmark import policy
 from benchmark.engine import log_stderr as _log  # the engine's: its lines go above a progress bar
 from benchmark.options import UsageError
 from models.io import inside, printable
@@ -110,7 +111,7 @@ def _add_executor(p, what: str) -> None:
     """--executor and --scheduler, the same on every command that runs jobs on the engine."""
     from benchmark import sweep
 
-    p.add_argument("--executor", default="process", choices=list(sweep.EXECUTORS),
+    p.add_argument("--executor", default=sweep.DEFAULT_EXECUTOR, choices=list(sweep.EXECUTORS),
                    help=f"where {what} execute: worker processes, this process, or a Dask cluster")
     p.add_argument("--scheduler", help="Dask scheduler address, with --executor dask (e.g. tcp://host:8786)")
 
@@ -138,16 +139,16 @@ def cmd_run(args) -> int:
     with_t_end = {"t_end": args.t_end, **ov} if args.t_end is not None else ov  # validated with the scene
     scenes = [load_scene(s, **with_t_end) for s in scene_names]
     sweep.check_settings(args.dts, args.rtols)
-    t_end = args.t_end or (sweep.QUICK_T_END if args.quick else None)
+    t_end = sweep.sweep_t_end(args.t_end, args.quick)
     for sc in scenes:
-        if (t_end or sc.t_end) < sweep.SAVE_EVERY:  # every run would end in an error row
+        if (t_end or sc.t_end) < policy.SAVE_EVERY:  # every run would end in an error row
             raise UsageError(f"{'--t-end' if t_end else sc.name + ': t_end'} = {t_end or sc.t_end:g} s is shorter than "
-                             f"the sweep's save interval {sweep.SAVE_EVERY:g} s: give --t-end >= {sweep.SAVE_EVERY:g}")
-        for dt in args.dts or (sweep.QUICK_DTS if args.quick else sweep.FULL_DTS):
+                             f"the sweep's save interval {policy.SAVE_EVERY:g} s: give --t-end >= {policy.SAVE_EVERY:g}")
+        for dt in sweep.sweep_dts(args.dts, args.quick):
             if dt > (t_end or sc.t_end):  # any smaller step is allowed (the last one lands on t_end)
                 raise UsageError(f"--dts: dt = {dt:g} s is longer than the run ({sc.name}: t_end = {t_end or sc.t_end:g} s; "
                                  "allowed: 0 < dt <= t_end)")
-            opt.check_size(sc, t_end or sc.t_end, sweep.SAVE_EVERY, dt, warn=_log, what=f"{sc.name} at dt = {dt:g} s",
+            opt.check_size(sc, t_end or sc.t_end, policy.SAVE_EVERY, dt, warn=_log, what=f"{sc.name} at dt = {dt:g} s",
                            save_option=None)  # run saves every SAVE_EVERY: no option to raise
     out = opt.writable_dir(_run_out(args))
     opt.no_directory_at(out, ("runs.csv", "runs.md", "orders.csv", "README.md", "figures.json"))
@@ -173,9 +174,9 @@ def _budget(args):
 
 def _add_budget(p, what: str) -> None:
     """--max-steps and --time-limit, the budget of every solve of a study (`runner.SolveBudget`)."""
-    p.add_argument("--max-steps", type=opt.positive_int, default=opt.SOLVE_MAX_STEPS,
+    p.add_argument("--max-steps", type=opt.positive_int, default=policy.SOLVE_MAX_STEPS,
                    help=f"step budget of each solve: a run past it ends with status max_steps and {what} goes on")
-    p.add_argument("--time-limit", type=opt.positive_float, default=opt.SOLVE_TIME_LIMIT,
+    p.add_argument("--time-limit", type=opt.positive_float, default=policy.SOLVE_TIME_LIMIT,
                    help=f"wall-clock budget of each solve in s (after compilation): a run past it ends with status "
                         f"time_limit and {what} goes on (such a row is recomputed on resume)")
 
@@ -199,7 +200,7 @@ def _check_horizon_size(args, overrides: dict) -> None:
 
 
 #: `run`'s default output directory: the committed grid sweep (`pipelines.COMMITTED_RESULTS`).
-GRID_OUT = "results/grid"
+GRID_OUT = str(policy.GRID_DIR)
 
 #: The options of `run` that make it something other than the default sweep (other rows).
 _SWEEP_OPTIONS = (("scenes", "--scenes"), ("integrators", "--integrators"), ("quick", "--quick"), ("dts", "--dts"),
@@ -261,7 +262,7 @@ def cmd_simulate(args) -> int:
     if args.dt is not None:
         settings["dt"] = args.dt
     if args.rtol is not None:
-        settings.update(rtol=args.rtol, atol=args.atol if args.atol is not None else args.rtol * 1e-2)
+        settings.update(policy.Setting.adaptive(args.rtol, args.atol).solve_kwargs())
 
     from benchmark import pipelines
 
@@ -356,8 +357,8 @@ def cmd_check(args) -> int:
     names = args.integrators  # a list (opt.names: "," is refused by the parser, it would select every method)
     for name in names or ():
         _check_integrator(name)  # before the baseline is read
-    opt.check_tolerance_rules(2.0 if args.factor is None else args.factor,
-                              0.5 if args.order_margin is None else args.order_margin)  # before any import of JAX
+    opt.check_tolerance_rules(policy.CHECK_FACTOR if args.factor is None else args.factor,
+                              policy.CHECK_ORDER_MARGIN if args.order_margin is None else args.order_margin)
     if args.allow_new and args.update:
         raise UsageError("--allow-new is for a check against the baseline; --update writes the rows of every "
                          "integrator it runs")
@@ -636,7 +637,7 @@ def _add_run(sub) -> None:
                    f"any size (saved at the step points nearest the save times; default: {_csv(sweep.FULL_DTS)}; "
                    f"--quick: {_csv(sweep.QUICK_DTS)})")
     r.add_argument("--rtols", type=opt.tolerances, help="comma-separated relative tolerances for adaptive methods, "
-                   f"atol = rtol × {sweep.ATOL_FACTOR:g} (default: {_csv(sweep.FULL_RTOLS)}; implicit methods "
+                   f"atol = rtol × {policy.ATOL_FACTOR:g} (default: {_csv(sweep.FULL_RTOLS)}; implicit methods "
                    f"{_csv(sweep.IMPLICIT_FULL_RTOLS)}; --quick: {_csv(sweep.QUICK_RTOLS)}, implicit "
                    f"{_csv(sweep.IMPLICIT_QUICK_RTOLS)})")
     r.add_argument("--t-end", type=opt.positive_float,
@@ -674,13 +675,14 @@ def _add_check(sub) -> None:
                      "exit 1 on a regression (rules in benchmark/check.py)")
     c.add_argument("--update", action="store_true", help="rewrite the baseline from this run instead of failing")
     _add_budget(c, "the check")
-    c.add_argument("--baseline", help="baseline CSV (default: results/baseline/drift.csv, run from the repository root)")
+    c.add_argument("--baseline", help=f"baseline CSV (default: {policy.BASELINE_FILE}, run from the repository root)")
     c.add_argument("--integrators", type=opt.names,
                    help="comma-separated names (default: all registered except test_*)")
     c.add_argument("--factor", type=opt.number,
-                   help="a drift or error fails when worse than FACTOR x baseline, above its floor (default: 2)")
+                   help=f"a drift or error fails when worse than FACTOR x baseline, above its floor (default: "
+                        f"{policy.CHECK_FACTOR:g})")
     c.add_argument("--order-margin", type=opt.number,
-                   help="an observed order fails when lower than baseline - MARGIN (default: 0.5)")
+                   help=f"an observed order fails when lower than baseline - MARGIN (default: {policy.CHECK_ORDER_MARGIN:g})")
     c.add_argument("--jobs", type=opt.positive_int, help="worker processes (default: CPU count)")
     c.add_argument("--allow-new", type=opt.names, metavar="NAMES",
                    help="comma-separated integrators that may lack baseline rows (new methods); any other selected "
@@ -699,13 +701,14 @@ def _add_simulate(sub) -> None:
     setting = s.add_mutually_exclusive_group()
     setting.add_argument("--dt", type=opt.positive_float, help="fixed step size in s (fixed-step methods)")
     setting.add_argument("--rtol", type=opt.tolerance, help="relative tolerance (adaptive methods); atol defaults "
-                                                            "to rtol/100")
-    s.add_argument("--atol", type=opt.positive_float, help="absolute tolerance, with --rtol (default: rtol/100)")
+                                                            f"to rtol × {policy.ATOL_FACTOR:g}")
+    s.add_argument("--atol", type=opt.positive_float,
+                   help=f"absolute tolerance, with --rtol (default: rtol × {policy.ATOL_FACTOR:g})")
     s.add_argument("--t-end", type=opt.positive_float, help="horizon in s (default: the scene's t_end)")
-    s.add_argument("--save-every", type=opt.positive_float, default=0.02, help="save interval in s")
-    s.add_argument("--max-steps", type=opt.positive_int, default=opt.SOLVE_MAX_STEPS,
+    s.add_argument("--save-every", type=opt.positive_float, default=policy.SAVE_EVERY, help="save interval in s")
+    s.add_argument("--max-steps", type=opt.positive_int, default=policy.SOLVE_MAX_STEPS,
                    help="step budget: the run ends with status max_steps there, its trajectory saved")
-    s.add_argument("--time-limit", type=opt.positive_float, default=opt.SOLVE_TIME_LIMIT,
+    s.add_argument("--time-limit", type=opt.positive_float, default=policy.SOLVE_TIME_LIMIT,
                    help="wall-clock budget of the run in s (after compilation): it ends with status time_limit "
                         "there, its trajectory saved (a first Ctrl-C ends it the same way, a second at once)")
     _add_set(s)
@@ -741,7 +744,7 @@ def _add_speed(sub) -> None:
     sp.add_argument("--rhs", default=_csv(default.rhs), help="right-hand sides to time per call ('' = none)")
     sp.add_argument("--autodiff-max-n", type=opt.positive_int, default=default.autodiff_max_n,
                     help="largest N for the O(N^3) autodiff right-hand side")
-    sp.add_argument("--out", default="results/lgvi_speed.md",
+    sp.add_argument("--out", default=str(policy.LGVI_SPEED_FILE),
                     help="the tables (Markdown, with the command and machine): this run's rows join those of the "
                          "rows table beside it (.csv; rows of other methods, scenes and N are kept) and the file is "
                          "written from the whole table; - = only print them")
@@ -756,17 +759,17 @@ def _add_stability(sub) -> None:
                                                           "methods, implicit baselines last; a plugin runs when named)")
     st.add_argument("--jobs", type=opt.nonnegative_int, default=2, help="worker processes (0: run in this process)")
     _add_budget(st, "the map")
-    st.add_argument("--out", default="results/stability", help="output directory (created if missing)")
+    st.add_argument("--out", default=str(policy.STABILITY_DIR), help="output directory (created if missing)")
     st.set_defaults(func=cmd_stability)
 
 
 def _add_answer(sub) -> None:
-    from benchmark import answer, paired, search  # constants only (no JAX)
+    from benchmark import answer, search  # constants only (no JAX)
 
     an = sub("answer", "the main job: each method's cheapest setting at each target by search, wall-time verdicts "
                        "by paired timing -> --out/cheapest.csv, README.md, figures (and the README's answer block)",
              "For every scene x N x method x target, search the cheapest setting meeting the target that stands "
-             "(bracket, bisect to 10 % in cost, confirm the three settings just finer; benchmark/search.py), then "
+             f"(bracket, bisect to {policy.RESOLUTION * 100:g} % in cost, confirm the three settings just finer; benchmark/search.py), then "
              "time the compiled methods at their settings paired and interleaved on one pinned core, racing "
              "(benchmark/paired.py). Default: the paper's three scenes at N = 10 with the default methods and dopri8; "
              "--extended: every method, the scenes in water and the off-centre tow too, at N = 10 and 40, its rows "
@@ -778,10 +781,11 @@ def _add_answer(sub) -> None:
                                                           "default sweep's and dopri8; --extended: all of the project's)")
     an.add_argument("--elements", type=opt.positive_ints, help="comma-separated N (default 10; --extended 10,40)")
     an.add_argument("--targets", help="comma-separated metric=target pairs on any accuracy metric of the runs "
-                                      "table (default: energy_error=1e-4,position_error_final=1e-6)")
+                                      "table (default: "
+                                      f"{','.join(f'{m}={t:g}' for m, t, _ in answer.TARGETS)})")
     an.add_argument("--t-end", type=opt.positive_float, help="horizon in s (default: each scene's t_end)")
     an.add_argument("--max-runs", type=opt.positive_int, default=search.MAX_RUNS, help="runs per search at most")
-    an.add_argument("--timing-budget", type=opt.positive_float, default=paired.BUDGET,
+    an.add_argument("--timing-budget", type=opt.positive_float, default=policy.PAIRED_BUDGET,
                     help="seconds of paired timing per scene x N x target at most")
     an.add_argument("--jobs", type=opt.positive_int, help="worker processes for the search (default: one per CPU)")
     _add_executor(an, "the searches (the paired timing stays in this process, on one pinned core)")
@@ -802,7 +806,7 @@ def _add_xval(sub) -> None:
     xv.add_argument("--t-end", type=opt.positive_float, help="horizon in s (default 5)")
     xv.add_argument("--cases", type=opt.names, help="comma-separated cases of point_mass, rigid_body, in_water "
                                                     "(default: every case the scene has)")
-    xv.add_argument("--out", default="results/xval", help="output directory (created if missing)")
+    xv.add_argument("--out", default=str(policy.XVAL_DIR), help="output directory (created if missing)")
     xv.set_defaults(func=cmd_xval)
 
 
@@ -838,7 +842,7 @@ def _add_orders(sub) -> None:
                                                          "registered one)")
     o.add_argument("--jobs", type=opt.nonnegative_int, help="worker processes (0: in this process; default: one "
                                                             "per method, at most the CPU count)")
-    o.add_argument("--out", default="results", help="output directory (created if missing)")
+    o.add_argument("--out", default=str(policy.RESULTS), help="output directory (created if missing)")
     o.set_defaults(func=cmd_orders)
 
 
@@ -859,7 +863,7 @@ def _add_energy(sub) -> None:
     e.add_argument("--variants", type=opt.names, help="comma-separated string laws: plain (the scene as it is), "
                                                       "slack (tension-only) (default: both)")
     e.add_argument("--jobs", type=opt.nonnegative_int, help="worker processes (0: in this process)")
-    e.add_argument("--out", default="results", help="output directory (created if missing)")
+    e.add_argument("--out", default=str(policy.RESULTS), help="output directory (created if missing)")
     e.set_defaults(func=cmd_energy)
 
 

@@ -25,7 +25,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from benchmark.options import SOLVE_MAX_STEPS
+from benchmark.policy import SOLVE_MAX_STEPS
 from benchmark.sweep import MethodSettings
 
 DEFAULT_SCENE = "fixed_length"
@@ -67,7 +67,7 @@ PLAN = (
 )
 #: The second setting of a fixed-step method: its step / FINER (an adaptive one: its tolerances / TIGHTER).
 FINER, TIGHTER = 2.0, 100.0
-#: The step budget of each run: every solve's (`benchmark.options.SOLVE_MAX_STEPS`), not a
+#: The step budget of each run: every solve's (`benchmark.policy.SOLVE_MAX_STEPS`), not a
 #: library's default (diffrax's 100,000 stopped Tsit5 at rtol 1e-8 short of 100 s at N = 10).
 MAX_STEPS = SOLVE_MAX_STEPS
 #: Identity of one run in energy_horizon.csv (a rerun replaces the rows of the same run).

@@ -9,6 +9,8 @@ import numpy as np
 import pandas as pd
 
 from models._lazy import lazy_function
+from integrators.base import FINISHED_STATUSES
+from integrators.base import INACCURATE as _INACCURATE
 
 # JAX-backed: imported on first use, so that the command line can list the metrics without JAX
 build_model = lazy_function("models.model", "build_model")
@@ -126,7 +128,7 @@ class Metric:
 #: two coarsest fixed steps (10 and 20 ms), e.g. dopri5 at 10 ms on fixed_length (energy error
 #: 1.18, position error 13.9 m) and dopri8 at 20 ms (energy error 0.15); every one that broke
 #: the position bound broke the energy bound too.
-INACCURATE = "inaccurate"
+INACCURATE = _INACCURATE  # the status, named with the others in `integrators.base`
 ENERGY_SANITY_BOUND = 0.1
 POSITION_SANITY_FRACTION = 0.01
 
@@ -219,7 +221,7 @@ def _distances(scene, traj, ref, save_every: float):
     return dpos, datt
 
 
-def run_metrics(scene, traj, ref, save_every: float, finished=("ok",)) -> dict:
+def run_metrics(scene, traj, ref, save_every: float, finished=FINISHED_STATUSES) -> dict:
     """All accuracy metrics of one run (`METRICS`; NaN if the run did not finish, i.e. its status
     is not in ``finished``; the reference metrics are NaN without a reference ``ref``)."""
     if traj.status not in finished or len(traj.t) == 0:
@@ -252,7 +254,7 @@ def observed_orders(runs: pd.DataFrame, error: str = "position_error_final") -> 
     for (scene, integ, axis), g in runs.assign(axis=np.where(runs["dt"].notna(), "dt", "rtol")).groupby(
         ["scene", "integrator", "axis"]
     ):
-        g = g[(g["status"] == "ok") & (g[error] > 1e-12) & (g["steps"] > 0)].sort_values("steps")
+        g = g[g["status"].isin(FINISHED_STATUSES) & (g[error] > 1e-12) & (g["steps"] > 0)].sort_values("steps")
         slopes = -np.diff(np.log(g[error].to_numpy(float))) / np.diff(np.log(g["steps"].to_numpy(float)))
         rows.append({"scene": scene, "integrator": integ, "sweep": axis, "points": len(g),
                      "observed_order": float(np.mean(slopes)) if len(slopes) else np.nan,
@@ -264,7 +266,7 @@ def fastest_at(runs: pd.DataFrame, error: str, target: float, cost: str = "run_t
     """Per scene: the cheapest finished run of each integrator whose ``error`` <= target,
     ranked by ``cost`` (``run_time``, or ``work_evals``: see `WORK_DEFINITION`), with the factor
     to the cheapest. Runs without that cost (NaN) are left out."""
-    ok = runs[(runs["status"] == "ok") & (runs[error] <= target) & runs[cost].notna()]
+    ok = runs[runs["status"].isin(FINISHED_STATUSES) & (runs[error] <= target) & runs[cost].notna()]
     out = []
     for scene, g in ok.groupby("scene"):
         best = g.loc[g.groupby("integrator")[cost].idxmin()].sort_values(cost)

@@ -14,6 +14,8 @@ import os
 import tempfile
 from pathlib import Path
 
+from benchmark.policy import ROW_IDENTITY, SOLVE_MAX_STEPS, SOLVE_TIME_LIMIT  # noqa: F401 (the budget defaults)
+
 
 class UsageError(ValueError):
     """Bad input found before any work; the command line prints it as ``error: ...`` (exit 2)."""
@@ -64,10 +66,10 @@ def nonnegative_float(text: str) -> float:
 
 
 def tolerance(text: str) -> float:
-    from integrators.lifecycle import MIN_RTOL  # the API's floor (imported only when a tolerance is given)
+    from integrators.lifecycle import MIN_RTOL, rtol_allowed  # the API's rule (imported only when one is given)
 
     v = _number(text)
-    if not MIN_RTOL <= v < 1:
+    if not rtol_allowed(v):
         raise argparse.ArgumentTypeError(f"{text!r} is invalid (allowed: {MIN_RTOL:g} <= tolerance < 1; "
                                          "tighter is below float64 rounding)")
     return v
@@ -118,7 +120,7 @@ def csv_table(columns: tuple, what: str):
 
 #: The runs.csv of an earlier run (`run --compare-with`), and an earlier answer's cheapest.csv
 #: (`answer --compare-with`).
-runs_table = csv_table(("scene", "integrator", "setting", "status", "run_time"), "the runs.csv of an earlier run")
+runs_table = csv_table((*ROW_IDENTITY, "status", "run_time"), "the runs.csv of an earlier run")
 answer_table = csv_table(("scene", "elements", "metric", "target", "cost_kind", "entry", "verdict", "ratio"),
                          "the cheapest.csv of an earlier answer")
 
@@ -195,21 +197,17 @@ def writable_file(path: str | os.PathLike, option: str = "--out") -> Path:
 # --------------------------------------------------------------------------------------------
 # Size of a run, before it starts
 # --------------------------------------------------------------------------------------------
-#: Refuse a run whose saved trajectory would need more memory than this (bytes) ...
-MEMORY_REFUSE = 8 * 2**30
-#: ... and warn above this.
+#: Warn when a run's saved trajectory would need more memory than this (bytes). A run is refused
+#: beyond the integrators' own limits: `integrators.lifecycle.MAX_SAVED_BYTES` (of the size
+#: `lifecycle.saved_size`) and `lifecycle.MAX_PLANNED_STEPS` (counted as the fixed-step loop runs:
+#: `integrators.base.fixed_step_count`): exactly 1e9 steps run, one more is refused. At the
+#: estimate below, 1e9 steps is over half an hour at N = 10 and days at N = 1000; below it the time
+#: estimate warns instead.
 MEMORY_WARN = 1 * 2**30
-#: A fixed-step run takes at most this many planned steps (the fixed-step loop's count,
-#: floor(t_end / dt); the integrators' own limit `integrators.lifecycle.MAX_PLANNED_STEPS` is the
-#: same): exactly 1e9 runs, one more is refused. At the estimate below, 1e9 steps is over half an
-#: hour at N = 10 and days at N = 1000; below it the time estimate warns instead.
+#: The refusal limits, the integrators' own (`integrators.lifecycle`), restated for the reason in
+#: `run_size`; tests/test_policy.py pins them equal.
+MEMORY_REFUSE = 8 * 2**30
 STEPS_REFUSE = 1e9
-#: Every solve's default budgets (raised by --max-steps / --time-limit on `simulate`, `run`,
-#: `stability` and `check`): a request that would run for hours (a tolerance near round-off over a
-#: long horizon) ends with status max_steps / time_limit (`simulate` saves its trajectory), and a
-#: sweep goes on with its other runs.
-SOLVE_MAX_STEPS = 10_000_000
-SOLVE_TIME_LIMIT = 1800.0
 #: Warn when the estimated wall time of one run exceeds this (s).
 TIME_WARN = 600.0
 #: LGVI time per step ≈ STEP_COST_10 × (N/10)^0.9 (results/lgvi_speed.md, one core: 1.07 µs on
@@ -223,15 +221,16 @@ def run_size(scene, t_end: float, save_every: float, dt: float | None = None) ->
     wall time of one run of ``scene``; no JAX needed."""
     from models.layout import StateLayout  # JAX-free: the sizes the listed effects give
 
-    n = scene.string.elements
+    # The integrators' own rules, restated: importing them would import the integrators package
+    # (its registry) on every refusal. tests/test_policy.py pins both to them.
     lay = StateLayout.from_scene(scene)
-    nx, nw = lay.nx, lay.nw
-    per_point = 8 * (nx + nw + 9 + 1 + 1)  # x, velocity, attitude, work, t (float64)
-    points = math.floor(t_end / save_every) + 2
-    out = {"points": points, "bytes": points * per_point, "steps": None, "seconds": None}
+    interval = save_every if dt is None else max(save_every, dt)  # lifecycle.saved_interval
+    points = math.floor(t_end / interval) + 2
+    size = points * 8 * (lay.nx + 2 * lay.nw + 9 + 2)  # lifecycle.saved_size: x, velocity, momentum, attitude, work, t
+    out = {"points": points, "bytes": size, "steps": None, "seconds": None}
     if dt is not None:
-        out["steps"] = math.floor(t_end / dt + 1e-9)  # what the fixed-step loop runs (lifecycle.step_indices)
-        out["seconds"] = out["steps"] * STEP_COST_10 * (n / 10.0) ** 0.9
+        out["steps"] = max(1, math.ceil(t_end / dt - 1e-9))  # base.fixed_step_count: what the fixed-step loop runs
+        out["seconds"] = out["steps"] * STEP_COST_10 * (scene.string.elements / 10.0) ** 0.9
     return out
 
 

@@ -32,6 +32,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from benchmark.policy import ORDERS_CHECK_METHOD, ORDERS_REFERENCE_DT, ORDERS_REFERENCE_METHOD, Setting
+
 #: One scene per situation (`integrators.base.SITUATIONS`): fixed length, and the reel retrieving.
 #: Deployment is left out by default: it starts with 3 m deployed, two 1.5 m elements with an
 #: 84 rad/s axial mode, so the coarse steps do not finish and dopri8's slope is still 8.5 at the
@@ -44,10 +46,11 @@ T_END, SAVE_EVERY = 2.56, 0.16
 ELEMENTS = 2
 #: Halvings of the step: HALVINGS + 1 runs per method and scene.
 HALVINGS = 5
-#: The reference: constant-step dopri8 at `REFERENCE_DT`, its error bounded against twice that step.
-REFERENCE_METHOD, REFERENCE_DT = "dopri8", 0.000625
-#: The independent check of the reference (scipy's DOP853, another eighth-order tableau).
-CHECK_METHOD = {"integrator": "dop853", "rtol": 1e-13, "atol": 1e-15}
+#: The ladders' own reference and its independent check (`benchmark.policy`: why they differ from
+#: the runs table's): constant-step dopri8 at `REFERENCE_DT`, its error bounded against twice that
+#: step, and scipy's DOP853, another eighth-order tableau.
+REFERENCE_METHOD, REFERENCE_DT = ORDERS_REFERENCE_METHOD, ORDERS_REFERENCE_DT
+CHECK_METHOD = ORDERS_CHECK_METHOD
 #: A run's error counts when it is at least this many times the reference's error bound.
 FLOOR_FACTOR = 100.0
 #: Two consecutive slopes closer than this: the error is in its asymptotic range.
@@ -140,7 +143,7 @@ def run_job(job: Job) -> dict:
         same = tr.ok and np.shape(tr.x) == np.shape(job.reference.x)
         ladder.append({"scene": job.scene, "integrator": job.integrator, "situation": situation(scene),
                        "declared_order": declared, "elements": job.elements, "t_end": job.t_end,
-                       "setting": f"dt={h:g}", "dt": h, "status": tr.status, "reason": tr.reason,
+                       "setting": Setting.fixed(h).label(), "dt": h, "status": tr.status, "reason": tr.reason,
                        "error": float(np.abs(np.asarray(tr.x) - job.reference.x).max()) if same else np.nan,
                        "reference_error": job.reference.error_bound, "reference_check": job.reference.check})
     return {"scene": job.scene, "integrator": job.integrator, "status": "ok", "ladder": ladder}
@@ -159,7 +162,9 @@ def describe(row: dict) -> str:
 
 
 def slopes(dts, errors) -> np.ndarray:
-    """log2 of the error ratio of each halving (the order p of error ∝ h^p)."""
+    """The observed order p of error ∝ h^p between each two successive steps: log of the error ratio
+    over log of the step ratio (log2 of the error ratio of a halving). The order ladders' and the
+    reel-reversal table's."""
     e = np.asarray(errors, float)
     return np.log(e[:-1] / e[1:]) / np.log(np.asarray(dts[:-1], float) / np.asarray(dts[1:], float))
 
@@ -178,11 +183,13 @@ def summarise(ladder: pd.DataFrame) -> pd.DataFrame:
     """orders.csv from the ladder rows: per scene and method, the slope of the last halving above
     the reference's floor, the one before it, and the flags (see the module's docstring)."""
     import pandas as pd  # not at import: the command line reads this module's constants without it
+
+    from integrators.base import FINISHED_STATUSES  # here too: the command line imports this module at start
     rows = []
     for (scene, name), g in ladder.groupby(list(LADDER_KEY), sort=False):
         g = g.sort_values("dt", ascending=False)
         floor = FLOOR_FACTOR * float(g["reference_error"].max())
-        counted = (g["status"] == "ok") & np.isfinite(g["error"]) & (g["error"] >= floor)
+        counted = g["status"].isin(FINISHED_STATUSES) & np.isfinite(g["error"]) & (g["error"] >= floor)
         s = slopes(g["dt"].to_numpy(), g["error"].to_numpy())
         pair_ok = counted.to_numpy()[:-1] & counted.to_numpy()[1:]
         valid = [k for k in range(len(s)) if pair_ok[k]]
@@ -199,8 +206,8 @@ def summarise(ladder: pd.DataFrame) -> pd.DataFrame:
             note.append("not asymptotic: the last two slopes differ by more than "
                         f"{ASYMPTOTIC_SPREAD:g}" if np.isfinite(prev) else "one halving only: not confirmed")
         if (~counted).any():
-            below = g.loc[~counted & (g["status"] == "ok"), "dt"]
-            failed = g.loc[g["status"] != "ok", "dt"]
+            below = g.loc[~counted & g["status"].isin(FINISHED_STATUSES), "dt"]
+            failed = g.loc[~g["status"].isin(FINISHED_STATUSES), "dt"]
             if len(failed):
                 note.append("did not finish at dt = " + ", ".join(f"{h:g}" for h in failed))
             if len(below):

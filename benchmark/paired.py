@@ -37,22 +37,24 @@ from typing import Callable
 
 import numpy as np
 
+from benchmark.policy import PAIRED_BUDGET, RESOLUTION, TIE_MARGIN
+
 #: Seconds of timing per target (all methods' solves together, the setup excluded).
-BUDGET = 20.0
+BUDGET = PAIRED_BUDGET
 #: The interval must lie within this relative distance of the ratio for timing to stop early.
-PRECISION = 0.10
+PRECISION = RESOLUTION
 #: The interval's coverage (two-sided), and the bootstrap's resamples.
 LEVEL = 0.90
 RESAMPLES = 2000
 #: Ratios this close to 1 are a tie whatever their interval (the module's docstring): the largest
 #: change of a ratio between two quiet timing passes of the 12 committed targets was 10.7 %.
-EQUIVALENCE = 0.10
+EQUIVALENCE = TIE_MARGIN
 #: Rounds before the first stop check (a bootstrap of fewer is not an interval), and at most.
 MIN_ROUNDS = 8
 #: The race: from this many rounds on, a method whose interval's lower end is above 1 + RACE_MARGIN
 #: leaves (twice the tie margin: a method that leaves can never be part of a tie).
 RACE_ROUNDS = 4
-RACE_MARGIN = 2 * 0.10
+RACE_MARGIN = 2 * TIE_MARGIN
 MAX_ROUNDS = 2000
 VERDICTS = ("winner", "tie", "slower")
 

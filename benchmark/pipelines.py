@@ -18,10 +18,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-from benchmark import engine, store
+from benchmark import engine, store, sweep
+from benchmark.policy import GRID_DIR, RESULTS, SAVE_EVERY, STABILITY_DIR
 from benchmark.engine import log_stderr
 from benchmark.report import Provenance
 from models.io import inside, printable
+from integrators.base import is_finished
 
 
 @contextlib.contextmanager
@@ -48,9 +50,9 @@ class SweepRequest:
     t_end: float | None = None  # None: each scene's own (--quick: sweep.QUICK_T_END)
     overrides: tuple = ()  # ((key, value), ...) of the scenes, t_end apart
     jobs: int | None = None
-    executor: str = "process"
+    executor: str = sweep.DEFAULT_EXECUTOR
     scheduler: str | None = None
-    repeats: int = 3
+    repeats: int = sweep.MIN_REPEATS
     horizon: float | None = None  # of the energy study; None or 0: none (it is `python -m benchmark energy`'s)
     figures: bool = True
     fresh: bool = False
@@ -61,9 +63,7 @@ class SweepRequest:
 
     @property
     def sweep_t_end(self) -> float | None:
-        from benchmark import sweep
-
-        return self.t_end or (sweep.QUICK_T_END if self.quick else None)
+        return sweep.sweep_t_end(self.t_end, self.quick)
 
     @property
     def energy_horizon(self) -> float:
@@ -104,7 +104,7 @@ def run_sweep(request: SweepRequest, log: Callable[[str], None] = log_stderr) ->
 
 
 #: The committed grid sweep's directory (`python -m benchmark run`'s default --out).
-COMMITTED_RESULTS = store.ROOT / "results" / "grid"
+COMMITTED_RESULTS = store.ROOT / GRID_DIR
 
 
 def study_file(out: Path, name: str) -> Path:
@@ -282,7 +282,7 @@ def _sweep_figures(request: SweepRequest, merged, log, failed: list | None = Non
             log(f"figure: {name} kept (same scene, method, horizon and code)")
         else:
             log(f"figure: {name}: solving {scene.name} with {paper.label} ...")
-            traj = get_integrator(paper.name).solve(scene, t_end=request.sweep_t_end or scene.t_end, save_every=0.02,
+            traj = get_integrator(paper.name).solve(scene, t_end=request.sweep_t_end or scene.t_end, save_every=SAVE_EVERY,
                                                     **paper.settings)
             plots.paper_panels(scene, traj, evaluate(scene, traj), inside(out, name))
             keys.record(name, key)
@@ -558,7 +558,7 @@ def _horizon_figures(out: Path, table, scenes, redraw: bool) -> list[tuple[str, 
 STABILITY_IDENTITY = ("scene", "integrator", "kind")
 
 
-def run_stability(scenes=None, integrators=None, *, workers: int = 2, out: Path = Path("results/stability"),
+def run_stability(scenes=None, integrators=None, *, workers: int = 2, out: Path = STABILITY_DIR,
                   budget=None,
                   command: str = "python -m benchmark stability", log: Callable[[str], None] = log_stderr) -> int:
     """The stability map into ``out``: stability.csv (written after every job), stability.md,
@@ -621,7 +621,7 @@ def _stability_files(out: Path, table, rows: list[dict], provenance: Provenance)
 
 
 def run_check(*, update: bool = False, baseline=None, integrators=None, factor: float | None = None,
-              order_margin: float | None = None, jobs: int | None = None, executor: str = "process",
+              order_margin: float | None = None, jobs: int | None = None, executor: str = sweep.DEFAULT_EXECUTOR,
               cache_dir: str | None = None, tasks=None, command: str | None = None, allow_new=(), budget=None,
               log: Callable[[str], None] | None = None, echo: Callable[[str], None] = print) -> int:
     """Recompute the check sweep and compare it with the baseline (or with ``update``, rewrite
@@ -633,8 +633,8 @@ def run_check(*, update: bool = False, baseline=None, integrators=None, factor: 
 
     baseline = check.BASELINE if baseline is None else baseline
     provenance = Provenance(command or check.UPDATE_COMMAND)
-    tol = check.Tolerance(factor=check.DEFAULT_FACTOR if factor is None else factor,
-                          order_margin=check.DEFAULT_ORDER_MARGIN if order_margin is None else order_margin)
+    tol = check.RegressionTolerance(factor=check.DEFAULT_FACTOR if factor is None else factor,
+                                    order_margin=check.DEFAULT_ORDER_MARGIN if order_margin is None else order_margin)
     if jobs is not None and jobs < 1:
         raise ValueError(f"--jobs = {jobs!r} is invalid (allowed: >= 1)")
     tasks = check.build_check_tasks(integrators) if tasks is None else tasks
@@ -780,7 +780,7 @@ def run_reel_reversal(scene_name: str = "reel_reversal", elements: int = 5, t_en
     return 0
 
 
-def run_orders(scenes=None, integrators=None, *, out: Path = Path("results"), jobs: int | None = None,
+def run_orders(scenes=None, integrators=None, *, out: Path = RESULTS, jobs: int | None = None,
                log: Callable[[str], None] = log_stderr, echo: Callable[[str], None] = print) -> int:
     """The observed orders (`benchmark.orders`) into ``out``: orders_errors.csv (every run of
     every ladder) and orders.csv (a row per scene and method); a rerun of some scenes or methods
@@ -807,7 +807,7 @@ def run_orders(scenes=None, integrators=None, *, out: Path = Path("results"), jo
         except KeyboardInterrupt as exc:
             return engine.stopped(exc, f"nothing written: {out}/orders.csv is as it was", log)
         for r in rows:
-            if r["status"] != "ok":
+            if not is_finished(r["status"]):
                 log(f"warning: orders of {r['integrator']} on {r['scene']}: {r['status']} ({r.get('reason', '')}); "
                     "its earlier rows are kept")
         new = pd.DataFrame([x for r in rows for x in r["ladder"]])

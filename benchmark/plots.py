@@ -16,10 +16,12 @@ import pandas as pd  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 
 from benchmark import styles  # noqa: E402
+from benchmark.policy import setting_value  # noqa: E402
 from benchmark.metrics import FLOPS_DEFINITION, WORK_DEFINITION, pi3_deviation  # noqa: E402
 from models import build_model  # noqa: E402
 from models.diagnostics import effect_energy_columns, energy_deviation  # noqa: E402
 from models.io import atomic_path, inside  # noqa: E402
+from integrators.base import FINISHED_STATUSES  # noqa: E402
 
 ERROR_LABELS = {
     "energy_error": "energy error  max|ΔE (−W)| / max T",
@@ -103,7 +105,7 @@ def work_precision(runs: pd.DataFrame, scene: str, out_dir: Path, *, searched: b
     work = cost_axes[-1][0]
     cols = [c for c, _ in cost_axes] + list(ERROR_LABELS) + ["dt"]
     sel = runs[runs["scene"] == scene]
-    g = _numeric(sel[sel["status"] == "ok"], cols)
+    g = _numeric(sel[sel["status"].isin(FINISHED_STATUSES)], cols)
     g = g.assign(axis=np.where(g["dt"].notna(), "dt", "rtol"))
     fig, axes = plt.subplots(len(cost_axes), len(ERROR_LABELS), figsize=(4.6 * len(ERROR_LABELS), 4.0 * len(cost_axes)),
                              squeeze=False)
@@ -126,7 +128,7 @@ def work_precision(runs: pd.DataFrame, scene: str, out_dir: Path, *, searched: b
     missing_below = sorted(i for i in absent if i in shown)
     fig.tight_layout(rect=(0, 0, 1, 0.93))
     styles.legend_outside(fig, *styles.legend_entries(drawn, {i: why for i, why in absent.items() if i not in shown}))
-    failed = sel[sel["status"] != "ok"]
+    failed = sel[~sel["status"].isin(FINISHED_STATUSES)]
     source = "search.csv" if searched else "runs.csv"
     fig.suptitle(f"{scene}: work–precision" + (f"  ({len(failed)} runs failed, see {source})" if len(failed) else "")
                  + f"\n{'' if searched else 'bottom row: '}{FLOPS_DEFINITION if by_flops else WORK_DEFINITION}"
@@ -202,10 +204,7 @@ def energy_horizon(table: pd.DataFrame, scene: str, out_dir: Path) -> Path:
 
 def _setting_size(setting: str) -> float:
     """The step or tolerance of a setting "dt=0.005" / "rtol=1e-06, atol=1e-08" (larger: coarser)."""
-    try:
-        return float(str(setting).split(",")[0].split("=")[1])
-    except (IndexError, ValueError):
-        return 0.0
+    return setting_value(setting, missing=0.0)
 
 
 def paper_panels(scene, traj, df: pd.DataFrame, out_path: Path, n_snapshots: int = 20) -> Path:

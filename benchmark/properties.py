@@ -43,6 +43,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from benchmark.policy import axis_of, setting_value
+from integrators.base import FINISHED_STATUSES, is_finished
+
 #: Equal windows of the horizon whose largest energy error the classification fits, and the
 #: fraction of the horizon after which they are fitted.
 WINDOWS, LATE_FROM = 20, 0.5
@@ -116,7 +119,7 @@ def correction_of(name: str, setting: str) -> tuple[int, float, float] | None:
     method with none (not symplectic, or adaptive: no fixed h)."""
     from integrators import get_integrator
 
-    if not is_symplectic(name) or not str(setting).startswith("dt="):
+    if not is_symplectic(name) or axis_of(setting) != "dt":
         return None
     integ = get_integrator(name)
     gammas = getattr(getattr(integ, "scheme", None), "gammas", None)
@@ -125,10 +128,7 @@ def correction_of(name: str, setting: str) -> tuple[int, float, float] | None:
 
 
 def _setting_value(setting: str) -> float:
-    try:
-        return float(str(setting).split(",")[0].split("=")[1])
-    except (IndexError, ValueError):
-        return np.nan
+    return setting_value(setting)
 
 
 def window_means(t, *series, width: float = WINDOW_S) -> tuple[np.ndarray, ...]:
@@ -296,7 +296,7 @@ def property_table(runs: pd.DataFrame, horizon: pd.DataFrame | None) -> pd.DataF
                       "energy_error_max": float(g["energy_error_max"].max()),
                       "energy_verdict": verdicts.pop() if len(verdicts) == 1 else "mixed",
                       "slope_min": float(g["slope"].min()), "slope_max": float(g["slope"].max())}
-    ok = runs[runs["status"] == "ok"]
+    ok = runs[runs["status"].isin(FINISHED_STATUSES)]
     for name, g in ok.groupby("integrator", sort=True):
         ortho = pd.to_numeric(g["orthogonality_error"], errors="coerce").max()
         rows.setdefault(name, {"integrator": name})["orthogonality_max"] = float(ortho)
@@ -328,7 +328,7 @@ def _run_line(r) -> str:
                 f"{2 * r.a_se:.2g} (R² {r.r2:.3f})")
     else:
         corr = f"; the state (⟨P⟩) explains R² {r.r2:.3f} of it" if np.isfinite(r.r2) else ""
-    stopped = f" (stopped: {r.status} at {r.horizon_s:g} s)" if r.status != "ok" else ""
+    stopped = f" (stopped: {r.status} at {r.horizon_s:g} s)" if not is_finished(r.status) else ""
     return (f"`{r.integrator}` N={r.elements} {r.setting} on {r.scene}: **{r.verdict}**{stopped} — max|ΔE| {r.energy_error_max:.2g}, "
             f"largest change of the {WINDOW_S:g}-s mean {r.mean_error_max:.2g}{corr}; drift over the horizon "
             f"{r.drift:+.2g} ± {2 * r.drift_se:.1g} against a scatter of {r.scatter:.2g} (raw slope test: "
@@ -498,7 +498,7 @@ def _slack_sentence(study: pd.DataFrame) -> str:
                 + (f" (×{(lambda r: r.P_last / r.P_first)(_reference(base)):.3g} without)" if len(base) else "")
                 + f", an element slack at {ref.compressed_share:.0%} of the saved times; "
                 + ", ".join(f"`{r.integrator}` {r.setting}: {r.verdict}"
-                            + (f" ({r.status} at {r.horizon_s:g} s)" if r.status != "ok" else "")
+                            + (f" ({r.status} at {r.horizon_s:g} s)" if not is_finished(r.status) else "")
                             for r in g.itertuples() if r.Index != ref.name)
                 + (f" ({'; '.join(ratios)}; the derived offset does not apply: the potential is only C¹)" if ratios else ""))
         parts.append(line)

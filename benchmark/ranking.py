@@ -24,10 +24,12 @@ import numpy as np
 import pandas as pd
 
 from benchmark.metrics import INACCURATE
+from benchmark.policy import ROW_IDENTITY
 from benchmark.sweep import PRESENTATION_ORDER, SWEEP_WORDS
+from integrators.base import BUDGET_STATUSES, ERROR, FINISHED_STATUSES  # a budget ends a run, not a failure of the method
 
 #: The columns `failure_causes` reads from a runs table.
-_KEY_COLUMNS = ("scene", "integrator", "setting", "dt", "rtol", "status")
+_KEY_COLUMNS = (*ROW_IDENTITY, "dt", "rtol", "status")
 
 
 def entry_name(integrator: str, sweep: str, both_sweeps: bool, twins: Sequence[str] = ()) -> str:
@@ -65,8 +67,6 @@ def work_verdicts(rows: list[dict]) -> None:
 # ------------------------------------------------------------------------------------------
 # Runs that did not finish, and why that was expected (or not)
 # ------------------------------------------------------------------------------------------
-#: Statuses that end a run by its budget, not by a failure of the method.
-BUDGET_STATUSES = ("max_steps", "time_limit")
 
 #: Why a run did not finish: the key, and the words that follow a count ("19 ...").
 CAUSES = {
@@ -102,16 +102,16 @@ def failure_causes(runs: pd.DataFrame, stability: pd.DataFrame | None = None) ->
             raise ValueError(f"failure_causes: the stability table has no column(s) {', '.join(miss)}")
         limits = {(r.scene, r.integrator): r.largest_stable_dt for r in stability.itertuples()
                   if np.isfinite(r.largest_stable_dt)}
-    finished = runs[(runs["status"] == "ok") & runs["dt"].notna()].groupby(["scene", "integrator"])["dt"]
+    finished = runs[(runs["status"].isin(FINISHED_STATUSES)) & runs["dt"].notna()].groupby(["scene", "integrator"])["dt"]
     largest_ok = finished.max().to_dict()
     out = []
-    for r in runs[runs["status"] != "ok"].itertuples():
+    for r in runs[~runs["status"].isin(FINISHED_STATUSES)].itertuples():
         key = (r.scene, r.integrator)
         if r.status in BUDGET_STATUSES:
             cause = "budget"
         elif r.status == INACCURATE:
             cause = "inaccurate"
-        elif r.status == "error":
+        elif r.status == ERROR:
             cause = "error"
         elif pd.isna(r.dt):
             cause = "adaptive"

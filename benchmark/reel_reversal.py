@@ -114,7 +114,9 @@ def table(scene, t_end: float, flips, rows: list[dict]) -> str:
     lines = [f"scene {scene.name}, N = {scene.string.elements}, t_end = {t_end:g} s; s_p-dot changes sign at t = "
              + ", ".join(f"{t:.3f}" for t in flips) + " s",
              "", "| method | h [ms] | body [m] | s_p [m] | E-W [J] | orders (body / s_p / E-W) |", "|---|---|---|---|---|---|"]
-    prev = None
+    from benchmark.orders import slopes  # the observed order between two steps, as the order ladders compute it
+
+    prev = prev_h = None
     for i, r in enumerate(rows):
         if i == 0 or r["method"] != rows[i - 1]["method"]:
             prev = None
@@ -122,7 +124,8 @@ def table(scene, t_end: float, flips, rows: list[dict]) -> str:
             lines.append(f"| {r['method']} | {r['h'] * 1e3:g} | {r['status']}: {r['reason']} | | | |")
             continue
         e = r["errors"]
-        orders = " / ".join(f"{np.log2(a / b):.2f}" for a, b in zip(prev, e)) if prev else ""
+        steps = (prev_h, r["h"])
+        orders = " / ".join(f"{slopes(steps, (a, b))[0]:.2f}" for a, b in zip(prev, e)) if prev else ""
         lines.append(f"| {r['method']} | {r['h'] * 1e3:g} | {e.body:.2e} | {e.s_p:.2e} | {e.energy:.2e} | {orders} |")
-        prev = e
+        prev, prev_h = e, r["h"]
     return "\n".join(lines)

@@ -1,5 +1,6 @@
-"""Reference solutions, the one path every study compares with: DOP853 at rtol 1e-12 / atol
-1e-14 on the closed-form right-hand side (the scipy adapter's default), computed once per
+"""Reference solutions of the runs table and the answer: DOP853 at rtol 1e-12 / atol 1e-14 on the
+closed-form right-hand side (the scipy adapter's default; `benchmark.policy.REFERENCE_METHOD`, which
+also says why the order ladders and `verify` use references of their own), computed once per
 problem, cached, reused.
 
 The cache key is a hash of the scene (its physics, not its name), the horizon, the save
@@ -25,22 +26,20 @@ from typing import NamedTuple
 import numpy as np
 
 from benchmark.engine import log_stderr
-from benchmark.store import (UnreadableFile, read_npz, source_hash, trajectory_from, trajectory_parts,
+from benchmark.policy import REFERENCE_METHOD  # noqa: F401 (its settings: the one rule)
+from benchmark.store import (PHYSICS_DIRS, UnreadableFile, read_npz, source_hash, trajectory_from, trajectory_parts,
                              write_npz)
 from integrators import get_integrator
 from models.io import inside, user_cache_dir
 
-REFERENCE_METHOD = {"integrator": "dop853", "rtol": 1e-12, "atol": 1e-14}
 #: References are shared by every study and output directory: one file per scene, horizon, save
 #: interval and physics code (`reference_path`).
 CACHE_DIR = user_cache_dir() / "references"
 #: Version of the file layout below; a file of another format is recomputed (3: with the dense
 #: output of the compared components, `DenseSolution`).
 FORMAT = 3
-
-#: The source a reference is computed by: the model and the integrators (DOP853 through the
-#: scipy adapter, on the closed-form right-hand side).
-PHYSICS_DIRS = ("models", "integrators")
+# The source a reference is computed by (DOP853 through the scipy adapter, on the closed-form
+# right-hand side) is `benchmark.store.PHYSICS_DIRS`, the physics every row's code version covers.
 
 
 def identity(scene, t_end: float, save_every: float) -> dict:

@@ -6,7 +6,7 @@ to the last digit" holds on one machine only. What holds across machines was mea
 the committed table and a fresh run of the same code on an AMD EPYC (all 147 rows of the default
 sweep): every status equal; 13 step counts different (12 adaptive runs by at most 1.25 %, and
 one diverged fixed-step run that stopped after 526 instead of 689 steps); 94 energy errors and
-128 final position errors different, by a median relative 5e-7. Hence the rules of `Tolerance`:
+128 final position errors different, by a median relative 5e-7. Hence the rules of `AgreementTolerance`:
 
 - **statuses** are equal, except for a fixed-step run *at its method's stability limit* (the
   largest step at which its method finished the scene, or the smallest failing step above it,
@@ -48,8 +48,10 @@ import numpy as np
 import pandas as pd
 
 from benchmark.metrics import ACCURACY, FLOORS
+from benchmark.policy import ROW_IDENTITY, axis_of
+from integrators.base import FINISHED_STATUSES, is_finished
 
-KEY = ["scene", "integrator", "setting"]
+KEY = list(ROW_IDENTITY)
 _REQUIRED = (*KEY, "dt", "rtol", "status", "steps")
 
 #: Verdicts of one row, and whether each breaks the reproducibility statement.
@@ -61,8 +63,10 @@ COLUMNS = [*KEY, "status_a", "status_b", "steps_a", "steps_b", "metric", "value_
 
 
 @dataclass(frozen=True)
-class Tolerance:
-    """How far two tables may differ and still say the same thing (defaults from the measured
+class AgreementTolerance:
+    """How far two tables of the same sweep (two machines, two passes) may differ and still say the
+    same thing: whether two runs agree. Not `benchmark.check.RegressionTolerance`, which decides
+    whether a run regressed against the committed baseline. (Defaults from the measured
     Xeon / EPYC and the later RATTLE differences, with margin: see the module's docstring)."""
 
     #: fixed-step errors: |a − b| <= fixed_error_rtol · max(a, b) + fixed_error_atol + the
@@ -85,11 +89,11 @@ class Tolerance:
                          ("adaptive_error_factor", 1.0), ("adaptive_error_of_rtol", 0.0)):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= lo and (lo == 0 or v > lo)):
-                raise ValueError(f"Tolerance: {name} = {v!r} is invalid (allowed: a finite number "
+                raise ValueError(f"{type(self).__name__}: {name} = {v!r} is invalid (allowed: a finite number "
                                  f"{'>' if lo else '>='} {lo:g})")
 
 
-DEFAULT_TOLERANCE = Tolerance()
+DEFAULT_TOLERANCE = AgreementTolerance()
 
 
 def _check(table: pd.DataFrame, which: str) -> None:
@@ -108,17 +112,17 @@ def stability_limits(table: pd.DataFrame) -> set[tuple[str, str, float]]:
     above it at which it failed."""
     out = set()
     for (scene, integ), g in table[table["dt"].notna()].groupby(["scene", "integrator"]):
-        ok = g.loc[g["status"] == "ok", "dt"]
+        ok = g.loc[g["status"].isin(FINISHED_STATUSES), "dt"]
         if ok.empty:
             continue
         out.add((scene, integ, float(ok.max())))
-        above = g.loc[(g["status"] != "ok") & (g["dt"] > ok.max()), "dt"]
+        above = g.loc[~g["status"].isin(FINISHED_STATUSES) & (g["dt"] > ok.max()), "dt"]
         if len(above):
             out.add((scene, integ, float(above.min())))
     return out
 
 
-def error_share(a: float, b: float, floor: float, rtol: float | None, tol: Tolerance) -> float:
+def error_share(a: float, b: float, floor: float, rtol: float | None, tol: AgreementTolerance) -> float:
     """The share of its allowance the difference of two values of one metric takes (<= 1: within
     tolerance); ``rtol`` None for a fixed-step run, else the adaptive run's tolerance."""
     if a == b or (np.isnan(a) and np.isnan(b)):
@@ -135,7 +139,7 @@ def error_share(a: float, b: float, floor: float, rtol: float | None, tol: Toler
     return min(by_factor, by_rtol)
 
 
-def compare_runs(a: pd.DataFrame, b: pd.DataFrame, tol: Tolerance = DEFAULT_TOLERANCE,
+def compare_runs(a: pd.DataFrame, b: pd.DataFrame, tol: AgreementTolerance = DEFAULT_TOLERANCE,
                  metrics: tuple[str, ...] | None = None) -> pd.DataFrame:
     """One row per (scene, integrator, setting) of either table: both statuses and step counts,
     the quantity that uses most of its allowance (``metric``: an error column or "steps") with
@@ -160,7 +164,7 @@ def compare_runs(a: pd.DataFrame, b: pd.DataFrame, tol: Tolerance = DEFAULT_TOLE
             out.update(verdict="at stability limit" if at_limit else "differs",
                        reason=f"status {r['status_a']} vs {r['status_b']}"
                               + (" at the method's stability limit" if at_limit else ""))
-        elif r["status_a"] != "ok":
+        elif not is_finished(r["status_a"]):
             same = r["steps_a"] == r["steps_b"]
             out.update(verdict="equal" if same else "stopped elsewhere",
                        reason="" if same else f"both {r['status_a']}, after {r['steps_a']:.0f} vs {r['steps_b']:.0f} steps")
@@ -170,7 +174,7 @@ def compare_runs(a: pd.DataFrame, b: pd.DataFrame, tol: Tolerance = DEFAULT_TOLE
     return pd.DataFrame(rows, columns=COLUMNS)
 
 
-def _compare_finished(r: dict, metrics, rtol: float | None, tol: Tolerance) -> dict:
+def _compare_finished(r: dict, metrics, rtol: float | None, tol: AgreementTolerance) -> dict:
     """Verdict of a run both tables finished; ``rtol`` None for a fixed-step run."""
     sa, sb = r["steps_a"], r["steps_b"]
     if rtol is None:
@@ -196,13 +200,13 @@ def reproducible(comparison: pd.DataFrame) -> bool:
     return not comparison["verdict"].map(VERDICTS).any()
 
 
-def statement(comparison: pd.DataFrame, tol: Tolerance = DEFAULT_TOLERANCE) -> str:
+def statement(comparison: pd.DataFrame, tol: AgreementTolerance = DEFAULT_TOLERANCE) -> str:
     """The reproducibility statement for a README, from a `compare_runs` table: how many runs
     were equal to the last digit, how many within tolerance and how close to it they came, the
     documented exceptions, and every row that breaks it."""
     c = comparison
     n = c["verdict"].value_counts()
-    fixed = c["setting"].astype(str).str.startswith("dt=")
+    fixed = c["setting"].map(axis_of) == "dt"
     within = c["verdict"] == "within tolerance"
     text = (f"{len(c)} runs compared: {n.get('equal', 0)} equal to the last digit, "
             f"{n.get('within tolerance', 0)} within tolerance (fixed-step: same steps, errors within "

@@ -40,12 +40,13 @@ import pandas as pd
 
 from benchmark import engine
 from benchmark.flops import run_flops
-from benchmark.options import SOLVE_MAX_STEPS, SOLVE_TIME_LIMIT
+from benchmark.policy import SOLVE_MAX_STEPS, SOLVE_TIME_LIMIT
 from benchmark.metrics import ACCURACY, COLUMNS, INACCURATE, inaccurate_reason, run_metrics, work_evals
 from benchmark.reference import CACHE_DIR, ReferenceProblem, get_reference, prepare_reference
 from benchmark.report import one_minute_load, shorten
 from benchmark.store import code_version, frame, key_of, kept_rows, row_digest, run_key
-from benchmark.sweep import EXECUTORS, MAX_REPEATS, MIN_REPEATS, TIMING_BUDGET, Task
+from benchmark.sweep import DEFAULT_EXECUTOR, EXECUTORS, MAX_REPEATS, MIN_REPEATS, TIMING_BUDGET, Task
+from integrators.base import CRASHED, ERROR, FINISHED_STATUSES, is_finished
 
 #: Step statistics some integrators report (`Trajectory.stats`), copied into the row when present.
 STEP_STATS = ("rejected_steps", "min_step", "median_step", "max_step", "max_newton_iterations")
@@ -62,7 +63,7 @@ RUN_COLUMNS = COLUMNS + TIMING_COLUMNS + IDENTITY_COLUMNS
 @dataclass(frozen=True)
 class SolveBudget:
     """The budget of a run's first solve (`integrators.base.Integrator.solve`'s ``max_steps`` and
-    ``time_limit``); `benchmark.options` holds the defaults, the commands' --max-steps and
+    ``time_limit``); `benchmark.policy` holds the defaults, the commands' --max-steps and
     --time-limit raise them."""
 
     max_steps: int = SOLVE_MAX_STEPS
@@ -156,7 +157,7 @@ def us_per_eval(run_time: float, evals: float) -> float:
 
 
 def run_task(task: Task, cache_dir: str = str(CACHE_DIR), repeats: int = MIN_REPEATS, *, reference: bool = True,
-             finished=("ok",), budget: SolveBudget = SolveBudget()) -> dict:
+             finished=FINISHED_STATUSES, budget: SolveBudget = SolveBudget()) -> dict:
     """Run one task; always returns a row (never raises for a failed run).
 
     ``repeats``: the least timed solves of a run (`timing_repeats`); 0 times the first solve
@@ -170,7 +171,7 @@ def run_task(task: Task, cache_dir: str = str(CACHE_DIR), repeats: int = MIN_REP
         row = _solved_row(task, cache_dir, repeats, reference, finished, loaded, budget)
     except Exception as exc:  # a bug in one task must not lose the other rows
         row = _empty_row(task, loaded[0] if loaded else None)
-        row.update(status="error", reason=shorten(f"{type(exc).__name__}: {exc}".splitlines()[0], 300))
+        row.update(status=ERROR, reason=shorten(f"{type(exc).__name__}: {exc}".splitlines()[0], 300))
         row["traceback"] = traceback.format_exc()[-2000:]
     row.update(load_avg=one_minute_load(), task_time=time.perf_counter() - started)
     return row
@@ -208,7 +209,7 @@ def _solved_row(task: Task, cache_dir: str, repeats: int, reference: bool, finis
 def describe_run(row: dict) -> str:
     """A finished run in the progress log: scene, integrator, setting, run time or status (its
     reason shortened at a clause boundary; runs.csv has it in full)."""
-    if row["status"] == "ok":
+    if is_finished(row["status"]):
         extra = f"{row['run_time']:.3g} s"
         if row.get("timing_repeats", 0) and row["timing_repeats"] > 1:
             extra += f" (median of {row['timing_repeats']}, {row['run_time_low']:.3g}–{row['run_time_high']:.3g})"
@@ -221,7 +222,7 @@ def runs_frame(rows: Iterable[dict]) -> pd.DataFrame:
     """Rows -> the runs table: `RUN_COLUMNS` first, then any other keys of the rows; a number
     not backed by a finished run (status "ok") is not reported."""
     df = frame(rows, RUN_COLUMNS)
-    df.loc[df["status"] != "ok", ACCURACY] = np.nan
+    df.loc[~df["status"].isin(FINISHED_STATUSES), ACCURACY] = np.nan
     return df
 
 
@@ -288,7 +289,7 @@ def provenance(name: str, code: str) -> dict:
 def finish_row(row: dict, key: str, origin: dict | None = None) -> dict:
     """A row as the table keeps it: no accuracy without a finished run, its resume key, the
     method's provenance and the digest of its deterministic columns (`benchmark.store.row_digest`)."""
-    if row.get("status") != "ok":
+    if not is_finished(row.get("status")):
         row.update({k: np.nan for k in ACCURACY})
     row["run_key"] = key
     row.update(origin or {})
@@ -300,7 +301,7 @@ def execute(
     tasks: list[Task],
     *,
     jobs: int | None = None,
-    executor: str = "process",
+    executor: str = DEFAULT_EXECUTOR,
     scheduler: str | None = None,
     repeats: int = MIN_REPEATS,
     cache_dir: str = str(CACHE_DIR),
@@ -344,7 +345,7 @@ def execute(
     costs = [cost(t) for t in tasks] if cost else task_costs(tasks)
 
     def crashed(i: int, exc: BaseException) -> dict:
-        return {**_empty_row(tasks[i]), "status": "crashed", "reason": engine.crash_reason(exc)}
+        return {**_empty_row(tasks[i]), "status": CRASHED, "reason": engine.crash_reason(exc)}
 
     rows = engine.run_jobs(
         functools.partial(run_task, cache_dir=cache_dir, repeats=repeats, budget=budget), tasks,

@@ -17,11 +17,13 @@ import numpy as np
 import pandas as pd
 
 from benchmark.metrics import ACCURACY, WORK_DEFINITION
+from benchmark.policy import ROW_IDENTITY
 from benchmark.ranking import failure_summary
 from benchmark.reference import REFERENCE_METHOD
 from benchmark.sweep import MAX_REPEATS, MIN_REPEATS, TIMING_BUDGET
 from benchmark.report import Provenance, code_list, markdown_table
 from models.io import atomic_write_text
+from integrators.base import FINISHED_STATUSES
 
 def horizons_text(horizons: dict | None) -> str:
     """One sentence on the horizons a result covers, e.g. {"sweep": 1.0, "energy study": 10.0};
@@ -53,7 +55,7 @@ def implementations(runs: pd.DataFrame) -> pd.Series:
 def evaluation_costs(runs: pd.DataFrame) -> pd.DataFrame:
     """µs of run time per right-hand-side evaluation of each method over its finished runs
     (median and range), by implementation; a method without an evaluation count says so."""
-    ok = runs[runs["status"] == "ok"].assign(implementation=implementations(runs))
+    ok = runs[runs["status"].isin(FINISHED_STATUSES)].assign(implementation=implementations(runs))
     rows = []
     for (impl, name), g in ok.groupby(["implementation", "integrator"], sort=True):
         v = pd.to_numeric(g["us_per_eval"], errors="coerce") if "us_per_eval" in g else pd.Series(dtype=float)
@@ -69,7 +71,7 @@ def evaluation_costs(runs: pd.DataFrame) -> pd.DataFrame:
 
 def timing_text(runs: pd.DataFrame) -> str:
     """How the run times were measured, from the rows: repeats, load, and the wall resolution."""
-    ok = runs[runs["status"] == "ok"]
+    ok = runs[runs["status"].isin(FINISHED_STATUSES)]
     reps = pd.to_numeric(ok.get("timing_repeats", pd.Series(dtype=float)), errors="coerce").dropna()
     load = pd.to_numeric(ok.get("load_avg", pd.Series(dtype=float)), errors="coerce").dropna()
     parts = []
@@ -118,8 +120,8 @@ def changes_since(before: pd.DataFrame, runs: pd.DataFrame, label: str) -> str:
                            "t_end", *ACCURACY) if c in before]
     before = before.assign(**{c: pd.to_numeric(before[c], errors="coerce") for c in numeric})
     out = [f"## Compared with {label}\n\n", reproducibility(before, runs, label)]
-    key = ["scene", "integrator", "setting"]
-    both = before[before["status"] == "ok"].merge(runs[runs["status"] == "ok"], on=key, suffixes=("_then", "_now"))
+    key = list(ROW_IDENTITY)
+    both = before[before["status"].isin(FINISHED_STATUSES)].merge(runs[runs["status"].isin(FINISHED_STATUSES)], on=key, suffixes=("_then", "_now"))
     if not both.empty and "run_time_then" in both:
         speed = (both["run_time_then"] / both["run_time_now"]).groupby(both["integrator"]).median()
         counts = both.groupby("integrator").size()

@@ -38,17 +38,14 @@ import math
 from dataclasses import dataclass, field
 from typing import Callable
 
-#: Two settings whose costs are within this relative distance are close enough (the issue's 10 %).
-RESOLUTION = 0.10
+from benchmark.policy import RESOLUTION  # two settings this close in cost are close enough (the issue's 10 %)
+
 #: The most runs of one search (bracket, bisection and confirmation together).
 MAX_RUNS = 24
 #: The lattice ratio of each axis: a step on the 2^(1/8) grid, a tolerance on the 1/8-decade grid.
 GRID = {"dt": 2.0 ** 0.125, "rtol": 10.0 ** 0.125}
 #: How many settings just finer than an answer must meet the target too for it to stand.
 CONFIRM = 3
-#: Statuses of a run stopped by its own budget (steps, seconds): a finer setting costs more, so
-#: the search goes no finer after one (its bound is then ``budget``).
-BUDGET_STATUSES = ("max_steps", "time_limit")
 
 
 @dataclass(frozen=True)
@@ -62,7 +59,9 @@ class Point:
 
     @property
     def finished(self) -> bool:
-        return self.status == "ok" and math.isfinite(self.error)
+        from integrators.base import is_finished  # here: the command line imports this module at start
+
+        return is_finished(self.status) and math.isfinite(self.error)
 
     def meets(self, target: float) -> bool:
         return self.finished and self.error <= target
@@ -105,7 +104,17 @@ class Found:
 
 
 def _costed(p: Point) -> bool:
-    return p.status == "ok" and math.isfinite(p.cost) and p.cost > 0
+    from integrators.base import is_finished
+
+    return is_finished(p.status) and math.isfinite(p.cost) and p.cost > 0
+
+
+def _stopped_by_budget(status: str) -> bool:
+    """A run stopped by its own budget (`integrators.base.BUDGET_STATUSES`: steps, seconds): a finer
+    setting costs more, so the search goes no finer after one (its bound is then ``budget``)."""
+    from integrators.base import BUDGET_STATUSES  # here: the command line imports this module at start
+
+    return status in BUDGET_STATUSES
 
 
 def close(good: Point, bad: Point, resolution: float = RESOLUTION) -> bool:
@@ -176,7 +185,7 @@ def search(run: Callable[[float], tuple[str, float, float]], target: float, star
     else:
         bad = 0
         while budget_left():  # finer until met, never past a run stopped by its own budget
-            if bad <= lat.k_min or at(bad).status in BUDGET_STATUSES:
+            if bad <= lat.k_min or _stopped_by_budget(at(bad).status):
                 break
             k = max(bad - jump, lat.k_min)
             if at(k).meets(target):
@@ -205,7 +214,7 @@ def _confirm(at, k: int, k_min: int, confirm: int, target: float, budget_left) -
             if k - j < k_min or not budget_left():
                 return
             p = at(k - j)
-            if p.status in BUDGET_STATUSES:
+            if _stopped_by_budget(p.status):
                 return
             if not p.meets(target):
                 missed = k - j
@@ -216,7 +225,7 @@ def _confirm(at, k: int, k_min: int, confirm: int, target: float, budget_left) -
         if k < k_min:
             return
         while budget_left() and k >= k_min and not at(k).meets(target):  # down to the next setting that meets it
-            if at(k).status in BUDGET_STATUSES:
+            if _stopped_by_budget(at(k).status):
                 return
             k -= 1
 
@@ -234,7 +243,7 @@ def _found(points: dict[int, Point], target: float, lat: _Lattice, resolution: f
     meeting = [k for k in ks if points[k].meets(target)]
     if not meeting:  # the finest setting allowed missed it too, or the runs (or a run's own budget) ran out
         finest = points[ks[0]]
-        return Found(target, "not reached" if ks[0] <= lat.k_min and finest.status not in BUDGET_STATUSES
+        return Found(target, "not reached" if ks[0] <= lat.k_min and not _stopped_by_budget(finest.status)
                      else "budget", setting_high=finest.setting, high_status=finest.status, points=plist)
     standing = [k for k in meeting if _stands(points, k, lat, confirm, target)]
 

@@ -35,6 +35,7 @@ from benchmark import engine
 from benchmark.metrics import CONSERVATION
 from benchmark.store import frame
 from benchmark.sweep import Task
+from integrators.base import FINISHED_STATUSES
 
 #: Largest step of the fixed-step ladder (s) and the number of halvings tried below it.
 DT_MAX = 0.04
@@ -90,7 +91,7 @@ class Case:
 
     scene: str
     horizon: float
-    bounded: tuple[str, ...] = ("ok",)
+    bounded: tuple[str, ...] = FINISHED_STATUSES
     overrides: tuple = ()
     #: s: a run that ends (with a bounded status) before this was thrown there by an instability,
     #: not carried there by the physics; 0: any end time

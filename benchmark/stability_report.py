@@ -19,6 +19,7 @@ from benchmark.plots import plt, save_figure, style_axes
 from benchmark.report import Provenance, code_list, fmt, markdown_table
 from benchmark.stability import ADAPTIVE_ATOL, ADAPTIVE_RTOL, CASES, DT_MAX, LADDER_RUNGS
 from models.io import atomic_write_text
+from integrators.base import FINISHED_STATUSES
 
 #: The scenes whose largest stable steps the summary compares with the adaptive methods' steps.
 STIFF_SCENES = ("stiff_string", "many_elements")
@@ -283,7 +284,7 @@ def write_readme(out_dir: Path, df: pd.DataFrame, *, provenance: Provenance) -> 
     cases = "\n".join(f"| `{c.scene}` | {c.horizon:g} s | {', '.join(c.bounded)} | "
                       f"{', '.join(f'{k}={v}' for k, v in c.overrides) or '–'} | {c.note} |" for c in CASES
                       if c.scene in set(df["scene"]))
-    reasons = df[df["status"].ne("ok") | df["unstable_reason"].notna()][_REASONS]
+    reasons = df[~df["status"].isin(FINISHED_STATUSES) | df["unstable_reason"].notna()][_REASONS]
     fixed_names = code_list(dict.fromkeys(df.loc[df["kind"] == "fixed", "integrator"])) or "none here"
     text = f"""# Stability map of the hard scenes
 

@@ -6,7 +6,7 @@
 * Resume: every row of the runs table carries a `run_key` (scene physics, integrator,
   setting, horizon, save interval, code version); `kept_rows` keeps the rows of an earlier
   table (`read_runs`) with the same key, so only the rest is computed. Rows whose status
-  may have been transient (`RETRY_STATUSES`) are never kept.
+  may have been transient (`integrators.base.RETRY_STATUSES`) are never kept.
 * Trust: a row read back is used only when it passes `check_row` -- its types, ranges and
   status vocabulary (`statuses`, the one list of them), finite non-negative costs, and the
   digest of every column recorded when it was written (`row_digest`; a row without one in a
@@ -39,6 +39,7 @@ from typing import Callable, Iterable
 
 import numpy as np
 
+from benchmark.policy import ROW_IDENTITY
 from models.io import atomic_path, atomic_write_text
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -61,10 +62,14 @@ def source_hash(dirs: tuple = (), files: tuple = ()) -> str:
     return h.hexdigest()[:12]
 
 
-#: The source that determines a row of the runs table: the model, the integrators, and the
-#: benchmark code that runs a task, measures it and computes its reference.
-_CODE_DIRS = ("models", "integrators")
-_CODE_FILES = ("benchmark/runner.py", "benchmark/metrics.py", "benchmark/reference.py", "benchmark/sweep.py")
+#: The physics source: the model and the integrators (a reference's identity, `benchmark.reference`,
+#: and part of every row's code version).
+PHYSICS_DIRS = ("models", "integrators")
+#: The source that determines a row of the runs table: the physics, and the benchmark code that
+#: runs a task, measures it and computes its reference.
+_CODE_DIRS = PHYSICS_DIRS
+_CODE_FILES = ("benchmark/runner.py", "benchmark/metrics.py", "benchmark/reference.py", "benchmark/sweep.py",
+               "benchmark/policy.py")
 
 
 def code_version() -> str:
@@ -88,13 +93,9 @@ def run_key(task, code: str | None = None) -> str:
 # ------------------------------------------------------------------------------------------
 # Trust: what a row of the runs table may hold, and its digest
 # ------------------------------------------------------------------------------------------
-#: Rows with these statuses are recomputed on resume (the cause may have been transient: a
-#: wall-clock budget runs out sooner on a loaded machine).
-RETRY_STATUSES = ("crashed", "error", "time_limit")
-#: Statuses of the runs table besides the integrators' own (`integrators.Status`); "inaccurate":
-#: finished beyond a sanity bound (`benchmark.metrics.INACCURATE`). Every reader that validates a
-#: status (resume, the drift gate, figures) asks `statuses`: extend the list here.
-TABLE_STATUSES = ("time_limit", "max_steps", "error", "crashed", "inaccurate")
+# The statuses recomputed on resume (`RETRY_STATUSES`) and those of the runs table besides the
+# integrators' own (`TABLE_ONLY_STATUSES`) are named in `integrators.base`, beside `Status`. Every
+# reader that validates a status (resume, the drift gate, figures) asks `statuses`.
 
 #: The columns a row's digest leaves out: the digest itself, and the traceback of a failed run
 #: (never written to the table). Every other column is covered, measurements included (run
@@ -108,14 +109,21 @@ LEGACY_DIGEST_COLUMNS = (
     "energy_error", "pi3_error", "orthogonality_error", "position_error_final", "position_error_max",
     "attitude_error_final", "attitude_error_max", "t_reached", "implementation", "run_key")
 #: Numeric columns: counts (non-negative), errors (non-negative; NaN where a run did not
-#: finish), costs (finite and non-negative where present), settings (positive where present).
+#: finish: the accuracy metrics' columns, `error_columns`), costs (finite and non-negative where
+#: present), settings (positive where present).
 COUNT_COLUMNS = ("steps", "rhs_evals", "jac_evals", "lu_decompositions", "newton_iterations", "work_evals",
                  "timing_repeats", "rejected_steps", "max_newton_iterations")
-ERROR_COLUMNS = ("energy_error", "pi3_error", "orthogonality_error", "position_error_final", "position_error_max",
-                 "attitude_error_final", "attitude_error_max")
 COST_COLUMNS = ("run_time", "run_time_low", "run_time_high", "compile_time", "us_per_eval", "load_avg",
                 "task_time", "t_reached", "min_step", "median_step", "max_step", "flops")
 SETTING_COLUMNS = ("dt", "rtol", "atol", "t_end")
+
+
+def error_columns() -> tuple[str, ...]:
+    """The accuracy metrics' columns, read from their registry (`benchmark.metrics.METRICS`), so that
+    a new `Metric` is range-checked on read-back too."""
+    from benchmark.metrics import ACCURACY  # here: it imports pandas, which the command line's start does not
+
+    return tuple(ACCURACY)
 
 
 def _missing(v) -> bool:
@@ -161,9 +169,9 @@ def legacy_digest(row: dict) -> str:
 
 def statuses() -> tuple[str, ...]:
     """Every status a row of the runs table may have."""
-    from integrators import Status
+    from integrators.base import TABLE_ONLY_STATUSES, Status
 
-    return tuple(s.value for s in Status) + TABLE_STATUSES
+    return tuple(s.value for s in Status) + TABLE_ONLY_STATUSES
 
 
 def _number(v) -> float | None:
@@ -185,7 +193,10 @@ def check_row(row: dict, known_statuses=None) -> str | None:
     ordered (low <= median <= high), accuracy values for a finished run and none for another,
     and its digest (`row_digest`) the one written with it (a row without a digest, from an
     older table, is checked by the other rules alone)."""
-    for c in ("scene", "integrator", "setting", "status"):
+    from integrators.base import is_finished  # here: the command line imports this module at start
+
+    errors = error_columns()
+    for c in (*ROW_IDENTITY, "status"):
         if _missing(row.get(c)) or not isinstance(row.get(c), str):
             return f"no {c}"
     from models.schema import is_safe_name  # the names become parts of file names (figures)
@@ -197,7 +208,7 @@ def check_row(row: dict, known_statuses=None) -> str | None:
     if status not in (known_statuses or statuses()):
         return f"status {status!r} is not a status of the runs table"
     numbers = {}
-    for c in (*COUNT_COLUMNS, *ERROR_COLUMNS, *COST_COLUMNS, *SETTING_COLUMNS):
+    for c in (*COUNT_COLUMNS, *errors, *COST_COLUMNS, *SETTING_COLUMNS):
         if c not in row:
             continue
         v = _number(row[c])
@@ -209,12 +220,12 @@ def check_row(row: dict, known_statuses=None) -> str | None:
     for c in ("dt", "rtol", "atol", "t_end"):
         if numbers.get(c) == 0:
             return f"{c} = 0 is outside its range (> 0)"
-    if status != "ok" and any(numbers.get(c, np.nan) == numbers.get(c, np.nan) for c in ERROR_COLUMNS):
+    if not is_finished(status) and any(numbers.get(c, np.nan) == numbers.get(c, np.nan) for c in errors):
         return f"status {status} with accuracy values (only a finished run has them)"
-    if status == "ok":
+    if is_finished(status):
         if not numbers.get("run_time", np.nan) == numbers.get("run_time", np.nan):
             return "a finished run without a run_time"
-        present = [c for c in ERROR_COLUMNS if c in row]
+        present = [c for c in errors if c in row]
         if present and not any(numbers[c] == numbers[c] for c in present):
             return "a finished run without any accuracy value"
         lo, mid, hi = (numbers.get(c, np.nan) for c in ("run_time_low", "run_time", "run_time_high"))
@@ -256,6 +267,8 @@ class StoredRuns:
     def resumable(self) -> list[dict]:
         """The trusted rows a run may keep instead of computing (transient failures retried, rows
         that predate full digests recomputed unless accepted)."""
+        from integrators.base import RETRY_STATUSES
+
         legacy = {id(r) for r in self.legacy}
         return [r for r in self.rows if r.get("status") not in RETRY_STATUSES and r.get("run_key")
                 and id(r) not in legacy]
@@ -434,7 +447,7 @@ def read_runs(path: str | os.PathLike, log: Callable[[str], None] | None = None)
 
 def describe_row(row: dict) -> str:
     """scene/integrator/setting of a row, for messages."""
-    return "/".join(str(row.get(c, "?")) for c in ("scene", "integrator", "setting"))
+    return "/".join(str(row.get(c, "?")) for c in ROW_IDENTITY)
 
 
 def read_previous(path: str | os.PathLike, log: Callable[[str], None] | None = None) -> list[dict]:
@@ -452,11 +465,8 @@ def kept_rows(keys: list[str], previous: Iterable[dict] | None) -> dict[int, dic
 # ------------------------------------------------------------------------------------------
 # Merging a run into the table already in its output directory
 # ------------------------------------------------------------------------------------------
-#: A row's place in a runs table: one row per scene, integrator and setting.
-ROW_IDENTITY = ("scene", "integrator", "setting")
-
-
 def identity_of(row: dict, identity: tuple = ROW_IDENTITY) -> tuple:
+    """A row's place in its table (by default `benchmark.policy.ROW_IDENTITY`)."""
     return tuple(row.get(c) for c in identity)
 
 

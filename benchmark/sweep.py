@@ -12,6 +12,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
+from benchmark.policy import ATOL_FACTOR, ROW_IDENTITY, SAVE_EVERY, Setting  # noqa: F401 (the sweep's names)
+
 PAPER_SCENES = ("fixed_length", "deployment", "retrieval")
 #: A string in water (buoyancy and Morison drag): `run --extended` sweeps them after the paper's
 FLUID_SCENES = ("deployment_in_water", "towed", "towed_offset")
@@ -21,11 +23,10 @@ EXTENDED_SCENES = PAPER_SCENES + FLUID_SCENES
 #: declared capabilities and attributes).
 PRESENTATION_ORDER = ("lgvi", "lgvi_sym", "lgvi_yoshida4", "lgvi_suzuki4", "rk45", "dop853", "radau", "tsit5",
                       "kvaerno5")
-SAVE_EVERY = 0.02  # s; the save times (a fixed step saves at its step points nearest them)
 #: The words for a sweep axis in labels: a run with ``dt`` set, or an adaptive one (``rtol``).
 SWEEP_WORDS = {"dt": "fixed dt", "rtol": "adaptive"}
 
-# step sizes (s) and relative tolerances (atol = rtol * ATOL_FACTOR)
+# step sizes (s) and relative tolerances (atol = rtol * ATOL_FACTOR, `benchmark.policy`)
 #: One step grid for every fixed-step method (like with like: a method's curve is never cut
 #: shorter or longer than another's by its own list): 20 ms halved 8 times, down to 78.125 µs,
 #: from beyond the explicit methods' stability limits (a failed or inaccurate run is a status
@@ -43,7 +44,6 @@ QUICK_RTOLS = (1e-5, 1e-8)
 # under an hour on 2 cores.
 IMPLICIT_FULL_RTOLS = (1e-3, 1e-4, 1e-6)
 IMPLICIT_QUICK_RTOLS = (1e-4, 1e-6)
-ATOL_FACTOR = 1e-2
 QUICK_T_END = 1.0
 #: s of timed solves per run (`benchmark.runner.timing_repeats`): a run is timed
 #: clamp(floor(TIMING_BUDGET / first solve), --repeats, MAX_REPEATS) times, or once when its
@@ -57,8 +57,9 @@ TIMING_BUDGET = 0.5
 MAX_REPEATS = 30
 #: The least timed solves of one run whose first solve fits in the budget (`--repeats`).
 MIN_REPEATS = 3
-#: Where the runs execute: worker processes, this process, or a Dask cluster.
-EXECUTORS = ("process", "serial", "dask")
+#: Where the runs execute: worker processes (the default), this process, or a Dask cluster.
+DEFAULT_EXECUTOR = "process"
+EXECUTORS = (DEFAULT_EXECUTOR, "serial", "dask")
 #: Length (s) of the long-horizon energy study on fixed_length (`run --horizon`), full and --quick.
 FULL_HORIZON, QUICK_HORIZON = 100.0, 10.0
 
@@ -77,18 +78,22 @@ class Task:
     overrides: tuple = field(default_factory=tuple)  # ((key, value), ...)
 
     @property
+    def step(self) -> Setting:
+        """The task's setting as a value (`benchmark.policy.Setting`)."""
+        return Setting(dt=self.dt, rtol=self.rtol, atol=self.atol)
+
+    @property
     def setting(self) -> str:
-        if self.dt is not None:
-            return f"dt={self.dt:g}"
-        return f"rtol={self.rtol:g}"
+        """The setting's label, the runs table's ``setting`` column ("dt=0.005", "rtol=1e-06")."""
+        return self.step.label()
+
+    @property
+    def identity(self) -> tuple:
+        """The task's row's place in the runs table (`benchmark.policy.ROW_IDENTITY`)."""
+        return tuple(getattr(self, c) for c in ROW_IDENTITY)
 
     def solve_kwargs(self) -> dict:
-        kw = {"t_end": self.t_end, "save_every": self.save_every}
-        if self.dt is not None:
-            kw["dt"] = self.dt
-        else:
-            kw.update(rtol=self.rtol, atol=self.atol)
-        return kw
+        return {"t_end": self.t_end, "save_every": self.save_every, **self.step.solve_kwargs()}
 
 
 def check_settings(dts=(), rtols=()) -> None:
@@ -103,11 +108,21 @@ def check_settings(dts=(), rtols=()) -> None:
         if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
             raise ValueError(f"--dts: dt = {v!r} is invalid (allowed: a finite number > 0)")
     if rtols:
-        from integrators.lifecycle import MIN_RTOL, RTOL_RULE
+        from integrators.lifecycle import RTOL_RULE, rtol_allowed
 
         for v in rtols:
-            if not MIN_RTOL <= v < 1:
+            if not rtol_allowed(v):
                 raise ValueError(f"--rtols: rtol = {v!r} is invalid (allowed: {RTOL_RULE})")
+
+
+def sweep_dts(dts=None, quick: bool = False) -> tuple:
+    """The step sizes of a sweep: ``dts`` if given, else the --quick or the full grid."""
+    return tuple(dts) if dts else (QUICK_DTS if quick else FULL_DTS)
+
+
+def sweep_t_end(t_end: float | None = None, quick: bool = False) -> float | None:
+    """The horizon of a sweep: ``t_end`` if given, else --quick's, else None (each scene's own)."""
+    return t_end if t_end is not None else (QUICK_T_END if quick else None)
 
 
 def default_names(plugins: bool = False) -> list[str]:
@@ -183,12 +198,11 @@ def build_tasks(
     from integrators import Capability, get_integrator  # JAX: only once the input is known good
 
     names = list(integrators) if integrators else [n for n in default_names() if get_integrator(n).default_sweep]
-    dts = tuple(dts) if dts else (QUICK_DTS if quick else FULL_DTS)
+    dts = sweep_dts(dts, quick)
     given_rtols = bool(rtols)
     implicit_rtols = tuple(rtols) if rtols else (IMPLICIT_QUICK_RTOLS if quick else IMPLICIT_FULL_RTOLS)
     rtols = tuple(rtols) if rtols else (QUICK_RTOLS if quick else FULL_RTOLS)
-    if quick and t_end is None:
-        t_end = QUICK_T_END
+    t_end = sweep_t_end(t_end, quick)
     methods = {name: get_integrator(name) for name in names}  # raises for unknown names, before any work
     own_rtols = {name: _own(implicit_rtols if integ.has(Capability.IMPLICIT) else rtols, integ.sweep_rtols,
                             given_rtols or quick) for name, integ in methods.items()}
@@ -201,6 +215,6 @@ def build_tasks(
             if integ.has(Capability.FIXED_STEP):  # one grid for all of them
                 tasks += [Task(scene, name, dt=dt, t_end=t_end, overrides=ov) for dt in dts]
             if integ.has(Capability.ADAPTIVE):
-                tasks += [Task(scene, name, rtol=r, atol=r * ATOL_FACTOR, t_end=t_end, overrides=ov)
+                tasks += [Task(scene, name, **vars(Setting.adaptive(r)), t_end=t_end, overrides=ov)
                           for r in own_rtols[name]]
     return tasks

@@ -48,6 +48,26 @@ class Status(str, enum.Enum):
     FAILED = "failed"  # any other solver failure, with the solver's message as reason
 
 
+# The sets of statuses every reader asks, named here beside `Status` so that none re-lists them.
+#: A finished run: the only status whose errors, costs and curve points count (`Trajectory.ok`).
+FINISHED_STATUSES = (Status.OK.value,)
+#: A run stopped by its own budget (steps, seconds): a finer setting costs more, so a search goes
+#: no finer after one, and a ranking names the budget as the cause.
+BUDGET_STATUSES = (Status.MAX_STEPS.value, Status.TIME_LIMIT.value)
+#: Statuses a benchmark table has besides the integrators' own: the task raised (a bug), its
+#: worker died, or it finished beyond a sanity bound (no solution: `benchmark.metrics.INACCURATE`).
+ERROR, CRASHED, INACCURATE = "error", "crashed", "inaccurate"
+TABLE_ONLY_STATUSES = (ERROR, CRASHED, INACCURATE)
+#: Rows with these statuses are recomputed on resume (the cause may have been transient: a
+#: wall-clock budget runs out sooner on a loaded machine).
+RETRY_STATUSES = (CRASHED, ERROR, Status.TIME_LIMIT.value)
+
+
+def is_finished(status) -> bool:
+    """Whether ``status`` is a finished run's (`FINISHED_STATUSES`)."""
+    return status in FINISHED_STATUSES
+
+
 @dataclass
 class Trajectory:
     """Saved states of one run, in the integrator's own state, plus stats and status.
@@ -93,7 +113,7 @@ class Trajectory:
 
     @property
     def ok(self) -> bool:
-        return self.status == Status.OK.value
+        return is_finished(self.status)
 
     def __len__(self) -> int:
         return len(self.t)
@@ -146,14 +166,22 @@ def build_model_timed(scene):
     return model, (time.perf_counter() - t0 if build_model.cache_info().misses > misses else 0.0)
 
 
+#: Without a save interval a run saves this many intervals of its horizon.
+DEFAULT_SAVED_INTERVALS = 200
+
+
+def save_interval(t_end: float, save_every: float | None) -> float:
+    """``save_every``, or t_end / `DEFAULT_SAVED_INTERVALS` without one."""
+    return t_end / DEFAULT_SAVED_INTERVALS if save_every is None else save_every
+
+
 def save_times(t_end: float, save_every: float | None, dt: float | None = None) -> np.ndarray:
     """Saved times 0, Δ, 2Δ, ..., t_end. For a fixed step ``dt``: the step points nearest those
     times (`fixed_step_grid`), t_end last (the last step is shortened to land on it)."""
     if dt is not None:
         _, idx = fixed_step_grid(t_end, dt, save_every)
         return step_times(idx, dt, t_end)
-    if save_every is None:
-        save_every = t_end / 200.0
+    save_every = save_interval(t_end, save_every)
     n = int(math.floor(t_end / save_every + 1e-9))
     t = np.minimum(np.arange(n + 1) * save_every, t_end)  # no rounding overshoot past t_end
     return t if abs(t[-1] - t_end) < 1e-12 * max(1.0, t_end) else np.append(t, t_end)
@@ -163,12 +191,19 @@ def save_times(t_end: float, save_every: float | None, dt: float | None = None) 
 WHOLE_STEPS_TOL = 1e-9
 
 
+def fixed_step_count(t_end: float, dt: float) -> int:
+    """The number of steps a fixed-step run of ``dt`` takes to t_end: n - 1 of size dt and a last
+    one that lands on t_end (dt itself when dt divides t_end, to `WHOLE_STEPS_TOL`). The one count
+    of the loop, of its planned-step limit and of the command line's estimate."""
+    return max(1, int(math.ceil(t_end / dt - WHOLE_STEPS_TOL)))
+
+
 def fixed_step_grid(t_end: float, dt: float, save_every: float | None = None) -> tuple[int, np.ndarray]:
     """(n, idx): ``n`` steps reach t_end, n - 1 of size dt and the last one t_end - (n - 1) dt
     (dt itself when dt divides t_end), so that any step size ends at t_end; ``idx``: the step
     indices saved, 0, the step point nearest each saved time of `save_times` (any dt: nothing
     needs to divide the save interval), n last, in order and without repeats."""
-    n = max(1, int(math.ceil(t_end / dt - WHOLE_STEPS_TOL)))
+    n = fixed_step_count(t_end, dt)
     grid = save_times(t_end, save_every)[:-1]  # its last time is t_end: step n
     idx = np.unique(np.minimum(np.rint(grid / dt), n).astype(np.int64))
     return n, (idx if idx[-1] == n else np.append(idx, n))

@@ -42,7 +42,8 @@ import numpy as np
 
 from integrators import rhs as _rhs
 from integrators.base import (Capability, Integrator, Status, Trajectory, build_model_timed, check_positive,
-                              energy_reason, initial_energy, stamp_wall_time)
+                              energy_reason, fixed_step_count, initial_energy, save_interval, stamp_wall_time)
+from models.schema import PLAUSIBLE as _PLAUSIBLE
 
 
 #: Set (`request_stop`) to end every solve that has a ``time_limit`` at its next clock check, as if
@@ -67,10 +68,11 @@ __all__ = [
 BLOWUP = 1e8
 
 #: The longest horizon ``solve()`` accepts (s): the scene files' own plausible range for
-#: ``t_end`` (`models.scene.PLAUSIBLE`; tests/test_baselines.py checks they agree).
-T_END_MAX = 1e6
-#: A fixed-step run planned with more steps than this is refused before any work (the command
-#: line's limit: at ~10 µs per step on the smallest scene it is more than 3 hours).
+#: ``t_end`` (`models.schema.PLAUSIBLE`, read from there: one rule).
+T_END_MAX = _PLAUSIBLE["t_end"][1]
+#: A fixed-step run planned with more steps than this (`integrators.base.fixed_step_count`) is
+#: refused before any work (the command line's limit too: at ~10 µs per step on the smallest
+#: scene it is more than 3 hours).
 MAX_PLANNED_STEPS = 1e9
 #: A run whose saved trajectory would need more memory than this (bytes) is refused (the command
 #: line's limit).
@@ -100,6 +102,12 @@ MIN_RTOL = 1e-14
 RTOL_RULE = f"a finite number, {MIN_RTOL:g} <= rtol < 1"
 
 
+def rtol_allowed(rtol) -> bool:
+    """Whether a run may ask for the relative tolerance ``rtol`` (`RTOL_RULE`; the command line's
+    checks ask this too)."""
+    return MIN_RTOL <= rtol < 1
+
+
 def check_tolerances(rtol, atol) -> None:
     """rtol in [MIN_RTOL, 1), atol > 0; both required."""
     if rtol is None:
@@ -107,7 +115,7 @@ def check_tolerances(rtol, atol) -> None:
     if atol is None:
         raise ValueError("atol is required for an adaptive method (allowed: a finite number > 0)")
     check_positive("rtol", rtol)
-    if not MIN_RTOL <= rtol < 1:
+    if not rtol_allowed(rtol):
         raise ValueError(f"rtol = {rtol!r} is invalid (allowed: {RTOL_RULE})")
     check_positive("atol", atol)
 
@@ -168,21 +176,32 @@ def check_horizon(scene, mode: str, t_end, dt, save_every) -> None:
     if save_every is not None and save_every > t_end:
         raise ValueError(f"save_every = {save_every!r} is larger than t_end = {t_end!r} "
                          "(allowed: 0 < save_every <= t_end)")
-    if mode == "fixed" and t_end / dt > MAX_PLANNED_STEPS:
-        raise ValueError(f"t_end = {t_end:g} s at dt = {dt:g} s would take {t_end / dt:.3g} steps (allowed: at most "
+    if mode == "fixed" and (steps := fixed_step_count(t_end, dt)) > MAX_PLANNED_STEPS:
+        raise ValueError(f"t_end = {t_end:g} s at dt = {dt:g} s would take {steps:.3g} steps (allowed: at most "
                          f"{MAX_PLANNED_STEPS:.0e}): raise dt or shorten t_end")
-    interval = t_end / 200.0 if save_every is None else save_every
-    if mode == "fixed":
-        interval = max(interval, dt)
-    from models.layout import StateLayout  # JAX-free: the sizes the scene's effects give
-
-    lay = StateLayout.from_scene(scene)
-    points = math.floor(t_end / interval) + 2
-    size = points * 8 * (lay.nx + 2 * lay.nw + 9 + 2)  # x, velocity, momentum, attitude, work, t
+    points, size = saved_size(scene, t_end, save_every, dt if mode == "fixed" else None)
+    interval = saved_interval(t_end, save_every, dt if mode == "fixed" else None)
     if size > MAX_SAVED_BYTES:
         raise ValueError(f"save_every = {interval:g} s over t_end = {t_end:g} s keeps {points:,} saved states "
                          f"(~{size / 2**30:.3g} GiB; allowed: at most {MAX_SAVED_BYTES / 2**30:g} GiB): "
                          "raise save_every or shorten t_end")
+
+
+def saved_interval(t_end, save_every, fixed_dt=None) -> float:
+    """The interval between a run's saved states: ``save_every`` (`integrators.base.save_interval`),
+    never finer than a fixed step ``fixed_dt``."""
+    interval = save_interval(t_end, save_every)
+    return interval if fixed_dt is None else max(interval, fixed_dt)
+
+
+def saved_size(scene, t_end, save_every, fixed_dt=None) -> tuple[int, int]:
+    """(saved states, bytes) of the trajectory a run keeps, at most: the one size `check_horizon`
+    refuses beyond `MAX_SAVED_BYTES` and the command line estimates (`benchmark.options.run_size`)."""
+    from models.layout import StateLayout  # JAX-free: the sizes the scene's effects give
+
+    lay = StateLayout.from_scene(scene)
+    points = math.floor(t_end / saved_interval(t_end, save_every, fixed_dt)) + 2
+    return points, points * 8 * (lay.nx + 2 * lay.nw + 9 + 2)  # x, velocity, momentum, attitude, work, t
 
 
 def check_time_limit(time_limit) -> None:

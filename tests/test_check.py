@@ -155,7 +155,7 @@ def test_relative_factor_on_drifts_and_errors():
     cmp = check.compare(base, table(["ok"], position_error_final=1e-6), registered=["lgvi"])
     assert not cmp.failed and improved(cmp) == {("dt=0.01", "position_error_final")}
     # a custom factor
-    assert not check.compare(base, table(["ok"], energy_error=2.1e-6), check.Tolerance(factor=3), registered=["lgvi"]).failed
+    assert not check.compare(base, table(["ok"], energy_error=2.1e-6), check.RegressionTolerance(factor=3), registered=["lgvi"]).failed
 
 
 def test_round_off_metrics_have_an_absolute_floor():
@@ -174,7 +174,7 @@ def test_orders_are_compared_with_an_absolute_margin():
     cmp = check.compare(base, table(["ok", "ok"], order=1.4), registered=["lgvi"])
     assert regressed(cmp) == {("order(dt)", check.ORDER)} and cmp.regressions[0]["change"] == "-0.60"
     assert improved(check.compare(base, table(["ok", "ok"], order=2.6), registered=["lgvi"])) == {("order(dt)", check.ORDER)}
-    assert check.compare(base, table(["ok", "ok"], order=1.6), check.Tolerance(order_margin=0.2), registered=["lgvi"]).failed
+    assert check.compare(base, table(["ok", "ok"], order=1.6), check.RegressionTolerance(order_margin=0.2), registered=["lgvi"]).failed
 
 
 def test_ok_to_not_ok_is_a_regression_and_the_reverse_an_improvement():
@@ -196,7 +196,7 @@ def test_a_new_plugin_is_reported_and_a_baseline_integrator_that_is_gone_fails()
     cmp = check.compare(base, current, registered=["lgvi", "new_plugin"])
     assert any(n.startswith("new_plugin: no baseline, run `python -m benchmark check --update`") for n in cmp.notes)
     assert cmp.failed and [(r["integrator"], r["metric"]) for r in cmp.regressions] == [("retired", "registered")]
-    report = check.format_report(cmp, check.Tolerance(), "drift.csv")
+    report = check.format_report(cmp, check.RegressionTolerance(), "drift.csv")
     assert "no baseline" in report and "check FAILED" in report
     assert not check.compare(base[base["integrator"] == "lgvi"], current, registered=["lgvi", "new_plugin"]).failed
 

@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 
 from benchmark.ranking import failure_causes, failure_summary
-from benchmark.reproducibility import DEFAULT_TOLERANCE, Tolerance, compare_runs, reproducible, statement
+from benchmark.reproducibility import DEFAULT_TOLERANCE, AgreementTolerance, compare_runs, reproducible, statement
 
 DATA = Path(__file__).parent / "data"
 
@@ -37,7 +37,7 @@ def test_the_measured_cross_cpu_differences_are_within_the_default_tolerance(mea
     ({"adaptive_error_of_rtol": 0.0}, "pi3_error 1.01e-07 vs 2.7e-06"),  # dop853 rtol 1e-4: a factor 27
 ])
 def test_each_default_tolerance_is_needed_by_the_measured_differences(measured, tighter, breaks):
-    c = compare_runs(*measured, tol=Tolerance(**{**DEFAULT_TOLERANCE.__dict__, **tighter}))
+    c = compare_runs(*measured, tol=AgreementTolerance(**{**DEFAULT_TOLERANCE.__dict__, **tighter}))
     assert not reproducible(c)
     assert any(breaks in r for r in c.loc[c["verdict"] == "differs", "reason"])
 
@@ -70,7 +70,7 @@ def test_rattle_across_cpus_is_within_the_default_tolerance(rattle_measured):
     ("avx512", {"fixed_error_rtol": 1e-6, "fixed_error_atol": 0.0}, "attitude_error_final 1.25e-05 vs 1.25e-05"),
 ])
 def test_each_fixed_step_tolerance_is_needed_by_rattles_differences(rattle_measured, cpu, tighter, breaks):
-    c = compare_runs(*rattle_measured[cpu], tol=Tolerance(**{**DEFAULT_TOLERANCE.__dict__, **tighter}))
+    c = compare_runs(*rattle_measured[cpu], tol=AgreementTolerance(**{**DEFAULT_TOLERANCE.__dict__, **tighter}))
     assert not reproducible(c)
     assert any(breaks in r for r in c.loc[c["verdict"] == "differs", "reason"])
 
@@ -139,8 +139,8 @@ def test_bad_input_is_refused():
     with pytest.raises(ValueError, match="the first table has two rows for s/m/dt=0.01"):
         compare_runs(pd.DataFrame([run(), run()]), pd.DataFrame([run()]))
     with pytest.raises(ValueError, match=re.escape("adaptive_error_factor = 1.0 is invalid (allowed: a finite number > 1)")):
-        Tolerance(adaptive_error_factor=1.0)
+        AgreementTolerance(adaptive_error_factor=1.0)
     with pytest.raises(ValueError, match="fixed_error_rtol = -1"):
-        Tolerance(fixed_error_rtol=-1)
+        AgreementTolerance(fixed_error_rtol=-1)
     with pytest.raises(ValueError, match="fixed_error_atol = nan"):
-        Tolerance(fixed_error_atol=float("nan"))
+        AgreementTolerance(fixed_error_atol=float("nan"))
