@@ -391,6 +391,15 @@ class ODEProblem:
     f: Any
     layout: Any
     params: Any = None
+    #: which right-hand side ``f`` is (`integrators.rhs`), to rebuild it on a bound model
+    rhs: str = _rhs.DEFAULT_RHS
+
+    def bind(self, values, params=None) -> "ODEProblem":
+        """This problem on the model bound to ``values`` (`StringPendulum.bind`; traced, inside a
+        compiled program), with ``params``: what a compiled program's step sees."""
+        model = self.model.bind(values)
+        return ODEProblem(model=model, f=_rhs.ode_rhs(model, self.rhs), layout=self.layout, params=params,
+                          rhs=self.rhs)
 
 
 @dataclass
@@ -450,8 +459,8 @@ class Run:
         return out
 
     def ode_problem(self) -> ODEProblem:
-        return ODEProblem(model=self.model, f=_rhs.ode_rhs(self.model, self.rhs or _rhs.DEFAULT_RHS),
-                          layout=self.model.layout)
+        rhs = self.rhs or _rhs.DEFAULT_RHS
+        return ODEProblem(model=self.model, f=_rhs.ode_rhs(self.model, rhs), layout=self.model.layout, rhs=rhs)
 
     def finish(self, traj: Trajectory) -> Trajectory:
         """The epilogue: compile time, run time (`stamp_wall_time`, last) and time per step."""
