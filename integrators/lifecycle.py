@@ -339,8 +339,18 @@ def energy_guard(model):
     from models._jax import jax
 
     guards = Guards.for_model(model)
-    f = jax.jit(lambda y: energy_error_ode(model, y, guards.E0))
-    return (lambda y: float(f(y))), guards.energy_bound
+    f = _rhs.program(_energy_error_program, model)  # one program per model structure
+    values, E0 = _rhs.device_values(model), np.float64(guards.E0)
+    return (lambda y: float(f(values, y, E0))), guards.energy_bound
+
+
+@functools.lru_cache(maxsize=64)
+def _energy_error_program(structure, template):
+    """|E − W − E0| of an ODE state as f(values, y, E0), jitted (`energy_guard`)."""
+    from integrators.base import energy_error_ode
+    from models._jax import jax
+
+    return jax.jit(lambda values, y, E0: energy_error_ode(template.bind(values), y, E0))
 
 
 def blowup_reason(where: str, blowup: float = BLOWUP) -> str:
