@@ -114,14 +114,25 @@ def template_of(model):
 def rhs_jit(model, rhs: str = DEFAULT_RHS):
     """Jitted f(t, y) of ``model``: one compiled program per model structure and rhs, the
     model's numbers passed to it at every call."""
-    f = program(_rhs_program, model, rhs)
-    values = device_values(model)
-    return lambda t, y: f(values, t, y)
+    return BoundProgram(program(_rhs_program, model, rhs), device_values(model))
 
 
 def jacobian_jit(model, rhs: str = DEFAULT_RHS):
     """Jitted ∂f/∂y by forward-mode autodiff of the chosen right-hand side (see the module
     docstring for why forward mode); one program per structure, like `rhs_jit`."""
-    f = program(_jacobian_program, model, rhs)
-    values = device_values(model)
-    return lambda t, y: f(values, t, y)
+    return BoundProgram(program(_jacobian_program, model, rhs), device_values(model))
+
+
+class BoundProgram:
+    """A jitted f(values, *args) with one model's values: called (and lowered) as f(*args)."""
+
+    __slots__ = ("fn", "values")
+
+    def __init__(self, fn, values):
+        self.fn, self.values = fn, values
+
+    def __call__(self, *args):
+        return self.fn(self.values, *args)
+
+    def lower(self, *args):
+        return self.fn.lower(self.values, *args)
