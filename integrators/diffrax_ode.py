@@ -150,7 +150,7 @@ class _Loop:
 
 
         loop = copy.copy(self)
-        loop.model = self.model.bind(values)
+        loop.model = _rhs.prepare(self.model.bind(values))
         f = _rhs.ode_rhs(loop.model, self.rhs)
         if self.counts is not None:
             f = _counting(f, self.counts)

@@ -407,7 +407,7 @@ class ODEProblem:
     def bind(self, values, params=None) -> "ODEProblem":
         """This problem on the model bound to ``values`` (`StringPendulum.bind`; traced, inside a
         compiled program), with ``params``: what a compiled program's step sees."""
-        model = self.model.bind(values)
+        model = _rhs.prepare(self.model.bind(values))
         return ODEProblem(model=model, f=_rhs.ode_rhs(model, self.rhs), layout=self.layout, params=params,
                           rhs=self.rhs)
 

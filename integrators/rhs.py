@@ -45,8 +45,21 @@ def closed_form_of(model):
     from models.closed_form import ClosedFormEOM
 
     if model.is_bound:
-        return ClosedFormEOM(model)
+        made = model.__dict__.get("_closed_form")
+        return made if made is not None else ClosedFormEOM(model)
     return _closed_form_cached(model)
+
+
+def prepare(model):
+    """Build a bound model's closed form once, where it was bound (the top of a compiled
+    program, outside its loops), so that every step reuses the quantities it derives from the
+    values instead of deriving them again inside the loop. Only there: what it holds belongs to
+    that trace."""
+    from models.closed_form import ClosedFormEOM
+
+    if model.is_bound and "_closed_form" not in model.__dict__:
+        model.__dict__["_closed_form"] = ClosedFormEOM(model)
+    return model
 
 
 @functools.lru_cache(maxsize=64)
@@ -62,13 +75,13 @@ def ode_rhs(model, rhs: str = DEFAULT_RHS):
 
 
 def device_values(model):
-    """The model's numbers (`StringPendulum.values`) on the device, once per model: the
-    run-time argument of every compiled program of its structure."""
+    """The model's numbers on the device, packed in one vector (`StringPendulum.value_vector`),
+    once per model: the run-time argument of every compiled program of its structure."""
     cached = model.__dict__.get("_device_values")
     if cached is None:
         from models._jax import jax
 
-        cached = model.__dict__["_device_values"] = jax.device_put(model.values())
+        cached = model.__dict__["_device_values"] = jax.device_put(model.value_vector())
     return cached
 
 
