@@ -21,9 +21,10 @@ here (tests/test_diffrax_loop.py). One compiled function advances up to K steps 
 complete loop state (times, next step size, state, solver and controller states, result, step
 counts, next saved slot, saved buffers, the last step's dense output for the root find) and
 returns it, so a solve can be cut anywhere and resumed exactly. It is compiled ahead of time and
-cached (`CompileCache`, bounded) per (model, rhs, solver, step-size mode, first step given or not,
-number of saved times): the step budget, time limit, tolerances, horizon, dt and K are run-time
-values, so the budgeted and timed solves of every setting share one program;
+cached (`CompileCache`, bounded) per (model structure, rhs, solver, step-size mode, first step given
+or not, number of saved times): the scene's numbers, the step budget, time limit, tolerances,
+horizon, dt and K are run-time values, so the budgeted and timed solves of every setting, and
+every scene of the same structure, share one program;
 ``stats["compile_time"]`` is that compilation (0 when cached) and ``stats["wall_time"]`` the rest
 of the ``solve()`` call.
 

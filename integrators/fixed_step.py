@@ -7,8 +7,8 @@ lifecycle (`run_fixed_step`) does the rest, once for every fixed-step method.
   fail or counts iterations (traced by JAX: ``jax.numpy``, no Python branches on values);
 * ``state(ode, carry) -> y``: the ODE state of a carry (default: the carry itself).
 
-The lifecycle compiles one loop per (method and its options, model, right-hand side, save-buffer
-length), runs it, stops on a failed step or guard with the status the `StepCode` names, and
+The lifecycle compiles one loop per (method and its options, model structure, right-hand side,
+save-buffer length; the scene's numbers are an argument, `StringPendulum.bind`), runs it, stops on a failed step or guard with the status the `StepCode` names, and
 assembles the `Trajectory`. The guards (integrators/README.md, "One guard policy"): after every
 step the saved state is finite and below the blow-up bound, the deployed length inside its
 range, and the step's own code (e.g. Newton failed, the LGVI's Cayley bound) is ok; the energy

@@ -47,7 +47,7 @@ from integrators.registry import register
 CAYLEY_BOUND = 1.0
 CAYLEY_CODE = StepCode.define("cayley_bound", Status.DIVERGED, "Cayley parameter blow-up")
 
-#: the compiled Legendre maps w = M⁻¹ p over a save buffer, per (model, buffer length)
+#: the compiled Legendre maps w = M⁻¹ p over a save buffer, per (model structure, buffer length)
 _VELOCITY = CompileCache(maxsize=32)
 
 
