@@ -174,36 +174,41 @@ def tridiag_solve(sub, diag, sup, rhs):
 
 
 class FixedTridiag:
-    """A constant tridiagonal matrix (the string rows at a fixed length), factored once.
+    """The string rows' matrix at a fixed length, A = mul·T + m_b e_N e_Nᵀ (T = tri(sub, diag,
+    sup) of the mass model, numpy; mul = μ l and m_b may be run-time values), factored once.
 
-    The Thomas factors are computed here in numpy, so a solve is two first-order linear
-    recurrences with constant coefficients (d_i = a_i d_{i-1} + r_i / den_i, then
-    y_i = b_i y_{i+1} + d_i) and no divisions. ``ends`` = A⁻¹ e_N (the tip column, which the
-    body term multiplies) is a constant too.
+    The Thomas factors of A follow from T's alone: for rows i < N, den_i = mul·den_i(T) and
+    cp_i = cp_i(T); the last row's den is mul·den_N(T) + m_b (its cp is 0: sup_N = 0). So a
+    solve is two first-order linear recurrences with coefficients computed elementwise
+    (d_i = a_i d_{i-1} + r_i / den_i, then y_i = b_i y_{i+1} + d_i) and no divisions in them;
+    ``ends`` = A⁻¹ e_N (the tip column, which the body term multiplies) is (1/den_N) times the
+    products of the b_i, also T's.
     """
 
-    def __init__(self, sub, diag, sup):
+    def __init__(self, sub, diag, sup, mul, m_b):
         sub, diag, sup = (np.asarray(a, dtype=float) for a in (sub, diag, sup))
         n = diag.shape[0]
-        invden, cp = np.empty(n), np.empty(n)
+        den_t, cp = np.empty(n), np.empty(n)
         prev = 0.0
         for i in range(n):
-            den = diag[i] - (sub[i] * prev if i else 0.0)
-            invden[i], cp[i] = 1.0 / den, sup[i] / den
+            den_t[i] = diag[i] - (sub[i] * prev if i else 0.0)
+            cp[i] = sup[i] / den_t[i]
             prev = cp[i]
-        self.invden, self.fwd, self.bwd = invden, -sub * invden, -cp
-        self.fwd[0] = self.bwd[-1] = 0.0  # each pass's starting row has no predecessor
-        e = np.zeros(n)
-        e[-1] = 1.0
-        self.ends = self._solve_np(e)
-
-    def _solve_np(self, r):
-        d = r * self.invden
-        for i in range(1, d.shape[0]):
-            d[i] += self.fwd[i] * d[i - 1]
-        for i in range(d.shape[0] - 2, -1, -1):
-            d[i] += self.bwd[i] * d[i + 1]
-        return d
+        xp = np if all(isinstance(v, (float, int, np.floating, np.ndarray)) for v in (mul, m_b)) else jnp
+        last = np.zeros(n)
+        last[-1] = 1.0
+        self.invden = 1.0 / (mul * den_t + m_b * last)
+        first = np.ones(n)
+        first[0] = 0.0  # each pass's starting row has no predecessor
+        self.fwd = -(mul * (sub * first)) * self.invden
+        self.bwd = -cp
+        self.bwd[-1] = 0.0
+        # A⁻¹ e_N: y_N = 1/den_N, y_i = b_i y_{i+1}
+        tail = np.ones(n)
+        for i in range(n - 2, -1, -1):
+            tail[i] = self.bwd[i] * tail[i + 1]
+        self.ends = self.invden[-1] * tail
+        self._xp = xp
 
     def __call__(self, rhs):
         """A⁻¹ rhs, rhs (n, k)."""
@@ -215,7 +220,7 @@ class FixedTridiag:
         δ / den_n only: what the LGVI's Newton iteration reads (`DiscreteLagrangian.tip_rows`)."""
         # the scale as an (n, k) constant: an elementwise product of equal shapes costs XLA CPU
         # ~2.5x less than the broadcast of an (n, 1) column (measured at n = 640, k = 3)
-        d0 = rhs * np.repeat(self.invden[:, None], rhs.shape[1], axis=1)
+        d0 = rhs * self._xp.repeat(self.invden[:, None], rhs.shape[1], axis=1)
         return self._recurrence(self.fwd, d0, reverse=False)
 
     def backward(self, d):
@@ -325,13 +330,16 @@ class DiscreteLagrangian:
         #: w = M(x, R)⁻¹ p by the structured O(N) solve (string forcing, the LGVI's energy guard)
         self.legendre = ClosedFormEOM(model).velocity_from_momentum
         #: at a fixed length the string rows' matrix is a constant: factored once
-        self.fixed_rows = None if self.reel else FixedTridiag(*self._fixed_coeffs())
+        self.fixed_rows = None if self.reel else FixedTridiag(
+            *self._mass_rows(), self.model.mu * (self.model.L - self.model.s_fixed) / self.N, self.model.m_b)
 
-    def _fixed_coeffs(self):
-        """(sub, diag, sup) of the q rows at the fixed length (numpy; `q_coeffs` with Δs = 0)."""
-        mul = self.model.mu * (self.model.L - self.model.s_fixed) / self.N
-        return tuple(np.asarray(a) for a in (mul * self.msub, mul * self.mdiag + self.model.m_b * self.e_last,
-                                             mul * self.msup))
+    def _mass_rows(self):
+        """(sub, diag, sup) of the q rows' string mass in units of μ l (numpy: the mass model's)."""
+        sm = self.model.string_mass
+        N = self.N
+        last = np.arange(N) == N - 1
+        return (np.full(N, sm.o / sm.den), np.where(last, sm.d / sm.den, 2.0 * sm.d / sm.den),
+                np.where(last, 0.0, sm.o / sm.den))
 
     # -------------------------------------------------------------------------------------
     def context(self, t, x, R, gradV, p=None) -> StepContext:

@@ -28,11 +28,19 @@ from models._jax import jax, jnp
 CHORD_REFRESH = 0.1
 
 
-@functools.lru_cache(maxsize=32)
 def lgvi_step(model, scheme, cayley_code: int) -> "LGVIStep":
     """The step of ``scheme`` on ``model``, built once per pair; its constants are computed
-    eagerly even when first asked for inside a trace (no tracer may be cached).
+    eagerly even when first asked for inside a trace (no tracer may be cached). A model bound
+    to run-time values (`StringPendulum.bind`) gets a new step each time: its constants are
+    computed in the trace that asks.
     ``cayley_code``: the `StepCode` of the Cayley guard (`integrators.lgvi` defines it)."""
+    if model.is_bound:
+        return LGVIStep(model, scheme, cayley_code)
+    return _lgvi_step_cached(model, scheme, cayley_code)
+
+
+@functools.lru_cache(maxsize=32)
+def _lgvi_step_cached(model, scheme, cayley_code: int) -> "LGVIStep":
     with jax.ensure_compile_time_eval():
         return LGVIStep(model, scheme, cayley_code)
 

@@ -49,6 +49,8 @@ def legendre_of(model):
 def extension_inertia(model) -> float:
     """J₀ of the quaternion kinetic energy's extension: the mean principal inertia about the
     attachment point, tr(J_o)/3 (the scale of the body's own rows, for the Newton matrix)."""
+    if model.is_bound:  # a run-time value of the compiled program (`StringPendulum.bind`)
+        return jnp.trace(model.J_o) / 3.0
     return float(np.trace(model.J_o) / 3.0)
 
 

@@ -21,9 +21,10 @@ here (tests/test_diffrax_loop.py). One compiled function advances up to K steps 
 complete loop state (times, next step size, state, solver and controller states, result, step
 counts, next saved slot, saved buffers, the last step's dense output for the root find) and
 returns it, so a solve can be cut anywhere and resumed exactly. It is compiled ahead of time and
-cached (`CompileCache`, bounded) per (model, rhs, solver, step-size mode, first step given or not,
-number of saved times): the step budget, time limit, tolerances, horizon, dt and K are run-time
-values, so the budgeted and timed solves of every setting share one program;
+cached (`CompileCache`, bounded) per (model structure, rhs, solver, step-size mode, first step given
+or not, number of saved times): the scene's numbers, the step budget, time limit, tolerances,
+horizon, dt and K are run-time values, so the budgeted and timed solves of every setting, and
+every scene of the same structure, share one program;
 ``stats["compile_time"]`` is that compilation (0 when cached) and ``stats["wall_time"]`` the rest
 of the ``solve()`` call.
 
@@ -72,6 +73,7 @@ from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
 
+from integrators import rhs as _rhs
 from integrators.base import Capability, Status, energy_reason, fixed_step_grid, save_times
 from integrators.lifecycle import (CompileCache, LibraryAdapter, Outcome, Run, blowup_reason, length_reason,
                                    library_attribute, run_in_chunks, state_ok)
@@ -135,12 +137,26 @@ class _Loop:
     clip-to-t1 rule (t1 minus 100 ulps), the saved times by ``solver.interpolation_cls`` on the
     step's ``dense_info``, then the conditions at the new (tprev, y)."""
 
-    def __init__(self, model, f, solver_of, constant: bool, dt0_given: bool, n_save: int):
+    def __init__(self, model, rhs: str, counts, solver_of, constant: bool, dt0_given: bool, n_save: int):
+        self.model, self.lay, self.reel = model, model.layout, model.layout.has_reel
+        self.rhs, self.counts, self.term = rhs, counts, None
+        self.solver_of, self.constant, self.dt0_given, self.n_save = solver_of, constant, dt0_given, n_save
+
+    def on(self, values) -> "_Loop":
+        """This loop on the model bound to ``values`` (traced: the scene's numbers are arguments
+        of the compiled solve, not constants), with its right-hand side as a diffrax term."""
+        import copy
+
         import diffrax as dfx
 
-        self.model, self.lay, self.reel = model, model.layout, model.layout.has_reel
-        self.term = dfx.ODETerm(lambda t, y, args: f(t, y))
-        self.solver_of, self.constant, self.dt0_given, self.n_save = solver_of, constant, dt0_given, n_save
+
+        loop = copy.copy(self)
+        loop.model = _rhs.prepare(self.model.bind(values))
+        f = _rhs.ode_rhs(loop.model, self.rhs)
+        if self.counts is not None:
+            f = _counting(f, self.counts)
+        loop.term = dfx.ODETerm(lambda t, y, args: f(t, y))
+        return loop
 
     def conditions(self, y, blowup):
         """(guard, margin): a non-finite / blown-up state (bool) and, with a reel, the deployed
@@ -161,7 +177,10 @@ class _Loop:
             controller = dfx.PIDController(rtol=rtol, atol=atol, dtmin=min_step, force_dtmin=False)
         return self.solver_of(rtol, atol), controller
 
-    def initial(self, y0, t1, ts, rtol, atol, dt0, min_step, E0, blowup):
+    def initial(self, values, y0, t1, ts, rtol, atol, dt0, min_step, E0, blowup):
+        return self.on(values).start_with(y0, t1, ts, rtol, atol, dt0, min_step, E0, blowup)
+
+    def start_with(self, y0, t1, ts, rtol, atol, dt0, min_step, E0, blowup):
         return self.start(y0, t1, dt0, blowup, *self.pieces(rtol, atol, min_step))
 
     def start(self, y0, t1, dt0, blowup, solver, controller):
@@ -190,7 +209,10 @@ class _Loop:
             event_dense_info=jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), info_struct),
             event_values=(bad, margin), event_mask=(bad, jnp.zeros((), bool)))
 
-    def advance(self, state, fresh, y0, t1, ts, rtol, atol, dt0, min_step, E0, blowup, k_stop):
+    def advance(self, values, state, fresh, *args):
+        return self.on(values).advance_bound(state, fresh, *args)
+
+    def advance_bound(self, state, fresh, y0, t1, ts, rtol, atol, dt0, min_step, E0, blowup, k_stop):
         import diffrax as dfx
         import equinox.internal as eqxi
 
@@ -340,7 +362,7 @@ class DiffraxODE(LibraryAdapter):
         args = self._arguments(run, t_save, t1, min_step)
         # one program per method, model, rhs, step-size mode and number of saved times: the budget,
         # the time limit, tolerances, dt and horizon are run-time values
-        key = (run.model, run.rhs, type(self), constant, run.dt is not None, len(t_save))
+        key = (_rhs.structure_of(run.model), run.rhs, type(self), constant, run.dt is not None, len(t_save))
         prog = run.compiled(_SOLVES, key, lambda: self._compile(run, constant, args, counting=False))
         out, timed_out = _solve(run, prog, args, int(budget), timed=run.time_limit is not None)
         result = self._ending(run, out, timed_out)
@@ -404,17 +426,14 @@ class DiffraxODE(LibraryAdapter):
         """The chunk of the solve (`_Loop.advance`), compiled ahead of time for these argument
         shapes, with the zero state its first (fresh) call passes and, when ``counting``, the
         list its counting callbacks add to."""
-        from integrators import rhs as _rhs
         from models._jax import jax, jnp
 
         counts = [0, 0] if counting else None
-        f = _rhs.ode_rhs(run.model, run.rhs)
-        if counts is not None:
-            f = _counting(f, counts)
-        loop = _Loop(run.model, f, self.make_solver, constant, run.dt is not None, len(args[2]))
-        shape = jax.eval_shape(loop.initial, *args)
+        loop = _Loop(run.model, run.rhs, counts, self.make_solver, constant, run.dt is not None, len(args[2]))
+        values = _rhs.device_values(run.model)
+        shape = jax.eval_shape(loop.initial, values, *args)
         zero = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shape)
-        fn = jax.jit(loop.advance).lower(zero, np.bool_(True), *args, np.int32(0)).compile()
+        fn = jax.jit(loop.advance).lower(values, zero, np.bool_(True), *args, np.int32(0)).compile()
         return _Program(fn, zero, counts)
 
     def _ending(self, run: Run, out: dict, timed_out: bool) -> Outcome:
@@ -499,13 +518,15 @@ def _solve(run: Run, prog: _Program, args, budget: int, timed: bool) -> tuple[di
 
     from models._jax import jax
 
+
     successful = int(dfx.RESULTS.successful._value)
     t1 = float(args[1])
+    values = _rhs.device_values(run.model)
     box = {"state": prog.zero, "fresh": np.bool_(True), "steps": 0, "final": None}
 
     def advance(chunk: int) -> tuple[int, bool]:
         k_stop = np.int32(min(budget, box["steps"] + chunk))
-        state, final = prog.fn(box["state"], box["fresh"], *args, k_stop)
+        state, final = prog.fn(values, box["state"], box["fresh"], *args, k_stop)
         steps, tprev, result = jax.device_get((state.num_steps, state.tprev, state.result._value))
         done = int(steps) - box["steps"]
         box.update(state=state, fresh=np.bool_(False), steps=int(steps), final=final)

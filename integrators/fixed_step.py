@@ -7,8 +7,8 @@ lifecycle (`run_fixed_step`) does the rest, once for every fixed-step method.
   fail or counts iterations (traced by JAX: ``jax.numpy``, no Python branches on values);
 * ``state(ode, carry) -> y``: the ODE state of a carry (default: the carry itself).
 
-The lifecycle compiles one loop per (method and its options, model, right-hand side, save-buffer
-length), runs it, stops on a failed step or guard with the status the `StepCode` names, and
+The lifecycle compiles one loop per (method and its options, model structure, right-hand side,
+save-buffer length; the scene's numbers are an argument, `StringPendulum.bind`), runs it, stops on a failed step or guard with the status the `StepCode` names, and
 assembles the `Trajectory`. The guards (integrators/README.md, "One guard policy"): after every
 step the saved state is finite and below the blow-up bound, the deployed length inside its
 range, and the step's own code (e.g. Newton failed, the LGVI's Cayley bound) is ok; the energy
@@ -294,7 +294,7 @@ def _fresh(method, ode, y0):
 
 
 def _make_loop(method: FixedStepMethod, ode: ODEProblem, n_buf: int, seen: dict):
-    """The run as one function of (y0, state, j0, k_stop, h, k_last, h_last, save_idx, n_save, E0,
+    """The run as one function of (the model's values, y0, state, j0, k_stop, h, k_last, h_last, save_idx, n_save, E0,
     bound, blowup, params): from saved slot j0 (0: a fresh start from y0) until every slot is saved, a step or
     guard fails, or step k_stop (the end of a chunk) is reached. Returns (state, the next slot,
     this call's saved buffers (step index, saved state): slot j at index j - j0).
@@ -303,8 +303,8 @@ def _make_loop(method: FixedStepMethod, ode: ODEProblem, n_buf: int, seen: dict)
     one more slot (off the grid unless it is on it), within the energy bound."""
     from models._jax import jax, jnp
 
-    def run(y0, state, j0, k_stop, h, k_last, h_last, save_idx, n_save, E0, e_bound, blowup, params):
-        ode_t = dataclasses.replace(ode, params=params)
+    def run(values, y0, state, j0, k_stop, h, k_last, h_last, save_idx, n_save, E0, e_bound, blowup, params):
+        ode_t = ode.bind(values, params)  # the scene's numbers are arguments, not constants
         state = jax.lax.cond(j0 == 0, lambda s: _fresh(method, ode_t, y0), lambda s: s, state)
         steps = _steps_until(method, ode_t, h, k_last, h_last, blowup, seen)
         first = (state.k, method.saved(ode_t, state.carry))
@@ -347,11 +347,12 @@ def _compile_loop(method, ode, n_buf, y0, params, rest) -> _Loop:
     """AOT-compile the loop for these argument shapes (``rest``: j0 .. blowup, numpy)."""
     from models._jax import jax, jnp
 
-    shape = jax.eval_shape(lambda y, p: _fresh(method, dataclasses.replace(ode, params=p), y), y0, params)
+    values = _rhs.device_values(ode.model)
+    shape = jax.eval_shape(lambda v, y, p: _fresh(method, ode.bind(v, p), y), values, y0, params)
     # on the device once: a first call then passes no host arrays for the state it does not read
     zero = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shape)
     seen: dict = {}
-    fn = jax.jit(_make_loop(method, ode, n_buf, seen)).lower(y0, zero, *rest, params).compile()
+    fn = jax.jit(_make_loop(method, ode, n_buf, seen)).lower(values, y0, zero, *rest, params).compile()
     return _Loop(fn, zero, bool(seen.get("result", False)))
 
 
@@ -371,7 +372,7 @@ class _Progress:
     scalars: Any = None  # the final LoopState's counters on the host (carry dropped)
 
 
-def _run_chunks(run: Run, loop: _Loop, y0, n_run: int, n_save: int, rest: tuple, params) -> _Progress:
+def _run_chunks(run: Run, loop: _Loop, values, y0, n_run: int, n_save: int, rest: tuple, params) -> _Progress:
     """Call the compiled loop until the run ends, in chunks when there is a time limit
     (`run_in_chunks`: the clock is read between chunks, never inside the compiled loop)."""
     from models._jax import jax
@@ -380,7 +381,7 @@ def _run_chunks(run: Run, loop: _Loop, y0, n_run: int, n_save: int, rest: tuple,
 
     def advance(chunk: int) -> tuple[int, bool]:
         k_stop = min(n_run, prog.k + chunk)
-        state, j, bufs = loop.fn(y0, prog.state, np.int32(prog.j), np.int32(k_stop), *rest, params)
+        state, j, bufs = loop.fn(values, y0, prog.state, np.int32(prog.j), np.int32(k_stop), *rest, params)
         j, k, code = (int(v) for v in jax.device_get((j, state.k, state.code)))  # one transfer
         prog.pieces.append((bufs, j - prog.j))
         done = k - prog.k
@@ -466,10 +467,11 @@ def run_fixed_step(method: FixedStepMethod, scene, t_end=None, *, dt=None, rtol=
     n_grid, _ = fixed_step_grid(run.t_end, run.dt, save_every)
     rest = (np.float64(run.dt), np.int32(n_grid - 1), np.float64(last_step(run.t_end, run.dt, n_grid)), idx_buf, np.int32(len(idx)), np.float64(guards.E0),
             np.float64(guards.energy_bound), np.float64(guards.blowup))
-    key = (method.loop_key(), run.model, rhs, n_buf)
+    # one loop per model structure: this model's numbers are its run-time argument
+    key = (method.loop_key(), _rhs.structure_of(run.model), rhs, n_buf)
     loop = run.compiled(_LOOPS, key, lambda: _compile_loop(method, ode, n_buf, y0, params,
                                                            (np.int32(0), np.int32(0)) + rest))
-    prog = _run_chunks(run, loop, y0, n_run, len(idx), rest, params)
+    prog = _run_chunks(run, loop, _rhs.device_values(run.model), y0, n_run, len(idx), rest, params)
     prog.scalars = _device_get(prog.state._replace(carry=None))  # the counters, in one transfer
     (K, saved), n = _saved_buffers(prog, n_buf)
     traj = method.trajectory(run, ode, step_times(K[:n], run.dt, run.t_end), saved, n)

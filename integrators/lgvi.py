@@ -47,7 +47,7 @@ from integrators.registry import register
 CAYLEY_BOUND = 1.0
 CAYLEY_CODE = StepCode.define("cayley_bound", Status.DIVERGED, "Cayley parameter blow-up")
 
-#: the compiled Legendre maps w = M⁻¹ p over a save buffer, per (model, buffer length)
+#: the compiled Legendre maps w = M⁻¹ p over a save buffer, per (model structure, buffer length)
 _VELOCITY = CompileCache(maxsize=32)
 
 
@@ -72,11 +72,12 @@ SECTION6 = Scheme()
 
 
 def _momentum_fn(model):
-    """Jitted p = M(x, R) w by the O(N) closed form (the initial momentum)."""
+    """Jitted p = M(x, R) w by the O(N) closed form (the initial momentum), the model's numbers
+    an argument (one program per model structure)."""
     from integrators.rhs import closed_form_of
     from models._jax import jax
 
-    return jax.jit(closed_form_of(model).momentum)
+    return jax.jit(lambda values, x, R, w: closed_form_of(model.bind(values)).momentum(x, R, w))
 
 
 _MOMENTUM = CompileCache(maxsize=32)
@@ -123,8 +124,10 @@ class LGVI(FixedStepMethod):
     def initial_state(self, run: Run, ode: ODEProblem):
         """(x0, R0, p0 = M(g0) w0): the initial momentum by the compiled closed form (setup)."""
         x0, R0, w0 = (np.asarray(a, dtype=float) for a in ode.model.initial_state())
-        momentum = run.compiled(_MOMENTUM, ode.model, lambda: _momentum_fn(ode.model))
-        p0 = run.setup(lambda: np.asarray(momentum(x0, R0, w0)))
+        from integrators import rhs as _rhs
+
+        momentum = run.compiled(_MOMENTUM, _rhs.structure_of(ode.model), lambda: _momentum_fn(ode.model))
+        p0 = run.setup(lambda: np.asarray(momentum(_rhs.device_values(ode.model), x0, R0, w0)))
         return x0, R0, p0
 
     def init(self, ode: ODEProblem, y0):
@@ -157,8 +160,12 @@ class LGVI(FixedStepMethod):
         bucketed buffer, so that one compiled map serves every run of that length)."""
         X, Rs, P, Ws = (np.asarray(a) for a in saved)
         n_buf = len(X)
-        velocity = run.compiled(_VELOCITY, (ode.model, n_buf), lambda: _velocity_map(ode.model, X, Rs, P))
-        V = np.asarray(velocity(X, Rs, P, np.int32(n)))
+        from integrators import rhs as _rhs
+
+        values = _rhs.device_values(ode.model)
+        velocity = run.compiled(_VELOCITY, (_rhs.structure_of(ode.model), n_buf),
+                                lambda: _velocity_map(ode.model, values, X, Rs, P))
+        V = np.asarray(velocity(values, X, Rs, P, np.int32(n)))
         has_attitude = ode.layout.has_attitude
         return Trajectory(t=t, x=X[:n], attitude=Rs[:n] if has_attitude else None, velocity=V[:n], work=Ws[:n],
                           momentum=P[:n], attitude_kind="matrix", scene_name=run.scene.name)
@@ -181,17 +188,16 @@ class LGVI(FixedStepMethod):
         return words
 
 
-def _velocity_map(model, X, Rs, P):
+def _velocity_map(model, values, X, Rs, P):
     """AOT-compiled w = M⁻¹ p of the first n slots of a save buffer of this length (n a run-time
     argument: one compiled map serves every run of that length, and a run pays only for the slots
     it filled; a vmap over the whole buffer cost ~25 ms per run at N = 640, 256 slots)."""
     from integrators.rhs import closed_form_of
     from models._jax import jax, jnp
 
-    velocity = closed_form_of(model).velocity_from_momentum
-
-    def velocities(X, Rs, P, n):
+    def velocities(values, X, Rs, P, n):
+        velocity = closed_form_of(model.bind(values)).velocity_from_momentum
         V = jnp.zeros((X.shape[0], model.layout.nw), X.dtype)
         return jax.lax.fori_loop(0, n, lambda i, V: V.at[i].set(velocity(X[i], Rs[i], P[i])), V)
 
-    return jax.jit(velocities).lower(X, Rs, P, np.int32(0)).compile()
+    return jax.jit(velocities).lower(values, X, Rs, P, np.int32(0)).compile()

@@ -358,8 +358,18 @@ def energy_guard(model):
     from models._jax import jax
 
     guards = Guards.for_model(model)
-    f = jax.jit(lambda y: energy_error_ode(model, y, guards.E0))
-    return (lambda y: float(f(y))), guards.energy_bound
+    f = _rhs.program(_energy_error_program, model)  # one program per model structure
+    values, E0 = _rhs.device_values(model), np.float64(guards.E0)
+    return (lambda y: float(f(values, y, E0))), guards.energy_bound
+
+
+@functools.lru_cache(maxsize=64)
+def _energy_error_program(structure, template):
+    """|E − W − E0| of an ODE state as f(values, y, E0), jitted (`energy_guard`)."""
+    from integrators.base import energy_error_ode
+    from models._jax import jax
+
+    return jax.jit(lambda values, y, E0: energy_error_ode(template.bind(values), y, E0))
 
 
 def blowup_reason(where: str, blowup: float = BLOWUP) -> str:
@@ -410,6 +420,15 @@ class ODEProblem:
     f: Any
     layout: Any
     params: Any = None
+    #: which right-hand side ``f`` is (`integrators.rhs`), to rebuild it on a bound model
+    rhs: str = _rhs.DEFAULT_RHS
+
+    def bind(self, values, params=None) -> "ODEProblem":
+        """This problem on the model bound to ``values`` (`StringPendulum.bind`; traced, inside a
+        compiled program), with ``params``: what a compiled program's step sees."""
+        model = _rhs.prepare(self.model.bind(values))
+        return ODEProblem(model=model, f=_rhs.ode_rhs(model, self.rhs), layout=self.layout, params=params,
+                          rhs=self.rhs)
 
 
 @dataclass
@@ -469,8 +488,8 @@ class Run:
         return out
 
     def ode_problem(self) -> ODEProblem:
-        return ODEProblem(model=self.model, f=_rhs.ode_rhs(self.model, self.rhs or _rhs.DEFAULT_RHS),
-                          layout=self.model.layout)
+        rhs = self.rhs or _rhs.DEFAULT_RHS
+        return ODEProblem(model=self.model, f=_rhs.ode_rhs(self.model, rhs), layout=self.model.layout, rhs=rhs)
 
     def finish(self, traj: Trajectory) -> Trajectory:
         """The epilogue: compile time, run time (`stamp_wall_time`, last) and time per step."""

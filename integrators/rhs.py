@@ -38,9 +38,32 @@ def check_rhs(rhs) -> str:
     return rhs
 
 
-@functools.lru_cache(maxsize=64)
 def closed_form_of(model):
-    """The closed-form equations of a model (cached per model, like `models.build_model`)."""
+    """The closed-form equations of a model (cached per model, like `models.build_model`; a
+    model bound to run-time values (`StringPendulum.bind`) gets new ones each time: they hold
+    values of the trace that asked, which no other trace may see)."""
+    from models.closed_form import ClosedFormEOM
+
+    if model.is_bound:
+        made = model.__dict__.get("_closed_form")
+        return made if made is not None else ClosedFormEOM(model)
+    return _closed_form_cached(model)
+
+
+def prepare(model):
+    """Build a bound model's closed form once, where it was bound (the top of a compiled
+    program, outside its loops), so that every step reuses the quantities it derives from the
+    values instead of deriving them again inside the loop. Only there: what it holds belongs to
+    that trace."""
+    from models.closed_form import ClosedFormEOM
+
+    if model.is_bound and "_closed_form" not in model.__dict__:
+        model.__dict__["_closed_form"] = ClosedFormEOM(model)
+    return model
+
+
+@functools.lru_cache(maxsize=64)
+def _closed_form_cached(model):
     from models.closed_form import ClosedFormEOM
 
     return ClosedFormEOM(model)
@@ -51,18 +74,78 @@ def ode_rhs(model, rhs: str = DEFAULT_RHS):
     return closed_form_of(model).ode_rhs if check_rhs(rhs) == "closed_form" else model.ode_rhs
 
 
+def device_values(model):
+    """The model's numbers on the device, packed in one vector (`StringPendulum.value_vector`),
+    once per model: the run-time argument of every compiled program of its structure."""
+    cached = model.__dict__.get("_device_values")
+    if cached is None:
+        from models._jax import jax
+
+        cached = model.__dict__["_device_values"] = jax.device_put(model.value_vector())
+    return cached
+
+
 @functools.lru_cache(maxsize=128)
-def rhs_jit(model, rhs: str = DEFAULT_RHS):
-    """Jitted f(t, y) (compiled on first call, cached per model and rhs)."""
+def _rhs_program(structure, template, rhs: str):
+    """f(values, t, y), jitted once per model structure and rhs (``template``: the first model of
+    that structure seen; any other binds its own values on the same structure)."""
     from models._jax import jax
 
-    return jax.jit(ode_rhs(model, rhs))
+    return jax.jit(lambda values, t, y: ode_rhs(template.bind(values), rhs)(t, y))
 
 
 @functools.lru_cache(maxsize=128)
+def _jacobian_program(structure, template, rhs: str):
+    from models._jax import jax
+
+    return jax.jit(lambda values, t, y: jax.jacfwd(ode_rhs(template.bind(values), rhs), argnums=1)(t, y))
+
+
+def program(cache, model, *args):
+    """``cache(structure, template, *args)`` for ``model``: the template is the first model of
+    its structure asked for (the key holds the structure; the template only gives it)."""
+    key = structure_of(model)
+    template = _TEMPLATES.setdefault(key, model)
+    return cache(key, template, *args)
+
+
+#: the first model seen of each structure (`program`); a model is small, the set of structures too
+_TEMPLATES: dict = {}
+
+
+def structure_of(model):
+    """The compile-cache key of a model: its structure where its programs are shared
+    (`StringPendulum.structure_key`), else the model itself (as before values were arguments)."""
+    return model.structure_key() if model.shares_programs else ("model", model)
+
+
+def template_of(model):
+    """The model whose structure the compiled programs of ``model``'s structure were traced on."""
+    return _TEMPLATES.setdefault(structure_of(model), model)
+
+
+def rhs_jit(model, rhs: str = DEFAULT_RHS):
+    """Jitted f(t, y) of ``model``: one compiled program per model structure and rhs, the
+    model's numbers passed to it at every call."""
+    return BoundProgram(program(_rhs_program, model, rhs), device_values(model))
+
+
 def jacobian_jit(model, rhs: str = DEFAULT_RHS):
     """Jitted ∂f/∂y by forward-mode autodiff of the chosen right-hand side (see the module
-    docstring for why forward mode)."""
-    from models._jax import jax
+    docstring for why forward mode); one program per structure, like `rhs_jit`."""
+    return BoundProgram(program(_jacobian_program, model, rhs), device_values(model))
 
-    return jax.jit(jax.jacfwd(ode_rhs(model, rhs), argnums=1))
+
+class BoundProgram:
+    """A jitted f(values, *args) with one model's values: called (and lowered) as f(*args)."""
+
+    __slots__ = ("fn", "values")
+
+    def __init__(self, fn, values):
+        self.fn, self.values = fn, values
+
+    def __call__(self, *args):
+        return self.fn(self.values, *args)
+
+    def lower(self, *args):
+        return self.fn.lower(self.values, *args)

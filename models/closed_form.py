@@ -243,6 +243,12 @@ class ToeplitzTridiagonal:
         return np.linalg.inv(T)
 
 
+@functools.lru_cache(maxsize=64)
+def _toeplitz(diag: float, off: float, n: int) -> ToeplitzTridiagonal:
+    """The interior's factors depend on the mass model and N only (shared by every model)."""
+    return ToeplitzTridiagonal(diag, off, n)
+
+
 class ClosedFormEOM:
     """Hand-derived M(x, R), p = M w and ẇ of a `StringPendulum` (same layout, same physics).
 
@@ -259,13 +265,17 @@ class ClosedFormEOM:
         m = model
         self.N, self.mu, self.m_b, self.L = m.N, m.mu, m.m_b, m.L  # κ_d enters only through M0 (the model's)
         N = self.N
-        self.c31, self.c23 = np.asarray(m.c31), np.asarray(m.c23)
+        # numpy for a model built from a scene, jax.numpy for one whose numbers are run-time
+        # values of a compiled program (`StringPendulum.bind`): then these are computed in it
+        xp = jnp if m.is_bound else np
+        self.c31, self.c23 = xp.asarray(m.c31), xp.asarray(m.c23)
         # per-row constants of the flat node vectors: c23_{b−1}, c31_b, c31_{b−1} for rows b = 2 … N+1
-        self._c23_rows = _per_node(self.c23)
-        self._c31_next_rows = _per_node(np.concatenate([self.c31[1:], [0.0]]))
-        self._c31_rows = _per_node(self.c31)
-        self.rho_c, self.J_o, self.J_c = np.asarray(m.rho_c), np.asarray(m.J_o), np.asarray(m.J_c)
-        self.rho_hat = np.array(hat(self.rho_c))
+        self._c23_rows = xp.repeat(self.c23, 3)
+        self._c31_next_rows = xp.repeat(xp.concatenate([self.c31[1:], xp.zeros(1)]), 3)
+        self._c31_rows = xp.repeat(self.c31, 3)
+        self.rho_c, self.J_o, self.J_c = xp.asarray(m.rho_c), xp.asarray(m.J_o), xp.asarray(m.J_c)
+        r, z = self.rho_c, xp.zeros_like(self.rho_c[0])
+        self.rho_hat = xp.stack([xp.stack([z, -r[2], r[1]]), xp.stack([r[2], z, -r[0]]), xp.stack([-r[1], r[0], z])])
         n = N - 1  # interior free nodes 2..N
         self.n_int = n
         self.tri_solve = "doubling" if tri_solve == "auto" else tri_solve
@@ -278,7 +288,7 @@ class ClosedFormEOM:
         #: node N+1's diagonal after eliminating the interior, in units of μl/den: d − o z_last
         self._tip_diag = float(sm.d)
         if n > 0:
-            self._interior = ToeplitzTridiagonal(2.0 * sm.d, sm.o, n)
+            self._interior = _toeplitz(2.0 * sm.d, sm.o, n)
             self._tri_inv = self._interior.dense_inverse() if self.tri_solve == "dense" else None
             #: z = o T⁻¹ e_last (constant): the coupling of the interior to node N+1
             self._z = sm.o * self._interior.solve_numpy(np.eye(n)[-1])

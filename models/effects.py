@@ -87,6 +87,10 @@ class Effect:
     #: coordinate. Not declared (a drag, a spring to an anchor off that axis): π3 is not reported
     #: (`pi3_error` empty) nor plotted for a scene that lists it.
     conserves_pi3: bool = False
+    #: its terms vanish when it is not listed (its numbers are then 0) and it adds no state: a
+    #: model that could take it without a new coordinate compiles it in, with those zeros, so that
+    #: scenes with and without it share compiled programs (`StringPendulum.structure_key`)
+    zero_when_unlisted: bool = False
     #: scene keys it owns: {section: {key: Key}} ("" for a top-level key)
     keys: dict[str, dict[str, Key]] = {}
     #: plausible magnitudes of its keys, {"section.key": (low, high)} (see `models.scene.PLAUSIBLE`)
@@ -187,13 +191,13 @@ def _weight_terms(m, per_length, body):
             tip = tip + R @ m.rho_c
         return -body * tip[2]
 
-    tip_only = np.zeros((m.N, 3))
-    tip_only[-1] = -body * E3  # a constant
+    tip_row = np.zeros((m.N, 1))
+    tip_row[-1] = 1.0  # structural; the load itself may be a run-time value (`StringPendulum.bind`)
 
     def dV_body(x, R):
         # the negative moment of the load about the attachment point
         deta = -body * jnp.cross(m.rho_c, R.T @ e3) if m.layout.has_attitude else None
-        return m.over_w(dq=jnp.asarray(tip_only), deta=deta)
+        return m.over_w(dq=jnp.asarray(tip_row) * (-body * e3)[None, :], deta=deta)
 
     return PotentialTerm(V_string, dV_string), PotentialTerm(V_body, dV_body)
 
@@ -217,7 +221,7 @@ class Gravity(Effect):
             def V_reel(x, R):
                 """Reel-side string: the part stored on the drum and in the guide way."""
                 s = x[0]
-                return -m.mu * m.g * s * (E3 @ m.r_d) - m.mu * m.g * m.d**2 * jnp.cos((s - m.b) / m.d)
+                return -m.mu * m.g * s * m.r_d[2] - m.mu * m.g * m.d**2 * jnp.cos((s - m.b) / m.d)
 
             def dV_reel(x, R):
                 s = x[0]
@@ -366,6 +370,9 @@ class ReelControl(Effect):
     needs = ("reel",)
     forcing = True
     summary = "constant drum moment u (reel.control_moment) as the force u/d on s_p"
+    #: unlisted, u = 0 and its force vanishes: a scene with the reel's work W in its state shares
+    #: its compiled programs with the same scene driven by a moment (`StringPendulum.structure_key`)
+    zero_when_unlisted = True
     keys = {"reel": {"control_moment": Key("float", default=0.0)}}
     plausible = {"reel.control_moment": (0.0, 1e12)}
 
@@ -420,8 +427,6 @@ class AxialDamping(Effect):
     def string_forces(self, m):
         from models._jax import jnp
 
-        c = m.scene.string.axial_damping
-
         def Q(t, x, w):
             """Kelvin–Voigt strain-rate damping: Q = −∂D/∂w, D = Σ_a (c l/2) ε̇_a² (Rayleigh).
 
@@ -431,7 +436,7 @@ class AxialDamping(Effect):
             `slack`), which keeps Q smooth in the state.
             """
             delta, stretch, l = m.elements(x)
-            tau = c * m.strain_rates(x, w)
+            tau = m.axial_damping * m.strain_rates(x, w)
             f = (tau / stretch)[:, None] * delta  # τ_a ê_a, a = 1..N
             fq = jnp.concatenate([f[1:], jnp.zeros((1, 3))], axis=0) - f  # nodes 2..N+1
             return m.over_w(ds=-jnp.sum(tau * stretch) / (m.N * l), dq=fq)
@@ -442,7 +447,7 @@ class AxialDamping(Effect):
         from models._jax import jnp
 
         rate = m.strain_rates(x, w)
-        return -jnp.sum(m.scene.string.axial_damping * m.element_length(x) * rate * rate)
+        return -jnp.sum(m.axial_damping * m.element_length(x) * rate * rate)
 
 
 class Buoyancy(Effect):
@@ -491,14 +496,14 @@ class Buoyancy(Effect):
                           "(allowed; its net weight points up)", FloatingStringWarning, stacklevel=2)
 
     def potentials(self, m):
-        rho = m.scene.section("fluid")["density"]
-        string, body = _weight_terms(m, -rho * m.g * np.pi * m.scene.string.diameter ** 2 / 4.0,
-                                     -rho * m.g * m.scene.section("body")["volume"])
+        rho = m.fluid_density
+        string, body = _weight_terms(m, -rho * m.g * np.pi * m.string_diameter ** 2 / 4.0,
+                                     -rho * m.g * m.body_volume)
         return {"V_string_buoyancy": string, "V_body_buoyancy": body}
 
     def energy_scale(self, m):
-        rho = m.scene.section("fluid")["density"]
-        volume = np.pi * m.scene.string.diameter ** 2 / 4.0 * m.L + m.scene.section("body")["volume"]
+        rho = m.fluid_density
+        volume = np.pi * m.string_diameter ** 2 / 4.0 * m.L + m.body_volume
         return m.g * rho * volume * _reach(m)
 
 
@@ -558,10 +563,9 @@ class Drag(Effect):
     # -- the pieces ---------------------------------------------------------------------------
     @staticmethod
     def _params(m):
-        fluid, st, body = m.scene.section("fluid"), m.scene.string, m.scene.section("body")
-        half_rho = 0.5 * fluid["density"]
-        return (half_rho * st.diameter * st.normal_drag, half_rho * st.diameter * np.pi * st.tangential_drag,
-                half_rho * body["drag_area"], np.asarray(fluid["current"], dtype=float))
+        half_rho = 0.5 * m.fluid_density
+        return (half_rho * m.string_diameter * m.normal_drag, half_rho * m.string_diameter * np.pi * m.tangential_drag,
+                half_rho * m.drag_area, m.current)
 
     @staticmethod
     def _morison(kn, kt, u, t):
@@ -614,14 +618,14 @@ class Drag(Effect):
     @staticmethod
     def _offset(m) -> bool:
         """The body's drag is a body load: a rigid body with ρ_c ≠ 0 and a drag area."""
-        return m.layout.has_attitude and bool(np.any(m.rho_c != 0.0)) and m.scene.section("body")["drag_area"] > 0
+        return m.drag_at_offset  # decided from the host values when the model is built
 
     def _com_load(self, m, R, w):
         """(f_b, v_c): the drag at the centre of mass of an offset body and that point's velocity."""
         from models._jax import jnp
 
         _, _, kb, U = self._params(m)
-        v = m.node_velocities(w)[-1] + R @ jnp.cross(m.omega(w), np.asarray(m.rho_c, dtype=float))
+        v = m.node_velocities(w)[-1] + R @ jnp.cross(m.omega(w), m.rho_c)
         u = U - v
         return kb * _norm(u) * u, v
 
@@ -660,14 +664,13 @@ class Drag(Effect):
 
         if not self._offset(m):
             return {}
-        rho = np.asarray(m.rho_c, dtype=float)  # constants (numpy): the hook may be first called inside a trace
         tip = np.zeros((m.N, 1))
         tip[-1] = 1.0
 
         def Q(t, x, R, w):
             """f_b at the centre of mass: f_b on node N+1, ρ_c × Rᵀ f_b on the rotation."""
             f, _ = self._com_load(m, R, w)
-            return m.over_w(dq=jnp.asarray(tip) * f[None, :], deta=jnp.cross(rho, R.T @ f))
+            return m.over_w(dq=jnp.asarray(tip) * f[None, :], deta=jnp.cross(m.rho_c, R.T @ f))
 
         return {"Q_drag_body": Q}
 
@@ -694,7 +697,7 @@ class Drag(Effect):
 
     def energy_scale(self, m):
         # what a current can give the string and the body: twice their kinetic energy at its speed
-        U = np.asarray(m.scene.section("fluid")["current"], dtype=float)
+        U = np.asarray(m.current, dtype=float)
         return (m.m_b + m.mu * m.L) * float(U @ U)
 
 

@@ -94,6 +94,25 @@ def rot_to_quat(R) -> np.ndarray:
     return q if q[0] >= 0 else -q
 
 
+def _number(value) -> float:
+    return 0.0 if value is None else float(value)
+
+
+def _builtin_effects() -> frozenset:
+    from models.effects import _BUILTIN
+
+    return _BUILTIN
+
+
+#: The model's numbers: every attribute a scene supplies as a value (and the ones derived from
+#: them on the host), what `StringPendulum.values` returns and `StringPendulum.bind` substitutes.
+#: What is not here is structure (N, the effects, the mass model, the layout, branches on values
+#: such as `drag_at_offset`): the key of a compiled program (`StringPendulum.structure_key`).
+VALUE_NAMES = ("L", "mu", "EA", "m_b", "J_c", "rho_c", "J_o", "J_d", "d", "r_d", "b", "kappa", "r_p", "t_g", "u",
+               "ell_min", "g", "s_fixed", "c31", "c23", "axial_damping", "fluid_density", "string_diameter",
+               "body_volume", "normal_drag", "tangential_drag", "drag_area", "current")
+
+
 @dataclass(frozen=True)
 class StringMass:
     """The string's element mass matrix (μ l / den)·[[d, o], [o, d]] (`string.mass_model`).
@@ -174,10 +193,34 @@ class StringPendulum:
         # so fixed-length results are bit-identical to it.
         listed = [get_effect(e) for e in scene.effects]
         self.effects = tuple([e for e in listed if e.required] + [e for e in listed if not e.required])
+        # the effects' own numbers (0 where the effect is not listed: read only by its terms)
+        st_d, fl, bdy = scene.section("string"), scene.section("fluid"), scene.section("body")
+        self.axial_damping = _number(st_d.get("axial_damping"))
+        self.fluid_density = _number(fl.get("density"))
+        self.string_diameter = _number(st_d.get("diameter"))
+        self.body_volume = _number(bdy.get("volume"))
+        self.normal_drag = _number(st_d.get("normal_drag"))
+        self.tangential_drag = _number(st_d.get("tangential_drag"))
+        self.drag_area = _number(bdy.get("drag_area"))
+        self.current = np.asarray(fl.get("current") or (0.0, 0.0, 0.0), dtype=float)
+        #: the body's drag acts at an offset centre of mass (a body load: `models.effects.Drag`):
+        #: a branch of the terms, so part of the structure, decided here from the scene's values
+        self.drag_at_offset = bool(scene.has("drag") and self.layout.has_attitude and np.any(self.rho_c != 0.0)
+                                   and self.drag_area > 0)
+        #: built-in effects read every number from the model when called (`bind` substitutes
+        #: them); a plugin's terms may hold numbers of their own, so its model shares no program
+        self.shares_programs = all(e.name in _builtin_effects() for e in self.effects)
+        self._composed = self.effects
+        #: True for a copy made by `bind` (its numbers may be traced: cache nothing derived from it)
+        self.is_bound = False
+        self._compose()
+
+    def _compose(self):
+        """The terms of the listed effects, built on this model's attributes (again by `bind`)."""
         # Elastic law: the length that stores strain energy. Two-sided (the paper's: resists
         # compression too) unless an effect (`slack`) replaces it; set before the terms that read it.
         self._taut_length, self._clip_tension = _two_sided, _two_sided_tension
-        for effect in self.effects:
+        for effect in self._composed:
             law = effect.elastic_law(self)
             if law is not None:
                 self._taut_length, self._clip_tension = law
@@ -195,7 +238,7 @@ class StringPendulum:
         #: loads on the body (`Effect.body_loads`): vectors over w's layout of (t, x, R, w) that
         #: may act on Ω (a moment in the body frame) and depend on the attitude
         self.body_loads: dict[str, Callable] = {}
-        for effect in self.effects:
+        for effect in self._composed:
             self.kinetic_terms.update(effect.kinetic(self))
             for name, term in effect.potentials(self).items():
                 self.potential_terms[name] = term.energy
@@ -206,6 +249,94 @@ class StringPendulum:
                 for name, f in hook(self).items():
                     kind[name] = f
                     self.term_owner[name] = effect.name
+
+    # ------------------------------------------------------------------------------------
+    # Values and structure: what a compiled program takes as arguments and what it is keyed by
+    # ------------------------------------------------------------------------------------
+    @functools.cached_property
+    def program_effects(self) -> tuple:
+        """The effects a compiled program of this model composes: the listed ones, plus those
+        that vanish when unlisted (`Effect.zero_when_unlisted`, e.g. `reel_control` with u = 0)
+        where they need no new coordinate, in the order `__init__` composes them."""
+        from models.effects import EFFECTS
+
+        listed = {e.name for e in self.effects}
+        extra = {e.name for e in EFFECTS.values()
+                 if e.zero_when_unlisted and e.name not in listed and e.name in _builtin_effects() and all(n in listed for n in e.needs)
+                 and not e.state and (self.layout.has_work or not e.forcing)}
+        if not extra or not self.shares_programs:
+            return self.effects
+        every = [e for e in EFFECTS.values() if e.name in listed | extra]
+        return tuple([e for e in every if e.required] + [e for e in every if not e.required])
+
+    def structure_key(self):
+        """Hashable: what a compiled program of this model depends on besides `values` (two
+        models with equal keys run the same program with their own values). A model with an
+        effect that is not built in is keyed by its scene (its terms may hold numbers)."""
+        if not self.shares_programs:
+            return ("model", self)
+        return ("structure", self.N, tuple(e.name for e in self.program_effects), self.scene.string.mass_model,
+                self.drag_at_offset)
+
+    @functools.cached_property
+    def _values(self) -> dict:
+        return {k: np.asarray(getattr(self, k), dtype=np.float64) for k in VALUE_NAMES}
+
+    def values(self) -> dict:
+        """{name: float64 array} of the model's numbers (`VALUE_NAMES`): the run-time argument
+        of its compiled programs, to `bind` inside them."""
+        return dict(self._values)
+
+    def value_vector(self) -> np.ndarray:
+        """`values` packed in one float64 vector (`VALUE_NAMES` order, each raveled): one argument
+        instead of dozens (a call from numpy pays for each argument: scipy's right-hand side)."""
+        return np.concatenate([np.ravel(v) for v in self._values.values()])
+
+    def unpack_values(self, vector) -> dict:
+        """`values` from `value_vector` (the shapes are structure: this model's)."""
+        out, start = {}, 0
+        for k, v in self._values.items():
+            out[k] = vector[start:start + v.size].reshape(v.shape)
+            start += v.size
+        return out
+
+    def bind(self, values) -> "StringPendulum":
+        """A copy of this model whose numbers are ``values`` (`values`, or packed as
+        `value_vector`; traced, inside a compiled program) and whose terms are composed again on
+        them, from `program_effects`. Its scene is this model's (read for structure only). A
+        model that shares no programs returns itself."""
+        if not self.shares_programs:
+            return self
+        import copy
+
+        new = copy.copy(self)
+        for k in ("ode_rhs_jit", "ode_jacobian_jit", "_values"):
+            new.__dict__.pop(k, None)
+        if isinstance(values, dict):
+            for k in VALUE_NAMES:
+                setattr(new, k, values[k])
+        else:
+            # packed: each number is sliced from the vector where it is read (`__getattr__`), so
+            # that a loop or branch inside the program takes the one vector as its operand, not
+            # dozens of numbers (measured: XLA CPU's loops then run as fast as with constants)
+            slots, start = {}, 0
+            for k, v in self._values.items():
+                slots[k] = (start, v.size, v.shape)
+                start += v.size
+                del new.__dict__[k]
+            new.__dict__["_value_slots"], new.__dict__["_value_vector"] = slots, values
+        new._composed = self.program_effects
+        new.is_bound = True
+        new._compose()
+        return new
+
+    def __getattr__(self, name):
+        # only for names not in the instance: a bound model's numbers, read from its vector
+        slots = self.__dict__.get("_value_slots")
+        if slots is not None and name in slots:
+            start, size, shape = slots[name]
+            return self.__dict__["_value_vector"][start:start + size].reshape(shape)
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
 
     def terms_of(self, effect: str) -> tuple[str, ...]:
         """Names of the potential terms and forces an effect contributed (empty if not listed)."""
