@@ -21,7 +21,8 @@ DT = 0.002
 ADAPTIVE = {"rtol": 1e-8, "atol": 1e-10}
 
 #: (method, settings): every compiled kind of solve (fixed-step loop, diffrax constant and
-#: adaptive, an implicit diffrax solve) and scipy's (its jitted right-hand side)
+#: adaptive, an implicit diffrax solve). scipy's methods call a right-hand side from the host,
+#: one small program per model with its numbers folded in (`integrators.rhs.rhs_jit`: tested below)
 METHODS = [
     ("lgvi", {"dt": DT}),
     ("lgvi_sym", {"dt": DT}),
@@ -32,7 +33,6 @@ METHODS = [
     ("tsit5", ADAPTIVE),
     ("dopri8", ADAPTIVE),
     ("kvaerno5", {"rtol": 1e-6, "atol": 1e-8}),
-    ("dop853", ADAPTIVE),
 ]
 
 #: the largest relative difference allowed between a shared program's results and the results
@@ -185,3 +185,21 @@ def test_the_right_hand_side_programs_lower_to_the_same_text():
         assert len(texts) == 1
     texts = {lifecycle._energy_error_program.__wrapped__(key, m).lower(m.values(), y0, 0.0).as_text() for m in models}
     assert len(texts) == 1
+
+
+def test_the_host_right_hand_side_folds_its_model_numbers_into_the_shared_program():
+    """scipy's right-hand side and Jacobian: the structure's program with one model's numbers as
+    constants (a call from the host is cheaper folded), equal to the shared program with those
+    numbers as arguments, and one per model."""
+    from integrators import rhs
+    from models import build_model, load_scene
+
+    models = [build_model(load_scene(n)) for n in ("deployment", "retrieval")]
+    y0 = np.asarray(models[0].initial_ode_state())
+    for jitted, shared in ((rhs.rhs_jit, rhs._rhs_program), (rhs.jacobian_jit, rhs._jacobian_program)):
+        folded = [np.asarray(jitted(m)(0.0, y0)) for m in models]
+        assert jitted(models[0]) is not jitted(models[1])
+        for m, f in zip(models, folded):
+            as_argument = np.asarray(rhs.program(shared, m, "closed_form")(rhs.device_values(m), 0.0, y0))
+            assert np.max(np.abs(f - as_argument)) <= RTOL * np.max(np.abs(as_argument))
+        assert np.max(np.abs(folded[0] - folded[1])) > 0  # the two scenes' numbers differ
