@@ -231,7 +231,9 @@ def accounting(searched: pd.DataFrame, timed: pd.DataFrame, wall: float, workers
     def this_run(df):
         return df[~df["row_digest"].isin(list(kept))] if kept and "row_digest" in df else df
 
+    before = len(searched) + len(timed)
     searched, timed = this_run(searched), this_run(timed)
+    left_out = before - len(searched) - len(timed)
     pts = points(searched)
     if pts.empty or "run_time" not in pts:
         return "Time: every search was kept from an earlier run." if kept else ""
@@ -243,7 +245,7 @@ def accounting(searched: pd.DataFrame, timed: pd.DataFrame, wall: float, workers
             f"of solving, {total['compile_time']:.0f} s of compilation, {total['other_time']:.0f} s of metrics and "
             f"flops (worker seconds); the paired timing took {timing:.0f} s. Floor (solves and compilation over the "
             f"workers, plus the timing): {floor:.0f} s, so this run took {wall / floor if floor else float('nan'):.2f}× "
-            "its floor." + (" Rows kept from earlier runs are not counted." if kept else ""))
+            "its floor." + (f" {left_out} row(s) kept from earlier runs are not counted." if left_out else ""))
 
 
 # ------------------------------------------------------------------------------------------

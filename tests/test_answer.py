@@ -290,5 +290,7 @@ def test_the_time_accounting_counts_only_the_rows_this_run_made():
     assert "ran 2 solves: 103 s of solving" in everything
     own = accounting(searched, timed, 10.0, 1, kept={"old"})
     assert "ran 1 solves: 3 s of solving, 1 s of compilation" in own and "the paired timing took 2 s" in own
-    assert "Floor (solves and compilation over the workers, plus the timing): 6 s" in own and "not counted" in own
+    assert "Floor (solves and compilation over the workers, plus the timing): 6 s" in own
+    assert "2 row(s) kept from earlier runs are not counted" in own and "not counted" not in everything
+    assert "not counted" not in accounting(searched, timed, 10.0, 1, kept={"elsewhere"})  # none was kept here
     assert accounting(searched.iloc[:1], timed.iloc[:1], 10.0, 1, kept={"old"}).startswith("Time: every search")
