@@ -13,7 +13,7 @@ By concern, from the command line down:
   wall-time verdicts by `paired` timing, racing; N = 10, `--extended` also 40); what a sweep runs: `sweep`; its
   metrics: `metrics`; its work: `flops` (one rule for every method), checked against compiled floors by `work_rule` (results/work_rule.md), whose own arithmetic
   `opcount` counts by running their source on counting scalars;
-- their writers: `answer_report`, `runs_report` (the grid sweep's), `stability_report`,
+- their writers: `answer_report`, `runs_report` (the grid sweep's), `horizon_report` (the energy study's figure), `stability_report`,
   `xval_report` (and the baseline in `check`, the speed tables in `lgvi_speed`), on the report
   layer `report` and the plot layer `plots`; what they conclude from: `properties` (energy
   growth classified, orthogonality), `ranking` (what is ranked, work verdicts that call a tie a

@@ -385,7 +385,7 @@ def _read_horizon(path: Path):
     the scene's own N = 10)."""
     import pandas as pd
 
-    from benchmark.plots import method_of
+    from benchmark.horizon_report import method_of
 
     if not path.is_file():
         return None
@@ -536,7 +536,7 @@ def _horizon_study(t_end, out, overrides, jobs, log, selected, scenes, failed, v
 
 def _horizon_figures(out: Path, table, scenes, redraw: bool) -> list[tuple[str, str]]:
     """energy_horizon_SCENE.png of each scene in ``table``: drawn (``redraw``) or listed as they are."""
-    from benchmark import plots
+    from benchmark import horizon_report
 
     if table is None or table.empty:
         return []
@@ -544,7 +544,7 @@ def _horizon_figures(out: Path, table, scenes, redraw: bool) -> list[tuple[str, 
     for scene, g in table.groupby("scene", sort=False):
         figure = inside(out, f"energy_horizon_{scene}.png")
         if (redraw or not figure.is_file()) and scene in set(scenes):
-            plots.energy_horizon(g, scene, out)
+            horizon_report.energy_horizon(g, scene, out)
             figures.append((figure.name, ""))
         elif figure.is_file():
             figures.append((figure.name, "" if scene in set(scenes) else "from an earlier run"))
