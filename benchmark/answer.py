@@ -670,7 +670,7 @@ def run_answer(request: AnswerRequest, log: Callable[[str], None] = engine.log_s
     import pandas as pd
 
     from benchmark import answer_report
-    from benchmark.pipelines import _exclusive
+    from benchmark.study import exclusive
     from benchmark.reference import CACHE_DIR
     from benchmark.report import Provenance
     from benchmark.store import TableWriter, write_table
@@ -688,7 +688,7 @@ def run_answer(request: AnswerRequest, log: Callable[[str], None] = engine.log_s
     timing_csv = TableWriter(out / "timing.csv",
                              lambda rows: frame(merged(earlier["timing.csv"], rows, TIMING_IDENTITY), TIMING_COLUMNS))
     try:
-        with _exclusive(out, log):
+        with exclusive(out, log):
             targets = list(request.targets)
             jobs = search_jobs(request.scenes, request.integrators, targets, request.elements, request.t_end,
                                request.max_runs)

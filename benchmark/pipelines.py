@@ -21,17 +21,10 @@ from typing import Any, Callable
 from benchmark import engine, store, sweep
 from benchmark.policy import GRID_DIR, RESULTS, SAVE_EVERY, STABILITY_DIR
 from benchmark.engine import log_stderr
+from benchmark.study import exclusive
 from benchmark.report import Provenance
 from models.io import inside, printable
 from integrators.base import is_finished
-
-
-@contextlib.contextmanager
-def _exclusive(out: Path, log: Callable[[str], None]):
-    """Hold ``out``'s lock, with Ctrl-C and SIGTERM both stopping the study (KeyboardInterrupt)."""
-    with store.OutputLock(out, log=log):
-        engine.install_stop_handlers()
-        yield
 
 
 # ------------------------------------------------------------------------------------------
@@ -88,7 +81,7 @@ def run_sweep(request: SweepRequest, log: Callable[[str], None] = log_stderr) ->
 
     runs_csv = store.TableWriter(request.out / "runs.csv", runner.runs_frame, drop=("traceback",))
     try:
-        with _exclusive(request.out, log):
+        with exclusive(request.out, log):
             return _sweep(request, runs_csv, log)
     except (KeyboardInterrupt, OSError) as exc:
         what = (f"{runs_csv.saved} finished run(s) are saved in {runs_csv.path}" if runs_csv.saved
@@ -580,7 +573,7 @@ def run_stability(scenes=None, integrators=None, *, workers: int = 2, out: Path 
         table(done)
 
     try:
-        with _exclusive(out, log):
+        with exclusive(out, log):
             # read under the lock (another run may have just merged into it); refuses an unreadable map
             table = MergedTable(out / "stability.csv", STABILITY_IDENTITY, stability.to_frame)
             log(f"stability map: {len(jobs)} jobs ({len({j.case.scene for j in jobs})} scenes) on {workers or 1} "
@@ -727,7 +720,7 @@ def run_speed(request, out: Path | None = None, *, command: str = "python -m ben
             atomic_write_text(out, text)
         return text
 
-    with _exclusive(out.parent, log) if out is not None else contextlib.nullcontext():
+    with exclusive(out.parent, log) if out is not None else contextlib.nullcontext():
         if out is not None:
             table = MergedTable(speed_rows_file(out), lgvi_speed.IDENTITY, lgvi_speed.to_frame,
                                 text_columns=lgvi_speed.TEXT_COLUMNS)
@@ -794,7 +787,7 @@ def run_orders(scenes=None, integrators=None, *, out: Path = RESULTS, jobs: int 
     scenes = list(scenes or orders.SCENES)
     methods = orders.fixed_step_methods(integrators)  # refuses an adaptive-only name before any work
     out = Path(out)
-    with _exclusive(out, log):
+    with exclusive(out, log):
         try:
             log(f"orders: references of {', '.join(scenes)} ({orders.REFERENCE_METHOD} at dt = "
                 f"{orders.REFERENCE_DT:g} s, N = {orders.ELEMENTS}, to t = {orders.T_END:g} s) ...")
