@@ -4,33 +4,26 @@
     python -m benchmark run            # the grid sweep of the paper's three scenes -> results/grid/
     python -m benchmark run --quick --out /tmp/quick   # a reduced grid sweep, a few minutes on 2 cores
 
-By concern, from the command line down:
+One subpackage per layer; a package imports only from those listed before it:
 
-- `cli` parses and checks a command's input, then calls its pipeline in `pipelines`;
-- the studies, as jobs: `runner` (the runs table), `stability`, `check`, `horizon` (the energy
-  study), `orders` (observed orders on a short horizon), `xval`, `lgvi_speed` (speed),
-  `reel_reversal`, `answer` (each method's cheapest setting at each target by `search`,
-  wall-time verdicts by `paired` timing, racing; N = 10, `--extended` also 40); what a sweep runs: `sweep`; its
-  metrics: `metrics`; its work: `flops` (one rule for every method), checked against compiled floors by `work_rule` (results/work_rule.md), whose own arithmetic
-  `opcount` counts by running their source on counting scalars;
-- their writers: `answer_report`, `runs_report` (the grid sweep's), `horizon_report` (the energy study's figure), `stability_report`,
-  `xval_report` (and the baseline in `check`, the speed tables in `lgvi_speed`), on the report
-  layer `report` and the plot layer `plots`; what they conclude from: `properties` (energy
-  growth classified, orthogonality), `ranking` (what is ranked, work verdicts that call a tie a
-  tie, why runs failed), `reproducibility` (two runs tables compared within stated tolerances),
-  `styles` (one look per method in every figure);
-- the plugin contract: `verify` (`python -m benchmark verify NAME`, and `check_integrator` /
-  `check_effect` for a plugin's own tests);
-- underneath: `engine` (jobs on worker processes, this process or Dask; stop signals,
-  progress with a measured ETA, crash rows), `store` (output lock, resume keys, rows checked
-  before they are trusted, a run merged into the table of its --out, atomic tables and .npz files),
-  `study_store` (the other studies' rows merged into the tables of their output the same way),
-  `reference` (the one cached reference solution every study compares with), `options`
-  (JAX-free input checks).
+- `core`: the job engine (worker processes, this process or Dask; stop signals, progress,
+  crash rows), the output store and its lock, what every study does when it writes into a
+  directory (`core.study`), JAX-free input checks, the rules stated once (`core.policy`),
+  report provenance, and the one cached reference solution every study compares with;
+- `work`: flops, the one work unit, checked against compiled floors (`work.work_rule`);
+- `runs`: the runs table: what a sweep runs (`sweep`), one run measured (`runner`, `metrics`),
+  and what is read from the table (`ranking`, `reproducibility`);
+- `figures`: plots and one look per method;
+- `answer`: the main job: each method's cheapest setting that stands at each target
+  (`search`), the contenders timed in pairs (`paired`), the answer written (`answer_report`);
+- `studies`: the other studies and their writers: the drift check, stability, the energy
+  horizon, observed orders, reel reversal, cross-validation against MoorDyn and MuJoCo, speed,
+  the grid sweep's report;
+- `contract`: what a plugin integrator or effect must pass (`python -m benchmark verify NAME`);
+- `cli`: parses and checks each command's input (`cli.main`), then calls its pipeline
+  (`cli.pipelines`).
 
 Names from input (scenes, integrators, rows read back) reach a file name only through
 `models.io.inside`, which refuses one that leaves its directory (or a link inside it that leads
-out); `check` fails (exit 2) on a baseline that would compare nothing or could not fail, and on
-one of reelbench's own integrators without baseline rows unless `--allow-new NAME` (a plugin the
-baseline does not know is reported, not checked).
+out).
 """

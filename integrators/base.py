@@ -55,7 +55,7 @@ FINISHED_STATUSES = (Status.OK.value,)
 #: no finer after one, and a ranking names the budget as the cause.
 BUDGET_STATUSES = (Status.MAX_STEPS.value, Status.TIME_LIMIT.value)
 #: Statuses a benchmark table has besides the integrators' own: the task raised (a bug), its
-#: worker died, or it finished beyond a sanity bound (no solution: `benchmark.metrics.INACCURATE`).
+#: worker died, or it finished beyond a sanity bound (no solution: `benchmark.runs.metrics.INACCURATE`).
 ERROR, CRASHED, INACCURATE = "error", "crashed", "inaccurate"
 TABLE_ONLY_STATUSES = (ERROR, CRASHED, INACCURATE)
 #: Rows with these statuses are recomputed on resume (the cause may have been transient: a
@@ -107,7 +107,7 @@ class Trajectory:
     scene_name: str = ""
     scene: dict[str, Any] = field(default_factory=dict)
     #: the solution between saved points, where a method records it on request (scipy's
-    #: adapters with ``dense_output=True``: the reference's, `benchmark.reference.DenseSolution`);
+    #: adapters with ``dense_output=True``: the reference's, `benchmark.core.reference.DenseSolution`);
     #: not a field: never saved with the trajectory
     dense: ClassVar[Any] = None
 
@@ -315,7 +315,7 @@ class Integrator(abc.ABC):
         horizon_settings, paper_settings, expensive, cost_hint, sweep_rtols: what the benchmark
             reads instead of method names (the long-horizon study, the paper's panels, the
             stability map's default run and its scheduling, the default sweep's tolerances; its
-            step sizes are one grid for every fixed-step method, `benchmark.sweep.FULL_DTS`).
+            step sizes are one grid for every fixed-step method, `benchmark.runs.sweep.FULL_DTS`).
 
     Nothing in a class definition may need JAX: the registry lists and describes methods
     without importing it (JAX is imported inside the functions that trace and compile).
@@ -338,7 +338,7 @@ class Integrator(abc.ABC):
     #: is prohibitive, in words (e.g. a measured compile time per scene); None: it never is
     expensive: ClassVar[str | None] = None
     #: the relative tolerances of an adaptive method in the full default sweep, where the
-    #: shared ones (`benchmark.sweep.FULL_RTOLS`) reach past the method's useful range; None: the
+    #: shared ones (`benchmark.runs.sweep.FULL_RTOLS`) reach past the method's useful range; None: the
     #: shared ones. (``--rtols`` and ``--quick`` override it.)
     sweep_rtols: ClassVar[tuple[float, ...] | None] = None
     #: whether `benchmark run` without ``--integrators`` runs this method; False: an extended-sweep

@@ -196,7 +196,7 @@ def saved_interval(t_end, save_every, fixed_dt=None) -> float:
 
 def saved_size(scene, t_end, save_every, fixed_dt=None) -> tuple[int, int]:
     """(saved states, bytes) of the trajectory a run keeps, at most: the one size `check_horizon`
-    refuses beyond `MAX_SAVED_BYTES` and the command line estimates (`benchmark.options.run_size`)."""
+    refuses beyond `MAX_SAVED_BYTES` and the command line estimates (`benchmark.core.options.run_size`)."""
     from models.layout import StateLayout  # JAX-free: the sizes the scene's effects give
 
     lay = StateLayout.from_scene(scene)

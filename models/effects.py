@@ -13,7 +13,7 @@ An effect declares everything it contributes, and nothing else needs to know its
   forces over w's layout (`string_forces`), loads on the body that may turn it (`body_loads`:
   a moment in the body frame and forces that depend on the attitude), a change of the elastic
   law (`elastic_law`), its share of the energy scale (`energy_scale`) and the power its forces
-  claim (`power`, `body_power`; checked by the tests and `benchmark.verify`).
+  claim (`power`, `body_power`; checked by the tests and `benchmark.contract.verify`).
 
 The integrators read only the model's totals (`potential_gradient`, `reel_force`,
 `string_force`, `body_load`, `generalized_force`, `potential`, `kinetic`), so a new potential or force

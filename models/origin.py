@@ -75,7 +75,7 @@ def of_object(obj) -> Origin:
 
 def source_digest(obj) -> str:
     """A hash (12 hex digits) of the source file that defines ``obj``'s class: a plugin's rows
-    are recomputed on resume when its code changes, like the project's (`benchmark.store.code_version`)."""
+    are recomputed on resume when its code changes, like the project's (`benchmark.core.store.code_version`)."""
     cls = obj if isinstance(obj, type) else type(obj)
     h = hashlib.sha256(f"{cls.__module__}.{cls.__qualname__}".encode())
     try:

@@ -8,8 +8,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from benchmark import check, pipelines
-from benchmark.metrics import ACCURACY
+from benchmark.studies import check
+from benchmark.cli import pipelines
+from benchmark.runs.metrics import ACCURACY
 from integrators import registry
 
 pytest.importorskip("integrators.scipy_ivp")
@@ -226,7 +227,7 @@ def test_timing_never_fails():
 # bad input, before any work; the CI contract
 
 def test_bad_input_is_refused_before_any_work(tmp_path, monkeypatch, capsys):
-    from benchmark.cli import main
+    from benchmark.cli.main import main
 
     monkeypatch.setattr(check, "measure", lambda *a, **k: pytest.fail("ran the sweep"))
     check.write_baseline(table(["ok"]), tmp_path / "b.csv")
@@ -281,7 +282,7 @@ def no_sweep(monkeypatch):
 
 
 def check_cli(capsys, path, *args):
-    from benchmark.cli import main
+    from benchmark.cli.main import main
 
     rc = main(["check", "--baseline", str(path), *args])
     captured = capsys.readouterr()
@@ -427,7 +428,7 @@ def test_an_installed_plugin_is_reported_not_failed_and_a_method_of_the_baseline
         tmp_path, capsys, no_sweep):
     """Installing a plugin must not break a user's CI: the default check reports it and says
     how to add it; a method the baseline gates that is no longer registered fails closed."""
-    from benchmark import sweep
+    from benchmark.runs import sweep
 
     shipped = sweep.default_names()
     path = tmp_path / "b.csv"

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from benchmark.cli import main
+from benchmark.cli.main import main
 
 ROOT = Path(__file__).resolve().parent.parent
 TINY = ["--scenes", "fixed_length", "--integrators", "lgvi", "--t-end", "0.02", "--no-figures"]
@@ -112,7 +112,7 @@ def test_every_option_is_documented_with_its_default(capsys):
     to show (not None, not a flag's False) shows it as "(default: VALUE)"."""
     import argparse
 
-    from benchmark.cli import parser
+    from benchmark.cli.main import parser
 
     p = parser()
     sub = next(a for a in p._actions if a.__class__.__name__ == "_SubParsersAction")
@@ -138,7 +138,7 @@ def test_every_option_is_documented_with_its_default(capsys):
 PROBE = textwrap.dedent("""
     import json, sys, time
     t0 = time.perf_counter()
-    from benchmark.cli import main
+    from benchmark.cli.main import main
     rc = main(json.loads(sys.argv[1]))
     heavy = sorted(m for m in ("jax", "diffrax", "pandas", "matplotlib", "integrators", "scipy.integrate")
                    if m in sys.modules)
@@ -178,7 +178,7 @@ def test_simulate_and_figures_write_next_to_the_user(tmp_path, monkeypatch, caps
 
 
 def test_size_estimate_warns_about_a_long_run_and_refuses_what_cannot_fit():
-    from benchmark import options
+    from benchmark.core import options
     from models import load_scene
 
     said = []
@@ -202,7 +202,7 @@ def test_size_estimate_warns_about_a_long_run_and_refuses_what_cannot_fit():
 @pytest.fixture
 def no_pipeline(monkeypatch):
     """Every pipeline replaced by a failure: a bad input that got through would start work."""
-    from benchmark import pipelines
+    from benchmark.cli import pipelines
 
     for name in ("run_sweep", "simulate", "draw_figures", "run_check", "run_speed", "run_stability", "run_xval",
                  "run_reel_reversal"):
@@ -315,7 +315,7 @@ FIX = ("allowed", "available:", "give", "e.g.", "raise", "shorten", "expected", 
 
 def test_more_than_150_bad_inputs_are_each_refused_with_exit_2_and_the_fix(tmp_path, capsys, no_pipeline):
     assert len(BULK) >= 150, len(BULK)
-    from benchmark import check
+    from benchmark.studies import check
 
     check.write_baseline(check.to_table.__globals__["pd"].DataFrame(columns=check.COLUMNS), tmp_path / "b.csv")
     failures = []

@@ -117,8 +117,8 @@ def test_the_docs_show_the_commands_this_test_runs():
 #: the plugin is registered through its entry point, as a user's would be).
 _VALIDATE = r"""
 import json, sys
-from benchmark import pipelines
-from benchmark.cli import main
+from benchmark.cli import pipelines
+from benchmark.cli.main import main
 calls = []
 def recorder(name):
     def record(*args, **kw):
@@ -135,7 +135,7 @@ def recorder(name):
 for name in ("run_sweep", "simulate", "draw_figures", "run_check", "run_speed", "run_stability", "run_xval",
              "run_reel_reversal", "run_orders", "run_horizon_study"):
     setattr(pipelines, name, recorder(name))
-from benchmark import answer
+from benchmark.answer import answer
 answer.run_answer = lambda request, *a, **kw: recorder("run_answer")(out=request.out)
 results = []
 for args in json.loads(sys.argv[1]):
@@ -173,7 +173,7 @@ def test_every_documented_command_parses_and_passes_its_checks(tmp_path):
 
 
 def test_every_documented_template_names_options_that_exist():
-    from benchmark.cli import parser
+    from benchmark.cli.main import parser
 
     commands = parser()._subparsers._group_actions[0].choices
     for template in templates():

@@ -1,12 +1,13 @@
-"""The energy study (benchmark/horizon.py, `pipelines.run_horizon_study`): it runs on the scenes
+"""The energy study (benchmark/studies/horizon.py, `pipelines.run_horizon_study`): it runs on the scenes
 it is given, at both sizes and both settings, and merges into energy_horizon.csv: a rerun keeps
 the histories it does not recompute (other methods, scenes, sizes) and reuses those it would
 recompute identically."""
 
 import pandas as pd
 
-from benchmark import horizon, pipelines
-from benchmark.sweep import MethodSettings
+from benchmark.studies import horizon
+from benchmark.cli import pipelines
+from benchmark.runs.sweep import MethodSettings
 
 
 def test_the_study_runs_on_the_fixed_length_scenes_it_is_given():
@@ -72,7 +73,7 @@ def test_a_rerun_merges_into_the_table_and_keeps_what_it_did_not_recompute(tmp_p
 
 
 def test_bad_input_is_refused_before_any_work(tmp_path, capsys):
-    from benchmark.cli import main
+    from benchmark.cli.main import main
 
     assert main(["energy", "--integrators", "no_such_method", "--out", str(tmp_path / "e")]) == 2
     assert capsys.readouterr().err.startswith("error:") and not (tmp_path / "e").exists()
@@ -84,7 +85,7 @@ def test_bad_input_is_refused_before_any_work(tmp_path, capsys):
 def test_run_makes_the_energy_study_only_when_given_a_horizon(tmp_path, monkeypatch, capsys):
     """The study is its own command (`energy`); `run` makes it too only with --horizon T, and
     only then checks its size (a horizon far too long is refused before any work)."""
-    from benchmark.cli import main
+    from benchmark.cli.main import main
 
     seen = []
     monkeypatch.setattr(pipelines, "run_sweep", lambda request, log: seen.append(request) or 0)
@@ -96,7 +97,7 @@ def test_run_makes_the_energy_study_only_when_given_a_horizon(tmp_path, monkeypa
 
 
 def test_merge_study_table_replaces_a_run_as_a_whole_and_keeps_the_others():
-    from benchmark.store import merge_study_table
+    from benchmark.core.store import merge_study_table
 
     old = pd.DataFrame({"run": ["a", "a", "b"], "v": [1, 2, 3]})
     new = pd.DataFrame({"run": ["a"], "v": [9]})
@@ -105,7 +106,7 @@ def test_merge_study_table_replaces_a_run_as_a_whole_and_keeps_the_others():
 
 
 def test_the_energy_command_rewrites_only_its_section_of_the_readme(tmp_path):
-    from benchmark.properties import SECTION, write_energy_section
+    from benchmark.studies.properties import SECTION, write_energy_section
 
     t = [0.0, 10.0, 20.0]
     pd.DataFrame({"t": t, "energy_error": [0.0, 1e-9, 2e-9], "energy_dev": [0.0, -1e-9, -2e-9], "axial_P": 1.0,

@@ -1,4 +1,4 @@
-"""The experiment engine (`benchmark.engine.run_jobs`) that every study runs on: rows in job
+"""The experiment engine (`benchmark.core.engine.run_jobs`) that every study runs on: rows in job
 order, one worker per group, longest groups first, crash rows, progress."""
 
 import os
@@ -6,7 +6,10 @@ import os
 import numpy as np
 import pytest
 
-from benchmark import engine, runner, stability, store
+from benchmark.core import engine
+from benchmark.runs import runner
+from benchmark.studies import stability
+from benchmark.core import store
 
 
 def job(spec: tuple) -> dict:
@@ -99,8 +102,8 @@ def test_frame_one_helper_for_both_tables():
 
 
 def test_a_horizon_run_whose_worker_died_is_a_row_without_history():
-    from benchmark import horizon
-    from benchmark.sweep import MethodSettings
+    from benchmark.studies import horizon
+    from benchmark.runs.sweep import MethodSettings
 
     job = horizon.Job("fixed_length", 10, MethodSettings("lgvi", {"dt": 0.005}), 1.0, ())
     dead = horizon.crash_row(job, RuntimeError("worker died"))

@@ -5,8 +5,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from benchmark import plots, stability_report
-from benchmark.styles import style
+from benchmark.figures import plots
+from benchmark.studies import stability_report
+from benchmark.figures.styles import style
 
 
 @pytest.fixture

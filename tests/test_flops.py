@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from benchmark import flops
+from benchmark.work import flops
 from models import build_model, load_scene
 
 

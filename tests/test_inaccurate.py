@@ -4,8 +4,10 @@ not "ok", keeps no accuracy values and is a status the runs table knows."""
 import numpy as np
 import pytest
 
-from benchmark import metrics, runner, store
-from benchmark.sweep import Task
+from benchmark.runs import metrics
+from benchmark.runs import runner
+from benchmark.core import store
+from benchmark.runs.sweep import Task
 from models import load_scene
 
 

@@ -291,7 +291,7 @@ def test_reel_reversal_keeps_the_orders(tmp_path):
     here). Measured with ``python -m benchmark reel-reversal`` (h = 4 → 0.5 ms, Suzuki 8 → 1 ms:
     lgvi_sym 1.99-2.00, Yoshida 4.00-4.02, Suzuki 3.98-4.01; even constant-step Tsit5 (order 5)
     shows 5.1-6.6 on body and s_p, 4.2-4.9 on E − W)."""
-    from benchmark.reel_reversal import errors, reference
+    from benchmark.studies.reel_reversal import errors, reference
     scene = load_scene("reel_reversal", elements=5)
     ref, flips = reference(scene, 0.96, tmp_path)
     assert len(flips) == 1 and 0.4 < flips[0] < 0.6

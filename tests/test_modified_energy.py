@@ -1,4 +1,4 @@
-"""The energy study's modified-energy analysis (benchmark/properties.py): the derived offset of a
+"""The energy study's modified-energy analysis (benchmark/studies/properties.py): the derived offset of a
 symplectic method's energy error, checked where the modified energy is known in closed form, and
 the drift verdict on what is left, which tells numerical drift from a growing offset."""
 
@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from benchmark.properties import (classify, correction_of, drift_fit, energy_table, shadow_coefficient,
+from benchmark.studies.properties import (classify, correction_of, drift_fit, energy_table, shadow_coefficient,
                                   window_means)
 
 # --- the elastic pendulum (a point mass on a linear spring under gravity, in a plane), integrated by

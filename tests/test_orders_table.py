@@ -14,7 +14,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from benchmark import orders
+from benchmark.studies import orders
 
 RESULTS = Path(__file__).resolve().parent.parent / "results"
 
@@ -84,7 +84,7 @@ def test_the_slope_is_the_last_halving_above_the_floor():
 
 @pytest.mark.slow
 def test_the_whole_table_recomputed_matches_theory(tmp_path):
-    from benchmark import pipelines
+    from benchmark.cli import pipelines
 
     assert pipelines.run_orders(out=tmp_path, jobs=0, log=lambda m: None, echo=lambda m: None) == 0
     _check_against_theory(pd.read_csv(tmp_path / "orders.csv"), pd.read_csv(tmp_path / "orders_errors.csv"),
@@ -92,7 +92,7 @@ def test_the_whole_table_recomputed_matches_theory(tmp_path):
 
 
 def test_a_method_without_a_constant_step_is_refused_before_any_work(tmp_path, capsys):
-    from benchmark.cli import main
+    from benchmark.cli.main import main
 
     assert main(["orders", "--integrators", "rk45", "--out", str(tmp_path / "o")]) == 2
     assert "error: --integrators: 'rk45' has no constant-step mode" in capsys.readouterr().err

@@ -43,7 +43,8 @@ def _benchmark(site, *args):
 
 
 def test_defaults_keep_to_the_projects_own_methods(installed):
-    from benchmark import stability, sweep
+    from benchmark.studies import stability
+    from benchmark.runs import sweep
     from integrators import available, origin, registry
 
     assert NAME in available()
@@ -81,8 +82,8 @@ def test_list_marks_plugins_with_their_package_and_version(site):
 
 
 def test_provenance_follows_the_package_and_the_plugins_source(installed, tmp_path):
-    from benchmark.runner import provenance
-    from benchmark.store import code_version
+    from benchmark.runs.runner import provenance
+    from benchmark.core.store import code_version
     from models.origin import source_digest, project_origin
 
     code = code_version()
@@ -106,7 +107,8 @@ def test_provenance_follows_the_package_and_the_plugins_source(installed, tmp_pa
 
 def test_with_plugins_or_a_name_brings_them_in(installed, tmp_path, monkeypatch, capsys):
     """What `run` hands its pipeline (stubbed: nothing runs): the plugin joins only when asked."""
-    from benchmark import cli, pipelines
+    from benchmark.cli import main as cli
+    from benchmark.cli import pipelines
 
     seen = []
     monkeypatch.setattr(pipelines, "run_sweep", lambda request, log: seen.append(request) or 0)

@@ -5,8 +5,8 @@ import math
 
 import pytest
 
-from benchmark import policy
-from benchmark.policy import Setting
+from benchmark.core import policy
+from benchmark.core.policy import Setting
 
 
 def test_a_setting_carries_its_label_its_solve_arguments_and_parses_back():
@@ -26,8 +26,8 @@ def test_a_setting_carries_its_label_its_solve_arguments_and_parses_back():
 
 
 def test_the_sweep_and_the_answer_solve_a_setting_alike():
-    from benchmark import answer
-    from benchmark.sweep import Task, build_tasks
+    from benchmark.answer import answer
+    from benchmark.runs.sweep import Task, build_tasks
 
     for axis, value in (("dt", 0.005), ("rtol", 1e-6)):
         task = Task("fixed_length", "tsit5", **vars(Setting.on_axis(axis, value)), t_end=1.0)
@@ -38,7 +38,12 @@ def test_the_sweep_and_the_answer_solve_a_setting_alike():
 
 
 def test_the_budgets_and_the_resolution_are_read_from_the_policy():
-    from benchmark import answer, horizon, options, paired, runner, search
+    from benchmark.answer import answer
+    from benchmark.studies import horizon
+    from benchmark.core import options
+    from benchmark.answer import paired
+    from benchmark.runs import runner
+    from benchmark.answer import search
 
     assert runner.SolveBudget() == runner.SolveBudget(policy.SOLVE_MAX_STEPS, policy.SOLVE_TIME_LIMIT)
     assert (options.SOLVE_MAX_STEPS, options.SOLVE_TIME_LIMIT) == (policy.SOLVE_MAX_STEPS, policy.SOLVE_TIME_LIMIT)
@@ -49,7 +54,8 @@ def test_the_budgets_and_the_resolution_are_read_from_the_policy():
 
 
 def test_every_reference_setup_is_the_policy_s():
-    from benchmark import orders, reference
+    from benchmark.studies import orders
+    from benchmark.core import reference
 
     assert reference.REFERENCE_METHOD is policy.REFERENCE_METHOD
     assert (orders.REFERENCE_METHOD, orders.REFERENCE_DT) == (policy.ORDERS_REFERENCE_METHOD,
@@ -58,7 +64,10 @@ def test_every_reference_setup_is_the_policy_s():
 
 
 def test_the_status_sets_are_named_once_beside_the_statuses():
-    from benchmark import metrics, ranking, search, store
+    from benchmark.runs import metrics
+    from benchmark.runs import ranking
+    from benchmark.answer import search
+    from benchmark.core import store
     from integrators.base import (BUDGET_STATUSES, FINISHED_STATUSES, RETRY_STATUSES, TABLE_ONLY_STATUSES, Status,
                                   is_finished)
 
@@ -76,7 +85,7 @@ def test_the_command_line_counts_the_steps_and_the_memory_the_integrators_do(t_e
     """options.run_size restates two integrator rules (it must not import the integrators package):
     its step count is the loop's, also where dt does not divide t_end, and its saved size is the one
     the integrators refuse beyond, with the same limits."""
-    from benchmark import options
+    from benchmark.core import options
     from integrators import lifecycle
     from integrators.base import fixed_step_count, fixed_step_grid
     from models import load_scene
@@ -99,8 +108,11 @@ def test_the_longest_horizon_is_the_scene_files():
 
 
 def test_a_row_s_identity_is_one_rule_and_a_new_metric_is_range_checked_on_read_back(monkeypatch):
-    from benchmark import check, metrics, reproducibility, store
-    from benchmark.sweep import Task
+    from benchmark.studies import check
+    from benchmark.runs import metrics
+    from benchmark.runs import reproducibility
+    from benchmark.core import store
+    from benchmark.runs.sweep import Task
 
     task = Task("fixed_length", "lgvi", dt=0.01)
     row = {"scene": "fixed_length", "integrator": "lgvi", "setting": task.setting, "status": "ok", "run_time": 0.1,
@@ -112,14 +124,20 @@ def test_a_row_s_identity_is_one_rule_and_a_new_metric_is_range_checked_on_read_
 
 
 def test_the_output_places_are_the_policy_s():
-    from benchmark import answer, check, cli, pipelines, store
+    from benchmark.answer import answer
+    from benchmark.studies import check
+    from benchmark.cli import main as cli
+    from benchmark.cli import pipelines
+    from benchmark.core import store
 
     assert check.BASELINE == policy.BASELINE_FILE and answer.COMMITTED_ANSWER == policy.RESULTS
     assert cli.GRID_OUT == str(policy.GRID_DIR) and pipelines.COMMITTED_RESULTS == store.ROOT / policy.GRID_DIR
 
 
 def test_the_defaults_of_a_request_are_the_command_line_s():
-    from benchmark import check, pipelines, sweep
+    from benchmark.studies import check
+    from benchmark.cli import pipelines
+    from benchmark.runs import sweep
 
     request = pipelines.SweepRequest(out=".", scenes=("fixed_length",), quick=True)
     assert (request.executor, request.repeats) == (sweep.DEFAULT_EXECUTOR, sweep.MIN_REPEATS)
@@ -131,7 +149,8 @@ def test_the_defaults_of_a_request_are_the_command_line_s():
 def test_the_reel_reversal_table_and_the_order_ladders_compute_an_order_alike():
     from types import SimpleNamespace
 
-    from benchmark import orders, reel_reversal
+    from benchmark.studies import orders
+    from benchmark.studies import reel_reversal
 
     errors = [reel_reversal.Errors(1e-3, 2e-3, 4e-3), reel_reversal.Errors(2.5e-4, 2.5e-4, 1e-3)]
     rows = [{"method": "lgvi", "h": h, "errors": e} for h, e in zip((0.01, 0.005), errors)]

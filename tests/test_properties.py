@@ -1,4 +1,4 @@
-"""The generated "which property pays off where" section (benchmark/properties.py): the raw slope
+"""The generated "which property pays off where" section (benchmark/studies/properties.py): the raw slope
 classifier tells a bounded error from a drifting one (and says when it cannot; it decides for a
 table without the signed error, see tests/test_modified_energy.py for the verdict after the
 modified-energy offset), and the words follow the numbers."""
@@ -6,7 +6,7 @@ modified-energy offset), and the words follow the numbers."""
 import numpy as np
 import pandas as pd
 
-from benchmark.properties import BOUNDED_BELOW, DRIFTING_FROM, classify, energy_table, properties_text
+from benchmark.studies.properties import BOUNDED_BELOW, DRIFTING_FROM, classify, energy_table, properties_text
 
 T = np.linspace(0.0, 100.0, 1001)
 

@@ -7,8 +7,8 @@ import shutil
 import numpy as np
 import pytest
 
-from benchmark import reference
-from benchmark.reference import CacheError, get_reference, load_reference, reference_path
+from benchmark.core import reference
+from benchmark.core.reference import CacheError, get_reference, load_reference, reference_path
 from models import load_scene
 
 T_END, SAVE = 0.04, 0.02

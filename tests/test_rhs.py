@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import integrators.rhs as rhs_module
-from benchmark.metrics import work_evals
+from benchmark.runs.metrics import work_evals
 from integrators import Capability, available, get_integrator
 from models import build_model
 from models._jax import DEFAULT_XLA_FLAGS, append_xla_flags, jax, jnp, xla_flags
@@ -216,7 +216,7 @@ def test_the_persistent_compile_cache_is_in_the_users_cache_directory_unless_tur
 
 def test_speed_covers_every_registered_fixed_step_method(monkeypatch):
     """`python -m benchmark speed` takes its methods from the registry, not from a list."""
-    from benchmark import lgvi_speed
+    from benchmark.studies import lgvi_speed
     from integrators import registry
     from integrators.base import Integrator
 
@@ -244,7 +244,7 @@ def test_speed_times_each_rhs_per_call():
     """us_per_call is the median of single calls: at least half the calls took that long, so
     calls x median / 2 cannot exceed the wall time of the whole measurement (a total reported
     as per-call would)."""
-    from benchmark import lgvi_speed
+    from benchmark.studies import lgvi_speed
 
     for rhs in rhs_module.RHS_CHOICES:
         t0 = time.perf_counter()

@@ -153,7 +153,9 @@ def test_killed_sweep_leaves_no_worker_and_a_rerun_resumes(tmp_path, plugin_env)
 
 
 def test_fresh_ignores_the_rows_already_there(tmp_path, monkeypatch):
-    from benchmark import cli, runner, store
+    from benchmark.cli import main as cli
+    from benchmark.runs import runner
+    from benchmark.core import store
 
     class Stop(Exception):
         pass
@@ -179,8 +181,8 @@ def test_fresh_ignores_the_rows_already_there(tmp_path, monkeypatch):
 # the lock
 
 def test_a_second_run_into_a_locked_out_is_refused_naming_the_lock_and_holder(tmp_path, capsys):
-    from benchmark.cli import main
-    from benchmark.store import OutputLock
+    from benchmark.cli.main import main
+    from benchmark.core.store import OutputLock
 
     with OutputLock(tmp_path) as lock:
         rc = main(["run", "--scenes", "fixed_length", "--integrators", "lgvi", "--dts", "0.01", "--t-end", "0.02",
@@ -193,7 +195,7 @@ def test_a_second_run_into_a_locked_out_is_refused_naming_the_lock_and_holder(tm
 
 
 def test_the_lock_file_of_a_dead_process_blocks_nobody(tmp_path):
-    from benchmark.store import OutputLock
+    from benchmark.core.store import OutputLock
 
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()
@@ -208,9 +210,9 @@ def test_the_lock_file_of_a_dead_process_blocks_nobody(tmp_path):
 def test_a_second_process_is_refused_at_once_naming_the_directory_and_holder(tmp_path):
     """The lock is the kernel's: another process is refused while this one holds it, and takes
     it as soon as this one is gone, even killed with -9."""
-    from benchmark.store import OutputLock
+    from benchmark.core.store import OutputLock
 
-    probe = ("import sys, time\nfrom benchmark.store import OutputLock, LockedError\nt = time.perf_counter()\n"
+    probe = ("import sys, time\nfrom benchmark.core.store import OutputLock, LockedError\nt = time.perf_counter()\n"
              "try:\n    OutputLock(sys.argv[1]).acquire()\nexcept LockedError as e:\n"
              "    print(f'{time.perf_counter() - t:.3f}', e)\nelse:\n    print('taken')\n")
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
@@ -225,7 +227,7 @@ def test_a_second_process_is_refused_at_once_naming_the_directory_and_holder(tmp
         assert float(took) < 1.0, said
         assert f"{tmp_path}/ is in use by another run (pid {os.getpid()} on " in message, said
     assert other() == "taken"
-    holder = subprocess.Popen([sys.executable, "-c", "import sys, time\nfrom benchmark.store import OutputLock\n"
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time\nfrom benchmark.core.store import OutputLock\n"
                                "held = OutputLock(sys.argv[1]).acquire()\nprint('held', flush=True)\ntime.sleep(600)",
                                str(tmp_path)], stdout=subprocess.PIPE, text=True, env=env, cwd=ROOT)
     try:
@@ -239,8 +241,8 @@ def test_a_second_process_is_refused_at_once_naming_the_directory_and_holder(tmp
 
 def test_resume_keeps_only_rows_of_the_same_sweep():
     """The run key changes with the scene's physics, the setting, the horizon and the code."""
-    from benchmark.store import run_key
-    from benchmark.sweep import Task
+    from benchmark.core.store import run_key
+    from benchmark.runs.sweep import Task
 
     base = Task("fixed_length", "lgvi", dt=0.01, t_end=0.1, overrides=(("elements", 2),))
     key = run_key(base, "code1")
@@ -260,7 +262,7 @@ def test_worker_pool_workers_exit_when_their_parent_dies(tmp_path):
     script = textwrap.dedent(f"""
         import os, sys, time
         sys.path.insert(0, {str(ROOT)!r})
-        from benchmark.engine import worker_pool
+        from benchmark.core.engine import worker_pool
         pool = worker_pool(2)
         futs = [pool.submit(time.sleep, 60) for _ in range(2)]
         time.sleep(0.5)
@@ -277,7 +279,7 @@ def test_worker_pool_workers_exit_when_their_parent_dies(tmp_path):
 
 def test_dask_workers_get_one_xla_thread_and_run_the_sweep(tmp_path, monkeypatch):
     distributed = pytest.importorskip("distributed")
-    from benchmark.cli import main
+    from benchmark.cli.main import main
 
     monkeypatch.delenv("XLA_FLAGS", raising=False)  # the workers must get it from the runner, not inherit it
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:

@@ -434,7 +434,7 @@ def test_a_file_with_an_integer_too_long_to_read_is_refused(tmp_path):
 @pytest.fixture
 def stubbed(monkeypatch):
     """The pipelines replaced by a recorder: an accepted command line does no work."""
-    from benchmark import pipelines
+    from benchmark.cli import pipelines
 
     calls = []
     for name in ("run_sweep", "simulate"):
@@ -477,8 +477,8 @@ def commands(key_text, out: Path):
                                  HealthCheck.function_scoped_fixture])
 @given(key_text=set_texts())
 def test_hostile_set_values_on_simulate_and_run_are_one_error_line_and_exit_2(tmp_path, capsys, stubbed, key_text):
-    from benchmark.cli import _overrides, main
-    from benchmark.options import UsageError
+    from benchmark.cli.main import _overrides, main
+    from benchmark.core.options import UsageError
 
     try:
         load_scene("retrieval", **_overrides([f"{key_text[0]}={key_text[1]}"]))

@@ -227,7 +227,7 @@ ACCEPTED: list[str] = []  # the pipelines reached, for the test below
 @pytest.fixture
 def stubbed(monkeypatch):
     """The pipelines replaced by a recorder: an accepted command line does no work."""
-    from benchmark import pipelines
+    from benchmark.cli import pipelines
 
     calls = []
     for name in ("run_sweep", "simulate", "run_check", "run_speed", "run_stability", "run_xval", "run_reel_reversal"):
@@ -243,7 +243,7 @@ def test_generated_command_lines_are_refused_with_a_message_or_accepted_as_given
                                                                                    raw):
     """Every generated command line ends in exit 2 with one `error:` line, or reaches its
     pipeline (stubbed) with the values it was given: no traceback, no hang, nothing written."""
-    from benchmark.cli import main
+    from benchmark.cli.main import main
 
     (tmp_path / "scene.toml").write_bytes(raw)
     args = data.draw(command_lines(tmp_path))

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from benchmark.cli import main
+from benchmark.cli.main import main
 from models import (EFFECTS, SceneError, available_scenes, load_scene, register_effect, scene_from_dict,
                     unregister_effect)
 from models import io as model_io
@@ -146,8 +146,9 @@ def test_the_writers_themselves_keep_a_name_inside_their_directory(tmp_path):
     object never validated is refused by the writer that would put it into a file name."""
     import pandas as pd
 
-    from benchmark import plots, store
-    from benchmark.reference import reference_path
+    from benchmark.figures import plots
+    from benchmark.core import store
+    from benchmark.core.reference import reference_path
 
     out = tmp_path / "out"
     out.mkdir()

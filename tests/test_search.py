@@ -1,4 +1,4 @@
-"""The search for the cheapest setting meeting a target (`benchmark.search`): on synthetic curves
+"""The search for the cheapest setting meeting a target (`benchmark.answer.search`): on synthetic curves
 with a known crossing and a known stability cliff, both found within 10 %; never extrapolated;
 budget, range and non-monotone (adaptive) cases; and one real method on one scene."""
 
@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from benchmark.search import RESOLUTION, search
+from benchmark.answer.search import RESOLUTION, search
 
 
 def fixed_step(C=1e3, order=4, cliff=math.inf, calls=None):
@@ -166,7 +166,7 @@ def test_a_real_method_and_scene():
     """lie_rk4 on a two-element fixed_length over 0.2 s, energy error <= 1e-7: the answer meets
     the target, the bracket's coarser end (within 10 % in steps) does not, with the flop-free
     cost of steps."""
-    from benchmark.metrics import run_metrics
+    from benchmark.runs.metrics import run_metrics
     from integrators import get_integrator
     from models import load_scene
 

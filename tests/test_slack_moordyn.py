@@ -10,7 +10,7 @@ import pytest
 
 pytest.importorskip("moordyn")
 
-from benchmark import xval  # noqa: E402
+from benchmark.studies import xval  # noqa: E402
 from models import load_scene  # noqa: E402
 
 

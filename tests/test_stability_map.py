@@ -1,10 +1,12 @@
-"""The stability map's logic (benchmark.stability), without running integrators: the ladder,
+"""The stability map's logic (benchmark.studies.stability), without running integrators: the ladder,
 skips, failure rows, and the generated reading. The map itself is results/stability/."""
 
 import numpy as np
 import pytest
 
-from benchmark import runner, stability, stability_report
+from benchmark.runs import runner
+from benchmark.studies import stability
+from benchmark.studies import stability_report
 from models import load_scene
 
 
@@ -102,7 +104,7 @@ def test_a_length_limit_reached_too_soon_is_not_bounded():
     """On a length-limit scene a run counts as bounded only when it reaches its limit no earlier
     than the physics allows: an unstable step can throw the string to its limit in a few steps
     (crouch_grossman3 at 10 ms was seen at 0.05 s, against 1.10 s for every adaptive method)."""
-    from benchmark.stability import CASES, is_bounded
+    from benchmark.studies.stability import CASES, is_bounded
 
     case = next(c for c in CASES if c.scene == "retrieval_to_limit")
     assert is_bounded(case, {"status": "length_limit", "t_reached": 1.146})

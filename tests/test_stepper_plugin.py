@@ -132,7 +132,7 @@ def test_it_runs_in_the_benchmark_into_tables_and_the_work_precision_plot(site, 
     assert 1.5 < ratio < 2.7, ratio
     assert NAME in (out / "runs.md").read_text()
     # whose rows these are: the plugin's package and version, and the code digest its resume key covers
-    from benchmark.store import code_version
+    from benchmark.core.store import code_version
 
     assert set(runs["package"]) == {"my-stepper"} and set(runs["package_version"].astype(str)) == {"0.1"}
     [digest] = set(runs["code_digest"])
@@ -140,9 +140,9 @@ def test_it_runs_in_the_benchmark_into_tables_and_the_work_precision_plot(site, 
     assert (out / "work_precision_fixed_length.png").stat().st_size > 0
 
     # the work-precision figure has its curve on both cost axes (run time and work count)
-    from benchmark import plots
+    from benchmark.figures import plots
 
-    from benchmark.styles import style
+    from benchmark.figures.styles import style
 
     seen = []
     monkeypatch.setattr(plots, "save_figure", lambda fig, path: seen.append(

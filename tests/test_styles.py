@@ -1,4 +1,4 @@
-"""benchmark.styles: one look per method, from its name only; legends outside the data; a method
+"""benchmark.figures.styles: one look per method, from its name only; legends outside the data; a method
 a panel cannot draw is listed with the reason."""
 
 import os
@@ -13,7 +13,7 @@ import pytest  # noqa: E402
 from hypothesis import given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
-from benchmark.styles import (PLUGIN_COLOURS, SHIPPED, clashes, legend_entries, legend_outside, style,  # noqa: E402
+from benchmark.figures.styles import (PLUGIN_COLOURS, SHIPPED, clashes, legend_entries, legend_outside, style,  # noqa: E402
                               styles)
 
 NAMES = st.text("abcdefghijklmnopqrstuvwxyz0123456789_", min_size=1, max_size=20)
@@ -45,7 +45,7 @@ def test_a_style_does_not_change_when_another_method_is_added(names, new):
 def test_a_plugin_style_is_the_same_in_another_process():
     # a hash of the name, not Python's per-process hash(): worker processes draw the same figure
     names = ["my_method", "splitting2", "rk4_fixed"]
-    code = ("from benchmark.styles import style; "
+    code = ("from benchmark.figures.styles import style; "
             f"print([tuple(style(n).__dict__.values()) for n in {names!r}])")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          env={**os.environ, "PYTHONHASHSEED": "12345"}).stdout.strip()

@@ -9,9 +9,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from benchmark import engine, runner, store
-from benchmark.report import shorten
-from benchmark.sweep import MAX_REPEATS, TIMING_BUDGET
+from benchmark.core import engine
+from benchmark.runs import runner
+from benchmark.core import store
+from benchmark.core.report import shorten
+from benchmark.runs.sweep import MAX_REPEATS, TIMING_BUDGET
 
 
 # ---- timing -------------------------------------------------------------------------------
@@ -230,7 +232,7 @@ def test_setup_calls_each_say_when_they_are_done():
 # ---- the plugin workflow ------------------------------------------------------------------
 def test_the_stability_map_runs_a_registered_plugin_when_named_not_by_default():
     """A plugin is a guest: the committed map holds the project's methods unless one is named."""
-    from benchmark import stability
+    from benchmark.studies import stability
     from integrators import FixedStepMethod, register, registry
 
     @register

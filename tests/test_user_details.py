@@ -8,11 +8,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from benchmark.cli import main
+from benchmark.cli.main import main
 
 
 def test_progress_never_says_nan_seconds_left(monkeypatch):
-    from benchmark import engine
+    from benchmark.core import engine
 
     clock = [0.0]
     monkeypatch.setattr(engine.time, "perf_counter", lambda: clock[0])
@@ -49,7 +49,7 @@ def test_list_aligns_every_name_and_marks_the_extended_sweep(capsys):
 
 
 def test_pi3_is_reported_only_where_the_physics_conserves_it(monkeypatch):
-    from benchmark import metrics
+    from benchmark.runs import metrics
     from models import layout, load_scene
     from models.effects import Effect, get_effect
 
@@ -69,7 +69,7 @@ def test_pi3_is_reported_only_where_the_physics_conserves_it(monkeypatch):
 def test_panel_d_drops_pi3_where_it_is_not_conserved(monkeypatch, tmp_path):
     import matplotlib.pyplot as plt
 
-    from benchmark import plots
+    from benchmark.figures import plots
     from integrators import get_integrator
     from models import build_model, load_scene
     from models.diagnostics import evaluate

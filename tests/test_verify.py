@@ -1,4 +1,4 @@
-"""The plugin contract check (`python -m benchmark verify`, benchmark/verify.py).
+"""The plugin contract check (`python -m benchmark verify`, benchmark/contract/verify.py).
 
 Default run: a representative subset -- a method that ignores the guards and an effect with a
 wrong gradient and a wrong power are caught (so the checks can fail); the built-in `rk45`
@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from benchmark.verify import ContractError, check_effect, check_integrator
+from benchmark.contract.verify import ContractError, check_effect, check_integrator
 from integrators import Capability, Integrator, Trajectory, registry
 from models import EFFECTS
 from models.effects import ENTRY_POINT_GROUP as EFFECT_GROUP
@@ -160,7 +160,7 @@ def test_the_fluid_effects_pass_on_an_off_centre_body(name):
 def test_an_effect_another_needs_is_removed_with_it_when_its_keys_are_checked():
     """buoyancy's keys given without it must be refused naming the key, in a scene where drag
     (which needs buoyancy) is listed too: the check removes drag and its keys as well."""
-    from benchmark.verify import _scene_keys
+    from benchmark.contract.verify import _scene_keys
     from models import load_scene
 
     check = _scene_keys("buoyancy", load_scene("towed"))
@@ -258,7 +258,7 @@ def test_the_documented_effect_plugin_passes_verify(tmp_path):
 
 
 def test_verify_refuses_unknown_names_and_misplaced_options():
-    from benchmark.cli import main
+    from benchmark.cli.main import main
 
     assert main(["verify", "no_such_method"]) == 2
     assert main(["verify", "lgvi", "--scene", "fixed_length"]) == 2

@@ -1,4 +1,4 @@
-"""benchmark.work_rule: the flop rule against compiled floors (the measurement needs the floors'
+"""benchmark.work.work_rule: the flop rule against compiled floors (the measurement needs the floors'
 directory and numba, outside the project; here its input checks and its verdicts)."""
 
 import math
@@ -6,7 +6,7 @@ import math
 import pandas as pd
 import pytest
 
-from benchmark import work_rule
+from benchmark.work import work_rule
 
 
 @pytest.mark.parametrize("argv, message", [
@@ -37,18 +37,18 @@ def test_the_table_counts_the_pairs_within_the_tolerance():
                            "agreement_compiled": 1.25, "within_compiled": True, "ratio_lowered": 2.0,
                            "agreement_lowered": 0.5, "within_lowered": False, "ratio_old": 1.8,
                            "agreement_old": 0.45, "within_old": False}])
-    text = work_rule.markdown(methods, pairs, load="load average: 0.1", command="python -m benchmark.work_rule")
+    text = work_rule.markdown(methods, pairs, load="load average: 0.1", command="python -m benchmark.work.work_rule")
     assert "compiled program: **1 of 1**" in text and "lowered program: **0 of 1**" in text
     assert "earlier rule (evaluations × one isolated right-hand side): **0 of 1**" in text
     assert "load average: 0.1" in text
 
 
-# --- the floors' own flops: counting scalars (benchmark.opcount) -----------------------------
+# --- the floors' own flops: counting scalars (benchmark.work.opcount) -----------------------------
 
 def test_explicit_euler_on_a_linear_system_counts_what_a_hand_count_gives():
     """y <- y + h (A y) with a 2 x 2 A: per step 4 multiplications and 2 additions for A y, then 2
     multiplications (h ×) and 2 additions: 10 flops; 3 steps: 30, of which 18 multiplications."""
-    from benchmark.opcount import Counted, OpCounter, counted_array
+    from benchmark.work.opcount import Counted, OpCounter, counted_array
 
     A = counted_array([[0.0, 1.0], [-1.0, 0.0]])
     y, h = counted_array([1.0, 0.0]), Counted(0.1)
@@ -63,7 +63,7 @@ def test_explicit_euler_on_a_linear_system_counts_what_a_hand_count_gives():
 def test_a_numba_kernel_runs_as_plain_python_with_its_square_roots_and_allocations_counted(tmp_path):
     """A kernel written for numba (njit, np.zeros, math.sqrt, np.sqrt) is counted as written: its
     compile-time decoration is a no-op, its fresh arrays hold counting scalars, its roots count."""
-    from benchmark.opcount import OpCounter, counted_array, load_plain
+    from benchmark.work.opcount import OpCounter, counted_array, load_plain
 
     (tmp_path / "kern.py").write_text(
         "import math\nimport numpy as np\nfrom numba import njit\n\n"
@@ -85,7 +85,7 @@ def test_a_numba_kernel_runs_as_plain_python_with_its_square_roots_and_allocatio
 
 
 def test_operations_outside_a_counter_are_not_counted():
-    from benchmark.opcount import Counted, OpCounter
+    from benchmark.work.opcount import Counted, OpCounter
 
     x = Counted(2.0)
     y = x * x
@@ -106,7 +106,7 @@ def test_the_table_says_what_the_floors_own_count_keeps():
                            **{f"agreement_{k}": v for k, v in agreement.items()},
                            **{f"within_{k}": work_rule._within(v) for k, v in agreement.items()},
                            "lowered_over_floor_flops": 0.75 / 0.613}])
-    text = work_rule.markdown(methods, pairs, load="load average: 0.1", command="python -m benchmark.work_rule")
+    text = work_rule.markdown(methods, pairs, load="load average: 0.1", command="python -m benchmark.work.work_rule")
     assert "the floors' own flops (counted exactly): **0 of 1**" in text
     assert "lowered program: **1 of 1**" in text and "compiled program: **0 of 1**" in text
     assert "run at 3.2–5.3 GFlop/s" in text and "(the farthest: lie_rk4 / lgvi at N = 160,\n0.613); counting ÷ and √ as 4 flops, 0 of 1." in text

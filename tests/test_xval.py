@@ -1,4 +1,4 @@
-"""Cross-validation against MoorDyn and MuJoCo (benchmark/xval.py): the translation of a scene,
+"""Cross-validation against MoorDyn and MuJoCo (benchmark/studies/xval.py): the translation of a scene,
 the same discrete model in three codes, and the refusal of what cannot be translated."""
 
 import xml.etree.ElementTree as ET
@@ -7,9 +7,10 @@ import mujoco
 import numpy as np
 import pytest
 
-from benchmark import xval, xval_report
-from benchmark.report import Provenance
-from benchmark.cli import main as cli_main
+from benchmark.studies import xval
+from benchmark.studies import xval_report
+from benchmark.core.report import Provenance
+from benchmark.cli.main import main as cli_main
 from models import build_model, load_scene
 
 TIMES = np.linspace(0.0, 0.5, 11)

@@ -1,0 +1,911 @@
+"""Every command's pipeline: the one function the command line calls once its input is checked.
+
+Each composes the layers below it and nothing else: the jobs of a study (`runner`,
+`stability`, `check`, `horizon`, `orders`, `xval`, `lgvi_speed`, `reel_reversal`) run on the engine
+(`engine.run_jobs`), their rows go to the results store (`store`: the output lock, atomic
+tables), their words and figures through the report and plot layers (`report`, `plots` and
+the writers `runs_report`, `stability_report`, `xval_report`). A study that writes into a
+directory holds its lock, merges its rows into the table there (`store.merge_rows`,
+`study_store`: the rows it does not recompute are kept) and writes its other files from the
+whole table; it turns Ctrl-C / SIGTERM into one line saying what was saved, and the exit
+status 130 / 143.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+from benchmark.core import engine
+from benchmark.core import store
+from benchmark.runs import sweep
+from benchmark.core.policy import GRID_DIR, RESULTS, SAVE_EVERY, STABILITY_DIR
+from benchmark.core.engine import log_stderr
+from benchmark.core.study import exclusive
+from benchmark.core.report import Provenance
+from models.io import inside, printable
+from integrators.base import is_finished
+
+
+# ------------------------------------------------------------------------------------------
+# run: the grid sweep -> results/grid/
+# ------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class SweepRequest:
+    """What `python -m benchmark run` asks for (its options, checked)."""
+
+    out: Path
+    scenes: tuple
+    integrators: tuple | None = None
+    quick: bool = False
+    dts: tuple | None = None
+    rtols: tuple | None = None
+    t_end: float | None = None  # None: each scene's own (--quick: sweep.QUICK_T_END)
+    overrides: tuple = ()  # ((key, value), ...) of the scenes, t_end apart
+    jobs: int | None = None
+    executor: str = sweep.DEFAULT_EXECUTOR
+    scheduler: str | None = None
+    repeats: int = sweep.MIN_REPEATS
+    horizon: float | None = None  # of the energy study; None or 0: none (it is `python -m benchmark energy`'s)
+    figures: bool = True
+    fresh: bool = False
+    compare_with: tuple[str, ...] = ()  # earlier runs.csv files, one README section each
+    accept_legacy: bool = False  # keep rows of --out that predate full row digests (then given digests)
+    command: str = "python -m benchmark run"
+    budget: Any = None  # of each solve (`benchmark.runs.runner.SolveBudget`); None: the default
+
+    @property
+    def sweep_t_end(self) -> float | None:
+        return sweep.sweep_t_end(self.t_end, self.quick)
+
+    @property
+    def energy_horizon(self) -> float:
+        """The energy study's horizon, 0 when the run has none (the study is opt-in: --horizon)."""
+        return self.horizon or 0.0
+
+    def scene(self, name: str):
+        """A scene of the sweep as its runs see it (overrides and --t-end applied)."""
+        from models import load_scene
+
+        return load_scene(name, **dict(self.overrides), **({"t_end": self.t_end} if self.t_end is not None else {}))
+
+
+def run_sweep(request: SweepRequest, log: Callable[[str], None] = log_stderr) -> int:
+    """The grid sweep into ``request.out``: runs.csv (written after every run), runs.md, the
+    figures, the energy study when ``request.horizon`` asks for one, and README.md (with the
+    orders of `run_orders` and the stability map's evidence, `study_file`). It ranks nothing: the
+    answer is `benchmark.answer.answer`'s. The run's rows join the table already
+    in ``out`` (`benchmark.core.store.merge_rows`): rows of other scenes, methods or settings are kept,
+    and every file is written from the merged table. A stopped sweep keeps its finished rows."""
+    from benchmark.runs import runner
+
+    runs_csv = store.TableWriter(request.out / "runs.csv", runner.runs_frame, drop=("traceback",))
+    try:
+        with exclusive(request.out, log):
+            return _sweep(request, runs_csv, log)
+    except (KeyboardInterrupt, OSError) as exc:
+        what = (f"{runs_csv.saved} finished run(s) are saved in {runs_csv.path}" if runs_csv.saved
+                else "no run had finished, nothing saved")
+        earlier = getattr(runs_csv, "earlier", 0)
+        if earlier:
+            what += f" (its {earlier} earlier row(s) are kept)"
+        resume = "run the same command again to resume (finished runs are kept), or add --fresh to recompute this run's rows"
+        if isinstance(exc, OSError):  # a full or failing disk: stop, say what is safe, exit 1
+            log(f"error: {printable(exc)}; {what}; free space (or fix the file system) and {resume}")
+            return 1
+        return engine.stopped(exc, f"{what}; {resume}", log)
+
+
+#: The committed grid sweep's directory (`python -m benchmark run`'s default --out).
+COMMITTED_RESULTS = store.ROOT / GRID_DIR
+
+
+def study_file(out: Path, name: str) -> Path:
+    """``out``/``name``, a file of another study the sweep's README cites (orders.csv,
+    stability/stability.csv, energy_horizon.csv); for the committed grid without it, the
+    committed one in results/, where those studies write by default."""
+    path = Path(out) / name
+    if not path.exists() and is_committed_results(out):
+        return COMMITTED_RESULTS.parent / name
+    return path
+
+
+def is_committed_results(out: Path) -> bool:
+    try:
+        return Path(out).resolve() == COMMITTED_RESULTS.resolve()
+    except OSError:
+        return False
+
+
+def _this_run(request: SweepRequest, tasks) -> tuple[dict, dict]:
+    """({task scene: scene name}, {scene name: (horizon, physics hash)}) of a sweep's tasks."""
+    from models import load_scene
+
+    names, scenes = {}, {}
+    for given in dict.fromkeys(t.scene for t in tasks):
+        scene = load_scene(given, **dict(request.overrides))
+        names[given] = scene.name
+        scenes[scene.name] = (request.sweep_t_end or scene.t_end, scene.key())
+    return names, scenes
+
+
+def _merge_plan(request: SweepRequest, tasks, stored: store.StoredRuns, path: Path, log) -> None:
+    """Refuse a run whose rows cannot join the table in its --out (before any work), set aside
+    the untrusted rows no recomputation will replace, and say in one line what the run replaces."""
+    names, scenes = _this_run(request, tasks)
+    mine = {(names[t.scene], t.integrator, t.setting) for t in tasks}
+    conflicts = store.merge_conflicts(stored.rows, scenes)
+    if conflicts:
+        raise ValueError(f"{path} cannot take this run's rows: {'; '.join(conflicts)}. A table holds one horizon and "
+                         "one set of scene values per scene: give another --out (a scratch directory), or move "
+                         f"{path} away to start over")
+    legacy = [r for r in stored.legacy if store.identity_of(r) not in mine]  # kept, not recomputed by this run
+    if legacy and not request.accept_legacy:
+        raise ValueError(f"{path}: {len(legacy)} row(s) this run keeps predate row digests over every column (their "
+                         "timings and flops cannot be verified), e.g. " + store.describe_row(legacy[0]) + ": pass "
+                         "--accept-legacy once to keep them (checked by range, then written with digests), or move "
+                         f"{path} away to start over")
+    aside = [(r, why) for r, why in stored.rejected if store.identity_of(r) not in mine]
+    if aside:
+        rejected = path.with_name("runs.rejected.csv")
+        before = store.read_runs(rejected)
+        earlier = before.rows + [r for r, _ in before.rejected]
+        store.write_table(rejected, store.frame(store.merge_rows(earlier, [dict(r, rejected_because=why)
+                                                                          for r, why in aside]), []))
+        log(f"warning: {len(aside)} untrusted row(s) of {path} are outside this run and were moved to {rejected}: "
+            + ", ".join(store.describe_row(r) for r, _ in aside))
+    there = {store.identity_of(r) for r in stored.rows}
+    replaced = len(mine & there)
+    kept = len(stored.rows) - replaced
+    where = "the committed grid results" if is_committed_results(request.out) else str(path)
+    log(f"{where}: this run writes {len(mine)} row(s) of {len(scenes)} scene(s) ({replaced} replacing rows there, "
+        f"{len(mine) - replaced} new) and keeps the other {kept} row(s) as they are"
+        + (f" ({len(legacy)} of them predate row digests: accepted by --accept-legacy, checked by range and "
+           "written with digests)" if legacy else "")
+        + (f"; {len(stored.legacy) - len(legacy)} row(s) predating row digests are recomputed"
+           if len(stored.legacy) > len(legacy) else ""))
+    if request.accept_legacy:
+        stored.accept_legacy()
+
+
+def _sweep(request: SweepRequest, runs_csv: store.TableWriter, log) -> int:
+    from benchmark.runs import runner
+    from benchmark.studies import runs_report
+    from benchmark.runs import sweep
+    from benchmark.core.reference import CACHE_DIR
+    from benchmark.core.report import markdown_table
+    from models.io import atomic_write_text
+
+    out = request.out
+    cache = CACHE_DIR  # the references every study shares (`benchmark.core.reference.user_cache_dir`)
+    provenance = Provenance(request.command)
+    tasks = sweep.build_tasks(request.scenes, request.integrators, quick=request.quick, dts=request.dts,
+                              rtols=request.rtols, t_end=request.t_end, overrides=dict(request.overrides))
+    stored = store.read_runs(runs_csv.path, log=log)
+    _merge_plan(request, tasks, stored, runs_csv.path, log)  # refuses a run that cannot join, before any work
+    base = stored.rows
+    runs_csv.to_table = lambda rows: runner.runs_frame(store.merge_rows(base, rows))
+    runs_csv.earlier = len(base)
+    log(f"{len(tasks)} runs: {len(request.scenes)} scene(s) × {len({t.integrator for t in tasks})} integrator(s); "
+        f"results -> {out}/")
+    runs = runner.execute(tasks, jobs=request.jobs, executor=request.executor, scheduler=request.scheduler,
+                          repeats=request.repeats, cache_dir=str(cache), on_row=runs_csv,
+                          **({"budget": request.budget} if request.budget else {}),
+                          previous=[] if request.fresh else stored.resumable, log=log,
+                          group=lambda t: (t.scene, t.integrator))  # one worker per (scene, method): one compile
+    runs_csv(runs.to_dict("records"))
+    merged = runs_csv.to_table(runs.to_dict("records")).drop(columns=["traceback"], errors="ignore")
+    atomic_write_text(out / "runs.md", markdown_table(merged.drop(columns=[c for c in ("reason", "run_key", "row_digest",
+                                                                                      "scene_key") if c in merged])))
+    orders = _orders_table(out)  # the short-horizon orders study's (`python -m benchmark orders`), never the sweep's
+    failures = runs_report.failure_sentence(merged, study_file(out, "stability/stability.csv"))
+    failed: list[str] = []  # what of the energy study did not end with a result (a crashed worker)
+    figures = _sweep_figures(request, merged, log, failed) if request.figures else []
+    _sweep_readme(request, merged, orders, figures, provenance, failures, merged_note=_merged_note(runs, merged))
+    log(f"done in {provenance.wall_time():.0f} s: {len(runs)} runs in this run, {len(merged)} in {out}/runs.csv; "
+        f"{failures} See {out}/README.md")
+    if failed:
+        log(f"error: the energy study did not finish for {'; '.join(failed)}: its history is not in "
+            f"{out}/energy_horizon.csv (the runs table is complete)")
+        return 1
+    return 0
+
+
+def _orders_table(out: Path):
+    """``out``/orders.csv of the orders study, or None when there is none (or it is unreadable or from
+    before the study: the sweep's slopes over chaotic horizons, which are not orders)."""
+    import pandas as pd
+
+    path = study_file(out, "orders.csv")
+    try:
+        table = pd.read_csv(path) if path.is_file() else None
+    except Exception:
+        return None
+    return table if table is not None and {"declared_order", "within_theory"} <= set(table.columns) else None
+
+
+def _merged_note(runs, merged) -> str:
+    other = len(merged) - len(runs)
+    if other <= 0:
+        return ""
+    return (f"This run computed or kept {len(runs)} of the {len(merged)} rows; the other {other} come from earlier runs "
+            "into the same directory (other scenes, methods or settings), as they were.")
+
+
+def _figure_code() -> str:
+    return store.source_hash((), ("benchmark/figures/plots.py", "benchmark/figures/styles.py"))
+
+
+def _scene_rows_key(merged, scene: str) -> str:
+    rows = merged[merged["scene"] == scene].to_dict("records")
+    return store.key_of(store.rows_key(rows, drop=("load_avg", "task_time", "traceback")), _figure_code())
+
+
+def _paper_key(request: SweepRequest, scene, paper) -> str:
+    return store.key_of(scene.key(), request.sweep_t_end or scene.t_end, paper.name, paper.settings,
+                        store.code_version(), _figure_code())
+
+
+def _sweep_figures(request: SweepRequest, merged, log, failed: list | None = None) -> list[tuple[str, str]]:
+    """Work–precision per scene of the merged table, the paper's panels of this run's scenes
+    (from the method that declares the paper's settings, the LGVI at its step size), and the
+    energy study of the selected methods: (file name, note) each. A figure whose inputs did not
+    change since it was drawn (`benchmark.core.store.OutputKeys`) is kept, not redrawn."""
+    import time
+
+    from benchmark.figures import plots
+    from benchmark.runs import sweep
+    from integrators import get_integrator
+    from models.diagnostics import evaluate
+
+    out = request.out
+    keys = store.OutputKeys(out / "figures.json")
+    figures = []
+    for scene in dict.fromkeys(merged["scene"]):
+        name, key, t0 = f"work_precision_{scene}.png", _scene_rows_key(merged, scene), time.perf_counter()
+        if keys.fresh(name, key):
+            log(f"figure: {name} kept (its rows did not change)")
+        else:
+            plots.work_precision(merged, scene, out)
+            keys.record(name, key)
+            log(f"figure: {name} ({time.perf_counter() - t0:.0f} s)")
+        figures.append((name, ""))
+    paper = sweep.paper_method()
+    for s in request.scenes:
+        scene = request.scene(s)
+        name, key, t0 = f"paper_{scene.name}.png", _paper_key(request, scene, paper), time.perf_counter()
+        if keys.fresh(name, key):
+            log(f"figure: {name} kept (same scene, method, horizon and code)")
+        else:
+            log(f"figure: {name}: solving {scene.name} with {paper.label} ...")
+            traj = get_integrator(paper.name).solve(scene, t_end=request.sweep_t_end or scene.t_end, save_every=SAVE_EVERY,
+                                                    **paper.settings)
+            plots.paper_panels(scene, traj, evaluate(scene, traj), inside(out, name))
+            keys.record(name, key)
+            log(f"figure: {name} ({traj.status}, {time.perf_counter() - t0:.0f} s)")
+        figures.append((name, ""))
+    run_scenes = {request.scene(s).name for s in request.scenes}
+    for scene in dict.fromkeys(merged["scene"]):
+        name = f"paper_{scene}.png"
+        if scene not in run_scenes and (out / name).is_file():
+            figures.append((name, "drawn by an earlier run (this run did not include the scene)"))
+    if request.energy_horizon > 0:
+        scenes = energy_scenes(request.scenes, request.overrides, log)
+        if scenes:
+            figures += run_horizon_study(request.energy_horizon, out, request.overrides,
+                                         0 if request.executor == "serial" else request.jobs, log,
+                                         selected=request.integrators, scenes=scenes, failed=failed)
+        else:
+            log("horizon: no scene of this run keeps its length: no energy study (energy_horizon.csv kept as it was)")
+            figures += _horizon_figures(out, _read_horizon(out / "energy_horizon.csv"), (), redraw=False)
+    return figures
+
+
+def _sweep_readme(request: SweepRequest, runs, orders, figures, provenance: Provenance, failures,
+                  merged_note: str = "") -> Path:
+    """README.md of the whole merged table. A run that keeps rows of earlier runs (``merged_note``)
+    keeps what it did not recompute: the header names the run that made the table and those that
+    merged into it since, and without --compare-with of its own the earlier README's comparisons
+    are made again, against the merged table (`_earlier_comparisons`)."""
+    from benchmark.studies import runs_report
+    from benchmark.core.report import earlier_runs
+
+    import pandas as pd
+
+    readme = request.out / "README.md"
+    history = earlier_runs(readme) if merged_note else ()
+    if history:
+        provenance = provenance.merged_into(history)
+    if request.compare_with or not history:
+        compared = "".join(runs_report.changes_since(pd.read_csv(earlier), runs, f"`{earlier}`")
+                           for earlier in request.compare_with)
+    else:
+        compared = _earlier_comparisons(history, readme, runs)
+    horizons = {"sweep": request.sweep_t_end, "energy study": request.energy_horizon if request.figures else 0.0}
+    return runs_report.write_readme(request.out, runs, orders, provenance=provenance, figures=figures,
+                                    compared=compared, horizons=horizons, failures=failures, merged=merged_note,
+                                    energy_csv=study_file(request.out, "energy_horizon.csv"))
+
+
+def _earlier_comparisons(history, readme: Path, runs) -> str:
+    """The "Compared with ..." sections of the earlier README, for a run that merges rows into its
+    table: each made again against the merged table when its runs.csv (named by a --compare-with
+    of an earlier run in ``history``) is still there, else kept as it was, saying so."""
+    import re
+    import shlex
+
+    import pandas as pd
+
+    from benchmark.studies import runs_report
+
+    given = []
+    for command, _ in history:
+        try:
+            words = shlex.split(command)
+        except ValueError:
+            continue
+        given += [words[k + 1] for k, w in enumerate(words[:-1]) if w == "--compare-with"]
+        given += [w.split("=", 1)[1] for w in words if w.startswith("--compare-with=")]
+    try:
+        old = readme.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError):
+        old = ""
+    sections = {m.group(1): m.group(0) for m in re.finditer(r"^## Compared with `([^`\n]+)`\n.*?(?=^## |\Z)", old,
+                                                              flags=re.M | re.S)}
+    out = []
+    for label in dict.fromkeys(given + list(sections)):
+        path = Path(label)  # as the earlier --compare-with named it: from the working directory
+        if path.is_file():
+            try:
+                out.append(runs_report.changes_since(pd.read_csv(path), runs, f"`{label}`"))
+                continue
+            except Exception:  # noqa: BLE001 - an unreadable earlier table keeps its earlier text
+                pass
+        if label in sections:
+            head, _, body = sections[label].partition("\n")
+            out.append(f"{head}\n\n_Kept from the earlier README: `{label}` is not here to compare with the merged "
+                       f"table._\n{body}")
+    return "".join(out)
+
+
+def _horizon_key(scene: str, elements: int, method, t_end: float, overrides: tuple) -> str:
+    from benchmark.studies import horizon
+
+    return store.key_of(scene, elements, method.name, method.settings, float(t_end), list(overrides),
+                        store.code_version(), horizon.MAX_STEPS, store.source_hash((), ("benchmark/studies/horizon.py",)))
+
+
+def _read_horizon(path: Path):
+    """The energy study's earlier table (a DataFrame), or None when there is none or it cannot be
+    read. A table from before the study had sizes and scenes gets their columns (fixed_length,
+    the scene's own N = 10)."""
+    import pandas as pd
+
+    from benchmark.studies.horizon_report import method_of
+
+    if not path.is_file():
+        return None
+    try:
+        df = pd.read_csv(path)
+    except Exception:  # unreadable: recomputed, never a crash
+        return None
+    if not {"t", "energy_error", "method"} <= set(df.columns):
+        return None
+    df["t"] = pd.to_numeric(df["t"], errors="coerce")
+    df["energy_error"] = pd.to_numeric(df["energy_error"], errors="coerce")
+    if "integrator" not in df:
+        df["integrator"] = df["method"].map(method_of)
+    defaults = {"scene": "fixed_length", "elements": 10,
+                "setting": df["method"].map(lambda m: str(m).split(" ", 1)[1] if " " in str(m) else "")}
+    for col, value in defaults.items():
+        if col not in df:
+            df[col] = value
+    return df
+
+
+def energy_scenes(scenes, overrides: tuple = (), log: Callable[[str], None] = log_stderr) -> list[str]:
+    """The scenes of ``scenes`` (names or paths) the energy study can run on over a long
+    horizon: those of fixed length (a reel ends at its limit); says which it leaves out."""
+    from integrators.base import situation
+    from models import load_scene
+
+    ov = {k: v for k, v in overrides if k != "elements"}
+    kept = [s for s in scenes if situation(load_scene(s, **ov)) == "fixed_length"]
+    left = [s for s in scenes if s not in kept]
+    if left:
+        log(f"horizon: {', '.join(left)} left out of the energy study (a reel ends at its limit, long before a "
+            "long horizon)")
+    return kept
+
+
+def run_horizon_study(t_end: float, out: Path, overrides: tuple = (), jobs: int | None = None,
+                      log: Callable[[str], None] = log_stderr, selected=None,
+                      scenes=None, failed: list | None = None, variants=("",),
+                      text: bool = False) -> list[tuple[str, str]]:
+    """Energy error vs time over a long horizon (`benchmark.studies.horizon`) on ``scenes`` (default
+    `horizon.DEFAULT_SCENE`) and their string variants (``variants``: "" the scene as it is,
+    "slack" with the tension-only string; None: all of `horizon.VARIANTS`), the runs of `horizon.PLAN`, one job per run in parallel workers
+    (``jobs``; 0: in this process): energy_horizon.csv and one figure per scene and variant.
+    ``selected``: the methods asked for (None: all of the plan); a run whose history is already
+    in energy_horizon.csv for the same settings, size, horizon, scene and code is kept, the
+    others computed; other runs' histories stay (`store.merge_study_table`). A run whose worker
+    dies is left out of both (its progress line says so, and ``failed`` gets what it was and
+    why). ``text`` (the `energy` command): also the observed orders with and without `slack`
+    (`benchmark.studies.slack_orders`, when the slack variant and every method run; kept when its code did
+    not change) and the energy section of README.md, or energy_horizon.md without one
+    (`properties.write_energy_section`). Returns [(figure name, note)]."""
+    figures = _horizon_study(t_end, out, overrides, jobs, log, selected, scenes, failed, variants)
+    if text:
+        from benchmark.studies import properties
+        from benchmark.studies import slack_orders
+
+        if (variants is None or "slack" in variants) and selected is None:  # the C¹ potential and the orders (~90 s)
+            if slack_orders.fresh(out):
+                log(f"energy: {out}/{slack_orders.TABLE} kept (same code)")
+            else:
+                log(f"energy: observed orders with and without `slack` -> {out}/{slack_orders.TABLE} ...")
+                slack_orders.study(out, log=log)
+        readme = properties.write_energy_section(out)
+        if readme is not None:
+            log(f"wrote the energy section of {readme}")
+    return figures
+
+
+def _horizon_study(t_end, out, overrides, jobs, log, selected, scenes, failed, variants) -> list[tuple[str, str]]:
+    import os
+
+    import pandas as pd
+
+    from benchmark.studies import horizon
+    from benchmark.runs import runner
+    from benchmark.runs.sweep import Task
+    from models import load_scene
+
+    path = out / "energy_horizon.csv"
+    earlier = _read_horizon(path)
+    scenes = list(scenes or [horizon.DEFAULT_SCENE])
+    ov = dict(overrides)
+    sizes = (int(ov.pop("elements")),) if "elements" in ov else None  # --set elements=N: that N only
+    ov = tuple(sorted(ov.items()))
+    loaded = {s: load_scene(s, **dict(ov)) for s in scenes}
+    plan = [(s, v, n, m) for s in scenes for v, n, m in horizon.runs(selected, sizes, variants)]
+    names = {(s, v): horizon.table_scene(loaded[s].name, v) for s, v, _, _ in plan}
+    job_ov = {(s, v): tuple(sorted({**dict(ov), **dict(horizon.variant_overrides(loaded[s], v))}.items()))
+              for s, v, _, _ in plan}
+    if not plan:
+        log("horizon: none of the selected methods is in the energy study's plan; "
+            + ("energy_horizon.csv kept as it was" if earlier is not None else "no energy study"))
+        return _horizon_figures(out, earlier, (), redraw=False)
+
+    def key(s, v, n, m):
+        return names[(s, v)], n, m.name, horizon.setting_of(m)
+
+    wanted = {key(s, v, n, m): _horizon_key(names[(s, v)], n, m, t_end, job_ov[(s, v)]) for s, v, n, m in plan}
+    done = set()
+    if earlier is not None and "job_key" in earlier:
+        for k, g in earlier.groupby(list(horizon.RUN_KEY), sort=False):
+            done.add((k[0], int(k[1]), k[2], k[3], str(g["job_key"].iloc[0])))
+    todo = [(s, v, n, m) for s, v, n, m in plan if (*key(s, v, n, m), wanted[key(s, v, n, m)]) not in done]
+    kept = len(plan) - len(todo)
+    if kept:
+        log(f"horizon: kept {kept} of {len(plan)} runs (same settings, size, horizon and code)")
+    new, rows = [], []
+    if todo:
+        jobs_ = [horizon.Job(s, n, m, t_end, job_ov[(s, v)]) for s, v, n, m in todo]
+        tasks = [Task(s, m.name, dt=m.settings.get("dt"), rtol=m.settings.get("rtol"), t_end=t_end,
+                      overrides=tuple(sorted({**dict(ov), "elements": n}.items()))) for s, v, n, m in todo]
+        costs = runner.task_costs(tasks)
+        workers = jobs if jobs is not None else min(len(todo), os.cpu_count() or 1)  # 0: this process
+        log(f"horizon: {len(todo)} runs ({', '.join(dict.fromkeys(m.name for *_, m in todo))} at N = "
+            f"{', '.join(str(n) for n in dict.fromkeys(n for _, _, n, _ in todo))}) on "
+            f"{', '.join(dict.fromkeys(names[(s, v)] for s, v, _, _ in todo))} to t = {t_end:g} s ...")
+        with engine.Heartbeat(f"horizon study to t = {t_end:g} s", sum(costs) / max(workers, 1), log=log):
+            rows = engine.run_jobs(horizon.run_job, jobs_, workers=workers,
+                                   crash_row=lambda i, exc: horizon.crash_row(jobs_[i], exc),
+                                   describe=horizon.describe, cost=lambda i: costs[i],
+                                   log=log)
+        if failed is not None:  # a crashed worker is a failure of the command, not a result
+            failed += [f"{m.name} {horizon.setting_of(m)} N={n} on {names[(s, v)]} ({r.get('reason', r['status'])})"
+                       for (s, v, n, m), r in zip(todo, rows) if r["status"] == "crashed" or r["history"] is None]
+        for (s, v, n, m), r in zip(todo, rows):
+            if r["history"] is None:
+                continue
+            scene, elements, name, setting = key(s, v, n, m)
+            new.append(r["history"].assign(method=r["label"], integrator=name, scene=scene, elements=elements,
+                                           setting=setting, status=r["status"], t_end=t_end,
+                                           job_key=wanted[(scene, elements, name, setting)]))
+    drawn = set(names.values())
+    if not todo:
+        return _horizon_figures(out, earlier, drawn, redraw=False)
+    table = store.merge_study_table(earlier, pd.concat(new, ignore_index=True) if new else None, horizon.RUN_KEY)
+    dead = {key(s, v, n, m) for (s, v, n, m), r in zip(todo, rows) if r["history"] is None}
+    if dead and table is not None and len(table):  # a run recomputed without a history is not drawn from stale rows
+        stale = table[list(horizon.RUN_KEY)].apply(lambda r: (r.iloc[0], int(r.iloc[1]), r.iloc[2], r.iloc[3]) in dead,
+                                                   axis=1)
+        table = table[~stale]
+    if table is not None and len(table):  # a history of a run the study no longer makes (another method or setting)
+        made = {(m.name, horizon.setting_of(m)) for _, _, m in horizon.runs()}
+        table = table[[(i, s) in made for i, s in zip(table["integrator"], table["setting"])]]
+    if table is None or table.empty:
+        return []
+    store.write_table(path, table)
+    return _horizon_figures(out, table, drawn, redraw=True)
+
+
+def _horizon_figures(out: Path, table, scenes, redraw: bool) -> list[tuple[str, str]]:
+    """energy_horizon_SCENE.png of each scene in ``table``: drawn (``redraw``) or listed as they are."""
+    from benchmark.studies import horizon_report
+
+    if table is None or table.empty:
+        return []
+    figures = []
+    for scene, g in table.groupby("scene", sort=False):
+        figure = inside(out, f"energy_horizon_{scene}.png")
+        if (redraw or not figure.is_file()) and scene in set(scenes):
+            horizon_report.energy_horizon(g, scene, out)
+            figures.append((figure.name, ""))
+        elif figure.is_file():
+            figures.append((figure.name, "" if scene in set(scenes) else "from an earlier run"))
+    return figures
+
+
+# ------------------------------------------------------------------------------------------
+# stability, check, xval, speed, reel-reversal
+# ------------------------------------------------------------------------------------------
+#: A row of the stability map: one per scene, integrator and kind (a dt ladder or one tolerance).
+STABILITY_IDENTITY = ("scene", "integrator", "kind")
+
+
+def run_stability(scenes=None, integrators=None, *, workers: int = 2, out: Path = STABILITY_DIR,
+                  budget=None,
+                  command: str = "python -m benchmark stability", log: Callable[[str], None] = log_stderr) -> int:
+    """The stability map into ``out``: stability.csv (written after every job), stability.md,
+    stability.png and README.md. The run's rows join the map already in ``out`` (one row per
+    scene, integrator and kind, `benchmark.core.study_store.MergedTable`): the rows it does not
+    recompute are kept, and the table, figure and README are written from the whole map, also
+    when the run is stopped."""
+    from benchmark.studies import stability
+    from benchmark.core.study_store import MergedTable
+
+    out = Path(out)
+    jobs = [j._replace(budget=budget) for j in stability.jobs_for(scenes, integrators)]  # names validated first
+    provenance = Provenance(command, workers=workers or 1)
+    rows: list[dict] = []
+    table = None
+
+    def on_rows(done: list[dict]) -> None:
+        rows[:] = done
+        table(done)
+
+    try:
+        with exclusive(out, log):
+            # read under the lock (another run may have just merged into it); refuses an unreadable map
+            table = MergedTable(out / "stability.csv", STABILITY_IDENTITY, stability.to_frame)
+            log(f"stability map: {len(jobs)} jobs ({len({j.case.scene for j in jobs})} scenes) on {workers or 1} "
+                f"worker(s) -> {out}/"
+                + (f" (merged with its {table.earlier} earlier row(s))" if table.earlier else ""))
+            df = stability.execute(jobs, workers=workers, on_rows=on_rows, log=log)
+            rows[:] = df.to_dict("records")
+            table(rows)
+            _stability_files(out, table, rows, provenance)
+            log(f"done in {provenance.wall_time():.0f} s; see {out}/README.md")
+            return 0
+    except KeyboardInterrupt as exc:
+        if table is None:
+            return engine.stopped(exc, "nothing was written", log)
+        note = table.stop_note()
+        if table.saved:
+            try:  # the table, figure and README of the whole merged map, so that they agree with its csv
+                _stability_files(out, table, rows, provenance)
+                note += f"; {out}/README.md, stability.md and stability.png are written from it"
+            except Exception as err:  # noqa: BLE001 - the stop line must come out whatever the plot does
+                note += f"; its README, table and figure were not redrawn ({type(err).__name__})"
+        return engine.stopped(exc, f"{note}; run the same command again to compute the rest", log)
+    except OSError as exc:  # a full or failing disk: what was written is intact
+        log(f"error: {exc}; {table.stop_note() if table is not None else 'nothing was written'}")
+        return 1
+
+
+def _stability_files(out: Path, table, rows: list[dict], provenance: Provenance) -> None:
+    """stability.md, stability.png and README.md of the whole merged map."""
+    from benchmark.studies import stability
+    from benchmark.studies import stability_report
+    from benchmark.core.report import markdown_table
+    from models.io import atomic_write_text
+
+    merged = stability.to_frame(table.merged(rows))
+    atomic_write_text(out / "stability.md", markdown_table(merged))
+    stability_report.plot(merged, out)
+    stability_report.write_readme(out, merged, provenance=table.provenance(provenance, rows, out / "README.md"))
+
+
+def run_check(*, update: bool = False, baseline=None, integrators=None, factor: float | None = None,
+              order_margin: float | None = None, jobs: int | None = None, executor: str = sweep.DEFAULT_EXECUTOR,
+              cache_dir: str | None = None, tasks=None, command: str | None = None, allow_new=(), budget=None,
+              log: Callable[[str], None] | None = None, echo: Callable[[str], None] = print) -> int:
+    """Recompute the check sweep and compare it with the baseline (or with ``update``, rewrite
+    the baseline). Returns the exit status: 0 passed or updated, 1 regressions. Bad input
+    raises ValueError before any work, a baseline that leaves a selected integrator (not in
+    ``allow_new``) with nothing to compare included."""
+    from benchmark.studies import check
+    from benchmark.core.reference import CACHE_DIR
+
+    baseline = check.BASELINE if baseline is None else baseline
+    provenance = Provenance(command or check.UPDATE_COMMAND)
+    tol = check.RegressionTolerance(factor=check.DEFAULT_FACTOR if factor is None else factor,
+                                    order_margin=check.DEFAULT_ORDER_MARGIN if order_margin is None else order_margin)
+    if jobs is not None and jobs < 1:
+        raise ValueError(f"--jobs = {jobs!r} is invalid (allowed: >= 1)")
+    tasks = check.build_check_tasks(integrators) if tasks is None else tasks
+    old = check.baseline_for(baseline, update=update, warn=log or echo)
+    table = old.table if old is not None else None
+    unknown = [] if update else check.comparable(table, tasks, baseline, allow_new)
+    if not update and integrators is None:  # installed plugins are guests: reported, not run
+        unknown += [n for n in check.guests_not_gated(table) if n not in unknown]
+    tasks = [t for t in tasks if t.integrator not in set(unknown)]  # nothing to compare them with
+    try:
+        current = check.measure(tasks, executor=executor, jobs=jobs, cache_dir=cache_dir or str(CACHE_DIR),
+                                costs=check.costs_of(table), budget=budget, log=log)
+    except KeyboardInterrupt as exc:
+        return engine.stopped(exc, "the baseline was not changed", log or log_stderr)
+    cmp = check.compare(table, current, tol) if old is not None else None
+    if cmp is not None:
+        cmp.notes += check.not_gated(unknown)
+        echo(check.format_report(cmp, tol, baseline, old.header))
+        if not update and cmp.compared == 0:
+            raise ValueError(f"baseline {baseline}: no row of this check was compared (a check of nothing cannot pass)")
+    if update:
+        problems = check.row_problems(current.set_axis(range(1, len(current) + 1)))
+        if problems:  # a baseline that could not fail is not written (the old one stays)
+            lines = [f"  {why}" for _, why in problems[:10]]
+            echo("\n".join([f"baseline NOT written: {len(problems)} row(s) of this sweep could not fail a check "
+                             f"(fix the method, or leave it out with --integrators); {baseline} is unchanged:",
+                             *lines]))
+            return 1
+        path = check.write_baseline(check.merge(table, current), baseline, provenance=provenance,
+                                    sweep_note=check.describe(tasks))
+        echo(f"baseline written: {path} ({len(current)} rows recomputed)")
+        return 0
+    return 1 if cmp.failed else 0
+
+
+def run_xval(scene_name: str, elements, t_end: float, out: Path, *, command: str = "python -m benchmark xval",
+             log: Callable[[str], None] = log_stderr, cases=None) -> int:
+    """The cross-validation against MoorDyn and MuJoCo into ``out``; returns the exit status. The runs
+    of an earlier study in ``out`` that this one does not recompute (other N) are kept and every
+    file is written from the merged study (`benchmark.studies.xval.earlier_xval`, which refuses,
+    before any work, earlier runs that cannot be kept). The study writes when it ends: a stopped
+    one leaves ``out`` as it was."""
+    from benchmark.studies import xval
+    from benchmark.studies import xval_report
+    from benchmark.core.report import earlier_runs
+    from benchmark.studies.xval import earlier_xval
+    from models import load_scene
+
+    out = Path(out)
+    provenance = Provenance(command)
+    scene = load_scene(scene_name)
+    xval.check_scene(scene)  # refuses an untranslatable scene before any work
+    this_run = {(c, int(n)) for c in (cases or xval.cases_of(scene)) for n in elements}
+    kept, kept_settings = earlier_xval(out, scene, t_end, this_run)
+    try:
+        study = xval.study(scene, elements, t_end, cases=cases, log=log)
+    except KeyboardInterrupt as exc:
+        return engine.stopped(exc, f"{out}/ is as it was (the study writes its files when it ends)", log)
+    if kept:
+        log(f"xval: kept {len(kept)} earlier (case, N) run(s) of {out}/ as they were: "
+            + ", ".join(f"{c} N={n}" for c, n in sorted(kept)))
+        study = xval.Study(study.times, {**kept, **study.runs})
+        provenance = provenance.merged_into(earlier_runs(out / "README.md"))
+    log(f"wrote {xval_report.write_outputs(study, scene, out, provenance, kept=kept_settings)}")
+    return 0
+
+
+def run_speed(request, out: Path | None = None, *, command: str = "python -m benchmark speed",
+              log: Callable[[str], None] = log_stderr, echo: Callable[[str], None] = print) -> int:
+    """The speed tables (a `lgvi_speed.SpeedRequest`), one timing after another in this process:
+    echoed, and with ``out`` (a Markdown file) merged into the rows table beside it (``.csv``,
+    written after every measurement, `benchmark.core.study_store.MergedTable`) and ``out`` written from
+    the whole table, also when the run is stopped."""
+    from benchmark.studies import lgvi_speed
+    from benchmark.core.study_store import MergedTable
+    from models.io import atomic_write_text
+
+    provenance = Provenance(command)
+    jobs = lgvi_speed.jobs_for(request)
+    table, rows = None, []
+
+    def on_row(done: list[dict]) -> None:
+        rows[:] = done
+        if table is not None:
+            table(done)
+
+    def write(done: list[dict]) -> str:
+        merged = table.merged(done) if table is not None else done
+        text = lgvi_speed.document(merged, table.provenance(provenance, done, out) if table is not None else provenance)
+        if out is not None:
+            atomic_write_text(out, text)
+        return text
+
+    with exclusive(out.parent, log) if out is not None else contextlib.nullcontext():
+        if out is not None:
+            table = MergedTable(speed_rows_file(out), lgvi_speed.IDENTITY, lgvi_speed.to_frame,
+                                text_columns=lgvi_speed.TEXT_COLUMNS)
+        try:  # the at-work line inside: a stop right after it (a loaded machine) is this study's stop
+            log(f"speed: {len(jobs)} measurement(s), one after another in this process"
+                + (f"; rows -> {table.path} (merged with its {table.earlier} earlier row(s)), tables -> {out}"
+                   if table is not None else " (no --out: the tables are printed, not saved)"))
+            rows[:] = engine.run_jobs(lgvi_speed.run_job, jobs, workers=0, describe=lgvi_speed.describe,
+                                      on_row=on_row, log=log)
+        except KeyboardInterrupt as exc:
+            if table is None:
+                return engine.stopped(exc, "nothing saved (without --out the tables are only printed)", log)
+            note = table.stop_note()
+            if table.saved:
+                write(rows)
+                note += f"; {out} is written from it"
+            return engine.stopped(exc, f"{note}; run the same command again to measure the rest", log)
+        if table is not None:
+            table(rows)
+        echo(write(rows))
+    return 0
+
+
+def speed_rows_file(out: Path) -> Path:
+    """The rows table of the speed file ``out``: beside it, ``.csv``."""
+    return Path(out).with_suffix(".csv")
+
+
+def run_reel_reversal(scene_name: str = "reel_reversal", elements: int = 5, t_end: float = 0.96, methods=None, *,
+                      jobs: int | None = None, cache_dir: str | None = None, log: Callable[[str], None] = log_stderr,
+                      echo: Callable[[str], None] = print) -> int:
+    """The reel-reversal orders: the reference first, then every (method, step) run on the
+    engine (grouped by method: one compilation each); the table is echoed."""
+    import os
+
+    from benchmark.studies import reel_reversal
+    from benchmark.core.reference import CACHE_DIR
+    from models import load_scene
+
+    cache_dir = str(cache_dir or CACHE_DIR)
+    scene = load_scene(scene_name, elements=elements)
+    methods = list(methods or reel_reversal.DEFAULT_HS)
+    todo = [reel_reversal.Job(m, h, scene_name, elements, t_end, cache_dir)
+            for m in methods for h in reel_reversal.DEFAULT_HS[m]]
+    ref = reel_reversal.reference(scene, t_end, cache_dir)
+    workers = jobs if jobs is not None else min(len(methods), os.cpu_count() or 1)
+    rows = engine.run_jobs(reel_reversal.run_job, todo, workers=workers, group=lambda i: todo[i].method,
+                           describe=reel_reversal.describe, log=log)
+    echo(reel_reversal.table(scene, t_end, ref.flips, rows))
+    return 0
+
+
+def run_orders(scenes=None, integrators=None, *, out: Path = RESULTS, jobs: int | None = None,
+               log: Callable[[str], None] = log_stderr, echo: Callable[[str], None] = print) -> int:
+    """The observed orders (`benchmark.studies.orders`) into ``out``: orders_errors.csv (every run of
+    every ladder) and orders.csv (a row per scene and method); a rerun of some scenes or methods
+    replaces their rows and keeps the others (`store.merge_study_table`)."""
+    import os
+
+    import pandas as pd
+
+    from benchmark.studies import orders
+
+    scenes = list(scenes or orders.SCENES)
+    methods = orders.fixed_step_methods(integrators)  # refuses an adaptive-only name before any work
+    out = Path(out)
+    with exclusive(out, log):
+        try:
+            log(f"orders: references of {', '.join(scenes)} ({orders.REFERENCE_METHOD} at dt = "
+                f"{orders.REFERENCE_DT:g} s, N = {orders.ELEMENTS}, to t = {orders.T_END:g} s) ...")
+            refs = {s: orders.reference(s) for s in scenes}
+            todo = [orders.Job(s, m, refs[s]) for s in scenes for m in methods]
+            workers = jobs if jobs is not None else min(len(methods), os.cpu_count() or 1)
+            rows = engine.run_jobs(orders.run_job, todo, workers=workers, group=lambda i: todo[i].integrator,
+                                   crash_row=lambda i, exc: orders.crash_row(todo[i], exc),
+                                   describe=orders.describe, log=log)
+        except KeyboardInterrupt as exc:
+            return engine.stopped(exc, f"nothing written: {out}/orders.csv is as it was", log)
+        for r in rows:
+            if not is_finished(r["status"]):
+                log(f"warning: orders of {r['integrator']} on {r['scene']}: {r['status']} ({r.get('reason', '')}); "
+                    "its earlier rows are kept")
+        new = pd.DataFrame([x for r in rows for x in r["ladder"]])
+        path = out / "orders_errors.csv"
+        earlier = pd.read_csv(path) if path.is_file() else None
+        ladder = orders.in_order(store.merge_study_table(earlier, new, orders.LADDER_KEY))
+        summary = orders.summarise(ladder)
+        store.write_table(path, ladder)
+        store.write_table(out / "orders.csv", summary)
+    echo(orders.section(summary))
+    log(f"wrote {out}/orders.csv and {path} ({len(new)} runs, {len(ladder)} in the table)")
+    return 0
+
+
+# ------------------------------------------------------------------------------------------
+# simulate, figures
+# ------------------------------------------------------------------------------------------
+@contextlib.contextmanager
+def _finish_on_stop(log: Callable[[str], None]):
+    """A first Ctrl-C / SIGTERM ends the running solve at its next clock check, as its time budget
+    would (`integrators.lifecycle.request_stop`): it returns what it has, to be saved; a second
+    stops at once (KeyboardInterrupt). Yields the list that receives the first signal's name."""
+    import signal
+    import threading
+
+    from integrators import lifecycle
+
+    caught: list[str] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield caught
+        return
+
+    def soft(signum, frame):
+        name = signal.Signals(signum).name
+        if caught:
+            raise KeyboardInterrupt(f"signal {name}")
+        caught.append(name)
+        lifecycle.request_stop()
+        log(f"stopping ({'Ctrl-C' if name == 'SIGINT' else name}): the run ends at its next check and what it "
+            "has is saved; stop again to quit at once, without saving")
+
+    old = {sig: signal.signal(sig, soft) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield caught
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+        lifecycle.request_stop(False)
+
+
+def simulate(scene, integrator: str, settings: dict, out: Path, *, estimate: float | None = None,
+             log: Callable[[str], None] = log_stderr) -> int:
+    """One run: the trajectory (.npz) and its diagnostics (.csv beside it); exit status 1 when
+    the run did not finish (its budget ran out: ``max_steps`` / ``time_limit`` in ``settings``),
+    130 / 143 when stopped by Ctrl-C / SIGTERM: a first stop ends the run where it is and saves
+    it. ``estimate``: its expected seconds (a progress line every 30 s)."""
+    import json
+
+    import numpy as np
+
+    from integrators import get_integrator
+    from models.diagnostics import evaluate
+    from models.io import atomic_write_text
+
+    integ = get_integrator(integrator)
+    try:
+        with _finish_on_stop(log) as caught, engine.Heartbeat(f"{scene.name} / {integ.name}", estimate, log=log):
+            traj = integ.solve(scene, t_end=scene.t_end, **settings)
+    except KeyboardInterrupt as exc:
+        return engine.stopped(exc, "nothing saved (stopped twice: the run did not reach a point to save)", log)
+    stop = KeyboardInterrupt(f"signal {caught[0]}") if caught else None
+    if stop is not None:
+        reached = float(traj.t[-1]) if len(traj.t) else 0.0
+        traj.reason = f"stopped by {engine.stop_cause(stop)} at t = {reached:.6g} s (t_end = {scene.t_end:g} s)"
+    traj.scene = scene.to_dict()  # `figures` draws it without the scene file
+    try:
+        traj.save(out)
+        atomic_write_text(out.with_suffix(".csv"), evaluate(scene, traj).to_csv(index=False))
+    except OSError as exc:
+        log(f"error: {exc}; the run ended ({traj.status}) but is not saved: free space and run it again")
+        return 1
+    log(f"{scene.name} / {integ.name}: status {traj.status} {traj.reason}; {len(traj.t)} saved points; "
+        f"stats {json.dumps({k: v for k, v in traj.stats.items() if np.isscalar(v)}, default=str)}")
+    if stop is not None:
+        return engine.stopped(stop, f"the run up to t = {traj.t[-1] if len(traj.t) else 0:.6g} s is saved in {out} "
+                                    f"and {out.with_suffix('.csv')}", log)
+    log(f"wrote {out} and {out.with_suffix('.csv')}")
+    return 0 if traj.ok else 1
+
+
+def draw_figures(scene, traj, out: Path, log: Callable[[str], None] = log_stderr) -> int:
+    """The paper's panels (a)-(d) of a saved trajectory."""
+    from benchmark.figures import plots
+    from models.diagnostics import evaluate
+
+    plots.paper_panels(scene, traj, evaluate(scene, traj), out)
+    log(f"wrote {out}")
+    return 0
+

@@ -1,0 +1,1 @@
+"""The plugin contract: what a plugin integrator or effect must pass."""

@@ -1,0 +1,84 @@
+"""What a study keeps of the output it writes into: its earlier rows, merged with this run's.
+
+`run` merges its rows into the runs table of its --out (`benchmark.core.store.merge_rows`); the
+other studies do the same with their own tables and row identities:
+
+* `stability`: ``stability.csv``, one row per (scene, integrator, kind);
+* `speed`: the rows table beside its Markdown file (``lgvi_speed.csv`` beside
+  ``lgvi_speed.md``), one row per (kind, method, right-hand side, scene, N);
+* `xval`: its study, rebuilt from ``tips.npz`` and ``cost.csv`` (`benchmark.studies.xval.earlier_xval`).
+
+A study's table, figure and README are then written from the whole merged table, and an
+interrupted study has already merged each finished row: it never drops a row it did not
+recompute. An earlier table that cannot be read is refused before any work (overwriting it
+would lose it), naming the file and what to do.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable
+
+from benchmark.core import store
+from benchmark.core.report import Provenance, earlier_runs
+
+
+def read_rows(path: Path, identity: tuple, text_columns: tuple = ()) -> list[dict]:
+    """The rows of a study's earlier table ``path`` ([] when there is none); ValueError (before
+    any work) when it cannot be read or lacks an identity column. ``text_columns``: columns
+    that hold names ("" where a row has none, so identities compare equal after a round trip)."""
+    import pandas as pd
+
+    from models.io import FileRefused, require_regular
+
+    path = Path(path)
+    if not path.exists():
+        return []
+    try:
+        require_regular(path)
+        df = pd.read_csv(path)
+    except (FileRefused, OSError, ValueError, pd.errors.ParserError) as exc:
+        raise ValueError(f"{path} holds earlier rows but cannot be read ({type(exc).__name__}: "
+                         f"{str(exc).splitlines()[0][:120] if str(exc) else ''}); this run would overwrite it: move "
+                         "it away, or give another --out") from None
+    missing = [c for c in identity if c not in df.columns]
+    if missing:
+        raise ValueError(f"{path} is not a table of this study (no column {', '.join(missing)}); this run would "
+                         "overwrite it: move it away, or give another --out")
+    for c in text_columns:
+        if c in df:
+            df[c] = df[c].astype(object).where(df[c].notna(), "").astype(str)
+    return [{k: v for k, v in r.items()} for r in df.to_dict("records")]
+
+
+class MergedTable(store.TableWriter):
+    """A study's `store.TableWriter` whose table is the earlier rows of ``path`` with this run's
+    in their place (``identity``): every write, the first finished row's included, keeps the rows
+    this run does not recompute. ``earlier``: how many rows the file held; ``kept(rows)``: how
+    many of them the merged table keeps as they were."""
+
+    def __init__(self, path, identity: tuple, to_frame: Callable, text_columns: tuple = ()):
+        self.identity = tuple(identity)
+        self.base = read_rows(path, self.identity, text_columns)
+        super().__init__(path, lambda rows: to_frame(self.merged(rows)))
+        self.earlier = len(self.base)
+
+    def merged(self, rows: list[dict]) -> list[dict]:
+        return store.merge_rows(self.base, rows, identity=self.identity)
+
+    def kept(self, rows: list[dict]) -> int:
+        mine = {store.identity_of(r, self.identity) for r in rows}
+        return sum(1 for r in self.base if store.identity_of(r, self.identity) not in mine)
+
+    def provenance(self, provenance: Provenance, rows: list[dict], header_of: Path) -> Provenance:
+        """``provenance`` naming the earlier runs (from the header of ``header_of``) when the
+        merged table keeps rows of theirs."""
+        return provenance.merged_into(earlier_runs(header_of)) if self.kept(rows) else provenance
+
+    def stop_note(self) -> str:
+        """What an interrupted study saved, for its one line."""
+        if not self.saved:
+            return (f"no row had finished; {self.path} is as it was ({self.earlier} row(s))" if self.earlier
+                    else "no row had finished, nothing saved")
+        return (f"{self.saved} finished row(s) are merged into {self.path}"
+                + (f" (its earlier rows that this run did not recompute are kept)" if self.earlier else ""))

@@ -1,0 +1,255 @@
+"""The long-horizon energy study (`python -m benchmark energy`): energy error vs time, with the
+physics that drives it, one engine job per run of `PLAN`. Its table is energy_horizon.csv (one
+history per run; a rerun replaces its own runs' histories and keeps the others), analysed by
+`benchmark.studies.properties.energy_table`.
+
+Each saved time records, beside the signed energy error (E − E0)/max T, what the state says
+about it (`axial_measures`, relative to max T): the energy in the string's axial vibration, P =
+Σ_a EA l (dε_a/dt)² (1/s²), the transverse part G of the elastic Hessian along the velocity
+(U''(v, v) = P + G), the fourth-order companion P4 = Σ_a EA l (d²ε_a/dt²)² (1/s⁴), the body's
+spin S = |Ω|² T_rot and the least element tension. A symplectic method conserves a modified
+energy Ẽ = E + h^p H_p + …; averaged over the string's fast modes ⟨H_p⟩ = c_p ⟨P_p⟩
+(`benchmark.studies.properties`), so its energy error carries an offset −c_p h^p ⟨P_p⟩ that grows
+whenever energy flows into those modes, without any drift of Ẽ. With `slack` only taut elements
+count (a slack one stores no energy and has no stiffness).
+
+The plan: every run goes to `HORIZON` s on the fixed-length scenes it is given (default
+`DEFAULT_SCENE`; a scene with a reel ends when the reel reaches its limit, too soon for a long
+horizon) and on the same scene with the tension-only string (`VARIANTS`). Which method at which
+N and step is listed in `PLAN` with why; the accurate reference is `REFERENCE`.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from benchmark.core.policy import SOLVE_MAX_STEPS
+from benchmark.runs.sweep import MethodSettings
+
+DEFAULT_SCENE = "fixed_length"
+SAVE_EVERY = 0.1
+#: The table keeps one row per block of this many seconds (`blocks`): the largest |E − E0| and the
+#: least tension in it, and the means of the rest over its saved times (ten at `SAVE_EVERY`);
+#: a 1000-s history is 1001 rows, not 10,001.
+BLOCK_S = 1.0
+#: The sizes of the string: the paper's N = 10 and a coarse N = 4 (whether what is seen depends on N).
+ELEMENTS = (4, 10)
+#: The study's horizon (s): long enough for the growth of the axial energy to show at N = 4 and 10.
+HORIZON = 1000.0
+#: The string laws: the scene as it is (two-sided elasticity) and with the `slack` effect added
+#: (tension-only); a variant's runs are tabled under the scene's name plus "_" + the variant's.
+VARIANTS = {"": (), "slack": ("slack",)}
+#: The step the compositions run at: they declare no energy-study settings of their own (the
+#: LGVI stands for its family in the sweep), so the study gives them the LGVI's declared step.
+COMPOSITION_STEP = 0.005
+#: The accurate reference solve, drawn beside the methods (its energy error is in the table).
+REFERENCE = "dopri8"
+#: (variant, method, sizes, settings) of each run group: settings 2 is the declared setting and
+#: one `FINER` (the h-scaling of the offset needs two steps), 1 the declared one alone. Chosen to
+#: keep the study to minutes of CPU at 1000 s (its measured cost: README.md, the `energy`
+#: command): the LGVI, the cheapest, at both sizes and steps; the compositions at N = 10 and both
+#: steps; RATTLE (its Newton iteration makes it the dearest) and the non-symplectic lie_rk4 once
+#: at N = 10; the reference at both sizes; with `slack`: the LGVI at both steps, Suzuki and the
+#: reference at N = 10. tsit5 declares settings too, but adds nothing dopri8 and lie_rk4 do not
+#: show (both drift).
+PLAN = (
+    ("", "lgvi", ELEMENTS, 2),
+    ("", "lgvi_yoshida4", (10,), 2),
+    ("", "lgvi_suzuki4", (10,), 2),
+    ("", "rattle", (10,), 1),
+    ("", "lie_rk4", (10,), 1),
+    ("", REFERENCE, ELEMENTS, 1),
+    ("slack", "lgvi", (10,), 2),
+    ("slack", "lgvi_suzuki4", (10,), 1),
+    ("slack", REFERENCE, (10,), 1),
+)
+#: The second setting of a fixed-step method: its step / FINER (an adaptive one: its tolerances / TIGHTER).
+FINER, TIGHTER = 2.0, 100.0
+#: The step budget of each run: every solve's (`benchmark.core.policy.SOLVE_MAX_STEPS`), not a
+#: library's default (diffrax's 100,000 stopped Tsit5 at rtol 1e-8 short of 100 s at N = 10).
+MAX_STEPS = SOLVE_MAX_STEPS
+#: Identity of one run in energy_horizon.csv (a rerun replaces the rows of the same run).
+RUN_KEY = ("scene", "elements", "integrator", "setting")
+
+
+def finer(method: MethodSettings) -> MethodSettings:
+    s = dict(method.settings)
+    if "dt" in s:
+        s["dt"] = s["dt"] / FINER
+    else:
+        s = {k: v / TIGHTER for k, v in s.items()}
+    return MethodSettings(method.name, s)
+
+
+def declared(name: str) -> MethodSettings | None:
+    """The method's energy-study setting: its declared one (`Integrator.horizon_settings`), the
+    compositions' `COMPOSITION_STEP`, None for a method with neither."""
+    from integrators import get_integrator
+
+    integ = get_integrator(name)
+    if integ.horizon_settings:
+        return MethodSettings(name, dict(integ.horizon_settings))
+    if getattr(getattr(integ, "scheme", None), "gammas", None):
+        return MethodSettings(name, {"dt": COMPOSITION_STEP})
+    return None
+
+
+def methods(selected=None) -> list[MethodSettings]:
+    """The study's methods (those of `PLAN`) among ``selected`` (None: all); ValueError for a
+    selected name that is unknown (the registry's message)."""
+    from integrators import get_integrator
+
+    for name in selected or ():
+        get_integrator(name)
+    names = dict.fromkeys(name for _, name, _, _ in PLAN if selected is None or name in selected)
+    return [m for m in map(declared, names) if m is not None]
+
+
+def runs(selected=None, elements=None, variants=None) -> list[tuple[str, int, MethodSettings]]:
+    """(variant, N, settings) of every run of `PLAN` among ``selected`` methods, ``elements``
+    (None: each group's own sizes; a tuple: those sizes only, for every group) and ``variants``
+    (None: all), declared setting first."""
+    out = []
+    for variant, name, sizes, settings in PLAN:
+        if (selected is not None and name not in selected) or (variants is not None and variant not in variants):
+            continue
+        m = declared(name)
+        if m is None:
+            continue
+        for n in (elements if elements is not None else sizes):
+            out += [(variant, n, s) for s in (m, finer(m))[:settings] if (variant, n, s) not in out]
+    return out
+
+
+def variant_overrides(scene, variant: str) -> tuple:
+    """The scene overrides of ``variant`` (`VARIANTS`) for the loaded ``scene``: () for the scene
+    as it is, else its effects with the variant's added."""
+    extra = [e for e in VARIANTS[variant] if e not in scene.effects]
+    return (("effects", tuple(scene.effects) + tuple(extra)),) if extra else ()
+
+
+def table_scene(name: str, variant: str) -> str:
+    """The scene's name in the table and the figure's file name: "fixed_length_slack"."""
+    return f"{name}_{variant}" if variant else name
+
+
+def setting_of(method: MethodSettings) -> str:
+    return ", ".join(f"{k}={v:g}" for k, v in method.settings.items())
+
+
+def label(scene: str, elements: int, method: MethodSettings) -> str:
+    """The run's name in tables and legends: "lgvi dt=0.005 N=10" (the scene is its own column)."""
+    return f"{method.label} N={elements}"
+
+
+class Job(NamedTuple):
+    scene: str
+    elements: int
+    method: MethodSettings
+    t_end: float
+    overrides: tuple  # ((key, value), ...) of the scene (the variant's effects included)
+
+
+def axial_measures(scene, traj) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(P, G, P4, S) at each saved time, over the elements (with `slack`: the taut ones):
+    P = Σ_a EA l (dε_a/dt)² and G = Σ_a (T_a/|Δ_a|) |Δv_a⊥|², the axial and the transverse
+    (geometric) parts of the elastic energy's Hessian along the velocity, U''(v, v) = P + G, in
+    J/s²; P4 = Σ_a EA l (d²ε_a/dt²)² in J/s⁴; and the body's S = |Ω|² T_rot in J/s². For a
+    fixed length l, dε_a/dt = ê_a·Δv_a / l and d²ε_a/dt² = (ê_a·Δa_a + |Δv_a⊥|²/|Δ_a|) / l, with
+    the accelerations of the model's equations of motion at the saved state. Averaged over a
+    linear mode of the string of frequency ω and energy E_m, U''(v, v) is ω² E_m and P4 (an axial
+    mode) ω⁴ E_m."""
+    import jax
+    import jax.numpy as jnp
+
+    from models.model import build_model, quat_to_rot
+
+    model = build_model(scene)
+    slack = scene.has("slack")
+    n = len(traj.t)
+    if n == 0:
+        return np.zeros(0), np.zeros(0)
+    from_momentum = traj.velocity is None
+    v = traj.momentum if from_momentum else traj.velocity
+    has_att = model.layout.has_attitude and traj.attitude is not None
+    att = traj.attitude if has_att else np.zeros((n, 3, 3))
+    quaternion = has_att and traj.attitude_kind == "quaternion"
+
+    def one(t, x, a, vel):
+        R = quat_to_rot(a) if quaternion else (a if has_att else jnp.eye(3))
+        w = model.velocity_from_momentum(x, R, vel) if from_momentum else vel
+        acc = model.accelerations(t, x, R, w)
+        delta, stretch, l = model.elements(x)
+        e = delta / stretch[:, None]
+        vn, an = model.node_velocities(w), model.node_velocities(acc)
+        dv, da = vn[1:] - vn[:-1], an[1:] - an[:-1]
+        along = jnp.sum(e * dv, axis=1)
+        rate = along / l
+        accel = (jnp.sum(e * da, axis=1) + (jnp.sum(dv * dv, axis=1) - along ** 2) / stretch) / l
+        taut = stretch > l if slack else jnp.ones_like(stretch, dtype=bool)
+        k = model.EA * l
+        geometric = model.EA * (stretch / l - 1.0) / stretch * (jnp.sum(dv * dv, axis=1) - along ** 2)
+        om = model.omega(w)
+        spin = jnp.sum(om * om) * 0.5 * om @ (jnp.asarray(model.J_c) @ om)  # |Ω|² T_rot (Ω = 0 without a body)
+        return (jnp.sum(jnp.where(taut, k * rate ** 2, 0.0)), jnp.sum(jnp.where(taut, geometric, 0.0)),
+                jnp.sum(jnp.where(taut, k * accel ** 2, 0.0)), spin)
+
+    out = jax.jit(jax.vmap(one))(jnp.asarray(traj.t, dtype=float), jnp.asarray(traj.x), jnp.asarray(att),
+                                 jnp.asarray(v))
+    return tuple(np.asarray(o, float) for o in out)
+
+
+def run_job(job: Job) -> dict:
+    """One run's row: its label (with the status when the run stopped early) and its history at
+    each saved time: the energy error |E − E0|/max T (`benchmark.runs.metrics.energy_history`), its
+    sign (``energy_dev``), P, G, P4 and S of `axial_measures` over max T and the least element
+    tension (N; < 0: compression), in blocks of `BLOCK_S` (`blocks`)."""
+    import time
+
+    from benchmark.runs.metrics import energy_history
+    from integrators import get_integrator
+    from models import load_scene
+    from models.diagnostics import evaluate
+
+    started = time.perf_counter()
+    scene = load_scene(job.scene, **dict(job.overrides), elements=job.elements)
+    traj = get_integrator(job.method.name).solve(scene, t_end=job.t_end, save_every=SAVE_EVERY, max_steps=MAX_STEPS,
+                                                 **job.method.settings)
+    name = label(job.scene, job.elements, job.method) + ("" if traj.ok else f" [{traj.status}]")
+    diag = evaluate(scene, traj)
+    tmax = float(diag["kinetic"].max()) if len(diag) else np.nan
+    P, G, P4, S = axial_measures(scene, traj)
+    history = energy_history(scene, traj).assign(
+        energy_dev=((diag["energy"] - diag["energy"].iloc[0]) / tmax).to_numpy() if len(diag) else [],
+        axial_P=P / tmax, geometric_G=G / tmax, axial_P4=P4 / tmax, spin_S=S / tmax,
+        tension_min=diag["tension_min"].to_numpy())
+    return {"label": name, "status": traj.status, "history": blocks(history),
+            "task_time": time.perf_counter() - started}
+
+
+def blocks(history, width: float = BLOCK_S):
+    """``history`` in blocks (0, width], (width, 2 width], … labelled by their end (the row at
+    t = 0 kept alone): the largest ``energy_error`` and the least ``tension_min`` of each block,
+    the mean of every other column."""
+    if history.empty:
+        return history
+    t = history["t"].to_numpy(float)
+    k = np.where(t <= 0.0, 0, np.ceil(t / width - 1e-9)).astype(int)
+    agg = {c: ("max" if c == "energy_error" else "min" if c == "tension_min" else "mean")
+           for c in history.columns if c != "t"}
+    out = history.drop(columns="t").groupby(k, sort=True).agg(agg)
+    ends = np.minimum(out.index.to_numpy(float) * width, t[-1])
+    return out.reset_index(drop=True).assign(t=ends)[list(history.columns)]
+
+
+def crash_row(job: Job, exc: BaseException) -> dict:
+    from benchmark.core.engine import crash_reason
+
+    return {"label": f"{label(job.scene, job.elements, job.method)} [crashed]", "status": "crashed",
+            "reason": crash_reason(exc), "history": None}
+
+
+def describe(row: dict) -> str:
+    return f"horizon {row['label']}: {row['status']}"

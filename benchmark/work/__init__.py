@@ -1,0 +1,1 @@
+"""Work in one unit (flops) and its check against compiled floors."""
