@@ -131,11 +131,12 @@ def test_every_solve_of_a_sweep_has_a_budget_and_a_run_past_it_is_a_status_not_a
 
 def test_the_studies_take_their_budget_from_the_command_line(monkeypatch, tmp_path):
     from benchmark.cli import pipelines
+    from benchmark.core import study
     from benchmark.runs.runner import SolveBudget
 
     seen = {}
     monkeypatch.setattr(pipelines, "run_sweep", lambda request, log=None: seen.update(run=request.budget) or 0)
-    monkeypatch.setattr(pipelines, "run_stability", lambda *a, budget=None, **k: seen.update(stability=budget) or 0)
+    monkeypatch.setattr(study, "run", lambda s, *a, **k: seen.update(stability=s.jobs[0].budget) or 0)
     monkeypatch.setattr(pipelines, "run_check", lambda *, budget=None, **k: seen.update(check=budget) or 0)
     assert main(["run", "--quick", "--scenes", "fixed_length", "--integrators", "lgvi", "--out", str(tmp_path / "r"),
                  "--time-limit", "30", "--max-steps", "1000"]) == 0

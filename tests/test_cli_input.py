@@ -203,8 +203,10 @@ def test_size_estimate_warns_about_a_long_run_and_refuses_what_cannot_fit():
 def no_pipeline(monkeypatch):
     """Every pipeline replaced by a failure: a bad input that got through would start work."""
     from benchmark.cli import pipelines
+    from benchmark.core import study
 
-    for name in ("run_sweep", "simulate", "draw_figures", "run_check", "run_speed", "run_stability", "run_xval",
+    monkeypatch.setattr(study, "run", lambda s, *a, **k: pytest.fail(f"reached the study {s.name}"))
+    for name in ("run_sweep", "simulate", "draw_figures", "run_check", "run_speed", "run_xval",
                  "run_reel_reversal"):
         monkeypatch.setattr(pipelines, name, lambda *a, _n=name, **k: pytest.fail(f"reached pipelines.{_n}"))
 

@@ -45,7 +45,7 @@ NEEDS_EFFECT_EXAMPLE = re.compile(r"\btip_spring|\bverify\b")
 #: The pipeline each documented command reaches, and the output the docs name for it (checked
 #: in the default run; "" where the command has no output directory of its own).
 REACHES = {"run": ("run_sweep", "out"), "check": ("run_check", ""), "speed": ("run_speed", "out"),
-           "stability": ("run_stability", "out"), "xval": ("run_xval", "out"),
+           "stability": ("study:stability map", "out"), "xval": ("run_xval", "out"),
            "reel-reversal": ("run_reel_reversal", ""), "orders": ("run_orders", "out"),
            "energy": ("run_horizon_study", "out"), "answer": ("run_answer", "out"), "list": (None, "")}
 #: The documented outputs, by command: where the docs say its results go.
@@ -132,7 +132,9 @@ def recorder(name):
         calls.append({"pipeline": name, "out": None if out is None else str(out)})
         return 0
     return record
-for name in ("run_sweep", "simulate", "draw_figures", "run_check", "run_speed", "run_stability", "run_xval",
+from benchmark.core import study
+study.run = lambda s, out, **kw: calls.append({"pipeline": "study:" + s.name, "out": str(out)}) or 0
+for name in ("run_sweep", "simulate", "draw_figures", "run_check", "run_speed", "run_xval",
              "run_reel_reversal", "run_orders", "run_horizon_study"):
     setattr(pipelines, name, recorder(name))
 from benchmark.answer import answer

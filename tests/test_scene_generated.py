@@ -229,8 +229,11 @@ def stubbed(monkeypatch):
     """The pipelines replaced by a recorder: an accepted command line does no work."""
     from benchmark.cli import pipelines
 
+    from benchmark.core import study
+
     calls = []
-    for name in ("run_sweep", "simulate", "run_check", "run_speed", "run_stability", "run_xval", "run_reel_reversal"):
+    monkeypatch.setattr(study, "run", lambda s, *a, **k: calls.append((f"study:{s.name}", a, k)) or 0)
+    for name in ("run_sweep", "simulate", "run_check", "run_speed", "run_xval", "run_reel_reversal"):
         monkeypatch.setattr(pipelines, name, lambda *a, _n=name, **k: calls.append((_n, a, k)) or 0)
     return calls
 

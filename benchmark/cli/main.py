@@ -409,16 +409,13 @@ def cmd_speed(args) -> int:
 
 
 def cmd_stability(args) -> int:
+    from benchmark.core import study
     from benchmark.studies import stability
 
-    stability.jobs_for(args.scenes, args.integrators)  # unknown names are refused before any work
+    the_study = stability.study(args.scenes, args.integrators, workers=args.jobs, budget=_budget(args))  # names checked
     out = opt.writable_dir(args.out)
     opt.no_directory_at(out, ("stability.csv", "stability.md", "stability.png", "README.md"))
-    from benchmark.cli import pipelines
-
-    return pipelines.run_stability(args.scenes, args.integrators, workers=args.jobs, out=out, command=_command(args),
-                                   budget=_budget(args),
-                                   log=_log)
+    return study.run(the_study, out, command=_command(args), log=_log)
 
 
 def cmd_answer(args) -> int:

@@ -17,9 +17,10 @@ so a failing run is a row with its status and reason, and an exception is a row 
 "error". One (scene, integrator, kind) row is one `Job` on the engine (`benchmark.core.engine`:
 the jobs of one (scene, integrator) in one worker, so it compiles once; longest groups first by
 `_cost_hint`; a dead worker's job is a "crashed" row; Ctrl-C / SIGTERM stop it and keep the rows
-done). The pipeline (`benchmark.cli.pipelines.run_stability`) merges the rows into ``stability.csv``
-atomically after each job (one row per scene, integrator and kind: the map's other rows are
-kept), then writes the table, plot and README of `benchmark.studies.stability_report` from the whole map.
+done). As a study on the one runner (`study`, `benchmark.core.study.run`) its rows merge into
+``stability.csv`` atomically after each job (one row per scene, integrator and kind: the map's
+other rows are kept); the table, plot and README of `benchmark.studies.stability_report` are
+written from the whole map.
 """
 
 from __future__ import annotations
@@ -305,21 +306,58 @@ def describe(row: dict) -> str:
             f"{row.get('steps', float('nan')):.0f} steps, job {row.get('job_time', float('nan')):.0f} s")
 
 
+def crash_row(job: Job, exc: BaseException) -> dict:
+    """The row of a job whose worker died."""
+    return {**_base_row(job.case, job.integrator, job.kind), "status": "crashed", "reason": engine.crash_reason(exc),
+            "bounded": False}
+
+
 def execute(jobs: list[Job], *, workers: int = 2, on_rows: Callable | None = None,
             log: Callable[[str], None] = engine.log_stderr) -> pd.DataFrame:
     """Run the jobs on the engine (``workers`` = 0: in this process); rows in job order. The
     jobs of one (scene, integrator) run in one worker, so it compiles that method on that scene
     once (Tsit5's ladder and adaptive run share it); the longest groups start first (`_cost_hint`)."""
-
-    def crashed(i: int, exc: BaseException) -> dict:
-        job = jobs[i]
-        return {**_base_row(job.case, job.integrator, job.kind), "status": "crashed",
-                "reason": engine.crash_reason(exc), "bounded": False}
-
-    rows = engine.run_jobs(run_job, jobs, workers=workers, crash_row=crashed,
-                           group=lambda i: (jobs[i].case.scene, jobs[i].integrator), cost=lambda i: _cost_hint(jobs[i]),
+    rows = engine.run_jobs(run_job, jobs, workers=workers, crash_row=lambda i, exc: crash_row(jobs[i], exc),
+                           group=lambda i: _group(jobs[i]), cost=lambda i: _cost_hint(jobs[i]),
                            describe=describe, on_row=on_rows, log=log)
     return to_frame(rows)
+
+
+#: A row of the map: one per scene, integrator and kind (a dt ladder or one tolerance).
+IDENTITY = ("scene", "integrator", "kind")
+
+
+def study(scenes=None, integrators=None, *, workers: int = 2, budget=None):
+    """The stability map as a study of `benchmark.core.study.run`: stability.csv (merged with the
+    map already in the output, written after every job), stability.md, stability.png and README.md
+    from the whole map. Unknown names are refused here, before any work."""
+    from benchmark.core.study import Study
+
+    jobs = [j._replace(budget=budget) for j in jobs_for(scenes, integrators)]
+    return Study(name="stability map", table="stability.csv", identity=IDENTITY, jobs=jobs, run_job=run_job,
+                 identity_of=lambda j: (j.case.scene, j.integrator, j.kind), frame=to_frame, report=write_outputs,
+                 describe=describe, crash_row=crash_row, group=_group, cost=_cost_hint, workers=workers)
+
+
+def write_outputs(out, rows: list[dict], provenance) -> str:
+    """stability.md, stability.png and README.md of the whole map (``rows``)."""
+    from pathlib import Path
+
+    from benchmark.core.report import markdown_table
+    from benchmark.studies import stability_report
+    from models.io import atomic_write_text
+
+    out = Path(out)
+    merged = to_frame(rows)
+    atomic_write_text(out / "stability.md", markdown_table(merged))
+    stability_report.plot(merged, out)
+    stability_report.write_readme(out, merged, provenance=provenance)
+    return f"see {out}/README.md"
+
+
+def _group(job: Job) -> tuple:
+    """The jobs of one (scene, integrator) run in one worker: one compile."""
+    return job.case.scene, job.integrator
 
 
 def _cost_hint(job: Job) -> float:
