@@ -470,19 +470,32 @@ def identity_of(row: dict, identity: tuple = ROW_IDENTITY) -> tuple:
     return tuple(row.get(c) for c in identity)
 
 
-def merge_rows(base: Iterable[dict], new: Iterable[dict], identity: tuple = ROW_IDENTITY) -> list[dict]:
+def merge_rows(base: Iterable[dict], new: Iterable[dict], identity: tuple = ROW_IDENTITY,
+               expand: Callable[[dict], list[dict]] | None = None) -> list[dict]:
     """The rows of ``base`` with those of ``new`` in their place (same ``identity``, by default
     `ROW_IDENTITY`; a study's table names its own), and the other rows of ``new`` after the last
-    base row of their scene and integrator (else at the end)."""
-    new = list(new)
-    replace = {identity_of(r, identity): r for r in new}
-    out = [replace.pop(identity_of(r, identity), r) for r in base]
+    base row of their scene and integrator (else at the end). ``expand(row)``: the table rows
+    of one new row (a run's history, a ladder's runs), which replace every base row with its
+    identity, as a whole."""
+    expand = expand or (lambda r: [r])
+    replace = {}
     for r in new:
-        if identity_of(r, identity) not in replace:
+        replace[identity_of(r, identity)] = expand(r)
+    out, placed = [], set()
+    for r in base:
+        k = identity_of(r, identity)
+        if k not in replace:
+            out.append(r)
+        elif k not in placed:
+            out += replace[k]
+            placed.add(k)
+    for k, rows in replace.items():
+        if k in placed or not rows:
             continue
-        replace.pop(identity_of(r, identity))
-        same = [k for k, o in enumerate(out) if o.get("scene") == r.get("scene") and o.get("integrator") == r.get("integrator")]
-        out.insert(same[-1] + 1 if same else len(out), r)
+        r = rows[0]
+        same = [j for j, o in enumerate(out) if o.get("scene") == r.get("scene") and o.get("integrator") == r.get("integrator")]
+        at = same[-1] + 1 if same else len(out)
+        out[at:at] = rows
     return out
 
 

@@ -75,6 +75,7 @@ class Study:
     crash_row: Callable[[Any, BaseException], dict] | None = None
     group: Callable[[Any], Hashable] | None = None
     cost: Callable[[Any], float] | None = None
+    expand: Callable[[dict], list[dict]] | None = None
     text_columns: tuple[str, ...] = ()
     workers: int = 0
     scheduler: str | None = None
@@ -82,7 +83,8 @@ class Study:
 
 
 def _kept(study: Study, earlier: list[dict]) -> dict[int, dict]:
-    """The jobs whose finished row, made from the same key, the table already holds."""
+    """The jobs whose finished row(s), made from the same key, the table already holds (their
+    rows stay in the table as they are)."""
     if study.key is None:
         return {}
     finished = {store.identity_of(r, study.identity): r for r in earlier
@@ -102,34 +104,38 @@ def run(study: Study, out: Path, *, command: str, fresh: bool = False,
 
     out = Path(out)
     provenance = Provenance(command, workers=study.workers or 1)
-    jobs, rows, table = study.jobs, [], None
+    jobs, rows, table, kept = study.jobs, [], None, {}
 
     def keyed(i: int, row: dict) -> None:
         if study.key is not None:
             row[KEY_COLUMN] = study.key(jobs[i])
 
+    def expand(row: dict) -> list[dict]:  # every table row a job makes carries the job's key
+        return [{**x, KEY_COLUMN: row[KEY_COLUMN]} if KEY_COLUMN in row else x for x in study.expand(row)]
+
     def on_rows(done: list[dict]) -> None:
-        rows[:] = done
-        table(done)
+        rows[:] = [r for r in done if not any(r is k for k in kept.values())]  # kept rows are in the table
+        table(rows)
 
     def report(done: list[dict]) -> str:
         return study.report(out, table.merged(done), table.provenance(provenance, done, out / "README.md"))
 
     try:
         with exclusive(out, log):
-            table = MergedTable(out / study.table, study.identity, study.frame, text_columns=study.text_columns)
+            table = MergedTable(out / study.table, study.identity, study.frame, text_columns=study.text_columns,
+                                expand=expand if study.expand else None)
             kept = {} if fresh else _kept(study, table.base)
             log(f"{study.name}: {len(jobs)} job(s) on {study.workers or 'this process'}"
                 f"{' worker(s)' if study.workers else ''} -> {out}/"
                 + (f" (merged with its {table.earlier} earlier row(s))" if table.earlier else "")
                 + (f"; {len(kept)} kept (finished, same code and settings; --fresh recomputes them)" if kept else ""))
-            rows[:] = engine.run_jobs(
+            done = engine.run_jobs(
                 study.run_job, jobs, workers=study.workers, scheduler=study.scheduler, done=kept, finish=keyed,
                 crash_row=(lambda i, exc: study.crash_row(jobs[i], exc)) if study.crash_row else None,
                 group=(lambda i: study.group(jobs[i])) if study.group else None,
                 cost=(lambda i: study.cost(jobs[i])) if study.cost else None,
                 setup=study.setup, describe=study.describe, on_row=on_rows, log=log)
-            table(rows)
+            on_rows(done)
             wrote = report(rows)
             log(f"{study.name}: done in {provenance.wall_time():.0f} s" + (f"; {wrote}" if wrote else ""))
             return 0

@@ -57,14 +57,15 @@ class MergedTable(store.TableWriter):
     this run does not recompute. ``earlier``: how many rows the file held; ``kept(rows)``: how
     many of them the merged table keeps as they were."""
 
-    def __init__(self, path, identity: tuple, to_frame: Callable, text_columns: tuple = ()):
-        self.identity = tuple(identity)
+    def __init__(self, path, identity: tuple, to_frame: Callable, text_columns: tuple = (),
+                 expand: Callable[[dict], list[dict]] | None = None):
+        self.identity, self.expand = tuple(identity), expand
         self.base = read_rows(path, self.identity, text_columns)
         super().__init__(path, lambda rows: to_frame(self.merged(rows)))
         self.earlier = len(self.base)
 
     def merged(self, rows: list[dict]) -> list[dict]:
-        return store.merge_rows(self.base, rows, identity=self.identity)
+        return store.merge_rows(self.base, rows, identity=self.identity, expand=self.expand)
 
     def kept(self, rows: list[dict]) -> int:
         mine = {store.identity_of(r, self.identity) for r in rows}
