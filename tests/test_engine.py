@@ -131,7 +131,7 @@ def test_on_a_terminal_a_bar_is_drawn_below_the_lines_and_taken_away():
     import sys
     import termios
 
-    script = ("from benchmark import engine\nimport time\n"
+    script = ("from benchmark.core import engine\nimport time\n"
               "engine.run_jobs(lambda x: time.sleep(0.05) or {'x': x}, list(range(3)), workers=0,"
               " cost=lambda i: 1.0, describe=lambda r: f\"job {r['x']}\")\n"
               "engine.log_stderr('after')\n")
