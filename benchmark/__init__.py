@@ -12,7 +12,8 @@ One subpackage per layer; a package imports only from those listed before it:
   report provenance, and the one cached reference solution every study compares with;
 - `work`: flops, the one work unit, checked against compiled floors (`work.work_rule`);
 - `runs`: the runs table: what a sweep runs (`sweep`), one run measured (`runner`, `metrics`),
-  and what is read from the table (`ranking`, `reproducibility`);
+  what a row may hold and what of an earlier table a run keeps (`table`), and what is read from
+  the table (`ranking`, `reproducibility`);
 - `figures`: plots and one look per method;
 - `answer`: the main job: each method's cheapest setting that stands at each target
   (`search`), the contenders timed in pairs (`paired`), the answer written (`answer_report`);

@@ -385,13 +385,13 @@ def _with_stray_byte(data: bytes) -> bytes:
     (lambda: table_bytes(many_rows(3) + many_rows(1)), "1 row(s) repeat", 3),
 ], ids=["a stray byte", "binary", "empty", "foreign", "an exact repeat"])
 def test_a_table_that_cannot_be_read_whole_is_kept_intact_and_its_rows_salvaged(tmp_path, content, why, kept):
-    from benchmark.core import store
+    from benchmark.runs import table
 
     path = tmp_path / "runs.csv"
     data = content()
     path.write_bytes(data)
     said = []
-    got = store.read_runs(path, log=said.append)
+    got = table.read_runs(path, log=said.append)
     assert len(got.rows) == kept and got.aside is not None and got.aside.read_bytes() == data
     assert got.aside.parent == tmp_path and got.aside.name.startswith("runs.unreadable-")
     (line,) = [s for s in said if "cannot be read whole" in s]
@@ -400,12 +400,12 @@ def test_a_table_that_cannot_be_read_whole_is_kept_intact_and_its_rows_salvaged(
 
 
 def test_rows_that_repeat_with_different_values_are_caught_on_read_none_trusted(tmp_path):
-    from benchmark.core import store
+    from benchmark.runs import table
 
     path = tmp_path / "runs.csv"
     path.write_bytes(table_bytes(many_rows(2) + [stored_row(setting="dt=0.01", energy_error=5e-5)]))
     said = []
-    got = store.read_runs(path, log=said.append)
+    got = table.read_runs(path, log=said.append)
     assert [r["setting"] for r in got.rows] == ["dt=0.005"] and len(got.rejected) == 2, got.rejected
     assert all("appears 2 times with different values (lines 2, 4)" in why for _, why in got.rejected)
     assert got.aside is not None and got.aside.is_file()
@@ -435,22 +435,22 @@ def test_a_sweep_into_a_table_with_a_stray_byte_keeps_its_other_rows(tmp_path, c
     {"compile_time": 0.0}, {"energy_error": 1e-12},
 ], ids=["run times", "flops", "us_per_eval", "compile_time", "energy_error"])
 def test_every_column_a_conclusion_reads_is_covered_by_the_digest(tmp_path, edit):
-    from benchmark.core import store
+    from benchmark.runs import table
 
     rows = many_rows(2)
     path = tmp_path / "runs.csv"
     path.write_bytes(table_bytes([{**rows[0], **edit}, rows[1]]))
-    got = store.read_runs(path)
+    got = table.read_runs(path)
     assert len(got.rows) == 1 and "do not match the digest" in got.rejected[0][1], got.rejected
 
 
 def test_a_row_whose_digest_was_blanked_is_tampered(tmp_path):
-    from benchmark.core import store
+    from benchmark.runs import table
 
     rows = many_rows(3)
     path = tmp_path / "runs.csv"
     path.write_bytes(table_bytes([{**rows[0], "row_digest": "", "energy_error": 1e-12}, *rows[1:]]))
-    got = store.read_runs(path)
+    got = table.read_runs(path)
     assert len(got.rows) == 2 and not got.legacy
     assert "no row digest, where the table's other rows have one" in got.rejected[0][1]
 
@@ -458,7 +458,7 @@ def test_a_row_whose_digest_was_blanked_is_tampered(tmp_path):
 def test_rows_from_before_digests_need_an_explicit_one_time_accept_legacy(tmp_path, capsys):
     import pandas as pd
 
-    from benchmark.core import store
+    from benchmark.runs import table
 
     out = tmp_path / "out"
     out.mkdir()
@@ -472,7 +472,7 @@ def test_rows_from_before_digests_need_an_explicit_one_time_accept_legacy(tmp_pa
     rc = main(TINY + ["--dts", "0.01", "--out", str(out), "--accept-legacy"])
     err, line = outcome(capsys)
     assert rc == 0 and "3 of them predate row digests: accepted by --accept-legacy" in err, err
-    again = store.read_runs(out / "runs.csv")  # one time: they now carry digests
+    again = table.read_runs(out / "runs.csv")  # one time: they now carry digests
     assert len(again.rows) == 4 and not again.legacy and not again.rejected
 
 

@@ -6,7 +6,7 @@ import pytest
 
 from benchmark.runs import metrics
 from benchmark.runs import runner
-from benchmark.core import store
+from benchmark.runs import table
 from benchmark.runs.sweep import Task
 from models import load_scene
 
@@ -31,11 +31,11 @@ def test_a_run_beyond_either_bound_is_no_solution_and_says_which(values, broken)
 
 
 def test_inaccurate_is_a_status_of_the_runs_table_and_its_rows_hold_no_accuracy():
-    assert metrics.INACCURATE in store.statuses()
+    assert metrics.INACCURATE in table.statuses()
     row = {"scene": "s", "integrator": "i", "setting": "dt=0.01", "status": metrics.INACCURATE, "run_time": 1.0,
            **{m: np.nan for m in metrics.ACCURACY}}
-    assert store.check_row(row) is None
-    assert store.check_row({**row, "energy_error": 1.2}) is not None  # only a solution has accuracy values
+    assert table.check_row(row) is None
+    assert table.check_row({**row, "energy_error": 1.2}) is not None  # only a solution has accuracy values
 
 
 def test_the_runner_marks_a_finished_run_beyond_a_bound_inaccurate(monkeypatch):
@@ -47,4 +47,4 @@ def test_the_runner_marks_a_finished_run_beyond_a_bound_inaccurate(monkeypatch):
     bad = runner.finish_row(runner.run_task(task, repeats=0, reference=False), "k")
     assert bad["status"] == metrics.INACCURATE and "energy_error" in bad["reason"]
     assert all(np.isnan(bad[m]) for m in metrics.ACCURACY) and bad["steps"] == ok["steps"]
-    assert store.check_row(bad) is None
+    assert table.check_row(bad) is None

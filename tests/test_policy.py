@@ -67,13 +67,13 @@ def test_the_status_sets_are_named_once_beside_the_statuses():
     from benchmark.runs import metrics
     from benchmark.runs import ranking
     from benchmark.answer import search
-    from benchmark.core import store
+    from benchmark.runs import table
     from integrators.base import (BUDGET_STATUSES, FINISHED_STATUSES, RETRY_STATUSES, TABLE_ONLY_STATUSES, Status,
                                   is_finished)
 
     assert FINISHED_STATUSES == (Status.OK.value,) and is_finished("ok") and not is_finished(float("nan"))
-    assert set(BUDGET_STATUSES) | set(RETRY_STATUSES) <= set(store.statuses())
-    assert len(store.statuses()) == len(set(store.statuses())) == len(Status) + len(TABLE_ONLY_STATUSES)
+    assert set(BUDGET_STATUSES) | set(RETRY_STATUSES) <= set(table.statuses())
+    assert len(table.statuses()) == len(set(table.statuses())) == len(Status) + len(TABLE_ONLY_STATUSES)
     assert metrics.INACCURATE in TABLE_ONLY_STATUSES
     assert search._stopped_by_budget(BUDGET_STATUSES[0]) and not search._stopped_by_budget("ok")
     assert ranking.BUDGET_STATUSES is BUDGET_STATUSES
@@ -111,6 +111,7 @@ def test_a_row_s_identity_is_one_rule_and_a_new_metric_is_range_checked_on_read_
     from benchmark.studies import check
     from benchmark.runs import metrics
     from benchmark.runs import reproducibility
+    from benchmark.runs import table
     from benchmark.core import store
     from benchmark.runs.sweep import Task
 
@@ -118,9 +119,9 @@ def test_a_row_s_identity_is_one_rule_and_a_new_metric_is_range_checked_on_read_
     row = {"scene": "fixed_length", "integrator": "lgvi", "setting": task.setting, "status": "ok", "run_time": 0.1,
            "energy_error": 1e-5}
     assert task.identity == store.identity_of(row) and check.KEY == reproducibility.KEY == list(policy.ROW_IDENTITY)
-    assert store.error_columns() == tuple(metrics.ACCURACY) and store.check_row(row) is None
+    assert table.error_columns() == tuple(metrics.ACCURACY) and table.check_row(row) is None
     monkeypatch.setattr(metrics, "ACCURACY", [*metrics.ACCURACY, "new_error"])
-    assert "new_error" in store.check_row({**row, "new_error": -1.0})
+    assert "new_error" in table.check_row({**row, "new_error": -1.0})
 
 
 def test_the_output_places_are_the_policy_s():

@@ -155,7 +155,7 @@ def test_killed_sweep_leaves_no_worker_and_a_rerun_resumes(tmp_path, plugin_env)
 def test_fresh_ignores_the_rows_already_there(tmp_path, monkeypatch):
     from benchmark.cli import main as cli
     from benchmark.runs import runner
-    from benchmark.core import store
+    from benchmark.runs import table
 
     class Stop(Exception):
         pass
@@ -167,7 +167,7 @@ def test_fresh_ignores_the_rows_already_there(tmp_path, monkeypatch):
         raise Stop
 
     earlier = {"run_key": "x", "status": "ok", "scene": "elsewhere", "integrator": "lgvi", "setting": "dt=0.01"}
-    monkeypatch.setattr(store, "read_runs", lambda *a, **k: store.StoredRuns([earlier], []))
+    monkeypatch.setattr(table, "read_runs", lambda *a, **k: table.StoredRuns([earlier], []))
     monkeypatch.setattr(runner, "execute", execute)
     args = ["run", "--scenes", "fixed_length", "--integrators", "lgvi", "--dts", "0.01", "--t-end", "0.02",
             "--no-figures", "--out", str(tmp_path)]
@@ -241,7 +241,7 @@ def test_a_second_process_is_refused_at_once_naming_the_directory_and_holder(tmp
 
 def test_resume_keeps_only_rows_of_the_same_sweep():
     """The run key changes with the scene's physics, the setting, the horizon and the code."""
-    from benchmark.core.store import run_key
+    from benchmark.runs.table import run_key
     from benchmark.runs.sweep import Task
 
     base = Task("fixed_length", "lgvi", dt=0.01, t_end=0.1, overrides=(("elements", 2),))

@@ -147,8 +147,8 @@ def test_the_writers_themselves_keep_a_name_inside_their_directory(tmp_path):
     import pandas as pd
 
     from benchmark.figures import plots
-    from benchmark.core import store
     from benchmark.core.reference import reference_path
+    from benchmark.runs import table
 
     out = tmp_path / "out"
     out.mkdir()
@@ -159,7 +159,7 @@ def test_the_writers_themselves_keep_a_name_inside_their_directory(tmp_path):
     with pytest.raises(UnsafePath):
         reference_path(scene, 1.0, 0.02, out)
     row = {"scene": EVIL, "integrator": "lgvi", "setting": "dt=0.01", "status": "ok"}
-    assert "not a plain name" in store.check_row(row)
+    assert "not a plain name" in table.check_row(row)
     assert not list(tmp_path.parent.glob("elsewhere"))
 
 

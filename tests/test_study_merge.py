@@ -262,9 +262,10 @@ def _narrow_rerun(tmp_path, monkeypatch, capsys):
     committed rows, as a resumed run keeps them): (README before, README after, committed rows)."""
     from benchmark.runs import runner
     from benchmark.core import store
+    from benchmark.runs import table
 
     out = tmp_path / "grid"
-    committed = store.read_runs(out / "runs.csv").rows
+    committed = table.read_runs(out / "runs.csv").rows
 
     def execute(tasks, *, on_row=None, **_):  # the committed rows of these tasks, as a resumed run keeps them
         mine = {(t.scene, t.integrator, t.setting) for t in tasks}

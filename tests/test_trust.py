@@ -12,6 +12,7 @@ import pytest
 from benchmark.core import engine
 from benchmark.runs import runner
 from benchmark.core import store
+from benchmark.runs import table
 from benchmark.core.report import shorten
 from benchmark.runs.sweep import MAX_REPEATS, TIMING_BUDGET
 
@@ -68,11 +69,11 @@ def _row(**values) -> dict:
     return runner.finish_row(row, "k1")
 
 
-def _round_trip(tmp_path, rows) -> store.StoredRuns:
+def _round_trip(tmp_path, rows) -> table.StoredRuns:
     path = tmp_path / "runs.csv"
     store.write_table(path, runner.runs_frame(rows))
     said = []
-    got = store.read_runs(path, log=said.append)
+    got = table.read_runs(path, log=said.append)
     got.said = said
     return got
 
@@ -104,22 +105,22 @@ def test_a_row_edited_by_hand_is_not_trusted_and_named(tmp_path, edit, why):
 def test_a_diverged_run_edited_to_ok_is_caught_by_its_digest_and_its_missing_errors(tmp_path):
     diverged = runner.finish_row({**_row(), "status": "diverged", "reason": "energy grew"}, "k1")
     edited = {**diverged, "status": "ok"}
-    assert "without any accuracy value" in store.check_row(edited)  # also without its digest
+    assert "without any accuracy value" in table.check_row(edited)  # also without its digest
     faked = {**edited, "energy_error": 1e-9, "position_error_final": 1e-9}  # errors made up too
-    assert "digest" in store.check_row(faked)
+    assert "digest" in table.check_row(faked)
 
 
 def test_a_row_without_a_digest_is_checked_by_its_ranges_alone():
     old = {k: v for k, v in _row().items() if k != "row_digest"}
-    assert store.check_row(old) is None
-    assert "outside its range" in store.check_row({**old, "energy_error": -1.0})
+    assert table.check_row(old) is None
+    assert "outside its range" in table.check_row({**old, "energy_error": -1.0})
 
 
 def test_an_unreadable_table_is_recomputed_not_a_crash(tmp_path):
     path = tmp_path / "runs.csv"
     path.write_bytes(b"\x00\xff garbage \n\x01")
     said = []
-    got = store.read_runs(path, log=said.append)
+    got = table.read_runs(path, log=said.append)
     assert got.rows == [] and got.rejected == []
     assert got.aside is not None and got.aside.read_bytes() == path.read_bytes()  # kept intact beside it
 
@@ -143,11 +144,11 @@ def test_a_run_replaces_its_own_rows_in_place_and_adds_the_others_beside_their_m
 def test_a_run_over_another_horizon_or_other_scene_values_cannot_join():
     base = [_r("fixed_length", "lgvi", "dt=0.01", t_end=10.0, scene_key="k10"),
             _r("deployment", "lgvi", "dt=0.01", t_end=2.0)]  # an older row: no physics hash
-    assert store.merge_conflicts(base, {"fixed_length": (10.0, "k10"), "deployment": (2.0, "any")}) == []
-    assert store.merge_conflicts(base, {"retrieval": (1.0, "x")}) == []
-    (quick,) = store.merge_conflicts(base, {"fixed_length": (1.0, "k10")})
+    assert table.merge_conflicts(base, {"fixed_length": (10.0, "k10"), "deployment": (2.0, "any")}) == []
+    assert table.merge_conflicts(base, {"retrieval": (1.0, "x")}) == []
+    (quick,) = table.merge_conflicts(base, {"fixed_length": (1.0, "k10")})
     assert "scene 'fixed_length'" in quick and "t_end = 10 s, this run's over 1 s" in quick
-    (other,) = store.merge_conflicts(base, {"fixed_length": (10.0, "k20")})
+    (other,) = table.merge_conflicts(base, {"fixed_length": (10.0, "k20")})
     assert "other scene values" in other and "k10" in other
 
 

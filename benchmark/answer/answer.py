@@ -38,7 +38,8 @@ from benchmark.core import engine
 from benchmark.answer import paired as _paired
 from benchmark.answer import search as _search
 from benchmark.core.policy import CHEAPEST_FILE, PAIRED_BUDGET, RESULTS, SAVE_EVERY, SEARCH_TIME_LIMIT, Setting
-from benchmark.core.store import code_version, frame, kept_rows, key_of
+from benchmark.core.store import code_version, frame, key_of
+from benchmark.runs.table import kept_rows
 from benchmark.runs.sweep import DEFAULT_EXECUTOR
 
 #: The default targets: (metric, target, label); ``--targets`` asks for others, on any metric
@@ -583,10 +584,10 @@ _NOT_DIGESTED = ("run_key", "row_digest", "job_time")
 def _digest(row: dict) -> str:
     """A row's digest over every column it has a value in (so that it survives a round trip
     through CSV, where a missing value and an empty one read back alike)."""
-    from benchmark.core.store import _canonical
+    from benchmark.core.store import canonical
 
-    return key_of(sorted((str(k), _canonical(v)) for k, v in row.items()
-                         if k not in _NOT_DIGESTED and _canonical(v) != ""))
+    return key_of(sorted((str(k), canonical(v)) for k, v in row.items()
+                         if k not in _NOT_DIGESTED and canonical(v) != ""))
 
 
 def read_rows(path: Path, log=engine.log_stderr) -> list[dict]:

@@ -324,7 +324,7 @@ def _check_trajectory(src: Path, traj) -> None:
     by `simulate`)."""
     import numpy as np
 
-    from benchmark.core.store import statuses
+    from benchmark.runs.table import statuses
 
     status = getattr(traj, "status", None)
     if not isinstance(status, str) or status not in statuses():

@@ -21,6 +21,7 @@ from typing import Any, Callable
 from benchmark.core import engine
 from benchmark.core import store
 from benchmark.runs import sweep
+from benchmark.runs import table as runs_table
 from benchmark.core.policy import GRID_DIR, RESULTS, SAVE_EVERY, STABILITY_DIR
 from benchmark.core.engine import log_stderr
 from benchmark.core.study import exclusive
@@ -131,12 +132,12 @@ def _this_run(request: SweepRequest, tasks) -> tuple[dict, dict]:
     return names, scenes
 
 
-def _merge_plan(request: SweepRequest, tasks, stored: store.StoredRuns, path: Path, log) -> None:
+def _merge_plan(request: SweepRequest, tasks, stored: runs_table.StoredRuns, path: Path, log) -> None:
     """Refuse a run whose rows cannot join the table in its --out (before any work), set aside
     the untrusted rows no recomputation will replace, and say in one line what the run replaces."""
     names, scenes = _this_run(request, tasks)
     mine = {(names[t.scene], t.integrator, t.setting) for t in tasks}
-    conflicts = store.merge_conflicts(stored.rows, scenes)
+    conflicts = runs_table.merge_conflicts(stored.rows, scenes)
     if conflicts:
         raise ValueError(f"{path} cannot take this run's rows: {'; '.join(conflicts)}. A table holds one horizon and "
                          "one set of scene values per scene: give another --out (a scratch directory), or move "
@@ -144,18 +145,18 @@ def _merge_plan(request: SweepRequest, tasks, stored: store.StoredRuns, path: Pa
     legacy = [r for r in stored.legacy if store.identity_of(r) not in mine]  # kept, not recomputed by this run
     if legacy and not request.accept_legacy:
         raise ValueError(f"{path}: {len(legacy)} row(s) this run keeps predate row digests over every column (their "
-                         "timings and flops cannot be verified), e.g. " + store.describe_row(legacy[0]) + ": pass "
+                         "timings and flops cannot be verified), e.g. " + runs_table.describe_row(legacy[0]) + ": pass "
                          "--accept-legacy once to keep them (checked by range, then written with digests), or move "
                          f"{path} away to start over")
     aside = [(r, why) for r, why in stored.rejected if store.identity_of(r) not in mine]
     if aside:
         rejected = path.with_name("runs.rejected.csv")
-        before = store.read_runs(rejected)
+        before = runs_table.read_runs(rejected)
         earlier = before.rows + [r for r, _ in before.rejected]
         store.write_table(rejected, store.frame(store.merge_rows(earlier, [dict(r, rejected_because=why)
                                                                           for r, why in aside]), []))
         log(f"warning: {len(aside)} untrusted row(s) of {path} are outside this run and were moved to {rejected}: "
-            + ", ".join(store.describe_row(r) for r, _ in aside))
+            + ", ".join(runs_table.describe_row(r) for r, _ in aside))
     there = {store.identity_of(r) for r in stored.rows}
     replaced = len(mine & there)
     kept = len(stored.rows) - replaced
@@ -183,7 +184,7 @@ def _sweep(request: SweepRequest, runs_csv: store.TableWriter, log) -> int:
     provenance = Provenance(request.command)
     tasks = sweep.build_tasks(request.scenes, request.integrators, quick=request.quick, dts=request.dts,
                               rtols=request.rtols, t_end=request.t_end, overrides=dict(request.overrides))
-    stored = store.read_runs(runs_csv.path, log=log)
+    stored = runs_table.read_runs(runs_csv.path, log=log)
     _merge_plan(request, tasks, stored, runs_csv.path, log)  # refuses a run that cannot join, before any work
     base = stored.rows
     runs_csv.to_table = lambda rows: runner.runs_frame(store.merge_rows(base, rows))

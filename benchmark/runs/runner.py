@@ -20,7 +20,7 @@ A failed or diverged run becomes a row with its status; a run that finished with
 beyond a sanity bound becomes a row with status "inaccurate" (`benchmark.runs.metrics.INACCURATE`:
 no accuracy values, not timed again, no point of any curve); an exception inside a task becomes a row
 with status "error"; a crashed worker becomes a row with status "crashed". The sweep goes on.
-Rows of an earlier run with the same `run_key` that pass `benchmark.core.store.check_row` are kept,
+Rows of an earlier run with the same `run_key` that pass `benchmark.runs.table.check_row` are kept,
 the rest computed.
 """
 
@@ -44,7 +44,8 @@ from benchmark.core.policy import SOLVE_MAX_STEPS, SOLVE_TIME_LIMIT
 from benchmark.runs.metrics import ACCURACY, COLUMNS, INACCURATE, inaccurate_reason, run_metrics, work_evals
 from benchmark.core.reference import CACHE_DIR, ReferenceProblem, get_reference, prepare_reference
 from benchmark.core.report import one_minute_load, shorten
-from benchmark.core.store import code_version, frame, key_of, kept_rows, row_digest, run_key
+from benchmark.core.store import code_version, frame, key_of
+from benchmark.runs.table import kept_rows, row_digest, run_key
 from benchmark.runs.sweep import DEFAULT_EXECUTOR, EXECUTORS, MAX_REPEATS, MIN_REPEATS, TIMING_BUDGET, Task
 from integrators.base import CRASHED, ERROR, FINISHED_STATUSES, is_finished
 
@@ -288,7 +289,7 @@ def provenance(name: str, code: str) -> dict:
 
 def finish_row(row: dict, key: str, origin: dict | None = None) -> dict:
     """A row as the table keeps it: no accuracy without a finished run, its resume key, the
-    method's provenance and the digest of its deterministic columns (`benchmark.core.store.row_digest`)."""
+    method's provenance and the digest of its deterministic columns (`benchmark.runs.table.row_digest`)."""
     if not is_finished(row.get("status")):
         row.update({k: np.nan for k in ACCURACY})
     row["run_key"] = key
@@ -315,7 +316,7 @@ def execute(
     """Run ``tasks`` on the engine and return the runs table (task order). ``on_row`` gets the
     rows so far after each completion (used to write partial results atomically).
 
-    ``previous``: rows of an earlier run (`benchmark.core.store.read_runs`, checked); a task whose
+    ``previous``: rows of an earlier run (`benchmark.runs.table.read_runs`, checked); a task whose
     `run_key` is among them keeps that row and is not run again.
 
     ``executor``: "process" (``jobs`` worker processes), "serial" (this process) or "dask" (the

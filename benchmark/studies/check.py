@@ -316,7 +316,7 @@ def row_problems(df: pd.DataFrame) -> list[tuple[int, str]]:
     improvement), a finished run whose metrics are not finite numbers in [0, `SANITY_BOUND`],
     an order row without a finite order in its method's plausible range (`order_floor`,
     `ORDER_CEILING`), and a missing order row where two runs of the sweep give one."""
-    from benchmark.core.store import statuses
+    from benchmark.runs.table import statuses
 
     known = statuses()
     out: list[tuple[int, str]] = []
