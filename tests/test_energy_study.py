@@ -171,7 +171,7 @@ def test_a_stopped_study_keeps_its_finished_runs_and_a_rerun_computes_the_rest(t
     said = []
     assert study.run(_lgvi_at_n4(), tmp_path, command="test", log=said.append) == 130
     table = pd.read_csv(tmp_path / "energy_horizon.csv")
-    assert set(table["setting"]) == {"dt=0.005"} and len(table) == 21 and table["job_key"].notna().all()
+    assert table["setting"].nunique() == 1 and len(table) == 21 and table["job_key"].notna().all()  # the first run
     assert said[-1].startswith("stopped by") and (tmp_path / "energy_horizon_fixed_length.png").is_file()
     monkeypatch.setattr(horizon, "run_job", _history_row)
     said.clear()

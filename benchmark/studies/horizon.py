@@ -282,7 +282,8 @@ def crash_row(job: Job, exc: BaseException) -> dict:
 
 
 def describe(row: dict) -> str:
-    return f"horizon {row['label']}: {row['status']}"
+    """A finished run in the progress log: its label, scene and status."""
+    return f"horizon {row['label']}" + (f" on {row['scene']}" if row.get("scene") else "") + f": {row['status']}"
 
 
 # ------------------------------------------------------------------------------------------
