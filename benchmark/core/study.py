@@ -142,7 +142,8 @@ def run(study: Study, out: Path, *, command: str, fresh: bool = False,
                 note += f"; its report was not written ({type(err).__name__})"
         return engine.stopped(exc, f"{note}; run the same command again to compute the rest", log)
     except OSError as exc:  # a full or failing disk: what was written is intact
-        log(f"error: {printable(exc)}; {session.table.stop_note() if session.table is not None else 'nothing was written'}")
+        table = session.table
+        log(f"error: {printable(exc)}; {table.stop_note() if table is not None else 'nothing was written'}")
         return 1
 
 

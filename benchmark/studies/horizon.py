@@ -362,7 +362,8 @@ def read_earlier(df):
                 df[c] = value
     if {"integrator", "setting"} <= set(df.columns):
         made = {(m.name, setting_of(m)) for _, _, m in runs()}
-        df = df[pd.Series([(i, s) in made for i, s in zip(df["integrator"], df["setting"])], index=df.index, dtype=bool)]
+        still = [(i, s) in made for i, s in zip(df["integrator"], df["setting"])]
+        df = df[pd.Series(still, index=df.index, dtype=bool)]
     return df
 
 
