@@ -47,7 +47,7 @@ NEEDS_EFFECT_EXAMPLE = re.compile(r"\btip_spring|\bverify\b")
 REACHES = {"run": ("run_sweep", "out"), "check": ("run_check", ""), "speed": ("run_speed", "out"),
            "stability": ("study:stability map", "out"), "xval": ("run_xval", "out"),
            "reel-reversal": ("run_reel_reversal", ""), "orders": ("run_orders", "out"),
-           "energy": ("run_horizon_study", "out"), "answer": ("run_answer", "out"), "list": (None, "")}
+           "energy": ("study:horizon", "out"), "answer": ("run_answer", "out"), "list": (None, "")}
 #: The documented outputs, by command: where the docs say its results go.
 DOCUMENTED_OUT = {"run --fresh": "results/grid", "run": "results/grid", "answer": "results",
                   "speed": "results/lgvi_speed.md", "stability": "results/stability", "xval": "results/xval"}
@@ -135,7 +135,7 @@ def recorder(name):
 from benchmark.core import study
 study.run = lambda s, out, **kw: calls.append({"pipeline": "study:" + s.name, "out": str(out)}) or 0
 for name in ("run_sweep", "simulate", "draw_figures", "run_check", "run_speed", "run_xval",
-             "run_reel_reversal", "run_orders", "run_horizon_study"):
+             "run_reel_reversal", "run_orders"):
     setattr(pipelines, name, recorder(name))
 from benchmark.answer import answer
 answer.run_answer = lambda request, *a, **kw: recorder("run_answer")(out=request.out)

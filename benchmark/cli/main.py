@@ -527,6 +527,7 @@ def cmd_orders(args) -> int:
 
 
 def cmd_energy(args) -> int:
+    from benchmark.core import study
     from benchmark.studies import horizon
     from models import load_scene
 
@@ -538,15 +539,14 @@ def cmd_energy(args) -> int:
     if unknown:
         raise ValueError(f"unknown string variant(s) {', '.join(unknown)}: choose from plain, "
                          + ", ".join(v for v in horizon.VARIANTS if v))
+    the_study = horizon.study(args.horizon, args.scenes, selected=args.integrators, workers=args.jobs, text=True,
+                              variants=tuple("" if v == "plain" else v for v in variants))
     out = opt.writable_dir(args.out)
-    from benchmark.cli import pipelines
-
-    figures = pipelines.run_horizon_study(args.horizon, out, scenes=args.scenes, jobs=args.jobs, log=_log,
-                                          selected=args.integrators, variants=tuple("" if v == "plain" else v
-                                                                                     for v in variants),
-                                          text=True)
-    _log("wrote " + ", ".join(f"{out}/{name}" for name, _ in figures) if figures else "energy study: nothing written")
-    return 0
+    opt.no_directory_at(out, (horizon.TABLE, "energy_horizon.md", "README.md"))
+    if not the_study.jobs:
+        _log("horizon: none of the selected methods is in the energy study's plan; nothing written")
+        return 0
+    return study.run(the_study, out, command=_command(args), fresh=getattr(args, "fresh", False), log=_log)
 
 
 def cmd_verify(args) -> int:

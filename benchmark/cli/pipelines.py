@@ -186,6 +186,7 @@ def _sweep(request: SweepRequest, runs_csv: store.TableWriter, log) -> int:
                               rtols=request.rtols, t_end=request.t_end, overrides=dict(request.overrides))
     stored = runs_table.read_runs(runs_csv.path, log=log)
     _merge_plan(request, tasks, stored, runs_csv.path, log)  # refuses a run that cannot join, before any work
+    energy = _energy_study(request, log) if request.figures and request.energy_horizon > 0 else None
     base = stored.rows
     runs_csv.to_table = lambda rows: runner.runs_frame(store.merge_rows(base, rows))
     runs_csv.earlier = len(base)
@@ -203,7 +204,7 @@ def _sweep(request: SweepRequest, runs_csv: store.TableWriter, log) -> int:
     orders = _orders_table(out)  # the short-horizon orders study's (`python -m benchmark orders`), never the sweep's
     failures = runs_report.failure_sentence(merged, study_file(out, "stability/stability.csv"))
     failed: list[str] = []  # what of the energy study did not end with a result (a crashed worker)
-    figures = _sweep_figures(request, merged, log, failed) if request.figures else []
+    figures = _sweep_figures(request, merged, log, failed, energy) if request.figures else []
     _sweep_readme(request, merged, orders, figures, provenance, failures, merged_note=_merged_note(runs, merged))
     log(f"done in {provenance.wall_time():.0f} s: {len(runs)} runs in this run, {len(merged)} in {out}/runs.csv; "
         f"{failures} See {out}/README.md")
@@ -249,11 +250,13 @@ def _paper_key(request: SweepRequest, scene, paper) -> str:
                         store.code_version(), _figure_code())
 
 
-def _sweep_figures(request: SweepRequest, merged, log, failed: list | None = None) -> list[tuple[str, str]]:
+def _sweep_figures(request: SweepRequest, merged, log, failed: list | None = None,
+                   energy=None) -> list[tuple[str, str]]:
     """Work–precision per scene of the merged table, the paper's panels of this run's scenes
     (from the method that declares the paper's settings, the LGVI at its step size), and the
-    energy study of the selected methods: (file name, note) each. A figure whose inputs did not
-    change since it was drawn (`benchmark.core.store.OutputKeys`) is kept, not redrawn."""
+    ``energy`` study (`_energy_study`: its runs that failed go to ``failed``): (file name, note)
+    each. A figure whose inputs did not change since it was drawn
+    (`benchmark.core.store.OutputKeys`) is kept, not redrawn."""
     import time
 
     from benchmark.figures import plots
@@ -293,14 +296,12 @@ def _sweep_figures(request: SweepRequest, merged, log, failed: list | None = Non
         if scene not in run_scenes and (out / name).is_file():
             figures.append((name, "drawn by an earlier run (this run did not include the scene)"))
     if request.energy_horizon > 0:
-        scenes = energy_scenes(request.scenes, request.overrides, log)
-        if scenes:
-            figures += run_horizon_study(request.energy_horizon, out, request.overrides,
-                                         0 if request.executor == "serial" else request.jobs, log,
-                                         selected=request.integrators, scenes=scenes, failed=failed)
-        else:
-            log("horizon: no scene of this run keeps its length: no energy study (energy_horizon.csv kept as it was)")
-            figures += _horizon_figures(out, _read_horizon(out / "energy_horizon.csv"), (), redraw=False)
+        from benchmark.core import study
+        from benchmark.studies import horizon_report
+
+        if energy is not None:  # in this run's lock: a stop is the sweep's
+            study.run(energy, out, command=request.command, fresh=request.fresh, log=log, held=True, failed=failed)
+        figures += horizon_report.listed(out, dict.fromkeys(j.tabled_as for j in energy.jobs) if energy else ())
     return figures
 
 
@@ -371,185 +372,24 @@ def _earlier_comparisons(history, readme: Path, runs) -> str:
     return "".join(out)
 
 
-def _horizon_key(scene: str, elements: int, method, t_end: float, overrides: tuple) -> str:
+def _energy_study(request: SweepRequest, log):
+    """The energy study `run --horizon` makes in its output (`benchmark.studies.horizon`), or None
+    when it makes none; its earlier table is checked here, before any work (`study.run` refuses one
+    it cannot keep)."""
+    from benchmark.core.study_store import read_rows
     from benchmark.studies import horizon
 
-    return store.key_of(scene, elements, method.name, method.settings, float(t_end), list(overrides),
-                        store.code_version(), horizon.MAX_STEPS, store.source_hash((), ("benchmark/studies/horizon.py",)))
-
-
-def _read_horizon(path: Path):
-    """The energy study's earlier table (a DataFrame), or None when there is none or it cannot be
-    read. A table from before the study had sizes and scenes gets their columns (fixed_length,
-    the scene's own N = 10)."""
-    import pandas as pd
-
-    from benchmark.studies.horizon_report import method_of
-
-    if not path.is_file():
+    scenes = horizon.energy_scenes(request.scenes, request.overrides, log)
+    if not scenes:
+        log(f"horizon: no scene of this run keeps its length: no energy study ({horizon.TABLE} kept as it was)")
         return None
-    try:
-        df = pd.read_csv(path)
-    except Exception:  # unreadable: recomputed, never a crash
+    energy = horizon.study(request.energy_horizon, scenes, overrides=request.overrides, selected=request.integrators,
+                           workers=0 if request.executor == "serial" else request.jobs)
+    if not energy.jobs:
+        log(f"horizon: none of the selected methods is in the energy study's plan; {horizon.TABLE} kept as it was")
         return None
-    if not {"t", "energy_error", "method"} <= set(df.columns):
-        return None
-    df["t"] = pd.to_numeric(df["t"], errors="coerce")
-    df["energy_error"] = pd.to_numeric(df["energy_error"], errors="coerce")
-    if "integrator" not in df:
-        df["integrator"] = df["method"].map(method_of)
-    defaults = {"scene": "fixed_length", "elements": 10,
-                "setting": df["method"].map(lambda m: str(m).split(" ", 1)[1] if " " in str(m) else "")}
-    for col, value in defaults.items():
-        if col not in df:
-            df[col] = value
-    return df
-
-
-def energy_scenes(scenes, overrides: tuple = (), log: Callable[[str], None] = log_stderr) -> list[str]:
-    """The scenes of ``scenes`` (names or paths) the energy study can run on over a long
-    horizon: those of fixed length (a reel ends at its limit); says which it leaves out."""
-    from integrators.base import situation
-    from models import load_scene
-
-    ov = {k: v for k, v in overrides if k != "elements"}
-    kept = [s for s in scenes if situation(load_scene(s, **ov)) == "fixed_length"]
-    left = [s for s in scenes if s not in kept]
-    if left:
-        log(f"horizon: {', '.join(left)} left out of the energy study (a reel ends at its limit, long before a "
-            "long horizon)")
-    return kept
-
-
-def run_horizon_study(t_end: float, out: Path, overrides: tuple = (), jobs: int | None = None,
-                      log: Callable[[str], None] = log_stderr, selected=None,
-                      scenes=None, failed: list | None = None, variants=("",),
-                      text: bool = False) -> list[tuple[str, str]]:
-    """Energy error vs time over a long horizon (`benchmark.studies.horizon`) on ``scenes`` (default
-    `horizon.DEFAULT_SCENE`) and their string variants (``variants``: "" the scene as it is,
-    "slack" with the tension-only string; None: all of `horizon.VARIANTS`), the runs of `horizon.PLAN`, one job per run in parallel workers
-    (``jobs``; 0: in this process): energy_horizon.csv and one figure per scene and variant.
-    ``selected``: the methods asked for (None: all of the plan); a run whose history is already
-    in energy_horizon.csv for the same settings, size, horizon, scene and code is kept, the
-    others computed; other runs' histories stay (`store.merge_study_table`). A run whose worker
-    dies is left out of both (its progress line says so, and ``failed`` gets what it was and
-    why). ``text`` (the `energy` command): also the observed orders with and without `slack`
-    (`benchmark.studies.slack_orders`, when the slack variant and every method run; kept when its code did
-    not change) and the energy section of README.md, or energy_horizon.md without one
-    (`properties.write_energy_section`). Returns [(figure name, note)]."""
-    figures = _horizon_study(t_end, out, overrides, jobs, log, selected, scenes, failed, variants)
-    if text:
-        from benchmark.studies import properties
-        from benchmark.studies import slack_orders
-
-        if (variants is None or "slack" in variants) and selected is None:  # the C¹ potential and the orders (~90 s)
-            if slack_orders.fresh(out):
-                log(f"energy: {out}/{slack_orders.TABLE} kept (same code)")
-            else:
-                log(f"energy: observed orders with and without `slack` -> {out}/{slack_orders.TABLE} ...")
-                slack_orders.study(out, log=log)
-        readme = properties.write_energy_section(out)
-        if readme is not None:
-            log(f"wrote the energy section of {readme}")
-    return figures
-
-
-def _horizon_study(t_end, out, overrides, jobs, log, selected, scenes, failed, variants) -> list[tuple[str, str]]:
-    import os
-
-    import pandas as pd
-
-    from benchmark.studies import horizon
-    from benchmark.runs import runner
-    from benchmark.runs.sweep import Task
-    from models import load_scene
-
-    path = out / "energy_horizon.csv"
-    earlier = _read_horizon(path)
-    scenes = list(scenes or [horizon.DEFAULT_SCENE])
-    ov = dict(overrides)
-    sizes = (int(ov.pop("elements")),) if "elements" in ov else None  # --set elements=N: that N only
-    ov = tuple(sorted(ov.items()))
-    loaded = {s: load_scene(s, **dict(ov)) for s in scenes}
-    plan = [(s, v, n, m) for s in scenes for v, n, m in horizon.runs(selected, sizes, variants)]
-    names = {(s, v): horizon.table_scene(loaded[s].name, v) for s, v, _, _ in plan}
-    job_ov = {(s, v): tuple(sorted({**dict(ov), **dict(horizon.variant_overrides(loaded[s], v))}.items()))
-              for s, v, _, _ in plan}
-    if not plan:
-        log("horizon: none of the selected methods is in the energy study's plan; "
-            + ("energy_horizon.csv kept as it was" if earlier is not None else "no energy study"))
-        return _horizon_figures(out, earlier, (), redraw=False)
-
-    def key(s, v, n, m):
-        return names[(s, v)], n, m.name, horizon.setting_of(m)
-
-    wanted = {key(s, v, n, m): _horizon_key(names[(s, v)], n, m, t_end, job_ov[(s, v)]) for s, v, n, m in plan}
-    done = set()
-    if earlier is not None and "job_key" in earlier:
-        for k, g in earlier.groupby(list(horizon.RUN_KEY), sort=False):
-            done.add((k[0], int(k[1]), k[2], k[3], str(g["job_key"].iloc[0])))
-    todo = [(s, v, n, m) for s, v, n, m in plan if (*key(s, v, n, m), wanted[key(s, v, n, m)]) not in done]
-    kept = len(plan) - len(todo)
-    if kept:
-        log(f"horizon: kept {kept} of {len(plan)} runs (same settings, size, horizon and code)")
-    new, rows = [], []
-    if todo:
-        jobs_ = [horizon.Job(s, n, m, t_end, job_ov[(s, v)]) for s, v, n, m in todo]
-        tasks = [Task(s, m.name, dt=m.settings.get("dt"), rtol=m.settings.get("rtol"), t_end=t_end,
-                      overrides=tuple(sorted({**dict(ov), "elements": n}.items()))) for s, v, n, m in todo]
-        costs = runner.task_costs(tasks)
-        workers = jobs if jobs is not None else min(len(todo), os.cpu_count() or 1)  # 0: this process
-        log(f"horizon: {len(todo)} runs ({', '.join(dict.fromkeys(m.name for *_, m in todo))} at N = "
-            f"{', '.join(str(n) for n in dict.fromkeys(n for _, _, n, _ in todo))}) on "
-            f"{', '.join(dict.fromkeys(names[(s, v)] for s, v, _, _ in todo))} to t = {t_end:g} s ...")
-        with engine.Heartbeat(f"horizon study to t = {t_end:g} s", sum(costs) / max(workers, 1), log=log):
-            rows = engine.run_jobs(horizon.run_job, jobs_, workers=workers,
-                                   crash_row=lambda i, exc: horizon.crash_row(jobs_[i], exc),
-                                   describe=horizon.describe, cost=lambda i: costs[i],
-                                   log=log)
-        if failed is not None:  # a crashed worker is a failure of the command, not a result
-            failed += [f"{m.name} {horizon.setting_of(m)} N={n} on {names[(s, v)]} ({r.get('reason', r['status'])})"
-                       for (s, v, n, m), r in zip(todo, rows) if r["status"] == "crashed" or r["history"] is None]
-        for (s, v, n, m), r in zip(todo, rows):
-            if r["history"] is None:
-                continue
-            scene, elements, name, setting = key(s, v, n, m)
-            new.append(r["history"].assign(method=r["label"], integrator=name, scene=scene, elements=elements,
-                                           setting=setting, status=r["status"], t_end=t_end,
-                                           job_key=wanted[(scene, elements, name, setting)]))
-    drawn = set(names.values())
-    if not todo:
-        return _horizon_figures(out, earlier, drawn, redraw=False)
-    table = store.merge_study_table(earlier, pd.concat(new, ignore_index=True) if new else None, horizon.RUN_KEY)
-    dead = {key(s, v, n, m) for (s, v, n, m), r in zip(todo, rows) if r["history"] is None}
-    if dead and table is not None and len(table):  # a run recomputed without a history is not drawn from stale rows
-        stale = table[list(horizon.RUN_KEY)].apply(lambda r: (r.iloc[0], int(r.iloc[1]), r.iloc[2], r.iloc[3]) in dead,
-                                                   axis=1)
-        table = table[~stale]
-    if table is not None and len(table):  # a history of a run the study no longer makes (another method or setting)
-        made = {(m.name, horizon.setting_of(m)) for _, _, m in horizon.runs()}
-        table = table[[(i, s) in made for i, s in zip(table["integrator"], table["setting"])]]
-    if table is None or table.empty:
-        return []
-    store.write_table(path, table)
-    return _horizon_figures(out, table, drawn, redraw=True)
-
-
-def _horizon_figures(out: Path, table, scenes, redraw: bool) -> list[tuple[str, str]]:
-    """energy_horizon_SCENE.png of each scene in ``table``: drawn (``redraw``) or listed as they are."""
-    from benchmark.studies import horizon_report
-
-    if table is None or table.empty:
-        return []
-    figures = []
-    for scene, g in table.groupby("scene", sort=False):
-        figure = inside(out, f"energy_horizon_{scene}.png")
-        if (redraw or not figure.is_file()) and scene in set(scenes):
-            horizon_report.energy_horizon(g, scene, out)
-            figures.append((figure.name, ""))
-        elif figure.is_file():
-            figures.append((figure.name, "" if scene in set(scenes) else "from an earlier run"))
-    return figures
+    read_rows(request.out / energy.table, energy.identity, energy.text_columns, energy.read_earlier)
+    return energy
 
 
 # ------------------------------------------------------------------------------------------

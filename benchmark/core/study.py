@@ -14,7 +14,11 @@ job makes, its table's columns and its report. `run` owns the rest, the same for
 - a rerun resumes: a job whose finished row is in the table, made from the same key
   (`Study.key`: the code and settings that determine it), is not run again, unless ``fresh``;
 - the report is written from the whole merged table, also when the study is stopped;
-- a stop is one line saying what was saved (exit 130 / 143); a failing disk one line and exit 1.
+- a stop is one line saying what was saved (exit 130 / 143); a failing disk one line and exit 1;
+  a job that failed (`Study.failure`) one error line at the end, and exit 1.
+
+A study may run inside another that holds the same directory (``held``: `run --horizon` makes the
+energy study in its own output): the caller then owns the lock and the stop.
 """
 
 from __future__ import annotations
@@ -59,6 +63,17 @@ class Study:
     - ``crash_row(job, exc)``: the row of a job whose worker died (None: the death is raised);
     - ``group(job)`` / ``cost(job)``: jobs that share a compile run in one worker; the longest
       start first and weigh the ETA;
+    - ``expand(row)``: the table rows of a job's row (a run's history), which replace that job's
+      earlier rows as a whole; none: the job's earlier rows go;
+    - ``read_earlier(df)``: the study's reading of its earlier table as read (a DataFrame): the
+      rows it keeps, in its columns (e.g. a table of older code given the columns it lacks);
+    - ``reusable(row)``: whether an earlier row made from the same key is kept on resume
+      (default: a finished run's, `is_finished`);
+    - ``failure(row)``: for a row that is no result (a job whose worker died and that makes no
+      table row), what failed, in a few words; None for a result;
+    - ``after_jobs(out, log)``: a step of the study's own once its jobs are done, before its
+      report (skipped when stopped): e.g. a measurement its report reads beside the table;
+    - ``unit``: what the log lines call its jobs;
     - ``workers``: 0 in this process, else that many worker processes; ``scheduler``: a Dask
       address."""
 
@@ -76,6 +91,11 @@ class Study:
     group: Callable[[Any], Hashable] | None = None
     cost: Callable[[Any], float] | None = None
     expand: Callable[[dict], list[dict]] | None = None
+    read_earlier: Callable[[Any], Any] | None = None
+    reusable: Callable[[dict], bool] | None = None
+    failure: Callable[[dict], str | None] | None = None
+    after_jobs: Callable[[Path, Callable[[str], None]], None] | None = None
+    unit: str = "jobs"
     text_columns: tuple[str, ...] = ()
     workers: int = 0
     scheduler: str | None = None
@@ -83,12 +103,12 @@ class Study:
 
 
 def _kept(study: Study, earlier: list[dict]) -> dict[int, dict]:
-    """The jobs whose finished row(s), made from the same key, the table already holds (their
-    rows stay in the table as they are)."""
+    """The jobs whose finished row(s) (`Study.reusable`), made from the same key, the table
+    already holds (their rows stay in the table as they are)."""
     if study.key is None:
         return {}
-    finished = {store.identity_of(r, study.identity): r for r in earlier
-                if is_finished(str(r.get("status", ""))) and r.get(KEY_COLUMN)}
+    reusable = study.reusable or (lambda r: is_finished(str(r.get("status", ""))))
+    finished = {store.identity_of(r, study.identity): r for r in earlier if reusable(r) and r.get(KEY_COLUMN)}
     kept = {}
     for i, job in enumerate(study.jobs):
         row = finished.get(tuple(study.identity_of(job)))
@@ -98,58 +118,87 @@ def _kept(study: Study, earlier: list[dict]) -> dict[int, dict]:
 
 
 def run(study: Study, out: Path, *, command: str, fresh: bool = False,
-        log: Callable[[str], None] = log_stderr) -> int:
-    """Run ``study`` into ``out`` (see the module's docstring); returns the exit status."""
-    from benchmark.core.study_store import MergedTable
-
+        log: Callable[[str], None] = log_stderr, held: bool = False, failed: list | None = None) -> int:
+    """Run ``study`` into ``out`` (see the module's docstring); returns the exit status.
+    ``held``: the caller holds ``out``'s lock and handles a stop or a failing disk (raised to it,
+    the finished rows saved). ``failed``: gets what failed of each failed job (`Study.failure`)."""
     out = Path(out)
-    provenance = Provenance(command, workers=study.workers or 1)
-    jobs, rows, table, kept = study.jobs, [], None, {}
-
-    def keyed(i: int, row: dict) -> None:
-        if study.key is not None:
-            row[KEY_COLUMN] = study.key(jobs[i])
-
-    def expand(row: dict) -> list[dict]:  # every table row a job makes carries the job's key
-        return [{**x, KEY_COLUMN: row[KEY_COLUMN]} if KEY_COLUMN in row else x for x in study.expand(row)]
-
-    def on_rows(done: list[dict]) -> None:
-        rows[:] = [r for r in done if not any(r is k for k in kept.values())]  # kept rows are in the table
-        table(rows)
-
-    def report(done: list[dict]) -> str:
-        return study.report(out, table.merged(done), table.provenance(provenance, done, out / "README.md"))
-
+    session = _Session(study, out, Provenance(command, workers=study.workers or 1), log)
+    if held:
+        return session.run(fresh, failed)
     try:
         with exclusive(out, log):
-            table = MergedTable(out / study.table, study.identity, study.frame, text_columns=study.text_columns,
-                                expand=expand if study.expand else None)
-            kept = {} if fresh else _kept(study, table.base)
-            log(f"{study.name}: {len(jobs)} job(s) on {study.workers or 'this process'}"
-                f"{' worker(s)' if study.workers else ''} -> {out}/"
-                + (f" (merged with its {table.earlier} earlier row(s))" if table.earlier else "")
-                + (f"; {len(kept)} kept (finished, same code and settings; --fresh recomputes them)" if kept else ""))
-            done = engine.run_jobs(
-                study.run_job, jobs, workers=study.workers, scheduler=study.scheduler, done=kept, finish=keyed,
-                crash_row=(lambda i, exc: study.crash_row(jobs[i], exc)) if study.crash_row else None,
-                group=(lambda i: study.group(jobs[i])) if study.group else None,
-                cost=(lambda i: study.cost(jobs[i])) if study.cost else None,
-                setup=study.setup, describe=study.describe, on_row=on_rows, log=log)
-            on_rows(done)
-            wrote = report(rows)
-            log(f"{study.name}: done in {provenance.wall_time():.0f} s" + (f"; {wrote}" if wrote else ""))
-            return 0
+            return session.run(fresh, failed)
     except KeyboardInterrupt as exc:
+        table = session.table
         if table is None:
             return engine.stopped(exc, "nothing was written", log)
         note = table.stop_note()
         if table.saved:
             try:  # the report of the whole merged table, so that it agrees with the table
-                wrote = report(rows)
+                wrote = session.report()
                 note += f"; {wrote or 'the report'} is written from it"
             except Exception as err:  # noqa: BLE001 - the stop line must come out whatever the report does
                 note += f"; its report was not written ({type(err).__name__})"
         return engine.stopped(exc, f"{note}; run the same command again to compute the rest", log)
     except OSError as exc:  # a full or failing disk: what was written is intact
+        table = session.table
         log(f"error: {printable(exc)}; {table.stop_note() if table is not None else 'nothing was written'}")
         return 1
+
+
+class _Session:
+    """One run of a study: its merged table (once the lock is held) and this run's rows."""
+
+    def __init__(self, study: Study, out: Path, provenance: Provenance, log: Callable[[str], None]):
+        self.study, self.out, self.provenance, self.log = study, out, provenance, log
+        self.table, self.rows, self.kept = None, [], {}
+
+    def run(self, fresh: bool, failed: list | None) -> int:
+        from benchmark.core.study_store import MergedTable
+
+        study, out, log = self.study, self.out, self.log
+        self.table = MergedTable(out / study.table, study.identity, study.frame, text_columns=study.text_columns,
+                                 expand=self._expand if study.expand else None, read=study.read_earlier)
+        self.kept = kept = {} if fresh else _kept(study, self.table.base)
+        n = len(study.jobs)
+        log(f"{study.name}: {n} {study.unit} on {study.workers or 'this process'}"
+            f"{' worker(s)' if study.workers else ''} -> {out}/"
+            + (f" (merged with its {self.table.earlier} earlier row(s))" if self.table.earlier else ""))
+        if kept:
+            log(f"{study.name}: kept {len(kept)} of {n} {study.unit} (same code and settings; --fresh recomputes them)")
+        done = engine.run_jobs(
+            study.run_job, study.jobs, workers=study.workers, scheduler=study.scheduler, done=kept, finish=self._keyed,
+            crash_row=(lambda i, exc: study.crash_row(study.jobs[i], exc)) if study.crash_row else None,
+            group=(lambda i: study.group(study.jobs[i])) if study.group else None,
+            cost=(lambda i: study.cost(study.jobs[i])) if study.cost else None,
+            setup=study.setup, describe=study.describe, on_row=self._on_rows, log=log)
+        self._on_rows(done)
+        if study.after_jobs is not None:
+            study.after_jobs(out, log)
+        wrote = self.report()
+        log(f"{study.name}: done in {self.provenance.wall_time():.0f} s" + (f"; {wrote}" if wrote else ""))
+        what = [w for w in map(study.failure, self.rows) if w] if study.failure else []
+        if failed is not None:
+            failed += what
+        if what:
+            log(f"error: {study.name}: {len(what)} of {n} {study.unit} did not finish: {'; '.join(what)}; "
+                f"{self.table.path} holds the others")
+            return 1
+        return 0
+
+    def _keyed(self, i: int, row: dict) -> None:
+        if self.study.key is not None:
+            row[KEY_COLUMN] = self.study.key(self.study.jobs[i])
+
+    def _expand(self, row: dict) -> list[dict]:  # every table row a job makes carries the job's key
+        return [{**x, KEY_COLUMN: row[KEY_COLUMN]} if KEY_COLUMN in row else x for x in self.study.expand(row)]
+
+    def _on_rows(self, done: list[dict]) -> None:
+        self.rows[:] = [r for r in done if not any(r is k for k in self.kept.values())]  # kept rows are in the table
+        self.table(self.rows)
+
+    def report(self) -> str:
+        table, rows = self.table, self.rows
+        return self.study.report(self.out, table.merged(rows),
+                                 table.provenance(self.provenance, rows, self.out / "README.md"))

@@ -23,10 +23,11 @@ from benchmark.core import store
 from benchmark.core.report import Provenance, earlier_runs
 
 
-def read_rows(path: Path, identity: tuple, text_columns: tuple = ()) -> list[dict]:
+def read_rows(path: Path, identity: tuple, text_columns: tuple = (), read: Callable | None = None) -> list[dict]:
     """The rows of a study's earlier table ``path`` ([] when there is none); ValueError (before
     any work) when it cannot be read or lacks an identity column. ``text_columns``: columns
-    that hold names ("" where a row has none, so identities compare equal after a round trip)."""
+    that hold names ("" where a row has none, so identities compare equal after a round trip).
+    ``read(df)``: the study's reading of the table as read (`Study.read_earlier`), applied first."""
     import pandas as pd
 
     from models.io import FileRefused, require_regular
@@ -41,6 +42,8 @@ def read_rows(path: Path, identity: tuple, text_columns: tuple = ()) -> list[dic
         raise ValueError(f"{path} holds earlier rows but cannot be read ({type(exc).__name__}: "
                          f"{str(exc).splitlines()[0][:120] if str(exc) else ''}); this run would overwrite it: move "
                          "it away, or give another --out") from None
+    if read is not None:
+        df = read(df)
     missing = [c for c in identity if c not in df.columns]
     if missing:
         raise ValueError(f"{path} is not a table of this study (no column {', '.join(missing)}); this run would "
@@ -58,9 +61,9 @@ class MergedTable(store.TableWriter):
     many of them the merged table keeps as they were."""
 
     def __init__(self, path, identity: tuple, to_frame: Callable, text_columns: tuple = (),
-                 expand: Callable[[dict], list[dict]] | None = None):
+                 expand: Callable[[dict], list[dict]] | None = None, read: Callable | None = None):
         self.identity, self.expand = tuple(identity), expand
-        self.base = read_rows(path, self.identity, text_columns)
+        self.base = read_rows(path, self.identity, text_columns, read)
         super().__init__(path, lambda rows: to_frame(self.merged(rows)))
         self.earlier = len(self.base)
 

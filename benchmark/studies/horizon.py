@@ -15,16 +15,26 @@ count (a slack one stores no energy and has no stiffness).
 
 The plan: every run goes to `HORIZON` s on the fixed-length scenes it is given (default
 `DEFAULT_SCENE`; a scene with a reel ends when the reel reaches its limit, too soon for a long
-horizon) and on the same scene with the tension-only string (`VARIANTS`). Which method at which
-N and step is listed in `PLAN` with why; the accurate reference is `REFERENCE`.
+horizon: `energy_scenes`) and on the same scene with the tension-only string (`VARIANTS`). Which
+method at which N and step is listed in `PLAN` with why; the accurate reference is `REFERENCE`.
+
+As a study of the one runner (`study`, `benchmark.core.study.run`) one job is one run: its row's
+history becomes that run's rows of energy_horizon.csv (`expand`: a rerun replaces them as a
+whole), saved after every run; a run already in the table for the same settings, size, horizon,
+scene and code (`key`) is kept; a run whose worker died makes no rows and is reported
+(`failure`); an earlier table keeps only the runs the study still makes (`read_earlier`). Its
+figures and text are `benchmark.studies.horizon_report`'s.
 """
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from pathlib import Path
+from typing import Callable, NamedTuple
 
 import numpy as np
 
+from benchmark.core import store
+from benchmark.core.engine import log_stderr
 from benchmark.core.policy import SOLVE_MAX_STEPS
 from benchmark.runs.sweep import MethodSettings
 
@@ -72,6 +82,10 @@ FINER, TIGHTER = 2.0, 100.0
 MAX_STEPS = SOLVE_MAX_STEPS
 #: Identity of one run in energy_horizon.csv (a rerun replaces the rows of the same run).
 RUN_KEY = ("scene", "elements", "integrator", "setting")
+#: The study's table: the history of each run, in blocks of `BLOCK_S`, then the run's columns.
+TABLE = "energy_horizon.csv"
+COLUMNS = ["t", "energy_error", "energy_dev", "axial_P", "geometric_G", "axial_P4", "spin_S", "tension_min",
+           "method", "integrator", "scene", "elements", "setting", "status", "t_end", "job_key"]
 
 
 def finer(method: MethodSettings) -> MethodSettings:
@@ -145,11 +159,23 @@ def label(scene: str, elements: int, method: MethodSettings) -> str:
 
 
 class Job(NamedTuple):
+    """One run: the scene (a name or path) at N ``elements`` with ``overrides``, one method's
+    setting, to ``t_end``; tabled under ``tabled`` (`table_scene`: with the variant's name)."""
+
     scene: str
     elements: int
     method: MethodSettings
     t_end: float
     overrides: tuple  # ((key, value), ...) of the scene (the variant's effects included)
+    tabled: str = ""  # the scene's name in the table; "": ``scene``
+
+    @property
+    def tabled_as(self) -> str:
+        return self.tabled or self.scene
+
+    def identity(self) -> tuple:
+        """The run's place in the table (`RUN_KEY`)."""
+        return self.tabled_as, self.elements, self.method.name, setting_of(self.method)
 
 
 def axial_measures(scene, traj) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -225,8 +251,12 @@ def run_job(job: Job) -> dict:
         energy_dev=((diag["energy"] - diag["energy"].iloc[0]) / tmax).to_numpy() if len(diag) else [],
         axial_P=P / tmax, geometric_G=G / tmax, axial_P4=P4 / tmax, spin_S=S / tmax,
         tension_min=diag["tension_min"].to_numpy())
-    return {"label": name, "status": traj.status, "history": blocks(history),
+    return {**_run_columns(job), "label": name, "status": traj.status, "history": blocks(history),
             "task_time": time.perf_counter() - started}
+
+
+def _run_columns(job: Job) -> dict:
+    return {**dict(zip(RUN_KEY, job.identity())), "t_end": job.t_end}
 
 
 def blocks(history, width: float = BLOCK_S):
@@ -247,9 +277,153 @@ def blocks(history, width: float = BLOCK_S):
 def crash_row(job: Job, exc: BaseException) -> dict:
     from benchmark.core.engine import crash_reason
 
-    return {"label": f"{label(job.scene, job.elements, job.method)} [crashed]", "status": "crashed",
-            "reason": crash_reason(exc), "history": None}
+    return {**_run_columns(job), "label": f"{label(job.scene, job.elements, job.method)} [crashed]",
+            "status": "crashed", "reason": crash_reason(exc), "history": None}
 
 
 def describe(row: dict) -> str:
-    return f"horizon {row['label']}: {row['status']}"
+    """A finished run in the progress log: its label, scene and status."""
+    return f"horizon {row['label']}" + (f" on {row['scene']}" if row.get("scene") else "") + f": {row['status']}"
+
+
+# ------------------------------------------------------------------------------------------
+# The study on the one runner
+# ------------------------------------------------------------------------------------------
+def energy_scenes(scenes, overrides: tuple = (), log: Callable[[str], None] = log_stderr) -> list[str]:
+    """The scenes of ``scenes`` (names or paths) the energy study can run on over a long
+    horizon: those of fixed length (a reel ends at its limit); says which it leaves out."""
+    from integrators.base import situation
+    from models import load_scene
+
+    ov = {k: v for k, v in overrides if k != "elements"}
+    kept = [s for s in scenes if situation(load_scene(s, **ov)) == "fixed_length"]
+    left = [s for s in scenes if s not in kept]
+    if left:
+        log(f"horizon: {', '.join(left)} left out of the energy study (a reel ends at its limit, long before a "
+            "long horizon)")
+    return kept
+
+
+def jobs_for(t_end: float, scenes=None, overrides: tuple = (), selected=None, variants=("",)) -> list[Job]:
+    """The runs of `PLAN` (`runs`) on ``scenes`` (default `DEFAULT_SCENE`), each with its
+    ``variants``, to ``t_end``. ``overrides`` of the scenes: elements=N runs that N only."""
+    from models import load_scene
+
+    ov = dict(overrides)
+    sizes = (int(ov.pop("elements")),) if "elements" in ov else None  # --set elements=N: that N only
+    ov = tuple(sorted(ov.items()))
+    out = []
+    for s in list(scenes or [DEFAULT_SCENE]):
+        scene = load_scene(s, **dict(ov))
+        for v, n, m in runs(selected, sizes, variants):
+            job_ov = tuple(sorted({**dict(ov), **dict(variant_overrides(scene, v))}.items()))
+            out.append(Job(s, n, m, t_end, job_ov, table_scene(scene.name, v)))
+    return out
+
+
+def key(job: Job) -> str:
+    """What determines a run's history: the run, its horizon and overrides, and the code."""
+    return store.key_of(job.tabled_as, job.elements, job.method.name, job.method.settings, float(job.t_end),
+                        list(job.overrides), store.code_version(), MAX_STEPS,
+                        store.source_hash((), ("benchmark/studies/horizon.py",)))
+
+
+def expand(row: dict) -> list[dict]:
+    """The table rows of a run's row: its history, each saved block with the run's columns; none
+    for a run without one (its worker died)."""
+    if row.get("history") is None:
+        return []
+    run = {c: row[c] for c in (*RUN_KEY, "status", "t_end")}
+    return row["history"].assign(method=row["label"], **run).to_dict("records")
+
+
+def to_frame(rows: list[dict]):
+    return store.frame(rows, COLUMNS, extra=False)
+
+
+def read_earlier(df):
+    """The study's reading of an earlier energy_horizon.csv. A table from before the study had
+    sizes and scenes gets their columns (fixed_length, the scene's own N = 10, the integrator and
+    setting from the run's label); the histories of runs the study no longer makes (another
+    method or setting) are left out."""
+    import pandas as pd
+
+    from benchmark.studies.horizon_report import method_of
+
+    for c in ("t", "energy_error"):
+        if c in df:
+            df[c] = pd.to_numeric(df[c], errors="coerce")
+    if "method" in df:
+        label = df["method"].astype(str)
+        filled = {"integrator": label.map(method_of), "scene": DEFAULT_SCENE, "elements": 10,
+                  "setting": label.map(lambda m: m.split(" ", 1)[1] if " " in m else "")}
+        for c, value in filled.items():
+            if c not in df:
+                df[c] = value
+    if {"integrator", "setting"} <= set(df.columns):
+        made = {(m.name, setting_of(m)) for _, _, m in runs()}
+        still = [(i, s) in made for i, s in zip(df["integrator"], df["setting"])]
+        df = df[pd.Series(still, index=df.index, dtype=bool)]
+    return df
+
+
+def failure(row: dict) -> str | None:
+    """What failed, for a run without a history (its worker died); None for a run with one."""
+    if row.get("history") is not None:
+        return None
+    return (f"{row['integrator']} {row['setting']} N={row['elements']} on {row['scene']} "
+            f"({row.get('reason') or row['status']})")
+
+
+def _cost(job: Job) -> float:
+    from benchmark.runs import runner
+    from benchmark.runs.sweep import Task
+
+    m = job.method
+    return runner.task_costs([Task(job.scene, m.name, dt=m.settings.get("dt"), rtol=m.settings.get("rtol"),
+                                   t_end=job.t_end)])[0]
+
+
+def with_slack_orders(selected=None, variants=("",)) -> bool:
+    """Whether the `energy` command measures the observed orders with and without `slack` too: with
+    the slack variant and every method."""
+    return (variants is None or "slack" in variants) and selected is None
+
+
+def measure_slack_orders(out: Path, log: Callable[[str], None]) -> None:
+    """The observed orders with and without `slack` (`benchmark.studies.slack_orders`), kept when
+    its code did not change: a step of the `energy` command after its runs."""
+    from benchmark.studies import slack_orders
+
+    if slack_orders.fresh(out):
+        log(f"energy: {out}/{slack_orders.TABLE} kept (same code)")
+    else:
+        log(f"energy: observed orders with and without `slack` -> {out}/{slack_orders.TABLE} ...")
+        slack_orders.study(out, log=log)
+
+
+def study(t_end: float, scenes=None, *, overrides: tuple = (), selected=None, variants=("",),
+          workers: int | None = None, text: bool = False):
+    """The energy study as a study of `benchmark.core.study.run`: the runs of `PLAN` among the
+    ``selected`` methods (None: all) on ``scenes`` (default `DEFAULT_SCENE`) and their string
+    ``variants`` ("" the scene as it is, "slack" the tension-only string; None: all of
+    `VARIANTS`), to ``t_end``, one job per run on ``workers`` (0: this process; None: one per
+    run, at most the CPU count). Its report draws energy_horizon_SCENE.png of each of its scenes
+    from the whole table; ``text`` (the `energy` command): also the energy section
+    (`benchmark.studies.horizon_report.write`), after the observed orders with and without `slack`
+    (`measure_slack_orders`) when the slack variant and every method run."""
+    import os
+
+    from benchmark.core.study import Study
+    from benchmark.studies import horizon_report
+
+    jobs = jobs_for(t_end, scenes, overrides, selected, variants)
+    drawn = tuple(dict.fromkeys(j.tabled_as for j in jobs))
+    return Study(name="horizon", table=TABLE, identity=RUN_KEY, jobs=jobs, run_job=run_job,
+                 identity_of=Job.identity, frame=to_frame, key=key, expand=expand, read_earlier=read_earlier,
+                 reusable=lambda row: True,  # every history in the table is a run's result, whatever its status
+                 failure=failure, crash_row=crash_row, describe=describe, cost=_cost, unit="runs",
+                 report=lambda out, rows, provenance: horizon_report.write(out, rows, drawn, text=text),
+                 after_jobs=measure_slack_orders if text and with_slack_orders(selected, variants) else None,
+                 text_columns=("scene", "integrator", "setting"),
+                 workers=workers if workers is not None else min(len(jobs), os.cpu_count() or 1))

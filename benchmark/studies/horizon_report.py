@@ -1,6 +1,7 @@
-"""The energy study's figure (`energy_horizon`): the energy error over a long horizon, what is left
-after the derived modified-energy offset, the axial vibration and the least tension, per scene,
-drawn with the plot layer (`benchmark.figures.plots`)."""
+"""The energy study's report (`write`): its figure per scene (`energy_horizon`: the energy error
+over a long horizon, what is left after the derived modified-energy offset, the axial vibration
+and the least tension), drawn with the plot layer (`benchmark.figures.plots`), and for the
+`energy` command its text (`benchmark.studies.properties.write_energy_section`)."""
 
 from __future__ import annotations
 
@@ -16,6 +17,42 @@ from benchmark.figures.plots import plt, save_figure, style_axes
 from benchmark.core.policy import setting_value
 from benchmark.studies.properties import WINDOW_S, correction_of, is_symplectic, window_means
 from models.io import inside
+
+
+def write(out: Path, rows: list[dict], scenes, text: bool = False) -> str:
+    """The report of the energy study from its whole table (``rows``): energy_horizon_SCENE.png
+    of each of this run's ``scenes`` that has rows (the others' figures are kept as they are),
+    and with ``text`` the energy section of ``out``/README.md, or energy_horizon.md without one.
+    Returns a line saying what it wrote."""
+    from benchmark.studies import horizon, properties
+
+    out = Path(out)
+    table = horizon.to_frame(rows)
+    drawn = [energy_horizon(g, scene, out).name for scene, g in table.groupby("scene", sort=False)
+             if scene in set(scenes)]
+    wrote = ", ".join(f"{out}/{name}" for name in drawn)
+    if text and len(table):
+        readme = properties.write_energy_section(out)
+        if readme is not None:
+            wrote += f"{'; ' if wrote else ''}the energy section of {readme}"
+    return f"wrote {wrote}" if wrote else ""
+
+
+def listed(out: Path, scenes) -> list[tuple[str, str]]:
+    """(file name, note) of the energy study's figures in ``out``, one per scene of its table:
+    "" for this run's ``scenes``, "from an earlier run" for the others."""
+    from benchmark.studies import horizon
+
+    path = Path(out) / horizon.TABLE
+    try:
+        table = horizon.read_earlier(pd.read_csv(path)) if path.is_file() else None
+    except Exception:  # noqa: BLE001 - an unreadable table lists no figure
+        return []
+    if table is None or "scene" not in table:
+        return []
+    figures = (inside(out, f"energy_horizon_{scene}.png") for scene in dict.fromkeys(table["scene"]))
+    return [(f.name, "" if f.name in {f"energy_horizon_{s}.png" for s in scenes} else "from an earlier run")
+            for f in figures if f.is_file()]
 
 
 def method_of(label: str) -> str:
