@@ -4,7 +4,7 @@ documented outcome.
 * Default run: every concrete `python -m benchmark ...` command (and every row of the README's
   command table that is one) parses and passes its input checks, reaching the pipeline the docs
   say it runs, with the output they name (the pipelines replaced by recorders, in a copy of the
-  repository's results/); every template row (``simulate SCENE --integrator NAME ...``) names a
+  repository's results/); every template row (``simulate SCENE --integrators NAME ...``) names a
   command and options that exist; the Python examples run and give their documented outcome;
   `list` runs for real.
 * Slow (`-m slow`): every concrete command runs for real, as written, unshortened, in a copy of
