@@ -33,11 +33,12 @@ DOCS = (ROOT / "README.md", ROOT / "integrators" / "README.md", ROOT / "models" 
 NOT_RUN = {"check": "results/baseline/ only", "speed": "its --out file only", "stability": "results/stability/ only",
            "xval": "results/xval/ only", "reel-reversal": "stdout and its cache only",
            "answer": "results/ (its cheapest.csv, README.md, figures) and the README's answer block",
-           "verify": "writes nothing; tests/test_verify.py runs each documented verify"}
+           "verify": "writes nothing; tests/test_verify.py runs each documented verify",
+           "work-rule": "results/work_rule.md only, and needs the numba floors kept outside the repository"}
 #: Words of a template, not a command (an option to choose, a placeholder).
 TEMPLATE = re.compile(r"\[|\]|\(|\.\.\.|COMMAND|HOST|NAME|FILE|TRAJ|SCENE|DIR\b|\bN\b|\bH\b|\bR\b|\bS\b|\bM\b")
 SUBCOMMANDS = ("run", "check", "simulate", "figures", "speed", "stability", "xval", "reel-reversal", "orders", "energy",
-               "answer", "verify", "list")
+               "answer", "verify", "work-rule", "list")
 #: Commands whose real run is tested elsewhere because it needs a documented plugin installed
 #: (tests/test_verify.py installs the models README's effect package and runs them).
 NEEDS_EFFECT_EXAMPLE = re.compile(r"\btip_spring|\bverify\b")

@@ -1,4 +1,4 @@
-"""Command line: ``python -m benchmark {run,check,simulate,figures,speed,stability,answer,xval,reel-reversal,orders,energy,verify,list}``
+"""Command line: ``python -m benchmark {run,check,simulate,figures,speed,stability,answer,xval,reel-reversal,orders,energy,verify,work-rule,list}``
 (also ``reelbench``).
 
 Every command checks all of its input first -- option types and ranges, conflicting options,
@@ -496,6 +496,22 @@ def cmd_verify(args) -> int:
     return max(verify.verify(name, scene=args.scene, overrides=ov, log=print) for name in args.names)
 
 
+def cmd_work_rule(args) -> int:
+    """The flop rule against compiled floors (`benchmark.work.work_rule`); --floor, --elements and
+    --steps are checked by their parse functions."""
+    out = None if args.out == "-" else opt.writable_file(args.out)  # --out -: print only
+    from benchmark.work import work_rule
+    from models.io import atomic_write_text
+
+    text = work_rule.report(args.floor, args.elements, args.steps, args.repeats, command=_command(args))
+    if out is None:
+        print(text)
+    else:
+        atomic_write_text(out, text)
+        _log(f"wrote {out}")
+    return 0
+
+
 def cmd_list(args) -> int:
     from integrators import available, get_integrator, origin, plugin_errors
     from models import available_scenes
@@ -797,9 +813,29 @@ def _add_verify(sub) -> None:
     v.set_defaults(func=cmd_verify)
 
 
+def _add_work_rule(sub) -> None:
+    from benchmark.work import work_rule  # constants only (no JAX)
+
+    w = sub("work-rule", "the flop rule against compiled floors: does the work column charge methods in the "
+                         "proportion their compiled steps take time? -> --out (results/work_rule.md)",
+            "The flops of one step by the project's rule (benchmark/work/flops.py), and by the earlier rule, against "
+            "the time of one step of numba floors of the same equations kept outside the repository (--floor), "
+            "timed interleaved; the floors' own flops counted exactly (benchmark/work/opcount.py). Pin one core "
+            "(taskset -c 0) on a quiet machine: floor times on a loaded one are noisy.")
+    w.add_argument("--floor", required=True, type=common.as_type(work_rule.floor_dir, "floor directory"),
+                   help=f"directory of the numba floors ({', '.join(work_rule.FLOORS)})")
+    common.add_elements(w, "", least=2, default=_csv(work_rule.ELEMENTS))
+    w.add_argument("--steps", type=common.ruled(opt.positive_int, work_rule.check_steps, "steps"),
+                   default=work_rule.STEPS, help="steps per timed floor run at N = 10, fewer in proportion above")
+    w.add_argument("--repeats", type=opt.positive_int, default=work_rule.REPEATS, help="interleaved repeats (the "
+                                                                                       "least time counts)")
+    common.add_out(w, "the Markdown table; - = only print it", default=str(policy.WORK_RULE_FILE))
+    w.set_defaults(func=cmd_work_rule)
+
+
 #: The commands, in the order `--help` lists them.
 BUILDERS = (_add_run, _add_check, _add_simulate, _add_figures, _add_speed, _add_stability, _add_answer, _add_xval,
-            _add_reel_reversal, _add_orders, _add_energy, _add_verify)
+            _add_reel_reversal, _add_orders, _add_energy, _add_verify, _add_work_rule)
 
 
 def parser() -> argparse.ArgumentParser:
