@@ -99,8 +99,7 @@ def cmd_run(args) -> int:
     scene_names = args.scenes or list(sweep.EXTENDED_SCENES if args.extended else sweep.PAPER_SCENES)
     ov = common.overrides(args.set)
     with_t_end = {"t_end": args.t_end, **ov} if args.t_end is not None else ov  # validated with the scene
-    scenes = [load_scene(s, **with_t_end) for s in scene_names]
-    sweep.check_settings(args.dts, args.rtols)
+    scenes = [load_scene(s, **with_t_end) for s in scene_names]  # --dts, --rtols: in range (parsed)
     t_end = sweep.sweep_t_end(args.t_end, args.quick)
     for sc in scenes:
         if (t_end or sc.t_end) < policy.SAVE_EVERY:  # every run would end in an error row
