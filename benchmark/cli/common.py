@@ -152,8 +152,17 @@ def add_integrators(p, help: str, *, one: bool = False, default=None, registered
     (fixed-step methods, a declared setting) checks its own."""
     names = integrator_names if registered else opt.names
     if one:
-        p.add_argument("--integrators", dest="integrator", type=one_of(names, "integrator"), default=default,
-                       metavar="NAME", help=_joined("one integrator name, see `list` (this command takes one)", help))
+        # A string default would be parsed too (argparse), loading the registry for every refusal of
+        # the command; the project's own default needs no check: it is filled in after parsing.
+        shown = f"(default: {default})" if default is not None else ""
+        p.add_argument("--integrators", dest="integrator", type=one_of(names, "integrator"), metavar="NAME",
+                       help=_joined(_joined("one integrator name, see `list` (this command takes one)", help), shown))
+        if default is not None:
+            def fill(args) -> None:
+                if args.integrator is None:
+                    args.integrator = default
+
+            add_check(p, fill)
     else:
         p.add_argument("--integrators", type=names, default=default,
                        help=_joined("comma-separated integrator names, see `list`", help))
