@@ -102,10 +102,10 @@ integrator_names = ruled(opt.names, _registered, "integrator names")
 def jobs_in_workers(why: str) -> Callable:
     """--jobs of a command that runs its jobs in worker processes only: 0 refused, saying why."""
     def parse(text: str) -> int:
-        value = opt.nonnegative_int(text)
-        if value == 0:
-            raise argparse.ArgumentTypeError(f"{text!r} is invalid (allowed: an integer >= 1): 0 (in this process) "
-                                             f"is not offered here: {why}")
+        value = opt.integer(text)
+        if value < 1:
+            raise argparse.ArgumentTypeError(f"{text!r} is invalid (allowed: an integer >= 1)" + (
+                f": 0 (in this process) is not offered here: {why}" if value == 0 else ""))
         return value
 
     parse.__name__ = "worker count"
