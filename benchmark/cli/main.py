@@ -184,8 +184,6 @@ def _describe(names) -> str:
 def cmd_simulate(args) -> int:
     from models import load_scene
 
-    if args.atol is not None and args.rtol is None:
-        raise UsageError("--atol needs --rtol (an adaptive method); with --dt the step is fixed and atol is unused")
     scene = load_scene(args.scene, **common.overrides(args.set))  # --integrators: a registered name (parsed)
     if args.t_end is not None:
         scene = scene.with_(t_end=args.t_end)  # the same range and plausibility rules as the file
@@ -295,9 +293,6 @@ def cmd_check(args) -> int:
     command = check.UPDATE_COMMAND + "".join(f" --{k} {shlex.quote(v)}" for k, v in
                                              (("integrators", ",".join(args.integrators or ())),
                                               ("baseline", args.baseline)) if v)
-    if args.allow_new and args.update:
-        raise UsageError("--allow-new is for a check against the baseline; --update writes the rows of every "
-                         "integrator it runs")
     from benchmark.cli import pipelines
 
     # --integrators and --allow-new: registered names, --factor and --order-margin in range (parsed)
@@ -626,7 +621,19 @@ def _add_check(sub) -> None:
     c.add_argument("--allow-new", type=common.integrator_names, metavar="NAMES",
                    help="comma-separated integrators that may lack baseline rows (new methods); any other selected "
                         "integrator without rows to compare fails the check (exit 2)")
+    common.add_check(c, _allow_new_checks_against_the_baseline)
     c.set_defaults(func=cmd_check)
+
+
+def _allow_new_checks_against_the_baseline(args) -> None:
+    if args.allow_new and args.update:
+        raise UsageError("--allow-new is for a check against the baseline; --update writes the rows of every "
+                         "integrator it runs")
+
+
+def _atol_needs_rtol(args) -> None:
+    if args.atol is not None and args.rtol is None:
+        raise UsageError("--atol needs --rtol (an adaptive method); with --dt the step is fixed and atol is unused")
 
 
 def _add_simulate(sub) -> None:
@@ -643,6 +650,7 @@ def _add_simulate(sub) -> None:
                                                             f"to rtol × {policy.ATOL_FACTOR:g}")
     s.add_argument("--atol", type=opt.positive_float,
                    help=f"absolute tolerance, with --rtol (default: rtol × {policy.ATOL_FACTOR:g})")
+    common.add_check(s, _atol_needs_rtol)
     common.add_t_end(s, "(default: the scene's t_end)")
     s.add_argument("--save-every", type=opt.positive_float, default=policy.SAVE_EVERY, help="save interval in s")
     common.add_budget(s, "its trajectory is saved (a first Ctrl-C ends the run the same way, a second at once)")
