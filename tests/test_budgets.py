@@ -28,10 +28,10 @@ def test_simulate_runs_within_default_budgets_that_options_raise(monkeypatch, tm
     seen = []
     monkeypatch.setattr(pipelines, "simulate", lambda scene, integ, settings, out, **k: seen.append(settings) or 0)
     out = str(tmp_path / "t.npz")
-    assert main(["simulate", "fixed_length", "--integrator", "rk45", "--rtol", "1e-13", "--t-end", "1e5",
+    assert main(["simulate", "fixed_length", "--integrators", "rk45", "--rtol", "1e-13", "--t-end", "1e5",
                  "--out", out]) == 0
     assert seen[-1]["max_steps"] == opt.SOLVE_MAX_STEPS and seen[-1]["time_limit"] == opt.SOLVE_TIME_LIMIT
-    assert main(["simulate", "fixed_length", "--integrator", "rk45", "--rtol", "1e-13", "--t-end", "1e5",
+    assert main(["simulate", "fixed_length", "--integrators", "rk45", "--rtol", "1e-13", "--t-end", "1e5",
                  "--max-steps", "20000000", "--time-limit", "7200", "--out", out]) == 0
     assert seen[-1]["max_steps"] == 20_000_000 and seen[-1]["time_limit"] == 7200.0
     for bad in (["--max-steps", "0"], ["--time-limit", "-1"], ["--time-limit", "nan"]):

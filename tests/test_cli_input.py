@@ -69,7 +69,7 @@ CASES = [
     (["speed", "--elements", "0"], ["argument --elements", "integer >= 1"]),
     (["speed", "--elements", "abc"], ["argument --elements", "'abc' is not an integer"]),
     (["speed", "--elements", "1000000"], ["'string.elements'", "implausible"]),
-    (["reel-reversal", "--methods", "rk45"], ["--methods: 'rk45' has no step list", "allowed: lgvi"]),
+    (["reel-reversal", "--integrators", "rk45"], ["--integrators: 'rk45' has no step list", "allowed: lgvi"]),
     (["reel-reversal", "--t-end", "0.5"], ["--t-end = 0.5 is invalid", "multiple of 0.08 s"]),
     (["reel-reversal", "--cache-dir", "{d}/afile"], ["--cache-dir", "is a file, not a directory"]),
     (["stability", "--jobs", "-1"], ["argument --jobs", ">= 0"]),
@@ -102,7 +102,7 @@ def test_figures_refuses_a_trajectory_of_another_scene(tmp_path, capsys):
 
     traj = get_integrator("lgvi").solve(load_scene("fixed_length", elements=1), t_end=0.02, dt=0.01)
     traj.save(tmp_path / "t.npz")
-    assert main(["figures", str(tmp_path / "t.npz"), "--scene", "deployment"]) == 2
+    assert main(["figures", str(tmp_path / "t.npz"), "--scenes", "deployment"]) == 2
     err = capsys.readouterr().err
     assert "does not fit scene 'deployment'" in err and "recorded: 'fixed_length'" in err
 
@@ -220,7 +220,7 @@ NOTHING = [
     (["simulate", "fixed_length", "--dt", "0.01", "--out", ""], ["--out is empty", "give a file name"]),
     (["simulate", "fixed_length", "--dt", "0.01", "--out", "{d}/o/t.npz", "--save-every", "100"],
      ["--save-every 100", "give a save interval"]),
-    (["simulate", "fixed_length", "--integrator", "nosuch", "--dt", "0.01", "--out", "{d}/o/t.npz"],
+    (["simulate", "fixed_length", "--integrators", "nosuch", "--dt", "0.01", "--out", "{d}/o/t.npz"],
      ["unknown integrator 'nosuch'"]),
     (["speed", "--dt", "1e300", "--out", "{d}/o/speed.md"], ["t_end", "implausible"]),
     (["speed", "--out", ""], ["--out is empty"]),
@@ -228,8 +228,8 @@ NOTHING = [
     (["stability", "--integrators", "nosuch", "--out", "{d}/o"], ["unknown integrator 'nosuch'"]),
     (["stability", "--out", ""], ["--out is empty"]),
     (["xval", "--t-end", "1e12", "--out", "{d}/o"], ["'t_end'", "implausible"]),
-    (["xval", "--scene", "deployment", "--out", "{d}/o"], ["cannot translate scene 'deployment'"]),
-    (["reel-reversal", "--methods", "nosuch", "--cache-dir", "{d}/o"], ["--methods", "'nosuch'"]),
+    (["xval", "--scenes", "deployment", "--out", "{d}/o"], ["cannot translate scene 'deployment'"]),
+    (["reel-reversal", "--integrators", "nosuch", "--cache-dir", "{d}/o"], ["--integrators", "'nosuch'"]),
     (["run", "--integrators", "nosuch", "--quick", "--out", "{d}/o"], ["unknown integrator 'nosuch'"]),
     (["run", "--quick", "--out", ""], ["--out is empty"]),
     (["check", "--update", "--allow-new", "lgvi"], ["--allow-new is for a check against the baseline"]),
@@ -282,7 +282,7 @@ OPTIONS = [
     (["simulate", "fixed_length", "--rtol", "1e-6", "--out", "{d}/o/t.npz"], "--atol", POSITIVE_FLOAT),
     (["simulate", "fixed_length", "--dt", "0.01", "--out", "{d}/o/t.npz"], "--t-end", POSITIVE_FLOAT + ["1e12"]),
     (["simulate", "fixed_length", "--dt", "0.01", "--out", "{d}/o/t.npz"], "--save-every", POSITIVE_FLOAT + ["1e3"]),
-    (["simulate", "fixed_length", "--dt", "0.01", "--out", "{d}/o/t.npz"], "--integrator", ["nosuch", "", "../x"]),
+    (["simulate", "fixed_length", "--dt", "0.01", "--out", "{d}/o/t.npz"], "--integrators", ["nosuch", "", "../x"]),
     (["simulate", "fixed_length", "--dt", "0.01", "--out", "{d}/o/t.npz"], "--set",
      ["mass", "=1", "mass=-1", "mass=1e300", "elements=0", "elements=1e6", "nosuch=1", "name=../x", "t_end=1e12",
       "box=[0,0,0]", "direction=[1e200,0,1e200]", "deployed_length=1e-300", "control_moment=5"]),
@@ -291,18 +291,18 @@ OPTIONS = [
     (["speed", "--out", "{d}/o/s.md"], "--repeats", POSITIVE_INT),
     (["speed", "--out", "{d}/o/s.md"], "--dt", POSITIVE_FLOAT + ["1e300"]),
     (["speed", "--out", "{d}/o/s.md"], "--autodiff-max-n", POSITIVE_INT),
-    (["speed", "--out", "{d}/o/s.md"], "--methods", ["nosuch", "rk45", ","]),
+    (["speed", "--out", "{d}/o/s.md"], "--integrators", ["nosuch", "rk45", ","]),
     (["speed", "--out", "{d}/o/s.md"], "--scenes", ["nosuch", ","]),
     (["stability", "--out", "{d}/o"], "--jobs", NONNEGATIVE_INT),
     (["stability", "--out", "{d}/o"], "--scenes", ["nosuch", ","]),
     (["stability", "--out", "{d}/o"], "--integrators", ["nosuch", ","]),
     (["xval", "--out", "{d}/o"], "--elements", POSITIVE_INT + ["1", "5"]),
     (["xval", "--out", "{d}/o"], "--t-end", POSITIVE_FLOAT + ["1e12"]),
-    (["xval", "--out", "{d}/o"], "--scene", ["nosuch", "deployment", ""]),
+    (["xval", "--out", "{d}/o"], "--scenes", ["nosuch", "deployment", ""]),
     (["reel-reversal", "--cache-dir", "{d}/o"], "--elements", POSITIVE_INT),
     (["reel-reversal", "--cache-dir", "{d}/o"], "--t-end", POSITIVE_FLOAT + ["0.5"]),
     (["reel-reversal", "--cache-dir", "{d}/o"], "--jobs", NONNEGATIVE_INT),
-    (["reel-reversal", "--cache-dir", "{d}/o"], "--methods", ["nosuch", "rk45"]),
+    (["reel-reversal", "--cache-dir", "{d}/o"], "--integrators", ["nosuch", "rk45"]),
     (["check", "--baseline", "{d}/b.csv"], "--factor", ["1", "0.5", "nan", "x", ""]),
     (["check", "--baseline", "{d}/b.csv"], "--order-margin", ["-1", "nan", "x"]),
     (["check", "--baseline", "{d}/b.csv"], "--jobs", POSITIVE_INT),
@@ -338,7 +338,7 @@ def test_more_than_150_bad_inputs_are_each_refused_with_exit_2_and_the_fix(tmp_p
     assert not (tmp_path / "o").exists()
 
 
-@pytest.mark.parametrize("args", [["simulate", "fixed_length", "--integrator", "nosuch", "--dt", "0.01"],
+@pytest.mark.parametrize("args", [["simulate", "fixed_length", "--integrators", "nosuch", "--dt", "0.01"],
                                   ["run", "--integrators", "nosuch", "--quick", "--out", "{d}/never"],
                                   ["stability", "--scenes", "nosuch", "--out", "{d}/never"],
                                   ["check", "--factor", "1"], ["check", "--integrators", "nosuch"],
@@ -359,9 +359,9 @@ def test_refusals_that_need_the_registry_or_a_study_do_not_import_jax(tmp_path, 
 
 @pytest.mark.parametrize("args, fragments", [
     (["simulate", "fixed_length"], ["lgvi needs a setting", "give --dt (a fixed step)"]),
-    (["simulate", "fixed_length", "--integrator", "dop853"], ["dop853 needs a setting", "give --rtol (a tolerance)"]),
-    (["simulate", "fixed_length", "--integrator", "tsit5"], ["give --dt (a fixed step) or --rtol (a tolerance)"]),
-    (["simulate", "fixed_length", "--integrator", "dop853", "--dt", "0.01"], ["--dt: dop853 is adaptive"]),
+    (["simulate", "fixed_length", "--integrators", "dop853"], ["dop853 needs a setting", "give --rtol (a tolerance)"]),
+    (["simulate", "fixed_length", "--integrators", "tsit5"], ["give --dt (a fixed step) or --rtol (a tolerance)"]),
+    (["simulate", "fixed_length", "--integrators", "dop853", "--dt", "0.01"], ["--dt: dop853 is adaptive"]),
     (["simulate", "fixed_length", "--rtol", "1e-6"], ["--rtol: lgvi is a fixed-step method", "give --dt"]),
     (["simulate", "fixed_length", "--dt", "5", "--t-end", "0.1", "--save-every", "0.1"],
      ["--dt 5 is longer than the run", "give --dt <= t_end"]),
@@ -390,4 +390,4 @@ def test_figures_does_not_follow_a_scene_path_recorded_in_a_trajectory(tmp_path,
     traj.save(tmp_path / "t.npz")
     assert main(["figures", str(tmp_path / "t.npz"), "--out", str(tmp_path / "f.png")]) == 2
     line = capsys.readouterr().err.strip().splitlines()[-1]
-    assert "which is not a scene name: give --scene" in line, line
+    assert "which is not a scene name: give --scenes" in line, line

@@ -4,7 +4,7 @@ documented outcome.
 * Default run: every concrete `python -m benchmark ...` command (and every row of the README's
   command table that is one) parses and passes its input checks, reaching the pipeline the docs
   say it runs, with the output they name (the pipelines replaced by recorders, in a copy of the
-  repository's results/); every template row (``simulate SCENE --integrator NAME ...``) names a
+  repository's results/); every template row (``simulate SCENE --integrators NAME ...``) names a
   command and options that exist; the Python examples run and give their documented outcome;
   `list` runs for real.
 * Slow (`-m slow`): every concrete command runs for real, as written, unshortened, in a copy of
@@ -33,11 +33,12 @@ DOCS = (ROOT / "README.md", ROOT / "integrators" / "README.md", ROOT / "models" 
 NOT_RUN = {"check": "results/baseline/ only", "speed": "its --out file only", "stability": "results/stability/ only",
            "xval": "results/xval/ only", "reel-reversal": "stdout and its cache only",
            "answer": "results/ (its cheapest.csv, README.md, figures) and the README's answer block",
-           "verify": "writes nothing; tests/test_verify.py runs each documented verify"}
+           "verify": "writes nothing; tests/test_verify.py runs each documented verify",
+           "work-rule": "results/work_rule.md only, and needs the numba floors kept outside the repository"}
 #: Words of a template, not a command (an option to choose, a placeholder).
 TEMPLATE = re.compile(r"\[|\]|\(|\.\.\.|COMMAND|HOST|NAME|FILE|TRAJ|SCENE|DIR\b|\bN\b|\bH\b|\bR\b|\bS\b|\bM\b")
 SUBCOMMANDS = ("run", "check", "simulate", "figures", "speed", "stability", "xval", "reel-reversal", "orders", "energy",
-               "answer", "verify", "list")
+               "answer", "verify", "work-rule", "list")
 #: Commands whose real run is tested elsewhere because it needs a documented plugin installed
 #: (tests/test_verify.py installs the models README's effect package and runs them).
 NEEDS_EFFECT_EXAMPLE = re.compile(r"\btip_spring|\bverify\b")

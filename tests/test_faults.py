@@ -214,7 +214,7 @@ LONG = {  # each runs for minutes if not stopped
     "check": ["check", "--integrators", "lgvi,rk45", "--jobs", "1"],
     "stability": ["stability", "--scenes", "stiff_string", "--integrators", "lgvi", "--jobs", "0", "--out", "{d}/s"],
     "xval": ["xval", "--elements", "5,10,20,40,80,160", "--out", "{d}/x"],
-    "speed": ["speed", "--elements", "10", "--scenes", "fixed_length", "--methods", "lgvi", "--steps", "2000000",
+    "speed": ["speed", "--elements", "10", "--scenes", "fixed_length", "--integrators", "lgvi", "--steps", "2000000",
               "--repeats", "50", "--rhs", "", "--out", "{d}/speed.md"],
 }
 #: simulate ends its run where it is and saves it; the studies keep (merge) what finished
@@ -334,8 +334,8 @@ def test_a_scene_file_that_cannot_be_a_scene_is_one_error_line_for_every_command
     path = tmp_path / "bad.toml"
     path.write_bytes(content.encode("utf-8", "surrogateescape"))
     for args in (["simulate", str(path), "--dt", "0.01"], ["run", "--scenes", str(path), "--out", str(tmp_path / "o")],
-                 ["speed", "--scenes", str(path)], ["xval", "--scene", str(path), "--out", str(tmp_path / "o")],
-                 ["reel-reversal", "--scene", str(path), "--cache-dir", str(tmp_path / "o")]):
+                 ["speed", "--scenes", str(path)], ["xval", "--scenes", str(path), "--out", str(tmp_path / "o")],
+                 ["reel-reversal", "--scenes", str(path), "--cache-dir", str(tmp_path / "o")]):
         rc = main(args)
         err, line = outcome(capsys)
         assert rc == 2 and str(path) in line and fragment in line, (args, err)
@@ -635,9 +635,9 @@ def test_an_energy_study_whose_worker_crashed_ends_with_exit_1(tmp_path, monkeyp
 
 
 def test_reel_reversal_on_a_scene_without_a_reel_is_refused(tmp_path, capsys):
-    rc = main(["reel-reversal", "--scene", "fixed_length", "--cache-dir", str(tmp_path / "c")])
+    rc = main(["reel-reversal", "--scenes", "fixed_length", "--cache-dir", str(tmp_path / "c")])
     err, line = outcome(capsys)
-    assert rc == 2 and "'fixed_length' has no reel" in line and "--scene reel_reversal" in line, err
+    assert rc == 2 and "'fixed_length' has no reel" in line and "--scenes reel_reversal" in line, err
     assert not (tmp_path / "c").exists()
 
 

@@ -89,7 +89,7 @@ def test_simulate_at_a_step_that_does_not_divide_the_save_interval_ends_at_t_end
     from integrators import Trajectory
 
     out = tmp_path / "t.npz"
-    assert main(["simulate", "fixed_length", "--integrator", "lie_rk4", "--dt", "0.003", "--t-end", "0.5",
+    assert main(["simulate", "fixed_length", "--integrators", "lie_rk4", "--dt", "0.003", "--t-end", "0.5",
                  "--set", "elements=2", "--out", str(out)]) == 0
     traj = Trajectory.load(out)
     assert traj.t[-1] == 0.5 and len(traj.t) == 26

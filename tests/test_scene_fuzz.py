@@ -467,7 +467,7 @@ def set_texts():
 
 def commands(key_text, out: Path):
     setting = f"{key_text[0]}={key_text[1]}"
-    return [["simulate", "retrieval", "--integrator", "lgvi", "--dt", "0.01", "--set", setting,
+    return [["simulate", "retrieval", "--integrators", "lgvi", "--dt", "0.01", "--set", setting,
              "--out", str(out / "o" / "t.npz")],
             ["run", "--scenes", "retrieval", "--integrators", "lgvi", "--set", setting, "--out", str(out / "o")]]
 
@@ -477,7 +477,8 @@ def commands(key_text, out: Path):
                                  HealthCheck.function_scoped_fixture])
 @given(key_text=set_texts())
 def test_hostile_set_values_on_simulate_and_run_are_one_error_line_and_exit_2(tmp_path, capsys, stubbed, key_text):
-    from benchmark.cli.main import _overrides, main
+    from benchmark.cli.common import overrides as _overrides
+    from benchmark.cli.main import main
     from benchmark.core.options import UsageError
 
     try:
@@ -508,7 +509,7 @@ def test_the_reported_command_lines_end_in_one_error_line_and_exit_2(tmp_path, s
     root = Path(__file__).resolve().parents[1]
     env = dict(os.environ, PYTHONPATH=str(root) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     env.pop("REELBENCH_DEBUG", None)
-    proc = subprocess.run([sys.executable, "-m", "benchmark", "simulate", "retrieval", "--integrator", "lgvi",
+    proc = subprocess.run([sys.executable, "-m", "benchmark", "simulate", "retrieval", "--integrators", "lgvi",
                            "--dt", "0.01", "--set", setting, "--out", str(tmp_path / "t.npz")],
                           capture_output=True, text=True, env=env, cwd=tmp_path, timeout=120)
     assert proc.returncode == 2, proc.stderr

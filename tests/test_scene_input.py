@@ -111,17 +111,17 @@ EVIL = "../../elsewhere/evil"
 #: file named EVIL, {d}: a trajectory file); each must refuse it before writing anything.
 TRAVERSALS = [
     ["simulate", "{s}", "--set", "elements=1", "--t-end", "0.02", "--dt", "0.01"],
-    ["simulate", "fixed_length", "--integrator", EVIL, "--t-end", "0.02", "--dt", "0.01"],
+    ["simulate", "fixed_length", "--integrators", EVIL, "--t-end", "0.02", "--dt", "0.01"],
     ["run", "--scenes", "{s}", "--integrators", "lgvi", "--quick", "--out", "out"],
     ["run", "--scenes", "fixed_length", "--integrators", EVIL, "--quick", "--out", "out"],
-    ["figures", "{d}", "--scene", "{s}"],
+    ["figures", "{d}", "--scenes", "{s}"],
     ["speed", "--scenes", "{s}", "--elements", "2", "--out", "out/speed.md"],
     ["stability", "--scenes", EVIL, "--out", "out"],
     ["stability", "--integrators", EVIL, "--out", "out"],
-    ["xval", "--scene", "{s}", "--out", "out"],
+    ["xval", "--scenes", "{s}", "--out", "out"],
     ["check", "--update", "--integrators", EVIL, "--baseline", "out/drift.csv"],
-    ["reel-reversal", "--scene", "{s}", "--cache-dir", "out"],
-    ["reel-reversal", "--methods", EVIL, "--cache-dir", "out"],
+    ["reel-reversal", "--scenes", "{s}", "--cache-dir", "out"],
+    ["reel-reversal", "--integrators", EVIL, "--cache-dir", "out"],
 ]
 
 

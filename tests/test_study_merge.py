@@ -133,7 +133,7 @@ def test_speed_stopped_at_any_measurement_keeps_every_committed_row(tmp_path, mo
     before = pd.read_csv(tmp_path / "lgvi_speed.csv")
     md_before = (tmp_path / "lgvi_speed.md").read_text()
     monkeypatch.setattr(lgvi_speed, "run_job", _stop_at(_fake_speed, stop))
-    rc = main(["speed", "--methods", "lgvi,tsit5", "--rhs", "", "--out", str(tmp_path / "lgvi_speed.md")])
+    rc = main(["speed", "--integrators", "lgvi,tsit5", "--rhs", "", "--out", str(tmp_path / "lgvi_speed.md")])
     err = _outcome(capsys)
     after = pd.read_csv(tmp_path / "lgvi_speed.csv")
     key = ["kind", "method", "rhs", "scene", "N"]
@@ -157,7 +157,7 @@ def test_speed_of_one_n_says_why_there_is_no_ratio_instead_of_nan(tmp_path, monk
     from benchmark.studies import lgvi_speed
 
     monkeypatch.setattr(lgvi_speed, "run_job", _fake_speed)
-    assert main(["speed", "--methods", "lgvi", "--rhs", "", "--out", str(tmp_path / "s.md")]) == 0
+    assert main(["speed", "--integrators", "lgvi", "--rhs", "", "--out", str(tmp_path / "s.md")]) == 0
     _outcome(capsys)
     md = (tmp_path / "s.md").read_text()
     assert "nan" not in md and "None" not in md and "needs N = 10 and an N in 11–160" in md
@@ -169,7 +169,7 @@ def test_speed_will_not_overwrite_a_file_whose_rows_it_cannot_keep(tmp_path, mon
 
     (tmp_path / "s.md").write_text("# Speed\n")
     monkeypatch.setattr(lgvi_speed, "run_job", lambda job: pytest.fail("started work"))
-    assert main(["speed", "--methods", "lgvi", "--out", str(tmp_path / "s.md")]) == 2
+    assert main(["speed", "--integrators", "lgvi", "--out", str(tmp_path / "s.md")]) == 2
     assert "without its rows table" in _outcome(capsys) and (tmp_path / "s.md").read_text() == "# Speed\n"
 
 

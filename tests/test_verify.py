@@ -137,7 +137,7 @@ def test_every_builtin_integrator_passes(name):
 
 
 #: Effects whose keys have no default are checked in a shipped scene that lists them, as
-#: `verify --scene` does (without one, check_effect refuses them: ValueError naming the keys).
+#: `verify --scenes` does (without one, check_effect refuses them: ValueError naming the keys).
 EFFECT_SCENES = {"buoyancy": "towed", "drag": "towed"}
 
 
@@ -233,8 +233,8 @@ def test_the_documented_effect_plugin_passes_verify(tmp_path):
     work.mkdir()
     (work / "tip_spring_demo.toml").write_text(_readme_block(readme, 'name = "tip_spring_demo"', lang="toml"))
     text = " ".join(readme.read_text().split())
-    assert "`python -m benchmark verify tip_spring tip_damper spin_damper --scene tip_spring_demo.toml`" in text
-    proc = _benchmark(site, "verify", "tip_spring", "tip_damper", "spin_damper", "--scene", "tip_spring_demo.toml",
+    assert "`python -m benchmark verify tip_spring tip_damper spin_damper --scenes tip_spring_demo.toml`" in text
+    proc = _benchmark(site, "verify", "tip_spring", "tip_damper", "spin_damper", "--scenes", "tip_spring_demo.toml",
                       cwd=work)
     print(proc.stdout)
     assert proc.returncode == 0, proc.stdout + proc.stderr[-2000:]
@@ -252,7 +252,7 @@ def test_the_documented_effect_plugin_passes_verify(tmp_path):
     assert "body loads' Ω·M" in reports[2] and "≤ 0 (dissipative)" in reports[2], reports[2]
     # without a scene, its required keys are named and the command refuses (exit 2) before any work
     bare = _benchmark(site, "verify", "tip_spring", cwd=work)
-    assert bare.returncode == 2 and "tip_spring.stiffness" in bare.stderr and "--scene" in bare.stderr, bare.stderr
+    assert bare.returncode == 2 and "tip_spring.stiffness" in bare.stderr and "--scenes" in bare.stderr, bare.stderr
     listing = _benchmark(site, "list", cwd=work)
     assert "tip_damper (plugin, package my-effects 0.1)" in listing.stdout, listing.stdout
 
@@ -261,5 +261,5 @@ def test_verify_refuses_unknown_names_and_misplaced_options():
     from benchmark.cli.main import main
 
     assert main(["verify", "no_such_method"]) == 2
-    assert main(["verify", "lgvi", "--scene", "fixed_length"]) == 2
-    assert main(["verify", "carnot", "--scene", "fixed_length"]) == 2  # the scene does not list it
+    assert main(["verify", "lgvi", "--scenes", "fixed_length"]) == 2
+    assert main(["verify", "carnot", "--scenes", "fixed_length"]) == 2  # the scene does not list it

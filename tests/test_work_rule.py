@@ -1,27 +1,46 @@
-"""benchmark.work.work_rule: the flop rule against compiled floors (the measurement needs the floors'
-directory and numba, outside the project; here its input checks and its verdicts)."""
+"""`python -m benchmark work-rule` (benchmark.work.work_rule): the flop rule against compiled floors
+(the measurement needs the floors' directory and numba, outside the project; here its input
+checks, its writing and its verdicts)."""
 
 import math
 
 import pandas as pd
 import pytest
 
+from benchmark.cli.main import main
 from benchmark.work import work_rule
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["--floor", "/nonexistent"], "error: --floor /nonexistent: no lgvi_nb.py, lgvi_nb2.py, rhs_nb.py there"),
+    (["--floor", "/nonexistent"], "error: argument --floor: '/nonexistent': no lgvi_nb.py, lgvi_nb2.py, rhs_nb.py there"),
 ])
 def test_bad_input_is_refused_before_any_work(argv, message, capsys):
-    assert work_rule.main(argv) == 2
-    assert capsys.readouterr().err.startswith(message)
+    assert main(["work-rule", *argv]) == 2
+    assert message in capsys.readouterr().err.strip().splitlines()[-1]
 
 
 def test_bad_element_counts_are_refused(tmp_path, capsys):
     for f in ("lgvi_nb.py", "lgvi_nb2.py", "rhs_nb.py"):
         (tmp_path / f).write_text("")
-    assert work_rule.main(["--floor", str(tmp_path), "--elements", "10,x"]) == 2
-    assert "error: --elements '10,x' is invalid" in capsys.readouterr().err
+    for elements, message in (("10,x", "argument --elements: 'x' is not an integer"),
+                              ("10,1", "argument --elements: '10,1' is invalid (allowed: one or more integers >= 2")):
+        assert main(["work-rule", "--floor", str(tmp_path), "--elements", elements]) == 2
+        assert message in capsys.readouterr().err, elements
+    assert main(["work-rule", "--floor", str(tmp_path), "--steps", "9"]) == 2
+    assert "argument --steps: 9 is invalid (allowed: an integer >= 10" in capsys.readouterr().err
+
+
+def test_work_rule_is_a_command_of_the_command_line(tmp_path, monkeypatch, capsys):
+    """`python -m benchmark work-rule` measures (here replaced) and writes --out, headed by the command."""
+    for f in ("lgvi_nb.py", "lgvi_nb2.py", "rhs_nb.py"):
+        (tmp_path / f).write_text("")
+    seen = {}
+    monkeypatch.setattr(work_rule, "report", lambda floor, elements, steps, repeats, *, command:
+                        seen.update(elements=elements, command=command) or "# table\n")
+    out = tmp_path / "w.md"
+    assert main(["work-rule", "--floor", str(tmp_path), "--elements", "10,40", "--out", str(out)]) == 0
+    assert out.read_text() == "# table\n" and seen["elements"] == [10, 40]
+    assert seen["command"].startswith("python -m benchmark work-rule --floor")
 
 
 def test_a_pair_agrees_within_a_factor_1_5_either_way():
@@ -37,7 +56,7 @@ def test_the_table_counts_the_pairs_within_the_tolerance():
                            "agreement_compiled": 1.25, "within_compiled": True, "ratio_lowered": 2.0,
                            "agreement_lowered": 0.5, "within_lowered": False, "ratio_old": 1.8,
                            "agreement_old": 0.45, "within_old": False}])
-    text = work_rule.markdown(methods, pairs, load="load average: 0.1", command="python -m benchmark.work.work_rule")
+    text = work_rule.markdown(methods, pairs, load="load average: 0.1", command="python -m benchmark work-rule")
     assert "compiled program: **1 of 1**" in text and "lowered program: **0 of 1**" in text
     assert "earlier rule (evaluations × one isolated right-hand side): **0 of 1**" in text
     assert "load average: 0.1" in text
@@ -106,7 +125,7 @@ def test_the_table_says_what_the_floors_own_count_keeps():
                            **{f"agreement_{k}": v for k, v in agreement.items()},
                            **{f"within_{k}": work_rule._within(v) for k, v in agreement.items()},
                            "lowered_over_floor_flops": 0.75 / 0.613}])
-    text = work_rule.markdown(methods, pairs, load="load average: 0.1", command="python -m benchmark.work.work_rule")
+    text = work_rule.markdown(methods, pairs, load="load average: 0.1", command="python -m benchmark work-rule")
     assert "the floors' own flops (counted exactly): **0 of 1**" in text
     assert "lowered program: **1 of 1**" in text and "compiled program: **0 of 1**" in text
     assert "run at 3.2–5.3 GFlop/s" in text and "(the farthest: lie_rk4 / lgvi at N = 160,\n0.613); counting ÷ and √ as 4 flops, 0 of 1." in text

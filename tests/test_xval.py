@@ -201,7 +201,7 @@ def test_moordyn_is_not_given_a_rigid_body(body_scene):
 
 
 def test_cli_refuses_with_exit_code_2(capsys, tmp_path):
-    assert cli_main(["xval", "--scene", "deployment", "--out", str(tmp_path / "x")]) == 2
+    assert cli_main(["xval", "--scenes", "deployment", "--out", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err
     assert "cannot translate scene 'deployment'" in err and "a reel" in err
     assert not (tmp_path / "x").exists()  # refused before any work

@@ -1,1 +1,2 @@
-"""The command line: parsing and checking each command's input, and the pipelines it calls."""
+"""The command line: parsing and checking each command's input (`main`; the options several
+commands share are declared once, in `common`), and the pipelines it calls."""

@@ -1,4 +1,4 @@
-"""Command line: ``python -m benchmark {run,check,simulate,figures,speed,stability,answer,xval,reel-reversal,orders,energy,list,verify}``
+"""Command line: ``python -m benchmark {run,check,simulate,figures,speed,stability,answer,xval,reel-reversal,orders,energy,verify,work-rule,list}``
 (also ``reelbench``).
 
 Every command checks all of its input first -- option types and ranges, conflicting options,
@@ -12,47 +12,28 @@ from); a file-system fault during the work (a full disk, a read-only place) is o
 any other exception is an internal error and keeps its traceback. Ctrl-C or SIGTERM stops
 every command with one line saying what was saved (exit status 130 or 143).
 
+The options that several commands share (--scenes, --integrators, --jobs, --fresh, the solve
+budgets, --executor, --set, --t-end, --elements, --out) are declared once, with their help, default
+and parse function, in `benchmark.cli.common`; each command's builder below calls the ones it has.
+
 The model and the scene format: models/README.md. The integrators: integrators/README.md.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shlex
 import sys
 import threading
 from pathlib import Path
 
+from benchmark.cli import common
 from benchmark.core import options as opt
 from benchmark.core import policy
 from benchmark.core.engine import log_stderr as _log  # the engine's: its lines go above a progress bar
 from benchmark.core.options import UsageError
 from models.io import inside, printable
-
-
-def _overrides(items: list[str] | None) -> dict:
-    """--set key=value (value parsed as JSON when it can be: numbers, lists, quoted strings)."""
-    out = {}
-    for item in items or []:
-        if "=" not in item:
-            raise UsageError(f"--set {item!r}: expected KEY=VALUE (e.g. --set elements=20)")
-        k, v = item.split("=", 1)
-        if not k.strip():
-            raise UsageError(f"--set {item!r}: the key is empty (expected KEY=VALUE, e.g. --set elements=20)")
-        try:
-            out[k.strip()] = json.loads(v)
-        except json.JSONDecodeError:
-            out[k.strip()] = v
-        except RecursionError:  # [[[[... thousands deep
-            raise UsageError(f"--set {k.strip()}: the value is nested too deeply: a scene value is a number, "
-                             f"a string or a list of at most two levels, e.g. --set direction=[0,0,1]") from None
-        except ValueError:  # an integer of more digits than Python converts (int_max_str_digits)
-            raise UsageError(f"--set {k.strip()}: the value holds an integer of more than "
-                             f"{sys.get_int_max_str_digits()} digits: allowed a finite number of a plausible size "
-                             f"(see models/README.md)") from None
-    return out
 
 
 def _command(args) -> str:
@@ -100,29 +81,10 @@ def _check_setting(integ, dt, rtol, t_end: float) -> None:
 # ------------------------------------------------------------------------------------------
 # Each command: check its input, then call its pipeline
 # ------------------------------------------------------------------------------------------
-def _check_executor(args) -> None:
-    if args.executor == "dask" and not args.scheduler:
-        raise UsageError("--executor dask needs --scheduler ADDRESS (e.g. tcp://host:8786)")
-    if args.scheduler and args.executor != "dask":
-        raise UsageError(f"--scheduler is only used with --executor dask (got --executor {args.executor})")
-
-
-def _add_executor(p, what: str) -> None:
-    """--executor and --scheduler, the same on every command that runs jobs on the engine."""
-    from benchmark.runs import sweep
-
-    p.add_argument("--executor", default=sweep.DEFAULT_EXECUTOR, choices=list(sweep.EXECUTORS),
-                   help=f"where {what} execute: worker processes, this process, or a Dask cluster")
-    p.add_argument("--scheduler", help="Dask scheduler address, with --executor dask (e.g. tcp://host:8786)")
-
-
 def cmd_run(args) -> int:
     from benchmark.runs import sweep  # no JAX until the pipeline builds the tasks
     from models import load_scene
 
-    _check_executor(args)
-    for name in args.integrators or ():
-        _check_integrator(name)  # an unknown name is refused before any work
     if args.with_plugins:
         if args.integrators:
             raise UsageError("--with-plugins adds every installed plugin to the default methods: with --integrators "
@@ -135,10 +97,9 @@ def cmd_run(args) -> int:
     if args.extended and args.scenes:
         raise UsageError("--extended and --scenes are alternatives: give one")
     scene_names = args.scenes or list(sweep.EXTENDED_SCENES if args.extended else sweep.PAPER_SCENES)
-    ov = _overrides(args.set)
+    ov = common.overrides(args.set)
     with_t_end = {"t_end": args.t_end, **ov} if args.t_end is not None else ov  # validated with the scene
-    scenes = [load_scene(s, **with_t_end) for s in scene_names]
-    sweep.check_settings(args.dts, args.rtols)
+    scenes = [load_scene(s, **with_t_end) for s in scene_names]  # --dts, --rtols: in range (parsed)
     t_end = sweep.sweep_t_end(args.t_end, args.quick)
     for sc in scenes:
         if (t_end or sc.t_end) < policy.SAVE_EVERY:  # every run would end in an error row
@@ -162,23 +123,7 @@ def cmd_run(args) -> int:
         t_end=args.t_end, overrides=tuple(sorted((k, v) for k, v in ov.items() if k != "t_end")), jobs=args.jobs,
         executor=args.executor, scheduler=args.scheduler, repeats=args.repeats, horizon=args.horizon,
         figures=not args.no_figures, fresh=args.fresh, compare_with=tuple(args.compare_with or ()),
-        command=_command(args), accept_legacy=args.accept_legacy, budget=_budget(args)), log=_log)
-
-
-def _budget(args):
-    """The budget of each solve (--max-steps, --time-limit) as the runner takes it."""
-    from benchmark.runs.runner import SolveBudget
-
-    return SolveBudget(max_steps=args.max_steps, time_limit=args.time_limit)
-
-
-def _add_budget(p, what: str) -> None:
-    """--max-steps and --time-limit, the budget of every solve of a study (`runner.SolveBudget`)."""
-    p.add_argument("--max-steps", type=opt.positive_int, default=policy.SOLVE_MAX_STEPS,
-                   help=f"step budget of each solve: a run past it ends with status max_steps and {what} goes on")
-    p.add_argument("--time-limit", type=opt.positive_float, default=policy.SOLVE_TIME_LIMIT,
-                   help=f"wall-clock budget of each solve in s (after compilation): a run past it ends with status "
-                        f"time_limit and {what} goes on (such a row is recomputed on resume)")
+        command=_command(args), accept_legacy=args.accept_legacy, budget=common.budget(args)), log=_log)
 
 
 def _check_horizon_size(args, overrides: dict) -> None:
@@ -239,13 +184,7 @@ def _describe(names) -> str:
 def cmd_simulate(args) -> int:
     from models import load_scene
 
-    if args.atol is not None and args.rtol is None:
-        raise UsageError("--atol needs --rtol (an adaptive method); with --dt the step is fixed and atol is unused")
-    from models.schema import is_safe_name
-
-    if not is_safe_name(args.integrator):
-        _check_integrator(args.integrator)  # refused before the name reaches a file name
-    scene = load_scene(args.scene, **_overrides(args.set))
+    scene = load_scene(args.scene, **common.overrides(args.set))  # --integrators: a registered name (parsed)
     if args.t_end is not None:
         scene = scene.with_(t_end=args.t_end)  # the same range and plausibility rules as the file
     out = opt.writable_file(args.out if args.out is not None else
@@ -279,7 +218,7 @@ def cmd_figures(args) -> int:
         raise UsageError(f"{src}: no such file; give a trajectory written by `simulate` (.npz)")
     if not src.is_file():
         raise UsageError(f"{src}: is not a file; give a trajectory written by `simulate` (.npz)")
-    ov = _overrides(args.set)
+    ov = common.overrides(args.set)
     if args.scene:
         load_scene(args.scene, **ov)  # a bad scene is refused before the trajectory is read
     # beside the trajectory (as simulate puts its .csv beside it), unless --out says where
@@ -300,10 +239,10 @@ def cmd_figures(args) -> int:
         try:
             scene = scene_from_dict(recorded, source=str(src), **ov)
         except ValueError as exc:
-            raise UsageError(f"{src}: the scene recorded in the file is not valid ({exc}); give --scene") from None
+            raise UsageError(f"{src}: the scene recorded in the file is not valid ({exc}); give --scenes") from None
     else:
         if not args.scene and not is_safe_name(traj.scene_name):  # a name read from a file is data, not a path
-            raise UsageError(f"{src} records the scene {traj.scene_name!r}, which is not a scene name: give --scene "
+            raise UsageError(f"{src} records the scene {traj.scene_name!r}, which is not a scene name: give --scenes "
                              "(the scene name or .toml path the trajectory was computed with)")
         scene = load_scene(args.scene or traj.scene_name, **ov)
     lay = StateLayout.from_scene(scene)
@@ -354,21 +293,12 @@ def cmd_check(args) -> int:
     command = check.UPDATE_COMMAND + "".join(f" --{k} {shlex.quote(v)}" for k, v in
                                              (("integrators", ",".join(args.integrators or ())),
                                               ("baseline", args.baseline)) if v)
-    names = args.integrators  # a list (opt.names: "," is refused by the parser, it would select every method)
-    for name in names or ():
-        _check_integrator(name)  # before the baseline is read
-    opt.check_tolerance_rules(policy.CHECK_FACTOR if args.factor is None else args.factor,
-                              policy.CHECK_ORDER_MARGIN if args.order_margin is None else args.order_margin)
-    if args.allow_new and args.update:
-        raise UsageError("--allow-new is for a check against the baseline; --update writes the rows of every "
-                         "integrator it runs")
-    for name in args.allow_new or ():
-        _check_integrator(name)  # a misspelt name would allow nothing
     from benchmark.cli import pipelines
 
-    return pipelines.run_check(update=args.update, baseline=args.baseline, integrators=names, factor=args.factor,
-                               order_margin=args.order_margin, jobs=args.jobs, command=command,
-                               allow_new=tuple(args.allow_new or ()), budget=_budget(args), log=_log)
+    # --integrators and --allow-new: registered names, --factor and --order-margin in range (parsed)
+    return pipelines.run_check(update=args.update, baseline=args.baseline, integrators=args.integrators,
+                               factor=args.factor, order_margin=args.order_margin, jobs=args.jobs, command=command,
+                               allow_new=tuple(args.allow_new or ()), budget=common.budget(args), log=_log)
 
 
 def cmd_speed(args) -> int:
@@ -401,9 +331,9 @@ def cmd_speed(args) -> int:
     rhs = tuple(v.strip() for v in args.rhs.split(",") if v.strip())
     for r in rhs:
         check_rhs(r)
-    if args.methods:
-        lgvi_speed.check_methods(args.methods)
-    request = SpeedRequest(elements=elements, scenes=scenes, methods=tuple(args.methods) if args.methods else None,
+    if args.integrators:
+        lgvi_speed.check_methods(args.integrators)
+    request = SpeedRequest(elements=elements, scenes=scenes, methods=tuple(args.integrators) if args.integrators else None,
                            steps=args.steps, repeats=args.repeats, dt=args.dt, rhs=rhs, autodiff_max_n=args.autodiff_max_n)
     return pipelines.run_speed(request, out, command=_command(args), log=_log)
 
@@ -412,10 +342,11 @@ def cmd_stability(args) -> int:
     from benchmark.core import study
     from benchmark.studies import stability
 
-    the_study = stability.study(args.scenes, args.integrators, workers=args.jobs, budget=_budget(args))  # names checked
+    # the study checks its scene and integrator names
+    the_study = stability.study(args.scenes, args.integrators, workers=args.jobs, budget=common.budget(args))
     out = opt.writable_dir(args.out)
     opt.no_directory_at(out, ("stability.csv", "stability.md", "stability.png", "README.md"))
-    return study.run(the_study, out, command=_command(args), log=_log)
+    return study.run(the_study, out, command=_command(args), fresh=args.fresh, log=_log)
 
 
 def cmd_answer(args) -> int:
@@ -425,10 +356,7 @@ def cmd_answer(args) -> int:
     from benchmark.answer.answer import AnswerRequest
     from models import load_scene
 
-    _check_executor(args)
-    for name in args.integrators or ():
-        _check_integrator(name)
-    targets = _targets(args.targets) if args.targets else tuple((m, t) for m, t, _ in answer.TARGETS)
+    targets = args.targets or tuple((m, t) for m, t, _ in answer.TARGETS)  # parsed: `_targets`
     scenes = tuple(args.scenes or (sweep.EXTENDED_SCENES if args.extended else sweep.PAPER_SCENES))
     elements = tuple(args.elements or (answer.EXTENDED_ELEMENTS if args.extended else answer.ELEMENTS))
     for sc in scenes:
@@ -452,17 +380,17 @@ def _targets(text: str) -> tuple:
     for part in text.split(","):
         metric, _, value = part.strip().partition("=")
         if metric not in ACCURACY:
-            raise UsageError(f"--targets {text}: {metric!r} is not a metric (allowed: {', '.join(ACCURACY)}), "
+            raise UsageError(f"{text!r}: {metric!r} is not a metric (allowed: {', '.join(ACCURACY)}), "
                              "e.g. --targets energy_error=1e-5,position_error_final=1e-7")
         try:
             target = float(value)
         except ValueError:
             target = float("nan")
         if not (0 < target < float("inf")):
-            raise UsageError(f"--targets {text}: the target of {metric} must be a positive number (got {value!r})")
+            raise UsageError(f"{text!r}: the target of {metric} must be a positive number (got {value!r})")
         out.append((metric, target))
     if len({m for m, _ in out}) != len(out):
-        raise UsageError(f"--targets {text}: each metric at most once")
+        raise UsageError(f"{text!r}: each metric at most once (e.g. --targets energy_error=1e-5)")
     return tuple(out)
 
 
@@ -470,9 +398,7 @@ def cmd_xval(args) -> int:
     """Cross-validation against MoorDyn and MuJoCo; exit 2 on a scene it cannot translate."""
     import importlib.util
 
-    ints = args.elements or None
-    if ints is not None and (len(ints) < 2 or any(n < 2 for n in ints)):
-        raise UsageError(f"--elements {_csv(ints)}: allowed two or more integers >= 2 (e.g. 5,10,20)")
+    ints = args.elements or None  # two or more N >= 2 (parsed)
     from benchmark.studies import xval
     from models import load_scene
 
@@ -497,19 +423,19 @@ def cmd_reel_reversal(args) -> int:
     from benchmark.studies import reel_reversal
     from models import load_scene
 
-    reel_reversal.check_methods(args.methods or ())
+    reel_reversal.check_methods(args.integrators or ())
     reel_reversal.check_horizon(args.t_end)
     scene = load_scene(args.scene, elements=args.elements)
     if not scene.has("reel"):  # its "error" column would be a node coordinate, its sign changes noise
-        raise UsageError(f"--scene {scene.name!r} has no reel (effects: {', '.join(scene.effects)}): the reel-reversal "
+        raise UsageError(f"--scenes {scene.name!r} has no reel (effects: {', '.join(scene.effects)}): the reel-reversal "
                          "study follows the reel rate through its change of sign; give a scene with the reel effect, "
-                         "e.g. --scene reel_reversal")
+                         "e.g. --scenes reel_reversal")
     from benchmark.cli import pipelines
     from benchmark.core.reference import CACHE_DIR
 
     cache = opt.writable_dir(args.cache_dir or CACHE_DIR, option="--cache-dir")
 
-    return pipelines.run_reel_reversal(args.scene, args.elements, args.t_end, args.methods, jobs=args.jobs,
+    return pipelines.run_reel_reversal(args.scene, args.elements, args.t_end, args.integrators, jobs=args.jobs,
                                        cache_dir=str(cache), log=_log)
 
 
@@ -553,15 +479,31 @@ def cmd_verify(args) -> int:
     """The plugin contract (benchmark/contract/verify.py): exit 0 when every check holds, 1 otherwise."""
     from benchmark.contract import verify
 
-    ov = _overrides(args.set)
+    ov = common.overrides(args.set)
     for name in args.names:  # an unknown name, a scene without the effect or a bad one: exit 2 before any work
         kind = verify.kind_of(name)
         if kind == "integrator" and (args.scene or ov):
-            raise UsageError(f"--scene/--set are for an effect; {name} is an integrator, checked on its own "
+            raise UsageError(f"--scenes/--set are for an effect; {name} is an integrator, checked on its own "
                              "small scenes")
         if kind == "effect":
             verify.effect_scene(name, args.scene, ov)
     return max(verify.verify(name, scene=args.scene, overrides=ov, log=print) for name in args.names)
+
+
+def cmd_work_rule(args) -> int:
+    """The flop rule against compiled floors (`benchmark.work.work_rule`); --floor, --elements and
+    --steps are checked by their parse functions."""
+    out = None if args.out == "-" else opt.writable_file(args.out)  # --out -: print only
+    from benchmark.work import work_rule
+    from models.io import atomic_write_text
+
+    text = work_rule.report(args.floor, args.elements, args.steps, args.repeats, command=_command(args))
+    if out is None:
+        print(text)
+    else:
+        atomic_write_text(out, text)
+        _log(f"wrote {out}")
+    return 0
 
 
 def cmd_list(args) -> int:
@@ -607,10 +549,6 @@ class _Help(argparse.ArgumentDefaultsHelpFormatter):
         return super()._get_help_string(action)
 
 
-def _add_set(p: argparse.ArgumentParser, help: str = "scene override, repeatable, e.g. --set elements=20") -> None:
-    p.add_argument("--set", action="append", metavar="KEY=VALUE", help=help)
-
-
 def _add_run(sub) -> None:
     from benchmark.runs import sweep  # constants only (no JAX): the defaults shown in --help are the real ones
 
@@ -620,13 +558,11 @@ def _add_run(sub) -> None:
             "README are written from the whole table. A row of the same run (same scene physics, integrator, "
             "setting, horizon and code) that passes its checks is kept instead of recomputed (--fresh "
             "recomputes this run's rows). Ctrl-C stops cleanly.")
-    r.add_argument("--scenes", type=opt.names, help="comma-separated scene names or .toml paths "
-                                                    f"(default: {_csv(sweep.PAPER_SCENES)})")
+    common.add_scenes(r, f"(default: {_csv(sweep.PAPER_SCENES)})")
     r.add_argument("--extended", action="store_true", help="the paper's scenes and the fluid scenes "
                                                            f"({_csv(sweep.FLUID_SCENES)}: buoyancy and drag)")
-    r.add_argument("--integrators", type=opt.names, help="comma-separated integrator names (default: the "
-                                                         "project's own methods; installed plugins join when named "
-                                                         "here or with --with-plugins; see `list`)")
+    common.add_integrators(r, "(default: the project's own methods; installed plugins join when named here or with "
+                              "--with-plugins)")
     r.add_argument("--with-plugins", action="store_true", help="sweep every installed plugin too (with the default "
                    "methods); its rows go to --out, which must then be given")
     r.add_argument("--quick", action="store_true", help=f"reduced sweep: {sweep.QUICK_T_END:g} s horizon, "
@@ -639,22 +575,22 @@ def _add_run(sub) -> None:
                    f"atol = rtol × {policy.ATOL_FACTOR:g} (default: {_csv(sweep.FULL_RTOLS)}; implicit methods "
                    f"{_csv(sweep.IMPLICIT_FULL_RTOLS)}; --quick: {_csv(sweep.QUICK_RTOLS)}, implicit "
                    f"{_csv(sweep.IMPLICIT_QUICK_RTOLS)})")
-    r.add_argument("--t-end", type=opt.positive_float,
-                   help=f"horizon in s (default: each scene's t_end; --quick: {sweep.QUICK_T_END:g})")
-    _add_set(r)
-    r.add_argument("--jobs", type=opt.positive_int, help="worker processes (default: CPU count, at most one per run)")
+    common.add_t_end(r, f"(default: each scene's t_end; --quick: {sweep.QUICK_T_END:g})")
+    common.add_set(r)
+    common.add_jobs(r, "the CPU count, at most one per run",
+                    workers_only="run times its runs in worker processes; --executor serial runs them in this process")
     r.add_argument("--repeats", type=opt.positive_int, default=sweep.MIN_REPEATS,
                    help=f"the least timed solves per run: as many as fit in {sweep.TIMING_BUDGET:g} s, at least this "
                         f"many and at most {sweep.MAX_REPEATS} (one when a single solve takes longer); run_time is "
                         "their median, run_time_low / run_time_high the fastest / the 90th percentile or slowest")
-    _add_executor(r, "runs")
+    common.add_executor(r, "runs")
     r.add_argument("--horizon", type=opt.nonnegative_float,
                    help="run the long-horizon energy study too, this long (s), on the run's fixed-length scenes "
                         "(default: none; the study is its own command, `energy`, e.g. --horizon "
                         f"{sweep.FULL_HORIZON:g} as it runs by default, {sweep.QUICK_HORIZON:g} for a quick look)")
-    _add_budget(r, "the sweep")
+    common.add_budget(r, "the sweep goes on (such a row is recomputed on resume)")
     r.add_argument("--no-figures", action="store_true", help="skip the figures and the energy study")
-    r.add_argument("--fresh", action="store_true", help="recompute every run, ignoring rows already in OUT/runs.csv")
+    common.add_fresh(r, "OUT/runs.csv")
     r.add_argument("--accept-legacy", action="store_true",
                    help="keep the rows of OUT/runs.csv written before row digests covered every column (checked by "
                         "range only, then written with digests); without it such a table is refused")
@@ -662,10 +598,9 @@ def _add_run(sub) -> None:
                    help="an earlier run's runs.csv: the README then says which conclusions changed and by how much "
                         "(give it more than once to compare with several, e.g. the last committed run and a second "
                         "fresh run of the same code)")
-    r.add_argument("--out", help=f"output directory, created if missing (default: {GRID_OUT}); the run's rows join "
-                                 "the table there (rows of other scenes, methods and settings are kept). A run that is "
-                                 f"not the default sweep (--quick, --scenes, ...) writes into {GRID_OUT}/ only when "
-                                 f"named: --out {GRID_OUT}")
+    common.add_out(r, f"output directory, created if missing (default: {GRID_OUT}); the run's rows join the table "
+                      "there (rows of other scenes, methods and settings are kept). A run that is not the default "
+                      f"sweep (--quick, --scenes, ...) writes into {GRID_OUT}/ only when named: --out {GRID_OUT}")
     r.set_defaults(func=cmd_run)
 
 
@@ -673,20 +608,32 @@ def _add_check(sub) -> None:
     c = sub("check", "recompute a short sweep and compare its accuracy metrics with the committed baseline; "
                      "exit 1 on a regression (rules in benchmark/studies/check.py)")
     c.add_argument("--update", action="store_true", help="rewrite the baseline from this run instead of failing")
-    _add_budget(c, "the check")
+    common.add_budget(c, "the check goes on")
     c.add_argument("--baseline", help=f"baseline CSV (default: {policy.BASELINE_FILE}, run from the repository root)")
-    c.add_argument("--integrators", type=opt.names,
-                   help="comma-separated names (default: all registered except test_*)")
-    c.add_argument("--factor", type=opt.number,
+    common.add_integrators(c, "(default: all registered except test_*)")
+    c.add_argument("--factor", type=common.ruled(opt.number, opt.check_factor, "factor"),
                    help=f"a drift or error fails when worse than FACTOR x baseline, above its floor (default: "
                         f"{policy.CHECK_FACTOR:g})")
-    c.add_argument("--order-margin", type=opt.number,
-                   help=f"an observed order fails when lower than baseline - MARGIN (default: {policy.CHECK_ORDER_MARGIN:g})")
-    c.add_argument("--jobs", type=opt.positive_int, help="worker processes (default: CPU count)")
-    c.add_argument("--allow-new", type=opt.names, metavar="NAMES",
+    c.add_argument("--order-margin", type=common.ruled(opt.number, opt.check_order_margin, "margin"),
+                   help="an observed order fails when lower than baseline - MARGIN (default: "
+                        f"{policy.CHECK_ORDER_MARGIN:g})")
+    common.add_jobs(c, "the CPU count", workers_only="check runs its sweep in worker processes")
+    c.add_argument("--allow-new", type=common.integrator_names, metavar="NAMES",
                    help="comma-separated integrators that may lack baseline rows (new methods); any other selected "
                         "integrator without rows to compare fails the check (exit 2)")
+    common.add_check(c, _allow_new_checks_against_the_baseline)
     c.set_defaults(func=cmd_check)
+
+
+def _allow_new_checks_against_the_baseline(args) -> None:
+    if args.allow_new and args.update:
+        raise UsageError("--allow-new is for a check against the baseline; --update writes the rows of every "
+                         "integrator it runs")
+
+
+def _atol_needs_rtol(args) -> None:
+    if args.atol is not None and args.rtol is None:
+        raise UsageError("--atol needs --rtol (an adaptive method); with --dt the step is fixed and atol is unused")
 
 
 def _add_simulate(sub) -> None:
@@ -696,31 +643,28 @@ def _add_simulate(sub) -> None:
             "error, lengths) to --out, by default into the current directory.")
     s.add_argument("scene", help="a shipped scene name (see `list`) or the path of a scene .toml file "
                                  "(format: models/README.md)")
-    s.add_argument("--integrator", default="lgvi", help="integrator name (see `list`)")
+    common.add_integrators(s, "", one=True, default="lgvi")
     setting = s.add_mutually_exclusive_group()
     setting.add_argument("--dt", type=opt.positive_float, help="fixed step size in s (fixed-step methods)")
     setting.add_argument("--rtol", type=opt.tolerance, help="relative tolerance (adaptive methods); atol defaults "
                                                             f"to rtol × {policy.ATOL_FACTOR:g}")
     s.add_argument("--atol", type=opt.positive_float,
                    help=f"absolute tolerance, with --rtol (default: rtol × {policy.ATOL_FACTOR:g})")
-    s.add_argument("--t-end", type=opt.positive_float, help="horizon in s (default: the scene's t_end)")
+    common.add_check(s, _atol_needs_rtol)
+    common.add_t_end(s, "(default: the scene's t_end)")
     s.add_argument("--save-every", type=opt.positive_float, default=policy.SAVE_EVERY, help="save interval in s")
-    s.add_argument("--max-steps", type=opt.positive_int, default=policy.SOLVE_MAX_STEPS,
-                   help="step budget: the run ends with status max_steps there, its trajectory saved")
-    s.add_argument("--time-limit", type=opt.positive_float, default=policy.SOLVE_TIME_LIMIT,
-                   help="wall-clock budget of the run in s (after compilation): it ends with status time_limit "
-                        "there, its trajectory saved (a first Ctrl-C ends it the same way, a second at once)")
-    _add_set(s)
-    s.add_argument("--out", help="trajectory file (.npz; default: ./simulate_SCENE_INTEGRATOR.npz)")
+    common.add_budget(s, "its trajectory is saved (a first Ctrl-C ends the run the same way, a second at once)")
+    common.add_set(s)
+    common.add_out(s, "trajectory file (.npz; default: ./simulate_SCENE_INTEGRATOR.npz)")
     s.set_defaults(func=cmd_simulate)
 
 
 def _add_figures(sub) -> None:
     f = sub("figures", "the paper's panels (a)-(d) from a trajectory file written by `simulate`")
     f.add_argument("trajectory", help="a trajectory .npz written by `simulate`")
-    f.add_argument("--scene", help="scene name or path (default: the one recorded in the file)")
-    _add_set(f, "scene overrides the trajectory was computed with, e.g. --set elements=20")
-    f.add_argument("--out", help="figure file (.png; default: TRAJECTORY.png beside the trajectory file)")
+    common.add_scenes(f, "the one the trajectory was computed with (default: the one recorded in the file)", one=True)
+    common.add_set(f, "scene overrides the trajectory was computed with, e.g. --set elements=20")
+    common.add_out(f, "figure file (.png; default: TRAJECTORY.png beside the trajectory file)")
     f.set_defaults(func=cmd_figures)
 
 
@@ -732,10 +676,10 @@ def _add_speed(sub) -> None:
                       "compile time separately",
              "Time per step of every fixed-step method (chosen by capability from the registry) and per-call cost "
              "of each right-hand side, vs N; compile time separately (see benchmark/studies/lgvi_speed.py).")
-    sp.add_argument("--elements", type=opt.positive_ints, help=f"comma-separated N values (default: {_csv(default.elements)})")
-    sp.add_argument("--scenes", type=opt.names, help=f"comma-separated scene names (default: {_csv(default.scenes)})")
-    sp.add_argument("--methods", type=opt.names,
-                    help="comma-separated fixed-step methods (default: every registered one with the fixed_step capability)")
+    common.add_elements(sp, f"(default: {_csv(default.elements)})")
+    common.add_scenes(sp, f"(default: {_csv(default.scenes)})")
+    common.add_integrators(sp, "fixed-step methods only (default: every registered one with the fixed_step "
+                               "capability)", registered=False)
     sp.add_argument("--steps", type=opt.positive_int, default=default.steps, help="steps per timed run")
     sp.add_argument("--repeats", type=opt.positive_int, default=default.repeats, help="timed repeats (median)")
     sp.add_argument("--dt", type=opt.positive_float,
@@ -743,22 +687,22 @@ def _add_speed(sub) -> None:
     sp.add_argument("--rhs", default=_csv(default.rhs), help="right-hand sides to time per call ('' = none)")
     sp.add_argument("--autodiff-max-n", type=opt.positive_int, default=default.autodiff_max_n,
                     help="largest N for the O(N^3) autodiff right-hand side")
-    sp.add_argument("--out", default=str(policy.LGVI_SPEED_FILE),
-                    help="the tables (Markdown, with the command and machine): this run's rows join those of the "
-                         "rows table beside it (.csv; rows of other methods, scenes and N are kept) and the file is "
-                         "written from the whole table; - = only print them")
+    common.add_out(sp, "the tables (Markdown, with the command and machine): this run's rows join those of the rows "
+                       "table beside it (.csv; rows of other methods, scenes and N are kept) and the file is written "
+                       "from the whole table; - = only print them", default=str(policy.LGVI_SPEED_FILE))
     sp.set_defaults(func=cmd_speed)
 
 
 def _add_stability(sub) -> None:
     st = sub("stability", "stability map of the hard scenes: largest stable dt (fixed step), step statistics "
                           "(adaptive) -> --out")
-    st.add_argument("--scenes", type=opt.names, help="comma-separated hard scenes (default: all eight)")
-    st.add_argument("--integrators", type=opt.names, help="comma-separated names (default: the project's own "
-                                                          "methods, implicit baselines last; a plugin runs when named)")
-    st.add_argument("--jobs", type=opt.nonnegative_int, default=2, help="worker processes (0: run in this process)")
-    _add_budget(st, "the map")
-    st.add_argument("--out", default=str(policy.STABILITY_DIR), help="output directory (created if missing)")
+    common.add_scenes(st, "the hard scenes of the map (default: all eight)")
+    common.add_integrators(st, "(default: the project's own methods, implicit baselines last; a plugin runs when "
+                               "named)", registered=False)  # the study checks its own names
+    common.add_jobs(st, "", default=2)
+    common.add_budget(st, "the map goes on (such a row is recomputed on resume)")
+    common.add_fresh(st, "OUT/stability.csv")
+    common.add_out(st, "output directory (created if missing)", default=str(policy.STABILITY_DIR))
     st.set_defaults(func=cmd_stability)
 
 
@@ -769,44 +713,43 @@ def _add_answer(sub) -> None:
     an = sub("answer", "the main job: each method's cheapest setting at each target by search, wall-time verdicts "
                        "by paired timing -> --out/cheapest.csv, README.md, figures (and the README's answer block)",
              "For every scene x N x method x target, search the cheapest setting meeting the target that stands "
-             f"(bracket, bisect to {policy.RESOLUTION * 100:g} % in cost, confirm the three settings just finer; benchmark/answer/search.py), then "
-             "time the compiled methods at their settings paired and interleaved on one pinned core, racing "
-             "(benchmark/answer/paired.py). Default: the paper's three scenes at N = 10 with the default methods and dopri8; "
-             "--extended: every method, the scenes in water and the off-centre tow too, at N = 10 and 40, its rows "
-             "merged into the same table. Resumable: rerun to continue.")
+             f"(bracket, bisect to {policy.RESOLUTION * 100:g} % in cost, confirm the three settings just finer; "
+             "benchmark/answer/search.py), then time the compiled methods at their settings paired and interleaved "
+             "on one pinned core, racing (benchmark/answer/paired.py). Default: the paper's three scenes at N = 10 "
+             "with the default methods and dopri8; --extended: every method, the scenes in water and the off-centre "
+             "tow too, at N = 10 and 40, its rows merged into the same table. Resumable: rerun to continue.")
     an.add_argument("--extended", action="store_true",
                     help="every one of the project's methods on the paper's and the fluid scenes at N = 10 and 40")
-    an.add_argument("--scenes", type=opt.names, help="comma-separated scene names (default: the paper's three)")
-    an.add_argument("--integrators", type=opt.names, help="comma-separated integrator names (default: the "
-                                                          "default sweep's and dopri8; --extended: all of the project's)")
-    an.add_argument("--elements", type=opt.positive_ints, help="comma-separated N (default 10; --extended 10,40)")
-    an.add_argument("--targets", help="comma-separated metric=target pairs on any accuracy metric of the runs "
-                                      "table (default: "
-                                      f"{','.join(f'{m}={t:g}' for m, t, _ in answer.TARGETS)})")
-    an.add_argument("--t-end", type=opt.positive_float, help="horizon in s (default: each scene's t_end)")
+    common.add_scenes(an, "(default: the paper's three)")
+    common.add_integrators(an, "(default: the default sweep's and dopri8; --extended: all of the project's)")
+    common.add_elements(an, "(default: 10; --extended: 10,40)")
+    an.add_argument("--targets", type=common.as_type(_targets, "targets"),
+                    help="comma-separated metric=target pairs on any accuracy metric of the runs table (default: "
+                         f"{','.join(f'{m}={t:g}' for m, t, _ in answer.TARGETS)})")
+    common.add_t_end(an, "(default: each scene's t_end)")
     an.add_argument("--max-runs", type=opt.positive_int, default=search.MAX_RUNS, help="runs per search at most")
     an.add_argument("--timing-budget", type=opt.positive_float, default=policy.PAIRED_BUDGET,
                     help="seconds of paired timing per scene x N x target at most")
-    an.add_argument("--jobs", type=opt.positive_int, help="worker processes for the search (default: one per CPU)")
-    _add_executor(an, "the searches (the paired timing stays in this process, on one pinned core)")
-    an.add_argument("--fresh", action="store_true", help="recompute every row this command writes (default: keep "
-                                                         "the finished ones)")
+    common.add_jobs(an, "one per CPU", workers_only="answer searches in worker processes; --executor serial "
+                                                    "searches in this process")
+    common.add_executor(an, "the searches (the paired timing stays in this process, on one pinned core)")
+    common.add_fresh(an, "OUT/cheapest.csv")
     an.add_argument("--compare-with", type=opt.answer_table, action="append", metavar="CHEAPEST.csv",
                     help="an earlier answer table: README.md says which answers agree (repeatable)")
-    an.add_argument("--out", default=str(answer.COMMITTED_ANSWER), help="output directory (created if missing; "
-                                                                       "results/ also rewrites the README's answer)")
+    common.add_out(an, "output directory (created if missing; results/ also rewrites the README's answer)",
+                   default=str(answer.COMMITTED_ANSWER))
     an.set_defaults(func=cmd_answer)
 
 
 def _add_xval(sub) -> None:
     xv = sub("xval", "cross-validation against MoorDyn and MuJoCo at equal N -> --out (needs the [xval] extra)")
-    xv.add_argument("--scene", default="fixed_length", help="fixed-length scene name or path")
-    xv.add_argument("--elements", type=opt.positive_ints, help="comma-separated N >= 2 (default 5,10,20,40,80; "
-                                                               "5,10,20,40,80,160 takes about 4x longer)")
-    xv.add_argument("--t-end", type=opt.positive_float, help="horizon in s (default 5)")
+    common.add_scenes(xv, "a fixed-length scene", one=True, default="fixed_length")
+    common.add_elements(xv, "two or more N >= 2 (default: 5,10,20,40,80; 5,10,20,40,80,160 takes about 4x longer)",
+                        least=2, two_or_more=True)
+    common.add_t_end(xv, "(default: 5)")
     xv.add_argument("--cases", type=opt.names, help="comma-separated cases of point_mass, rigid_body, in_water "
                                                     "(default: every case the scene has)")
-    xv.add_argument("--out", default=str(policy.XVAL_DIR), help="output directory (created if missing)")
+    common.add_out(xv, "output directory (created if missing)", default=str(policy.XVAL_DIR))
     xv.set_defaults(func=cmd_xval)
 
 
@@ -815,13 +758,12 @@ def _add_reel_reversal(sub) -> None:
 
     rr = sub("reel-reversal", "orders of the fixed-step methods across a reel reversal (ṡ_p changes sign), errors "
                               "against the reference -> a table on stdout")
-    rr.add_argument("--scene", default="reel_reversal", help="scene name or path")
-    rr.add_argument("--elements", type=opt.positive_int, default=5, help="N")
-    rr.add_argument("--t-end", type=opt.positive_float, default=0.96,
-                    help=f"horizon in s, a multiple of the compared interval {reel_reversal.COMPARE_EVERY:g} s")
-    rr.add_argument("--methods", type=opt.names, help=f"comma-separated methods (default: {_csv(reel_reversal.DEFAULT_HS)})")
-    rr.add_argument("--jobs", type=opt.nonnegative_int,
-                    help="worker processes (0: run in this process; default: one per method, at most the CPU count)")
+    common.add_scenes(rr, "a scene with the reel effect", one=True, default="reel_reversal")
+    common.add_elements(rr, "", one=True, default=5)
+    common.add_t_end(rr, f"a multiple of the compared interval {reel_reversal.COMPARE_EVERY:g} s", default=0.96)
+    common.add_integrators(rr, f"fixed-step methods with a step list (default: {_csv(reel_reversal.DEFAULT_HS)})",
+                           registered=False)
+    common.add_jobs(rr, "one per method, at most the CPU count")
     rr.add_argument("--cache-dir", help="where the reference is cached (default: the user's cache, shared by every "
                                         "study; created if missing)")
     rr.set_defaults(func=cmd_reel_reversal)
@@ -836,13 +778,10 @@ def _add_orders(sub) -> None:
             f"each scene (N = {orders.ELEMENTS}), against constant-step {orders.REFERENCE_METHOD}; the order is the "
             "slope of the last halving above the reference's floor, flagged when not asymptotic (see "
             "benchmark/studies/orders.py). Rows of other scenes and methods in OUT/orders.csv are kept.")
-    o.add_argument("--scenes", type=opt.names, help=f"comma-separated scene names or .toml paths (default: "
-                                                    f"{_csv(orders.SCENES)}, one per situation)")
-    o.add_argument("--integrators", type=opt.names, help="comma-separated fixed-step methods (default: every "
-                                                         "registered one)")
-    o.add_argument("--jobs", type=opt.nonnegative_int, help="worker processes (0: in this process; default: one "
-                                                            "per method, at most the CPU count)")
-    o.add_argument("--out", default=str(policy.RESULTS), help="output directory (created if missing)")
+    common.add_scenes(o, f"(default: {_csv(orders.SCENES)}, one per situation)")
+    common.add_integrators(o, "fixed-step methods only (default: every registered one)", registered=False)
+    common.add_jobs(o, "one per method, at most the CPU count")
+    common.add_out(o, "output directory (created if missing)", default=str(policy.RESULTS))
     o.set_defaults(func=cmd_orders)
 
 
@@ -856,15 +795,54 @@ def _add_energy(sub) -> None:
             f"{_csv(horizon.ELEMENTS)}, the declared step and {horizon.FINER:g}x finer), on each scene and with "
             "the tension-only string (`slack`); the histories already in OUT/energy_horizon.csv for the same "
             "settings and code are kept, rows of other methods and scenes too.")
-    e.add_argument("--scenes", type=opt.names, help=f"comma-separated scenes (default: {horizon.DEFAULT_SCENE})")
-    e.add_argument("--integrators", type=opt.names, help="comma-separated methods (default: every one that "
-                                                         "declares energy-study settings)")
+    common.add_scenes(e, f"(default: {horizon.DEFAULT_SCENE})")
+    common.add_integrators(e, "(default: every one that declares energy-study settings)", registered=False)
     e.add_argument("--horizon", type=opt.positive_float, default=horizon.HORIZON, help="length in s")
     e.add_argument("--variants", type=opt.names, help="comma-separated string laws: plain (the scene as it is), "
                                                       "slack (tension-only) (default: both)")
-    e.add_argument("--jobs", type=opt.nonnegative_int, help="worker processes (0: in this process)")
-    e.add_argument("--out", default=str(policy.RESULTS), help="output directory (created if missing)")
+    common.add_jobs(e, "one per run, at most the CPU count")
+    common.add_out(e, "output directory (created if missing)", default=str(policy.RESULTS))
     e.set_defaults(func=cmd_energy)
+
+
+def _add_verify(sub) -> None:
+    v = sub("verify", "check an integrator or an effect (a plugin's, or one of the project's) against the plugin "
+                      "contract: one line per check with its figure; exit 1 on a failure",
+            "Check an integrator or an effect against the plugin contract (benchmark/contract/verify.py): for an "
+            "integrator its declared order on a fixed-length and a reeling scene, its statuses and guards, its "
+            "capabilities, determinism and its flop count; for an effect its gradients against autodiff, its power, "
+            "the energy balance with a reference method and the validation of its scene keys. Small scenes: seconds "
+            "to tens of seconds, mostly compilation.")
+    v.add_argument("names", nargs="+", metavar="NAME", help="registered integrators or effects (see `list`)")
+    common.add_scenes(v, "for an effect: a scene that lists it (default: a small scene with the effect and what it "
+                         "needs; required when its keys have no default)", one=True)
+    common.add_set(v, "for an effect: a scene override, repeatable, e.g. --set stiffness=20")
+    v.set_defaults(func=cmd_verify)
+
+
+def _add_work_rule(sub) -> None:
+    from benchmark.work import work_rule  # constants only (no JAX)
+
+    w = sub("work-rule", "the flop rule against compiled floors: does the work column charge methods in the "
+                         "proportion their compiled steps take time? -> --out (results/work_rule.md)",
+            "The flops of one step by the project's rule (benchmark/work/flops.py), and by the earlier rule, against "
+            "the time of one step of numba floors of the same equations kept outside the repository (--floor), "
+            "timed interleaved; the floors' own flops counted exactly (benchmark/work/opcount.py). Pin one core "
+            "(taskset -c 0) on a quiet machine: floor times on a loaded one are noisy.")
+    w.add_argument("--floor", required=True, type=common.as_type(work_rule.floor_dir, "floor directory"),
+                   help=f"directory of the numba floors ({', '.join(work_rule.FLOORS)})")
+    common.add_elements(w, "", least=2, default=_csv(work_rule.ELEMENTS))
+    w.add_argument("--steps", type=common.ruled(opt.positive_int, work_rule.check_steps, "steps"),
+                   default=work_rule.STEPS, help="steps per timed floor run at N = 10, fewer in proportion above")
+    w.add_argument("--repeats", type=opt.positive_int, default=work_rule.REPEATS, help="interleaved repeats (the "
+                                                                                       "least time counts)")
+    common.add_out(w, "the Markdown table; - = only print it", default=str(policy.WORK_RULE_FILE))
+    w.set_defaults(func=cmd_work_rule)
+
+
+#: The commands, in the order `--help` lists them.
+BUILDERS = (_add_run, _add_check, _add_simulate, _add_figures, _add_speed, _add_stability, _add_answer, _add_xval,
+            _add_reel_reversal, _add_orders, _add_energy, _add_verify, _add_work_rule)
 
 
 def parser() -> argparse.ArgumentParser:
@@ -874,22 +852,9 @@ def parser() -> argparse.ArgumentParser:
     def sub(name: str, help: str, description: str | None = None) -> argparse.ArgumentParser:
         return commands.add_parser(name, help=help, description=description or help, formatter_class=_Help)
 
-    for add in (_add_run, _add_check, _add_simulate, _add_figures, _add_speed, _add_stability, _add_answer, _add_xval,
-                _add_reel_reversal, _add_orders, _add_energy):
+    for add in BUILDERS:
         add(sub)
     sub("list", "registered integrators and shipped scenes").set_defaults(func=cmd_list)
-    v = sub("verify", "check an integrator or an effect (a plugin's, or one of the project's) against the plugin "
-                      "contract: one line per check with its figure; exit 1 on a failure",
-            "Check an integrator or an effect against the plugin contract (benchmark/contract/verify.py): for an integrator "
-            "its declared order on a fixed-length and a reeling scene, its statuses and guards, its capabilities, "
-            "determinism and its flop count; for an effect its gradients against autodiff, its power, the energy "
-            "balance with a reference method and the validation of its scene keys. Small scenes: seconds to tens of "
-            "seconds, mostly compilation.")
-    v.add_argument("names", nargs="+", metavar="NAME", help="registered integrators or effects (see `list`)")
-    v.add_argument("--scene", help="for an effect: a scene name or .toml path that lists it (default: a small "
-                                   "scene with the effect and what it needs; required when its keys have no default)")
-    _add_set(v, "for an effect: a scene override, repeatable, e.g. --set stiffness=20")
-    v.set_defaults(func=cmd_verify)
     return p
 
 
@@ -901,6 +866,7 @@ def main(argv=None) -> int:
         except SystemExit as exc:  # --help (0) or a bad option (2, argparse printed "error: ...")
             return exc.code if isinstance(exc.code, int) else 2
         args.argv = argv
+        common.run_checks(args)  # the checks that need a second option (`common.add_check`)
         if threading.current_thread() is threading.main_thread():
             from benchmark.core.engine import install_stop_handlers
 

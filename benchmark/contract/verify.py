@@ -500,7 +500,7 @@ def effect_scene(name: str, scene=None, overrides: dict | None = None):
         extra["axial_damping"] = 0.3
     missing = [k for k in needed if k not in extra and k.split(".")[-1] not in extra]
     if missing:
-        raise ValueError(f"effect {name!r} needs values for {', '.join(missing)}: give --scene FILE (a scene that "
+        raise ValueError(f"effect {name!r} needs values for {', '.join(missing)}: give --scenes FILE (a scene that "
                          "lists it) or --set KEY=VALUE for each")
     return small_scene(effects, **extra)
 

@@ -37,6 +37,11 @@ def number(text: str) -> float:
     return _number(text)
 
 
+def integer(text: str) -> int:
+    """An integer (its range is checked where it is used)."""
+    return _number(text, int)
+
+
 def positive_int(text: str) -> int:
     v = _number(text, int)
     if v < 1:
@@ -88,15 +93,26 @@ def _list_of(item):
 
 positive_floats = _list_of(positive_float)
 positive_ints = _list_of(positive_int)
+integers = _list_of(integer)
 tolerances = _list_of(tolerance)
+
+
+def check_factor(factor: float) -> None:
+    """`check`'s --factor: finite, > 1; UsageError naming it."""
+    if not (math.isfinite(factor) and factor > 1):
+        raise UsageError(f"--factor = {factor!r} is invalid (allowed: finite, > 1; e.g. 2 = twice the baseline)")
+
+
+def check_order_margin(order_margin: float) -> None:
+    """`check`'s --order-margin: finite, >= 0; UsageError naming it."""
+    if not (math.isfinite(order_margin) and order_margin >= 0):
+        raise UsageError(f"--order-margin = {order_margin!r} is invalid (allowed: finite, >= 0; e.g. 0.5)")
 
 
 def check_tolerance_rules(factor: float, order_margin: float) -> None:
     """`check`'s --factor (finite, > 1) and --order-margin (finite, >= 0); UsageError naming them."""
-    if not (math.isfinite(factor) and factor > 1):
-        raise UsageError(f"--factor = {factor!r} is invalid (allowed: finite, > 1; e.g. 2 = twice the baseline)")
-    if not (math.isfinite(order_margin) and order_margin >= 0):
-        raise UsageError(f"--order-margin = {order_margin!r} is invalid (allowed: finite, >= 0; e.g. 0.5)")
+    check_factor(factor)
+    check_order_margin(order_margin)
 
 
 def csv_table(columns: tuple, what: str):

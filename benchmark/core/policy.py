@@ -190,4 +190,5 @@ CHEAPEST_FILE = RESULTS / "cheapest.csv"
 STABILITY_DIR = RESULTS / "stability"
 XVAL_DIR = RESULTS / "xval"
 LGVI_SPEED_FILE = RESULTS / "lgvi_speed.md"
+WORK_RULE_FILE = RESULTS / "work_rule.md"
 

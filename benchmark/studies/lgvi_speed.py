@@ -61,7 +61,7 @@ def check_methods(methods) -> None:
 
     for m in methods:
         if not get_integrator(m).has(Capability.FIXED_STEP):
-            raise ValueError(f"--methods: {m!r} is not a fixed-step method (allowed: {', '.join(fixed_step_methods())})")
+            raise ValueError(f"--integrators: {m!r} is not a fixed-step method (allowed: {', '.join(fixed_step_methods())})")
 
 
 @dataclass(frozen=True)

@@ -1,6 +1,6 @@
 """Orders of the fixed-step methods across a reel reversal (s_p-dot changes sign).
 
-    python -m benchmark reel-reversal [--elements 5] [--t-end 0.96] [--methods lgvi,lgvi_sym,...]
+    python -m benchmark reel-reversal [--elements 5] [--t-end 0.96] [--integrators lgvi,lgvi_sym,...]
 
 Runs the hard scene ``reel_reversal`` (the Carnot force's ṡ|ṡ| is only C¹ where ṡ_p = 0) with
 each method at halving step sizes and writes a markdown table of the errors against the
@@ -36,7 +36,7 @@ def check_methods(methods) -> None:
     """ValueError naming a method without a step list."""
     for m in methods:
         if m not in DEFAULT_HS:
-            raise ValueError(f"--methods: {m!r} has no step list (allowed: {', '.join(DEFAULT_HS)})")
+            raise ValueError(f"--integrators: {m!r} has no step list (allowed: {', '.join(DEFAULT_HS)})")
 
 
 class Reference(NamedTuple):

@@ -119,7 +119,7 @@ def check_translatable(scene: Scene, code: str) -> None:
         why.append("a current (fluid.current: MoorDyn reads currents from its wave-kinematics input, not translated)")
     if why:
         raise Untranslatable(f"{code} cannot translate scene {scene.name!r}: " + "; ".join(why)
-                             + ": give a fixed-length scene without those effects (e.g. --scene fixed_length)")
+                             + ": give a fixed-length scene without those effects (e.g. --scenes fixed_length)")
 
 
 def time_step(scene: Scene) -> float:
@@ -628,7 +628,7 @@ def earlier_xval(out: Path, scene, t_end: float, this_run: set) -> tuple[dict, d
     if not any(f.exists() for f in files):
         return {}, {}
     refuse = (f"{out} holds an earlier cross-validation that this run cannot merge with and would overwrite ({{}}): "
-              "give --elements (and --scene, --t-end) covering it, another --out, or move it away")
+              "give --elements (and --scenes, --t-end) covering it, another --out, or move it away")
     try:
         settings = json.loads(files[0].read_text(encoding="utf-8"))
         cost = pd.read_csv(files[1])

@@ -23,7 +23,9 @@ pair it misses is one where the floors' time per flop differs by more than the t
 no count of the same arithmetic can follow. Floor times on a loaded machine are noisy:
 pin one core (``taskset -c 0``) and re-run on a quiet one; the load is written with the table.
 
-    PYTHONPATH=. taskset -c 0 python -m benchmark.work.work_rule --floor ../shared/floor --out results/work_rule.md
+    taskset -c 0 python -m benchmark work-rule --floor DIR
+
+(the command line's `work-rule`, which writes results/work_rule.md).
 
 The LGVI floor is the fixed-length step with a rigid body, so the scene is ``fixed_length``.
 ``lie_rk4``'s floor is a classical RK4 on the quaternion ODE state (the same four evaluations
@@ -32,16 +34,18 @@ and stage arithmetic; the Lie group update of its attitude is a few dozen flops 
 
 from __future__ import annotations
 
-import argparse
 import itertools
 import os
 import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pandas as pd
+
+if TYPE_CHECKING:
+    import pandas as pd  # imported where a table is made: `--help` of the command line stays light
 
 #: The agreement the rule must reach: flops ratio / floor time ratio within [1/1.5, 1.5].
 TOLERANCE = 1.5
@@ -49,6 +53,25 @@ METHODS = ("lgvi", "lie_rk4", "tsit5", "dopri8")
 SCENE = "fixed_length"
 #: Right-hand-side evaluations per step at a constant step (the earlier rule's count).
 EVALS_PER_STEP = {"lie_rk4": 4, "tsit5": 6, "dopri8": 13}
+#: The floors' modules, in the directory given with --floor.
+FLOORS = ("lgvi_nb", "lgvi_nb2", "rhs_nb")
+#: The command's defaults: element counts, steps per timed floor run at N = 10 (fewer in
+#: proportion above), interleaved repeats; and the fewest steps a timed run may take.
+ELEMENTS, STEPS, REPEATS, MIN_STEPS = (10, 40, 160), 20000, 11, 10
+
+
+def floor_dir(text: str) -> Path:
+    """The directory of the floors (--floor), or ValueError naming what is missing there."""
+    path = Path(text)
+    missing = [f"{m}.py" for m in FLOORS if not (path / f"{m}.py").is_file()]
+    if missing:
+        raise ValueError(f"{text!r}: no {', '.join(missing)} there (allowed: the directory of the numba floors)")
+    return path
+
+
+def check_steps(steps: int) -> None:
+    if steps < MIN_STEPS:
+        raise ValueError(f"{steps} is invalid (allowed: an integer >= {MIN_STEPS}, e.g. {STEPS})")
 
 
 def step_size(n: int) -> float:
@@ -250,10 +273,12 @@ COUNT_LABELS = {
 }
 
 
-def measure(floor: Path, elements=(10, 160), steps: int = 20000, repeats: int = 5) -> tuple[pd.DataFrame, pd.DataFrame]:
+def measure(floor: Path, elements=(10, 160), steps: int = STEPS, repeats: int = 5) -> tuple[pd.DataFrame, pd.DataFrame]:
     """(per-method table, per-pair table) for each N in ``elements``: the rule's flops with
     each program count (`benchmark.work.flops.PROGRAM_COUNTS`, the runs table's first), the
     earlier rule's and the floors' own, against the floors' times."""
+    import pandas as pd
+
     from benchmark.work import flops
 
     rows, pairs = [], []
@@ -361,44 +386,10 @@ For every pair of methods the agreement (flops ratio / floor time ratio) should 
 """
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m benchmark.work.work_rule", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--floor", required=True, type=Path, help="directory of the numba floors (lgvi_nb, lgvi_nb2, rhs_nb)")
-    ap.add_argument("--elements", default="10,40,160", help="comma-separated element counts (default: 10,40,160)")
-    ap.add_argument("--steps", type=int, default=20000, help="steps per timed floor run at N = 10, fewer in "
-                    "proportion above (default: 20000)")
-    ap.add_argument("--repeats", type=int, default=11, help="interleaved repeats (default: 11)")
-    ap.add_argument("--out", type=Path, default=None, help="write the Markdown table here (default: print it)")
-    a = ap.parse_args(argv)
-    missing = [f for f in ("lgvi_nb.py", "lgvi_nb2.py", "rhs_nb.py") if not (a.floor / f).is_file()]
-    if missing:
-        print(f"error: --floor {a.floor}: no {', '.join(missing)} there (allowed: the directory of the numba floors)",
-              file=sys.stderr)
-        return 2
-    try:
-        elements = tuple(int(v) for v in a.elements.split(","))
-        if any(n < 2 for n in elements):
-            raise ValueError
-    except ValueError:
-        print(f"error: --elements {a.elements!r} is invalid (allowed: comma-separated integers >= 2)", file=sys.stderr)
-        return 2
-    if a.steps < 10 or a.repeats < 1:
-        print("error: --steps must be >= 10 and --repeats >= 1", file=sys.stderr)
-        return 2
+def report(floor: Path, elements=ELEMENTS, steps: int = STEPS, repeats: int = REPEATS, *, command: str) -> str:
+    """Measure (`measure`) and return the Markdown table, headed by ``command`` with the cores it
+    was pinned to and the machine's load when it started."""
     load = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
-    methods, pairs = measure(a.floor.resolve(), elements, a.steps, a.repeats)
+    methods, pairs = measure(Path(floor).resolve(), tuple(elements), steps, repeats)
     cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
-    command = ("python -m benchmark.work.work_rule " + " ".join(argv if argv is not None else sys.argv[1:])
-               + (f" (pinned to cores {cpus})" if cpus else ""))
-    text = markdown(methods, pairs, load=load, command=command)
-    if a.out:
-        from models.io import atomic_write_text
-
-        atomic_write_text(a.out, text)
-    else:
-        print(text)
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+    return markdown(methods, pairs, load=load, command=command + (f" (pinned to cores {cpus})" if cpus else ""))
