@@ -6,7 +6,6 @@ end to end are in tests/test_resume_merge.py."""
 import math
 
 import numpy as np
-import pandas as pd
 import pytest
 
 from benchmark.core import engine

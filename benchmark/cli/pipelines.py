@@ -22,7 +22,7 @@ from benchmark.core import engine
 from benchmark.core import store
 from benchmark.runs import sweep
 from benchmark.runs import table as runs_table
-from benchmark.core.policy import GRID_DIR, RESULTS, SAVE_EVERY, STABILITY_DIR
+from benchmark.core.policy import GRID_DIR, RESULTS, SAVE_EVERY
 from benchmark.core.engine import log_stderr
 from benchmark.core.study import exclusive
 from benchmark.core.report import Provenance

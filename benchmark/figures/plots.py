@@ -15,7 +15,6 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from benchmark.figures import styles  # noqa: E402
-from benchmark.core.policy import setting_value  # noqa: E402
 from benchmark.runs.metrics import FLOPS_DEFINITION, WORK_DEFINITION, pi3_deviation  # noqa: E402
 from models import build_model  # noqa: E402
 from models.diagnostics import effect_energy_columns, energy_deviation  # noqa: E402

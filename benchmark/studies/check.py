@@ -45,7 +45,6 @@ from __future__ import annotations
 
 import collections
 import io
-import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path

@@ -328,7 +328,7 @@ def scipy_twin_step(name: str, model, rhs: str) -> float:
     as its compiled twin: scipy's ``rk_step`` (stages from the tableau ``A``, ``B``, ``C``,
     FSAL), the error norm (``E``; DOP853: ``E3`` and ``E5``) and the step factor, in JAX with
     scipy's own arrays and the same right-hand side."""
-    from models._jax import jax, jnp
+    from models._jax import jnp
 
     from integrators import get_integrator
 
