@@ -388,14 +388,17 @@ def cmd_speed(args) -> int:
                     raise
                 raise UsageError(f"--dt {args.dt:g} x --steps {args.steps} = {horizon['t_end']:g} s per timed run: "
                                  f"{exc}; give a smaller --dt or fewer --steps") from None
-    out = None if args.out == "-" else opt.writable_file(args.out)  # --out -: print only
+    if args.out.strip() == "-":  # each measurement is saved as it finishes: the tables always go to a file
+        raise UsageError("--out -: the speed tables are saved (and printed): give a Markdown file, e.g. speed.md")
+    out = opt.writable_file(args.out)
+    from benchmark.core import study
     from benchmark.studies import lgvi_speed
-    from benchmark.cli import pipelines
 
-    if out is not None and out.is_file() and not pipelines.speed_rows_file(out).exists():
-        raise UsageError(f"--out {out}: the file exists without its rows table {pipelines.speed_rows_file(out)}, "
+    if out.is_file() and not lgvi_speed.rows_file(out).exists():
+        raise UsageError(f"--out {out}: the file exists without its rows table {lgvi_speed.rows_file(out)}, "
                          "so its rows could not be kept; this run would overwrite them: give another --out, or move "
                          "it away")
+    opt.no_directory_at(out.parent, (out.name, lgvi_speed.rows_file(out).name))
     from integrators.rhs import check_rhs
 
     rhs = tuple(v.strip() for v in args.rhs.split(",") if v.strip())
@@ -405,7 +408,7 @@ def cmd_speed(args) -> int:
         lgvi_speed.check_methods(args.methods)
     request = SpeedRequest(elements=elements, scenes=scenes, methods=tuple(args.methods) if args.methods else None,
                            steps=args.steps, repeats=args.repeats, dt=args.dt, rhs=rhs, autodiff_max_n=args.autodiff_max_n)
-    return pipelines.run_speed(request, out, command=_command(args), log=_log)
+    return study.run(lgvi_speed.study(request, out), out.parent, command=_command(args), fresh=args.fresh, log=_log)
 
 
 def cmd_stability(args) -> int:
@@ -504,13 +507,15 @@ def cmd_reel_reversal(args) -> int:
         raise UsageError(f"--scene {scene.name!r} has no reel (effects: {', '.join(scene.effects)}): the reel-reversal "
                          "study follows the reel rate through its change of sign; give a scene with the reel effect, "
                          "e.g. --scene reel_reversal")
-    from benchmark.cli import pipelines
+    from benchmark.core import study
     from benchmark.core.reference import CACHE_DIR
 
     cache = opt.writable_dir(args.cache_dir or CACHE_DIR, option="--cache-dir")
-
-    return pipelines.run_reel_reversal(args.scene, args.elements, args.t_end, args.methods, jobs=args.jobs,
-                                       cache_dir=str(cache), log=_log)
+    out = opt.writable_dir(args.out)
+    opt.no_directory_at(out, ("reel_reversal.csv", "reel_reversal.md"))
+    the_study = reel_reversal.study(args.scene, args.elements, args.t_end, args.methods, workers=args.jobs,
+                                    cache_dir=str(cache))
+    return study.run(the_study, out, command=_command(args), fresh=args.fresh, log=_log)
 
 
 def cmd_orders(args) -> int:
@@ -519,11 +524,12 @@ def cmd_orders(args) -> int:
 
     for sc in args.scenes or ():
         load_scene(sc)  # an unknown scene is refused before any work
-    orders.fixed_step_methods(args.integrators)  # an unknown or adaptive-only method likewise
+    the_study = orders.study(args.scenes, args.integrators, workers=args.jobs)  # an adaptive-only method likewise
     out = opt.writable_dir(args.out)
-    from benchmark.cli import pipelines
+    opt.no_directory_at(out, ("orders_errors.csv", "orders.csv"))
+    from benchmark.core import study
 
-    return pipelines.run_orders(args.scenes, args.integrators, out=out, jobs=args.jobs, log=_log)
+    return study.run(the_study, out, command=_command(args), fresh=args.fresh, log=_log)
 
 
 def cmd_energy(args) -> int:
@@ -743,10 +749,12 @@ def _add_speed(sub) -> None:
     sp.add_argument("--rhs", default=_csv(default.rhs), help="right-hand sides to time per call ('' = none)")
     sp.add_argument("--autodiff-max-n", type=opt.positive_int, default=default.autodiff_max_n,
                     help="largest N for the O(N^3) autodiff right-hand side")
+    sp.add_argument("--fresh", action="store_true", help="recompute every row this command writes (default: keep "
+                                                         "the finished ones)")
     sp.add_argument("--out", default=str(policy.LGVI_SPEED_FILE),
-                    help="the tables (Markdown, with the command and machine): this run's rows join those of the "
-                         "rows table beside it (.csv; rows of other methods, scenes and N are kept) and the file is "
-                         "written from the whole table; - = only print them")
+                    help="the tables (Markdown, with the command and machine; also printed): this run's rows join "
+                         "those of the rows table beside it (.csv; rows of other methods, scenes and N are kept) and "
+                         "the file is written from the whole table")
     sp.set_defaults(func=cmd_speed)
 
 
@@ -814,7 +822,7 @@ def _add_reel_reversal(sub) -> None:
     from benchmark.studies import reel_reversal  # constants only (no JAX)
 
     rr = sub("reel-reversal", "orders of the fixed-step methods across a reel reversal (ṡ_p changes sign), errors "
-                              "against the reference -> a table on stdout")
+                              "against the reference -> --out/reel_reversal.csv, reel_reversal.md (also printed)")
     rr.add_argument("--scene", default="reel_reversal", help="scene name or path")
     rr.add_argument("--elements", type=opt.positive_int, default=5, help="N")
     rr.add_argument("--t-end", type=opt.positive_float, default=0.96,
@@ -824,6 +832,10 @@ def _add_reel_reversal(sub) -> None:
                     help="worker processes (0: run in this process; default: one per method, at most the CPU count)")
     rr.add_argument("--cache-dir", help="where the reference is cached (default: the user's cache, shared by every "
                                         "study; created if missing)")
+    rr.add_argument("--fresh", action="store_true", help="recompute every row this command writes (default: keep "
+                                                         "the finished ones)")
+    rr.add_argument("--out", default=str(reel_reversal.OUT_DIR), help="output directory (created if missing); rows "
+                                                                       "of other cases, methods and steps are kept")
     rr.set_defaults(func=cmd_reel_reversal)
 
 
@@ -842,6 +854,8 @@ def _add_orders(sub) -> None:
                                                          "registered one)")
     o.add_argument("--jobs", type=opt.nonnegative_int, help="worker processes (0: in this process; default: one "
                                                             "per method, at most the CPU count)")
+    o.add_argument("--fresh", action="store_true", help="recompute every row this command writes (default: keep "
+                                                        "the finished ones)")
     o.add_argument("--out", default=str(policy.RESULTS), help="output directory (created if missing)")
     o.set_defaults(func=cmd_orders)
 
