@@ -168,7 +168,7 @@ def test_every_documented_command_parses_and_passes_its_checks(tmp_path):
         assert [c["pipeline"] for c in res["calls"]] == [pipeline], (command, res)
         out, table = res["calls"][0]["out"], res["calls"][0].get("table")
         # where it writes: its directory, and a study's Markdown beside its table (the speed tables)
-        places = [Path(out)] + ([Path(table).with_suffix(".md")] if table else [])
+        places = [Path(p) for p in (out,) if p is not None] + ([Path(table).with_suffix(".md")] if table else [])
         if "--out" in args:
             assert Path(args[args.index("--out") + 1]) in places, (command, out)
         elif command in DOCUMENTED_OUT or args[0] in DOCUMENTED_OUT:
