@@ -148,7 +148,7 @@ def test_reel_reversal_command_prints_errors_falling_with_the_step(tmp_path, cap
     from benchmark.cli.main import main
 
     args = ["reel-reversal", "--integrators", "lgvi_sym", "--elements", "2", "--t-end", "0.16", "--jobs", "0",
-            "--cache-dir", str(tmp_path)]
+            "--cache-dir", str(tmp_path), "--out", str(tmp_path / "out")]
     assert main(args) == 0
     rows = [line.split("|")[1:-1] for line in capsys.readouterr().out.splitlines() if line.startswith("| lgvi_sym |")]
     assert [float(r[1]) for r in rows] == [4, 2, 1, 0.5]  # h in ms

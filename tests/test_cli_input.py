@@ -206,8 +206,7 @@ def no_pipeline(monkeypatch):
     from benchmark.core import study
 
     monkeypatch.setattr(study, "run", lambda s, *a, **k: pytest.fail(f"reached the study {s.name}"))
-    for name in ("run_sweep", "simulate", "draw_figures", "run_check", "run_speed", "run_xval",
-                 "run_reel_reversal"):
+    for name in ("run_sweep", "simulate", "draw_figures", "run_check", "run_xval"):
         monkeypatch.setattr(pipelines, name, lambda *a, _n=name, **k: pytest.fail(f"reached pipelines.{_n}"))
 
 

@@ -31,7 +31,7 @@ ROOT = Path(__file__).resolve().parent.parent
 DOCS = (ROOT / "README.md", ROOT / "integrators" / "README.md", ROOT / "models" / "README.md")
 #: Commands that write elsewhere than runs.csv and take minutes: not run here.
 NOT_RUN = {"check": "results/baseline/ only", "speed": "its --out file only", "stability": "results/stability/ only",
-           "xval": "results/xval/ only", "reel-reversal": "stdout and its cache only",
+           "xval": "results/xval/ only", "reel-reversal": "results/reel_reversal/ and its cache only",
            "answer": "results/ (its cheapest.csv, README.md, figures) and the README's answer block",
            "verify": "writes nothing; tests/test_verify.py runs each documented verify",
            "work-rule": "results/work_rule.md only, and needs the numba floors kept outside the repository"}
@@ -45,13 +45,14 @@ NEEDS_EFFECT_EXAMPLE = re.compile(r"\btip_spring|\bverify\b")
 
 #: The pipeline each documented command reaches, and the output the docs name for it (checked
 #: in the default run; "" where the command has no output directory of its own).
-REACHES = {"run": ("run_sweep", "out"), "check": ("run_check", ""), "speed": ("run_speed", "out"),
+REACHES = {"run": ("run_sweep", "out"), "check": ("run_check", ""), "speed": ("study:speed", "out"),
            "stability": ("study:stability map", "out"), "xval": ("run_xval", "out"),
-           "reel-reversal": ("run_reel_reversal", ""), "orders": ("run_orders", "out"),
+           "reel-reversal": ("study:reel-reversal", "out"), "orders": ("study:orders", "out"),
            "energy": ("study:horizon", "out"), "answer": ("run_answer", "out"), "list": (None, "")}
 #: The documented outputs, by command: where the docs say its results go.
 DOCUMENTED_OUT = {"run --fresh": "results/grid", "run": "results/grid", "answer": "results",
-                  "speed": "results/lgvi_speed.md", "stability": "results/stability", "xval": "results/xval"}
+                  "speed": "results/lgvi_speed.md", "stability": "results/stability", "xval": "results/xval",
+                  "reel-reversal": "results/reel_reversal"}
 
 
 def documented_commands() -> list[str]:
@@ -118,6 +119,7 @@ def test_the_docs_show_the_commands_this_test_runs():
 #: the plugin is registered through its entry point, as a user's would be).
 _VALIDATE = r"""
 import json, sys
+from pathlib import Path
 from benchmark.cli import pipelines
 from benchmark.cli.main import main
 calls = []
@@ -128,15 +130,13 @@ def recorder(name):
             out = args[0].out
         elif name == "run_xval":
             out = args[3]
-        elif name == "run_speed":
-            out = args[1] if len(args) > 1 else kw.get("out")
         calls.append({"pipeline": name, "out": None if out is None else str(out)})
         return 0
     return record
 from benchmark.core import study
-study.run = lambda s, out, **kw: calls.append({"pipeline": "study:" + s.name, "out": str(out)}) or 0
-for name in ("run_sweep", "simulate", "draw_figures", "run_check", "run_speed", "run_xval",
-             "run_reel_reversal", "run_orders"):
+study.run = lambda s, out, **kw: calls.append({"pipeline": "study:" + s.name, "out": str(out),
+                                              "table": str(Path(out) / s.table)}) or 0
+for name in ("run_sweep", "simulate", "draw_figures", "run_check", "run_xval"):
     setattr(pipelines, name, recorder(name))
 from benchmark.answer import answer
 answer.run_answer = lambda request, *a, **kw: recorder("run_answer")(out=request.out)
@@ -167,11 +167,13 @@ def test_every_documented_command_parses_and_passes_its_checks(tmp_path):
         if pipeline is None:
             continue
         assert [c["pipeline"] for c in res["calls"]] == [pipeline], (command, res)
-        out = res["calls"][0]["out"]
+        out, table = res["calls"][0]["out"], res["calls"][0].get("table")
+        # where it writes: its directory, and a study's Markdown beside its table (the speed tables)
+        places = [Path(p) for p in (out,) if p is not None] + ([Path(table).with_suffix(".md")] if table else [])
         if "--out" in args:
-            assert Path(out) == Path(args[args.index("--out") + 1]), (command, out)
+            assert Path(args[args.index("--out") + 1]) in places, (command, out)
         elif command in DOCUMENTED_OUT or args[0] in DOCUMENTED_OUT:
-            assert Path(out) == Path(DOCUMENTED_OUT.get(command, DOCUMENTED_OUT[args[0]])), (command, out)
+            assert Path(DOCUMENTED_OUT.get(command, DOCUMENTED_OUT[args[0]])) in places, (command, out)
     assert not any(p.name == ".reelbench.lock" for p in work.rglob("*"))  # no pipeline ran
 
 

@@ -84,9 +84,10 @@ def test_the_slope_is_the_last_halving_above_the_floor():
 
 @pytest.mark.slow
 def test_the_whole_table_recomputed_matches_theory(tmp_path):
-    from benchmark.cli import pipelines
+    from benchmark.core import study
 
-    assert pipelines.run_orders(out=tmp_path, jobs=0, log=lambda m: None, echo=lambda m: None) == 0
+    the_study = orders.study(workers=0, echo=lambda m: None)
+    assert study.run(the_study, tmp_path, command="python -m benchmark orders", log=lambda m: None) == 0
     _check_against_theory(pd.read_csv(tmp_path / "orders.csv"), pd.read_csv(tmp_path / "orders_errors.csv"),
                           orders.fixed_step_methods())
 

@@ -154,7 +154,8 @@ def test_the_reel_reversal_table_and_the_order_ladders_compute_an_order_alike():
     from benchmark.studies import reel_reversal
 
     errors = [reel_reversal.Errors(1e-3, 2e-3, 4e-3), reel_reversal.Errors(2.5e-4, 2.5e-4, 1e-3)]
-    rows = [{"method": "lgvi", "h": h, "errors": e} for h, e in zip((0.01, 0.005), errors)]
+    rows = [{"method": "lgvi", "h": h, "status": "ok", **{f"error_{k}": v for k, v in e._asdict().items()}}
+            for h, e in zip((0.01, 0.005), errors)]
     text = reel_reversal.table(SimpleNamespace(name="s", string=SimpleNamespace(elements=2)), 1.0, [0.5], rows)
     assert text.splitlines()[-1].endswith("| 2.00 / 3.00 / 2.00 |")
     assert orders.slopes((0.01, 0.005), (1e-3, 2.5e-4))[0] == pytest.approx(2.0)

@@ -233,7 +233,7 @@ def stubbed(monkeypatch):
 
     calls = []
     monkeypatch.setattr(study, "run", lambda s, *a, **k: calls.append((f"study:{s.name}", a, k)) or 0)
-    for name in ("run_sweep", "simulate", "run_check", "run_speed", "run_xval", "run_reel_reversal"):
+    for name in ("run_sweep", "simulate", "run_check", "run_xval"):
         monkeypatch.setattr(pipelines, name, lambda *a, _n=name, **k: calls.append((_n, a, k)) or 0)
     return calls
 

@@ -318,14 +318,17 @@ def cmd_speed(args) -> int:
                     raise
                 raise UsageError(f"--dt {args.dt:g} x --steps {args.steps} = {horizon['t_end']:g} s per timed run: "
                                  f"{exc}; give a smaller --dt or fewer --steps") from None
-    out = None if args.out == "-" else opt.writable_file(args.out)  # --out -: print only
+    if args.out.strip() == "-":  # each measurement is saved as it finishes: the tables always go to a file
+        raise UsageError("--out -: the speed tables are saved (and printed): give a Markdown file, e.g. speed.md")
+    out = opt.writable_file(args.out)
+    from benchmark.core import study
     from benchmark.studies import lgvi_speed
-    from benchmark.cli import pipelines
 
-    if out is not None and out.is_file() and not pipelines.speed_rows_file(out).exists():
-        raise UsageError(f"--out {out}: the file exists without its rows table {pipelines.speed_rows_file(out)}, "
+    if out.is_file() and not lgvi_speed.rows_file(out).exists():
+        raise UsageError(f"--out {out}: the file exists without its rows table {lgvi_speed.rows_file(out)}, "
                          "so its rows could not be kept; this run would overwrite them: give another --out, or move "
                          "it away")
+    opt.no_directory_at(out.parent, (out.name, lgvi_speed.rows_file(out).name))
     from integrators.rhs import check_rhs
 
     rhs = tuple(v.strip() for v in args.rhs.split(",") if v.strip())
@@ -335,7 +338,7 @@ def cmd_speed(args) -> int:
         lgvi_speed.check_methods(args.integrators)
     request = SpeedRequest(elements=elements, scenes=scenes, methods=tuple(args.integrators) if args.integrators else None,
                            steps=args.steps, repeats=args.repeats, dt=args.dt, rhs=rhs, autodiff_max_n=args.autodiff_max_n)
-    return pipelines.run_speed(request, out, command=_command(args), log=_log)
+    return study.run(lgvi_speed.study(request, out), out.parent, command=_command(args), fresh=args.fresh, log=_log)
 
 
 def cmd_stability(args) -> int:
@@ -430,13 +433,15 @@ def cmd_reel_reversal(args) -> int:
         raise UsageError(f"--scenes {scene.name!r} has no reel (effects: {', '.join(scene.effects)}): the reel-reversal "
                          "study follows the reel rate through its change of sign; give a scene with the reel effect, "
                          "e.g. --scenes reel_reversal")
-    from benchmark.cli import pipelines
+    from benchmark.core import study
     from benchmark.core.reference import CACHE_DIR
 
     cache = opt.writable_dir(args.cache_dir or CACHE_DIR, option="--cache-dir")
-
-    return pipelines.run_reel_reversal(args.scene, args.elements, args.t_end, args.integrators, jobs=args.jobs,
-                                       cache_dir=str(cache), log=_log)
+    out = opt.writable_dir(args.out)
+    opt.no_directory_at(out, ("reel_reversal.csv", "reel_reversal.md"))
+    the_study = reel_reversal.study(args.scene, args.elements, args.t_end, args.integrators, workers=args.jobs,
+                                    cache_dir=str(cache))
+    return study.run(the_study, out, command=_command(args), fresh=args.fresh, log=_log)
 
 
 def cmd_orders(args) -> int:
@@ -445,11 +450,12 @@ def cmd_orders(args) -> int:
 
     for sc in args.scenes or ():
         load_scene(sc)  # an unknown scene is refused before any work
-    orders.fixed_step_methods(args.integrators)  # an unknown or adaptive-only method likewise
+    the_study = orders.study(args.scenes, args.integrators, workers=args.jobs)  # an adaptive-only method likewise
     out = opt.writable_dir(args.out)
-    from benchmark.cli import pipelines
+    opt.no_directory_at(out, ("orders_errors.csv", "orders.csv"))
+    from benchmark.core import study
 
-    return pipelines.run_orders(args.scenes, args.integrators, out=out, jobs=args.jobs, log=_log)
+    return study.run(the_study, out, command=_command(args), fresh=args.fresh, log=_log)
 
 
 def cmd_energy(args) -> int:
@@ -472,7 +478,7 @@ def cmd_energy(args) -> int:
     if not the_study.jobs:
         _log("horizon: none of the selected methods is in the energy study's plan; nothing written")
         return 0
-    return study.run(the_study, out, command=_command(args), fresh=getattr(args, "fresh", False), log=_log)
+    return study.run(the_study, out, command=_command(args), fresh=args.fresh, log=_log)
 
 
 def cmd_verify(args) -> int:
@@ -687,9 +693,10 @@ def _add_speed(sub) -> None:
     sp.add_argument("--rhs", default=_csv(default.rhs), help="right-hand sides to time per call ('' = none)")
     sp.add_argument("--autodiff-max-n", type=opt.positive_int, default=default.autodiff_max_n,
                     help="largest N for the O(N^3) autodiff right-hand side")
-    common.add_out(sp, "the tables (Markdown, with the command and machine): this run's rows join those of the rows "
-                       "table beside it (.csv; rows of other methods, scenes and N are kept) and the file is written "
-                       "from the whole table; - = only print them", default=str(policy.LGVI_SPEED_FILE))
+    common.add_fresh(sp, "the rows table beside --out")
+    common.add_out(sp, "the tables (Markdown, with the command and machine; also printed): this run's rows join "
+                       "those of the rows table beside it (.csv; rows of other methods, scenes and N are kept) and "
+                       "the file is written from the whole table", default=str(policy.LGVI_SPEED_FILE))
     sp.set_defaults(func=cmd_speed)
 
 
@@ -757,7 +764,7 @@ def _add_reel_reversal(sub) -> None:
     from benchmark.studies import reel_reversal  # constants only (no JAX)
 
     rr = sub("reel-reversal", "orders of the fixed-step methods across a reel reversal (ṡ_p changes sign), errors "
-                              "against the reference -> a table on stdout")
+                              "against the reference -> --out/reel_reversal.csv, reel_reversal.md (also printed)")
     common.add_scenes(rr, "a scene with the reel effect", one=True, default="reel_reversal")
     common.add_elements(rr, "", one=True, default=5)
     common.add_t_end(rr, f"a multiple of the compared interval {reel_reversal.COMPARE_EVERY:g} s", default=0.96)
@@ -766,6 +773,9 @@ def _add_reel_reversal(sub) -> None:
     common.add_jobs(rr, "one per method, at most the CPU count")
     rr.add_argument("--cache-dir", help="where the reference is cached (default: the user's cache, shared by every "
                                         "study; created if missing)")
+    common.add_fresh(rr, "OUT/reel_reversal.csv")
+    common.add_out(rr, "output directory (created if missing); rows of other cases, methods and steps are kept",
+                   default=str(reel_reversal.OUT_DIR))
     rr.set_defaults(func=cmd_reel_reversal)
 
 
@@ -781,6 +791,7 @@ def _add_orders(sub) -> None:
     common.add_scenes(o, f"(default: {_csv(orders.SCENES)}, one per situation)")
     common.add_integrators(o, "fixed-step methods only (default: every registered one)", registered=False)
     common.add_jobs(o, "one per method, at most the CPU count")
+    common.add_fresh(o, "OUT/orders_errors.csv")
     common.add_out(o, "output directory (created if missing)", default=str(policy.RESULTS))
     o.set_defaults(func=cmd_orders)
 
@@ -801,6 +812,7 @@ def _add_energy(sub) -> None:
     e.add_argument("--variants", type=opt.names, help="comma-separated string laws: plain (the scene as it is), "
                                                       "slack (tension-only) (default: both)")
     common.add_jobs(e, "one per run, at most the CPU count")
+    common.add_fresh(e, "OUT/energy_horizon.csv")
     common.add_out(e, "output directory (created if missing)", default=str(policy.RESULTS))
     e.set_defaults(func=cmd_energy)
 

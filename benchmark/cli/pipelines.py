@@ -22,12 +22,11 @@ from benchmark.core import engine
 from benchmark.core import store
 from benchmark.runs import sweep
 from benchmark.runs import table as runs_table
-from benchmark.core.policy import GRID_DIR, RESULTS, SAVE_EVERY
+from benchmark.core.policy import GRID_DIR, SAVE_EVERY
 from benchmark.core.engine import log_stderr
 from benchmark.core.study import exclusive
 from benchmark.core.report import Provenance
 from models.io import inside, printable
-from integrators.base import is_finished
 
 
 # ------------------------------------------------------------------------------------------
@@ -76,7 +75,7 @@ class SweepRequest:
 def run_sweep(request: SweepRequest, log: Callable[[str], None] = log_stderr) -> int:
     """The grid sweep into ``request.out``: runs.csv (written after every run), runs.md, the
     figures, the energy study when ``request.horizon`` asks for one, and README.md (with the
-    orders of `run_orders` and the stability map's evidence, `study_file`). It ranks nothing: the
+    orders of the `orders` study and the stability map's evidence, `study_file`). It ranks nothing: the
     answer is `benchmark.answer.answer`'s. The run's rows join the table already
     in ``out`` (`benchmark.core.store.merge_rows`): rows of other scenes, methods or settings are kept,
     and every file is written from the merged table. A stopped sweep keeps its finished rows."""
@@ -474,127 +473,6 @@ def run_xval(scene_name: str, elements, t_end: float, out: Path, *, command: str
         study = xval.Study(study.times, {**kept, **study.runs})
         provenance = provenance.merged_into(earlier_runs(out / "README.md"))
     log(f"wrote {xval_report.write_outputs(study, scene, out, provenance, kept=kept_settings)}")
-    return 0
-
-
-def run_speed(request, out: Path | None = None, *, command: str = "python -m benchmark speed",
-              log: Callable[[str], None] = log_stderr, echo: Callable[[str], None] = print) -> int:
-    """The speed tables (a `lgvi_speed.SpeedRequest`), one timing after another in this process:
-    echoed, and with ``out`` (a Markdown file) merged into the rows table beside it (``.csv``,
-    written after every measurement, `benchmark.core.study_store.MergedTable`) and ``out`` written from
-    the whole table, also when the run is stopped."""
-    from benchmark.studies import lgvi_speed
-    from benchmark.core.study_store import MergedTable
-    from models.io import atomic_write_text
-
-    provenance = Provenance(command)
-    jobs = lgvi_speed.jobs_for(request)
-    table, rows = None, []
-
-    def on_row(done: list[dict]) -> None:
-        rows[:] = done
-        if table is not None:
-            table(done)
-
-    def write(done: list[dict]) -> str:
-        merged = table.merged(done) if table is not None else done
-        text = lgvi_speed.document(merged, table.provenance(provenance, done, out) if table is not None else provenance)
-        if out is not None:
-            atomic_write_text(out, text)
-        return text
-
-    with exclusive(out.parent, log) if out is not None else contextlib.nullcontext():
-        if out is not None:
-            table = MergedTable(speed_rows_file(out), lgvi_speed.IDENTITY, lgvi_speed.to_frame,
-                                text_columns=lgvi_speed.TEXT_COLUMNS)
-        try:  # the at-work line inside: a stop right after it (a loaded machine) is this study's stop
-            log(f"speed: {len(jobs)} measurement(s), one after another in this process"
-                + (f"; rows -> {table.path} (merged with its {table.earlier} earlier row(s)), tables -> {out}"
-                   if table is not None else " (no --out: the tables are printed, not saved)"))
-            rows[:] = engine.run_jobs(lgvi_speed.run_job, jobs, workers=0, describe=lgvi_speed.describe,
-                                      on_row=on_row, log=log)
-        except KeyboardInterrupt as exc:
-            if table is None:
-                return engine.stopped(exc, "nothing saved (without --out the tables are only printed)", log)
-            note = table.stop_note()
-            if table.saved:
-                write(rows)
-                note += f"; {out} is written from it"
-            return engine.stopped(exc, f"{note}; run the same command again to measure the rest", log)
-        if table is not None:
-            table(rows)
-        echo(write(rows))
-    return 0
-
-
-def speed_rows_file(out: Path) -> Path:
-    """The rows table of the speed file ``out``: beside it, ``.csv``."""
-    return Path(out).with_suffix(".csv")
-
-
-def run_reel_reversal(scene_name: str = "reel_reversal", elements: int = 5, t_end: float = 0.96, methods=None, *,
-                      jobs: int | None = None, cache_dir: str | None = None, log: Callable[[str], None] = log_stderr,
-                      echo: Callable[[str], None] = print) -> int:
-    """The reel-reversal orders: the reference first, then every (method, step) run on the
-    engine (grouped by method: one compilation each); the table is echoed."""
-    import os
-
-    from benchmark.studies import reel_reversal
-    from benchmark.core.reference import CACHE_DIR
-    from models import load_scene
-
-    cache_dir = str(cache_dir or CACHE_DIR)
-    scene = load_scene(scene_name, elements=elements)
-    methods = list(methods or reel_reversal.DEFAULT_HS)
-    todo = [reel_reversal.Job(m, h, scene_name, elements, t_end, cache_dir)
-            for m in methods for h in reel_reversal.DEFAULT_HS[m]]
-    ref = reel_reversal.reference(scene, t_end, cache_dir)
-    workers = jobs if jobs is not None else min(len(methods), os.cpu_count() or 1)
-    rows = engine.run_jobs(reel_reversal.run_job, todo, workers=workers, group=lambda i: todo[i].method,
-                           describe=reel_reversal.describe, log=log)
-    echo(reel_reversal.table(scene, t_end, ref.flips, rows))
-    return 0
-
-
-def run_orders(scenes=None, integrators=None, *, out: Path = RESULTS, jobs: int | None = None,
-               log: Callable[[str], None] = log_stderr, echo: Callable[[str], None] = print) -> int:
-    """The observed orders (`benchmark.studies.orders`) into ``out``: orders_errors.csv (every run of
-    every ladder) and orders.csv (a row per scene and method); a rerun of some scenes or methods
-    replaces their rows and keeps the others (`store.merge_study_table`)."""
-    import os
-
-    import pandas as pd
-
-    from benchmark.studies import orders
-
-    scenes = list(scenes or orders.SCENES)
-    methods = orders.fixed_step_methods(integrators)  # refuses an adaptive-only name before any work
-    out = Path(out)
-    with exclusive(out, log):
-        try:
-            log(f"orders: references of {', '.join(scenes)} ({orders.REFERENCE_METHOD} at dt = "
-                f"{orders.REFERENCE_DT:g} s, N = {orders.ELEMENTS}, to t = {orders.T_END:g} s) ...")
-            refs = {s: orders.reference(s) for s in scenes}
-            todo = [orders.Job(s, m, refs[s]) for s in scenes for m in methods]
-            workers = jobs if jobs is not None else min(len(methods), os.cpu_count() or 1)
-            rows = engine.run_jobs(orders.run_job, todo, workers=workers, group=lambda i: todo[i].integrator,
-                                   crash_row=lambda i, exc: orders.crash_row(todo[i], exc),
-                                   describe=orders.describe, log=log)
-        except KeyboardInterrupt as exc:
-            return engine.stopped(exc, f"nothing written: {out}/orders.csv is as it was", log)
-        for r in rows:
-            if not is_finished(r["status"]):
-                log(f"warning: orders of {r['integrator']} on {r['scene']}: {r['status']} ({r.get('reason', '')}); "
-                    "its earlier rows are kept")
-        new = pd.DataFrame([x for r in rows for x in r["ladder"]])
-        path = out / "orders_errors.csv"
-        earlier = pd.read_csv(path) if path.is_file() else None
-        ladder = orders.in_order(store.merge_study_table(earlier, new, orders.LADDER_KEY))
-        summary = orders.summarise(ladder)
-        store.write_table(path, ladder)
-        store.write_table(out / "orders.csv", summary)
-    echo(orders.section(summary))
-    log(f"wrote {out}/orders.csv and {path} ({len(new)} runs, {len(ladder)} in the table)")
     return 0
 
 

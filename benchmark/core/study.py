@@ -59,6 +59,8 @@ class Study:
     - ``frame(rows)``: the table of rows, its columns in order;
     - ``report(out, rows, provenance)``: writes the study's other files from the whole merged
       table; returns a line saying what it wrote ("" for nothing);
+    - ``header``: the file in the output directory whose header names the earlier runs (the
+      provenance of a merged table);
     - ``key(job)``: what determines the job's row (code and settings); None: not resumable;
     - ``crash_row(job, exc)``: the row of a job whose worker died (None: the death is raised);
     - ``group(job)`` / ``cost(job)``: jobs that share a compile run in one worker; the longest
@@ -100,6 +102,18 @@ class Study:
     workers: int = 0
     scheduler: str | None = None
     setup: tuple = field(default=())
+    header: str = "README.md"
+
+
+def job_key(settings: dict, *files: str) -> str:
+    """A `Study.key`: a short hash of what determines a job's row, its ``settings`` (JSON), the
+    code version (`benchmark.core.store.code_version`) and the study's own source ``files``
+    (paths from the repository root)."""
+    import hashlib
+    import json
+
+    what = {"settings": settings, "code": store.code_version(), "study": store.source_hash((), files)}
+    return hashlib.sha256(json.dumps(what, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
 def _kept(study: Study, earlier: list[dict]) -> dict[int, dict]:
@@ -137,7 +151,7 @@ def run(study: Study, out: Path, *, command: str, fresh: bool = False,
         if table.saved:
             try:  # the report of the whole merged table, so that it agrees with the table
                 wrote = session.report()
-                note += f"; {wrote or 'the report'} is written from it"
+                note += "; the report is written from it" + (f" ({wrote})" if wrote else "")
             except Exception as err:  # noqa: BLE001 - the stop line must come out whatever the report does
                 note += f"; its report was not written ({type(err).__name__})"
         return engine.stopped(exc, f"{note}; run the same command again to compute the rest", log)
@@ -201,4 +215,4 @@ class _Session:
     def report(self) -> str:
         table, rows = self.table, self.rows
         return self.study.report(self.out, table.merged(rows),
-                                 table.provenance(self.provenance, rows, self.out / "README.md"))
+                                 table.provenance(self.provenance, rows, self.out / self.study.header))

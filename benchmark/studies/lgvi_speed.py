@@ -3,9 +3,11 @@
     python -m benchmark speed                      # short: N = 10 on fixed_length (~1.5 CPU-minutes)
     python -m benchmark speed --elements 10,40,160,640 --scenes fixed_length,deployment   # the full run
 
-Into ``--out`` (default results/lgvi_speed.md): the rows table beside it (``lgvi_speed.csv``)
-takes this run's rows in place of theirs, keeping the others (`benchmark.core.study_store`), and the
-Markdown file is written from the whole table.
+Into ``--out`` (default results/lgvi_speed.md), a study on the one runner (`study`,
+`benchmark.core.study.run`): the rows table beside it (``lgvi_speed.csv``) takes each measurement
+as it finishes in place of the earlier one, keeping the others, and the Markdown file is written
+from the whole table (also when stopped) and printed. A rerun measures only what the table lacks
+from the same code, settings and machine (`key`); ``--fresh`` measures everything again.
 
 Two tables:
 
@@ -32,6 +34,7 @@ from __future__ import annotations
 import statistics
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
@@ -174,7 +177,53 @@ def run_job(job) -> dict:
         return {"kind": "step", "rhs": "", **measure(job.scene, job.N, job.steps, job.repeats, job.dt, job.method)}
     if job.skip:
         return {"kind": "rhs", "method": "", "scene": job.scene, "N": job.N, "rhs": job.rhs, "skipped": job.skip}
-    return {"kind": "rhs", "method": "", "skipped": "", **measure_rhs(job.scene, job.N, job.rhs)}
+    return {"kind": "rhs", "method": "", "skipped": "", **measure_rhs(job.scene, job.N, job.rhs), "status": "ok"}
+
+
+def identity_of(job) -> tuple:
+    """The identity (`IDENTITY`) of the row ``job`` makes."""
+    if isinstance(job, StepJob):
+        return "step", job.method, "", job.scene, job.N
+    return "rhs", "", job.rhs, job.scene, job.N
+
+
+def key(job) -> str:
+    """What determines a measurement: the job's settings, the code and the machine (its name,
+    architecture and the cores this process may use)."""
+    import os
+    import platform
+
+    from benchmark.core.study import job_key
+
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return job_key({"job": [type(job).__name__, *job], "host": platform.node(), "machine": platform.machine(),
+                    "cores": cores}, "benchmark/studies/lgvi_speed.py", "benchmark/work/flops.py")
+
+
+def rows_file(out) -> Path:
+    """The rows table of the speed file ``out``: beside it, ``.csv``."""
+    return Path(out).with_suffix(".csv")
+
+
+def study(request: SpeedRequest, out, *, echo=print):
+    """The speed tables as a study of `benchmark.core.study.run` into ``out``'s directory: one
+    measurement after another in this process; the rows table beside ``out`` (`rows_file`), and
+    ``out`` (Markdown) written from the whole table and echoed."""
+    from benchmark.core.study import Study
+
+    out = Path(out)
+
+    def report(directory, rows: list[dict], provenance: Provenance) -> str:
+        from models.io import atomic_write_text
+
+        text = document(rows, provenance)
+        atomic_write_text(out, text)
+        echo(text)
+        return f"wrote {out}"
+
+    return Study(name="speed", table=rows_file(out).name, identity=IDENTITY, jobs=jobs_for(request), run_job=run_job,
+                 identity_of=identity_of, frame=to_frame, report=report, describe=describe, key=key,
+                 text_columns=TEXT_COLUMNS, workers=0, header=out.name)
 
 
 def to_frame(rows: list[dict]):

@@ -22,12 +22,21 @@ error has settled (two slopes within `ASYMPTOTIC_SPREAD`: column ``asymptotic``)
 chaotic horizons of the sweep, with two or three points, such slopes are not orders (they gave
 dopri8 21.8): the sweep's table is not used for orders any more.
 
+As a study on the one runner (`study`, `benchmark.core.study.run`) one job is one method's ladder
+on one scene (the jobs of a method in one worker: one compile; each worker computes a scene's
+reference once). Its runs go to ``orders_errors.csv`` as the job finishes, in place of that
+ladder's earlier runs (the other ladders are kept); ``orders.csv`` (`summarise`) and the echoed
+section (`section`) are written from the whole table, also when stopped. A rerun computes only
+the ladders the table lacks from the same code and settings (`key`); ``--fresh`` all of them.
+A ladder whose worker died is one row with its status ("crashed") and reason.
+
 Methods that only adapt their step (scipy's RK45, DOP853, Radau; Kvaerno5) have no order in h
 and no constant-step mode: they are not in the table (their declared order is their tableau's).
 """
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import numpy as np
@@ -121,31 +130,43 @@ def reference(scene_name: str, elements: int = ELEMENTS, t_end: float = T_END) -
                      float(np.abs(np.asarray(check.x) - x).max()))
 
 
+@functools.lru_cache(maxsize=None)
+def _reference(scene_name: str, elements: int, t_end: float) -> Reference:
+    """`reference`, computed once per process (a worker runs every scene of its method)."""
+    return reference(scene_name, elements, t_end)
+
+
 class Job(NamedTuple):
     scene: str
     integrator: str
-    reference: Reference
+    reference: Reference | None = None  # None: computed by the job (once per process)
     elements: int = ELEMENTS
     t_end: float = T_END
 
 
+#: The columns of a ladder row (orders_errors.csv), in order.
+LADDER_COLUMNS = ("scene", "integrator", "situation", "declared_order", "elements", "t_end", "setting", "dt", "status",
+                  "reason", "error", "reference_error", "reference_check")
+
+
 def run_job(job: Job) -> dict:
-    """One method's ladder on one scene: a row per step (status, error)."""
+    """One method's ladder on one scene: a row per step (status, error) in ``ladder``."""
     from integrators import get_integrator
     from integrators.base import situation
 
+    ref = job.reference or _reference(job.scene, job.elements, job.t_end)
     scene = load(job.scene, job.elements)
     integ = get_integrator(job.integrator)
     declared = integ.order_for(scene)
     ladder = []
     for h in steps(declared or 1):
         tr = integ.solve(scene, t_end=job.t_end, dt=h, save_every=SAVE_EVERY)
-        same = tr.ok and np.shape(tr.x) == np.shape(job.reference.x)
+        same = tr.ok and np.shape(tr.x) == np.shape(ref.x)
         ladder.append({"scene": job.scene, "integrator": job.integrator, "situation": situation(scene),
                        "declared_order": declared, "elements": job.elements, "t_end": job.t_end,
                        "setting": Setting.fixed(h).label(), "dt": h, "status": tr.status, "reason": tr.reason,
-                       "error": float(np.abs(np.asarray(tr.x) - job.reference.x).max()) if same else np.nan,
-                       "reference_error": job.reference.error_bound, "reference_check": job.reference.check})
+                       "error": float(np.abs(np.asarray(tr.x) - ref.x).max()) if same else np.nan,
+                       "reference_error": ref.error_bound, "reference_check": ref.check})
     return {"scene": job.scene, "integrator": job.integrator, "status": "ok", "ladder": ladder}
 
 
@@ -153,7 +174,57 @@ def crash_row(job: Job, exc: BaseException) -> dict:
     from benchmark.core.engine import crash_reason
 
     return {"scene": job.scene, "integrator": job.integrator, "status": "crashed", "reason": crash_reason(exc),
-            "ladder": []}
+            "elements": job.elements, "t_end": job.t_end, "ladder": []}
+
+
+def ladder_rows(row: dict) -> list[dict]:
+    """The table rows of a job's row (`Study.expand`): its ladder's runs, or, when its worker
+    died, the job's row itself (its status and reason)."""
+    return list(row["ladder"]) or [{k: v for k, v in row.items() if k != "ladder"}]
+
+
+def to_frame(rows: list[dict]) -> pd.DataFrame:
+    """orders_errors.csv: the ladder rows, in order (`in_order`)."""
+    from benchmark.core.store import frame
+
+    table = frame(rows, list(LADDER_COLUMNS))
+    return in_order(table) if len(table) else table
+
+
+def key(job: Job) -> str:
+    """What determines a ladder: the scene's physics, the method, N and the horizon, the code."""
+    from benchmark.core.study import job_key
+
+    return job_key({"scene": load(job.scene, job.elements).key(), "integrator": job.integrator,
+                    "elements": job.elements, "t_end": job.t_end}, "benchmark/studies/orders.py")
+
+
+def study(scenes=None, integrators=None, *, workers: int | None = None, echo=print):
+    """The observed orders as a study of `benchmark.core.study.run` (see the module's docstring):
+    orders_errors.csv, merged ladder by ladder, then orders.csv and the echoed section. An
+    adaptive-only method is refused here, before any work. ``workers``: None, one per method
+    (at most the CPU count)."""
+    import os
+    from pathlib import Path
+
+    from benchmark.core.study import Study
+
+    methods = fixed_step_methods(integrators)
+    jobs = [Job(s, m) for s in (scenes or SCENES) for m in methods]
+
+    def report(out, rows: list[dict], provenance) -> str:
+        from benchmark.core.store import write_table
+
+        summary = summarise(to_frame(rows))
+        write_table(Path(out) / "orders.csv", summary)
+        echo(section(summary))
+        return f"wrote {out}/orders.csv ({len(rows)} runs in {out}/orders_errors.csv)"
+
+    return Study(name="orders", table="orders_errors.csv", identity=LADDER_KEY, jobs=jobs, run_job=run_job,
+                 identity_of=lambda j: (j.scene, j.integrator), frame=to_frame, report=report, describe=describe,
+                 key=key, crash_row=crash_row, group=lambda j: j.integrator, expand=ladder_rows,
+                 text_columns=("scene", "integrator", "situation", "setting", "status", "reason"),
+                 workers=workers if workers is not None else min(len(methods), os.cpu_count() or 1))
 
 
 def describe(row: dict) -> str:
@@ -208,8 +279,10 @@ def summarise(ladder: pd.DataFrame) -> pd.DataFrame:
         if (~counted).any():
             below = g.loc[~counted & g["status"].isin(FINISHED_STATUSES), "dt"]
             failed = g.loc[~g["status"].isin(FINISHED_STATUSES), "dt"]
-            if len(failed):
-                note.append("did not finish at dt = " + ", ".join(f"{h:g}" for h in failed))
+            if failed.notna().any():
+                note.append("did not finish at dt = " + ", ".join(f"{h:g}" for h in failed.dropna()))
+            for r in g[g["dt"].isna()].itertuples():  # a job whose worker died: no ladder
+                note.append(f"{r.status}: {r.reason}")
             if len(below):
                 note.append("below the floor at dt = " + ", ".join(f"{h:g}" for h in below))
         rows.append({"scene": scene, "integrator": name, "situation": g["situation"].iloc[0],

@@ -1,13 +1,21 @@
 """Orders of the fixed-step methods across a reel reversal (s_p-dot changes sign).
 
-    python -m benchmark reel-reversal [--elements 5] [--t-end 0.96] [--integrators lgvi,lgvi_sym,...]
+    python -m benchmark reel-reversal [--elements 5] [--t-end 0.96] [--integrators lgvi,lgvi_sym,...] [--out DIR]
 
 Runs the hard scene ``reel_reversal`` (the Carnot force's ṡ|ṡ| is only C¹ where ṡ_p = 0) with
 each method at halving step sizes and writes a markdown table of the errors against the
 benchmark's reference solution (`benchmark.core.reference`: DOP853 at rtol 1e-12, atol 1e-14):
 maximum over the compared times (every `COMPARE_EVERY` s) of the body position
 |q_{N+1} − q_ref|, of |s_p − s_ref| and of |(E − W) − E0|, with the observed orders. Also says
-when ṡ_p changes sign in the reference. Every (method, step) run is one engine job.
+when ṡ_p changes sign in the reference.
+
+A study on the one runner (`study`, `benchmark.core.study.run`): every (method, step) run is one
+job (a method's jobs in one worker: one compile), after the reference is computed into its
+cache. Into ``--out`` (default `OUT_DIR`): ``reel_reversal.csv``, a row per case (scene, N,
+horizon), method and step, saved as each job finishes (rows of other cases, methods and steps
+are kept), and ``reel_reversal.md``, the tables of the whole table under the report header,
+also printed. A rerun computes only the rows the table lacks from the same code and settings
+(`key`); ``--fresh`` all of them.
 """
 
 from __future__ import annotations
@@ -17,6 +25,10 @@ from typing import NamedTuple
 
 import numpy as np
 
+from benchmark.core.policy import RESULTS, Setting
+
+#: Where the study writes by default.
+OUT_DIR = RESULTS / "reel_reversal"
 #: step sizes per method (s): each in its asymptotic range on the smooth reel scenes, above round-off
 DEFAULT_HS = {"lgvi": (0.004, 0.002, 0.001, 0.0005), "lgvi_sym": (0.004, 0.002, 0.001, 0.0005),
               "lgvi_yoshida4": (0.004, 0.002, 0.001, 0.0005), "lgvi_suzuki4": (0.008, 0.004, 0.002, 0.001),
@@ -89,6 +101,11 @@ class Job(NamedTuple):
     cache_dir: str
 
 
+def case(scene, t_end: float) -> str:
+    """The case a row belongs to: scene, N and horizon (the table holds several)."""
+    return f"{scene.name} N={scene.string.elements} t_end={t_end:g}"
+
+
 def run_job(job: Job) -> dict:
     """One method at one step: its status and its errors against the (cached) reference."""
     from integrators import get_integrator
@@ -96,23 +113,65 @@ def run_job(job: Job) -> dict:
     from models.diagnostics import evaluate
 
     scene = load_scene(job.scene_name, elements=job.elements)
-    ref = reference(scene, job.t_end, job.cache_dir).traj
+    ref = reference(scene, job.t_end, job.cache_dir)
     tr = get_integrator(job.method).solve(scene, t_end=job.t_end, dt=job.h, save_every=COMPARE_EVERY)
-    row = {"method": job.method, "h": job.h, "status": tr.status, "reason": tr.reason}
+    row = {**_base_row(job, scene), "status": tr.status, "reason": tr.reason,
+           "reversals": " ".join(f"{t:.6g}" for t in ref.flips)}
     if tr.ok:
-        row["errors"] = errors(scene, tr, ref, float(evaluate(scene, ref).energy_minus_work.iloc[0]))
+        e = errors(scene, tr, ref.traj, float(evaluate(scene, ref.traj).energy_minus_work.iloc[0]))
+        row.update({f"error_{k}": v for k, v in e._asdict().items()})
     return row
 
 
+def _base_row(job: Job, scene) -> dict:
+    return {"case": case(scene, job.t_end), "scene": scene.name, "elements": job.elements, "t_end": job.t_end,
+            "method": job.method, "setting": Setting.fixed(job.h).label(), "h": job.h}
+
+
+#: A row of the table: one per case, method and step.
+IDENTITY = ("case", "method", "setting")
+TEXT_COLUMNS = ("case", "scene", "method", "setting", "status", "reason", "reversals")
+COLUMNS = (*IDENTITY, "scene", "elements", "t_end", "h", "status", "reason", "error_body", "error_s_p", "error_energy",
+           "reversals")
+
+
+def crash_row(job: Job, exc: BaseException) -> dict:
+    """The row of a job whose worker died."""
+    from benchmark.core.engine import crash_reason
+    from models import load_scene
+
+    return {**_base_row(job, load_scene(job.scene_name, elements=job.elements)), "status": "crashed",
+            "reason": crash_reason(exc)}
+
+
+def _errors(row: dict) -> Errors | None:
+    """The row's errors, None when its run did not finish."""
+    from integrators.base import is_finished
+
+    if not is_finished(row.get("status")):
+        return None
+    return Errors(*(float(row[f"error_{k}"]) for k in Errors._fields))
+
+
 def describe(row: dict) -> str:
-    what = ", ".join(f"{k} {v:.2e}" for k, v in row["errors"]._asdict().items()) if "errors" in row else row["status"]
+    e = _errors(row)
+    what = ", ".join(f"{k} {v:.2e}" for k, v in e._asdict().items()) if e else row["status"]
     return f"{row['method']} h = {row['h'] * 1e3:g} ms: {what}"
+
+
+def to_frame(rows: list[dict]):
+    from benchmark.core.store import frame
+
+    return frame(rows, list(COLUMNS))
 
 
 def table(scene, t_end: float, flips, rows: list[dict]) -> str:
     """The Markdown table of the rows (in method, then step order), orders between successive steps."""
-    lines = [f"scene {scene.name}, N = {scene.string.elements}, t_end = {t_end:g} s; s_p-dot changes sign at t = "
-             + ", ".join(f"{t:.3f}" for t in flips) + " s",
+    return _table(f"scene {scene.name}, N = {scene.string.elements}, t_end = {t_end:g} s", flips, rows)
+
+
+def _table(title: str, flips, rows: list[dict]) -> str:
+    lines = [f"{title}; s_p-dot changes sign at t = " + ", ".join(f"{t:.3f}" for t in flips) + " s",
              "", "| method | h [ms] | body [m] | s_p [m] | E-W [J] | orders (body / s_p / E-W) |", "|---|---|---|---|---|---|"]
     from benchmark.studies.orders import slopes  # the observed order between two steps, as the order ladders compute it
 
@@ -120,12 +179,78 @@ def table(scene, t_end: float, flips, rows: list[dict]) -> str:
     for i, r in enumerate(rows):
         if i == 0 or r["method"] != rows[i - 1]["method"]:
             prev = None
-        if "errors" not in r:
+        e = _errors(r)
+        if e is None:
             lines.append(f"| {r['method']} | {r['h'] * 1e3:g} | {r['status']}: {r['reason']} | | | |")
             continue
-        e = r["errors"]
         steps = (prev_h, r["h"])
         orders = " / ".join(f"{slopes(steps, (a, b))[0]:.2f}" for a, b in zip(prev, e)) if prev else ""
         lines.append(f"| {r['method']} | {r['h'] * 1e3:g} | {e.body:.2e} | {e.s_p:.2e} | {e.energy:.2e} | {orders} |")
         prev, prev_h = e, r["h"]
     return "\n".join(lines)
+
+
+def tables(rows: list[dict]) -> str:
+    """The table of every case of ``rows`` (a merged table's rows, in any order): each case's rows
+    by method (`DEFAULT_HS`' order first) and step, coarsest first."""
+    cases = list(dict.fromkeys(r["case"] for r in rows))
+    methods = list(dict.fromkeys([*DEFAULT_HS, *(r["method"] for r in rows)]))
+    out = []
+    for c in cases:
+        mine = sorted((r for r in rows if r["case"] == c), key=lambda r: (methods.index(r["method"]), -float(r["h"])))
+        flips = [float(t) for t in str(mine[0].get("reversals") or "").split()]
+        r0 = mine[0]
+        out.append(_table(f"scene {r0['scene']}, N = {int(r0['elements'])}, t_end = {float(r0['t_end']):g} s", flips,
+                          mine))
+    return "\n\n".join(out)
+
+
+def warm_reference(scene_name: str, elements: int, t_end: float, cache_dir: str) -> None:
+    """The reference of the case, computed into its cache (a setup call of the study)."""
+    from models import load_scene
+
+    reference(load_scene(scene_name, elements=elements), t_end, cache_dir)
+
+
+def key(job: Job) -> str:
+    """What determines a row: the scene's physics, N, horizon, method and step, the code."""
+    from benchmark.core.study import job_key
+    from models import load_scene
+
+    return job_key({"scene": load_scene(job.scene_name, elements=job.elements).key(), "elements": job.elements,
+                    "t_end": job.t_end, "method": job.method, "h": job.h}, "benchmark/studies/reel_reversal.py")
+
+
+def study(scene_name: str = "reel_reversal", elements: int = 5, t_end: float = 0.96, methods=None, *,
+          workers: int | None = None, cache_dir: str | None = None, echo=print):
+    """The reel-reversal orders as a study of `benchmark.core.study.run` (see the module's
+    docstring). ``workers``: None, one per method (at most the CPU count)."""
+    import functools
+    import os
+
+    from benchmark.core.reference import CACHE_DIR
+    from benchmark.core.study import Study
+    from models import load_scene
+
+    cache_dir = str(cache_dir or CACHE_DIR)
+    scene = load_scene(scene_name, elements=elements)
+    methods = list(methods or DEFAULT_HS)
+    check_methods(methods)
+    jobs = [Job(m, h, scene_name, elements, t_end, cache_dir) for m in methods for h in DEFAULT_HS[m]]
+    ids = {j: (case(scene, t_end), j.method, Setting.fixed(j.h).label()) for j in jobs}
+
+    def report(out, rows: list[dict], provenance) -> str:
+        from models.io import atomic_write_text
+
+        text = tables(rows)
+        atomic_write_text(Path(out) / "reel_reversal.md", "# Orders across a reel reversal\n\n"
+                          f"{provenance.header()}\n\n{text}\n")
+        echo(text)
+        return f"wrote {out}/reel_reversal.md"
+
+    return Study(name="reel-reversal", table="reel_reversal.csv", identity=IDENTITY, jobs=jobs, run_job=run_job,
+                 identity_of=ids.__getitem__, frame=to_frame, report=report, describe=describe, key=key,
+                 crash_row=crash_row, group=lambda j: j.method, text_columns=TEXT_COLUMNS,
+                 workers=workers if workers is not None else min(len(methods), os.cpu_count() or 1),
+                 setup=(functools.partial(warm_reference, scene_name, elements, t_end, cache_dir),),
+                 header="reel_reversal.md")
