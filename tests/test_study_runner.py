@@ -100,7 +100,7 @@ def test_a_rerun_resumes_and_fresh_recomputes(tmp_path):
     logged = []
     assert go(toy([("a", 1), ("b", 2)]), tmp_path, log=logged.append) == 0
     assert CALLS == []  # both finished rows, made from the same key, are kept
-    assert "2 kept" in logged[0] and reported(tmp_path) == ["a=1", "b=2"]
+    assert any("kept 2 of 2 jobs" in line for line in logged) and reported(tmp_path) == ["a=1", "b=2"]
     assert go(toy([("a", 1), ("b", 2)]), tmp_path, fresh=True) == 0
     assert CALLS == ["a", "b"]
     assert list(table(tmp_path)["name"]) == ["a", "b"]
@@ -249,7 +249,7 @@ def test_reel_reversal_stopped_keeps_its_finished_rows_and_a_rerun_runs_the_rest
     from benchmark.studies import reel_reversal
 
     out, ran = tmp_path / "rr", []
-    args = ["reel-reversal", "--methods", "lgvi,lgvi_sym", "--elements", "2", "--t-end", "0.16", "--jobs", "0",
+    args = ["reel-reversal", "--integrators", "lgvi,lgvi_sym", "--elements", "2", "--t-end", "0.16", "--jobs", "0",
             "--cache-dir", str(tmp_path / "cache"), "--out", str(out)]
     monkeypatch.setattr(reel_reversal, "warm_reference", lambda *a: None)  # the stand-ins need no reference
     monkeypatch.setattr(reel_reversal, "run_job", _stopping(_fake_reel, 3, ran))
