@@ -319,7 +319,7 @@ class Integrator(abc.ABC):
     its own choices in one table keyed by method name (the default sweep's members and tolerances
     in `benchmark.runs.sweep`, the energy study's plan in `benchmark.studies.horizon`, the
     stability map's default run in `benchmark.studies.stability`); a method a study does not list
-    gets that study's general rule, and a plugin joins a study when ``--integrators`` names it.
+    gets that study's general rule (integrators/README.md, "The plugin contract").
 
     Nothing in a class definition may need JAX: the registry lists and describes methods
     without importing it (JAX is imported inside the functions that trace and compile).
