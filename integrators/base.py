@@ -312,10 +312,14 @@ class Integrator(abc.ABC):
         orders: optional per-situation orders where they differ from ``order``, keyed by
             `SITUATIONS` (e.g. the paper's LGVI: {"fixed_length": 2, "reel": 1}); see `order_for`.
         description: one line for tables and ``python -m benchmark list``.
-        horizon_settings, paper_settings, expensive, cost_hint, sweep_rtols: what the benchmark
-            reads instead of method names (the long-horizon study, the paper's panels, the
-            stability map's default run and its scheduling, the default sweep's tolerances; its
-            step sizes are one grid for every fixed-step method, `benchmark.runs.sweep.FULL_DTS`).
+        cost_hint: the method's rough cost (compile seconds, cost per step), which every study's
+            scheduling and ETA read.
+
+    A class says what the method is, never which study runs it at which setting: each study keeps
+    its own choices in one table keyed by method name (the default sweep's members and tolerances
+    in `benchmark.runs.sweep`, the energy study's plan in `benchmark.studies.horizon`, the
+    stability map's default run in `benchmark.studies.stability`); a method a study does not list
+    gets that study's general rule (integrators/README.md, "The plugin contract").
 
     Nothing in a class definition may need JAX: the registry lists and describes methods
     without importing it (JAX is imported inside the functions that trace and compile).
@@ -327,25 +331,9 @@ class Integrator(abc.ABC):
     order: ClassVar[int | None] = None
     orders: ClassVar[dict[str, int] | None] = None
     description: ClassVar[str] = ""
-    #: settings of this method in the benchmark's long-horizon energy study (`benchmark run
-    #: --horizon`), e.g. {"dt": 0.005} or {"rtol": 1e-6, "atol": 1e-8}; None: not in the study.
-    #: Set it explicitly on a subclass that should not inherit it.
-    horizon_settings: ClassVar[dict[str, float] | None] = None
-    #: settings of the run that draws the paper's panels in `benchmark run` (the paper's method
-    #: declares them); None: not the paper's method. Set it explicitly on a subclass.
-    paper_settings: ClassVar[dict[str, float] | None] = None
-    #: why the stability map's default run leaves this method out of the scenes where its cost
-    #: is prohibitive, in words (e.g. a measured compile time per scene); None: it never is
-    expensive: ClassVar[str | None] = None
-    #: the relative tolerances of an adaptive method in the full default sweep, where the
-    #: shared ones (`benchmark.runs.sweep.FULL_RTOLS`) reach past the method's useful range; None: the
-    #: shared ones. (``--rtols`` and ``--quick`` override it.)
-    sweep_rtols: ClassVar[tuple[float, ...] | None] = None
-    #: whether `benchmark run` without ``--integrators`` runs this method; False: an extended-sweep
-    #: method, run when named (its rows merge into the same table)
-    default_sweep: ClassVar[bool] = True
     #: (compile seconds per scene, run cost per step relative to an explicit RK step): a rough
-    #: scheduling hint (the stability map starts the longest jobs first), never a result
+    #: hint of what the method costs, for every study's scheduling (longest jobs first) and
+    #: ETA, never a result
     cost_hint: ClassVar[tuple[float, float]] = (30.0, 1.0)
 
     def has(self, capability: Capability) -> bool:

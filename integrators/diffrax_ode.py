@@ -605,7 +605,6 @@ class Tsit5(_ExplicitPair):
     fsal_stages = 7
     order = 5
     description = "diffrax Tsit5: PID-adaptive (rtol/atol) or constant step (dt alone), quaternion attitude"
-    horizon_settings = {"rtol": 1e-6, "atol": 1e-8}
 
 
 class Dopri5(_ExplicitPair):
@@ -615,7 +614,6 @@ class Dopri5(_ExplicitPair):
     order = 5
     description = ("diffrax Dopri5: scipy RK45's Dormand-Prince 5(4) tableau, compiled; PID-adaptive or constant "
                    "step, quaternion attitude")
-    default_sweep = False  # extended sweep: the compiled twin of rk45's tableau (the default run keeps to ~5 min)
 
 
 class Dopri8(_ExplicitPair):
@@ -625,8 +623,6 @@ class Dopri8(_ExplicitPair):
     order = 8
     description = ("diffrax Dopri8: Prince-Dormand 8(7), compiled (an 8th-order pair like DOP853's, not its "
                    "tableau); PID-adaptive or constant step, quaternion attitude")
-    horizon_settings = {"rtol": 1e-8, "atol": 1e-10}
-    default_sweep = False  # extended sweep: the compiled twin of dop853's order (the default run keeps to ~5 min)
 
 
 class Kvaerno5(DiffraxODE):
@@ -635,12 +631,6 @@ class Kvaerno5(DiffraxODE):
     capabilities = frozenset({Capability.ADAPTIVE, Capability.IMPLICIT})
     order = 5
     description = "diffrax Kvaerno5 (implicit ESDIRK 5(4), full Newton), PID-adaptive, quaternion attitude"
-    #: extended sweep: an implicit method on a non-stiff problem, 67 s of worker time in the
-    #: default sweep (measured); radau represents the implicit ones
-    default_sweep = False
-    #: measured 2026-11-30 (one core): 0.2 s of stiff_string had not finished after 6 min; its full
-    #: Newton re-forms the Jacobian at every iteration
-    expensive = "re-forms its Jacobian at every Newton iteration (0.2 s of stiff_string ran over 6 min here)"
     cost_hint = (30.0, 3.0)
     #: ``count_evaluations=True``: count the evaluations and Jacobians in a replay (`COUNTS_UNAVAILABLE`)
     option_names = ("min_step", "count_evaluations")

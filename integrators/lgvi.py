@@ -92,10 +92,6 @@ class LGVI(FixedStepMethod):
     #: measured (tests/test_orders.py): second order at fixed length, first while the length changes
     orders = {"fixed_length": 2, "reel": 1}
     description = "Lie group variational integrator (Lee-Leok-McClamroch 2011): Cayley SO(3), structured Newton"
-    horizon_settings = {"dt": 0.005}
-    #: the paper's figures: inside its stability limit (h ω_max < 2) on all three paper scenes at
-    #: N = 10 (deployment's short elements diverge at 5 ms, measured)
-    paper_settings = {"dt": 0.0025}
     cost_hint = (30.0, 0.3)
     uses_rhs = False
     rhs_label = "closed_form"

@@ -34,7 +34,6 @@ class LGVISym(LGVI):
     order = 2
     orders = None  # the same order at fixed length and while reeling (the paper's lgvi: 2 and 1)
     scheme = Scheme(symmetric=True)
-    horizon_settings = paper_settings = None  # the paper's lgvi represents the family there
     description = "symmetric LGVI: midpoint mass terms and forcing, second order while reeling"
 
 

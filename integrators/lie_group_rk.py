@@ -71,7 +71,6 @@ class _LieGroupMethod(FixedStepMethod):
     lie_step: ClassVar[str]
     #: comparable to the LGVI's 5 ms in the long-horizon energy study (h ω_max ≈ 1.1 on
     #: fixed_length at N = 10, inside the explicit methods' stability intervals)
-    horizon_settings = {"dt": 0.005}
     cost_hint = (20.0, 1.0)
 
     def init(self, ode: ODEProblem, y0):
@@ -143,5 +142,3 @@ class CrouchGrossman3(_LieGroupMethod):
     lie_step = "crouch_grossman3_step"
     description = ("Crouch-Grossman order 3 on SO(3) x R^n: products of exponentials of frozen fields; "
                    "group-preserving, not symplectic")
-    horizon_settings = None  # lie_rk4 represents the Lie group methods in the energy study
-    default_sweep = False  # extended sweep: lie_rk4 represents the Lie group methods in the default run

@@ -81,7 +81,6 @@ class Rattle(FixedStepMethod):
     evals_per_step = None
     description = ("RATTLE on unit quaternions: trapezoidal discrete Lagrangian, |Q| = 1 by a multiplier, "
                    "Newton per step; symplectic, not a Lie group method")
-    horizon_settings = {"dt": 0.005}
     cost_hint = (20.0, 3.0)
     #: its own discrete Euler-Lagrange equations, with the closed form's Legendre map
     uses_rhs = False

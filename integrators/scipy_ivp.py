@@ -232,13 +232,6 @@ class RK45(ScipyIVP):
     capabilities = frozenset({Capability.ADAPTIVE})
     order = 5
     description = "scipy RK45 (Dormand–Prince 5(4)), quaternion attitude, not renormalised"
-    #: not in the energy study: the compiled Tsit5 stands for the fifth-order pairs there (scipy's
-    #: 100 s took 52 s of Python-level steps, the study's longest job, measured)
-    horizon_settings = None
-    #: not 1e-10: there a fifth-order pair takes 20-36 s of Python-level steps per scene
-    #: (measured, with rk45_projected, which inherits this), a third of the default run's time,
-    #: for an accuracy DOP853 and the compiled twin `dopri5` reach in the same sweep
-    sweep_rtols = (1e-4, 1e-6, 1e-8)
 
 
 class Radau(ScipyIVP):
@@ -264,13 +257,9 @@ class DOP853(ScipyIVP):
     capabilities = frozenset({Capability.ADAPTIVE})
     order = 8
     description = "scipy DOP853 (Dormand–Prince 8(5,3)), used for reference solutions"
-    horizon_settings = None  # the compiled dopri8 stands for the eighth-order pairs in the energy study
 
 
 class RK45Projected(RK45):
     name = "rk45_projected"
     projected = True
-    horizon_settings = None
-    #: extended sweep: a variant of rk45 for one side question (does projecting the quaternion help?)
-    default_sweep = False
     description = "scipy RK45 with the quaternion rescaled to unit norm after every accepted step"

@@ -178,7 +178,7 @@ def test_speed_command_writes_its_tables_under_the_report_header(tmp_path, capsy
 
 
 def test_a_method_s_own_sweep_tolerances_and_their_overrides():
-    """`sweep_rtols` (rk45 and its projected variant stop at 1e-8) applies to the full default
+    """`SWEEP_RTOLS` (rk45 and its projected variant stop at 1e-8) applies to the full default
     sweep only; --rtols and --quick override it, and the other adaptive methods keep the shared ones."""
     from benchmark.runs.sweep import FULL_RTOLS, QUICK_RTOLS, build_tasks
 
@@ -213,13 +213,12 @@ def test_every_fixed_step_method_gets_the_one_step_grid():
 
 
 def test_extended_sweep_methods_run_only_when_named():
-    """A method declaring ``default_sweep = False`` is left out of `run` without --integrators and
+    """A method of the sweep's ``EXTENDED_METHODS`` is left out of `run` without --integrators and
     runs when named; every other registered method is in the default sweep."""
-    from benchmark.runs.sweep import build_tasks, default_names
-    from integrators import get_integrator
+    from benchmark.runs.sweep import EXTENDED_METHODS, build_tasks, default_names
 
     default = {t.integrator for t in build_tasks(scenes=("fixed_length",))}
-    extended = {n for n in default_names() if not get_integrator(n).default_sweep}
+    extended = {n for n in default_names() if n in EXTENDED_METHODS}
     assert {"rk45_projected", "dopri5", "dopri8", "kvaerno5", "crouch_grossman3"} <= extended
     assert default == set(default_names()) - extended and {"lgvi", "lie_rk4", "rattle", "rk45", "radau"} <= default
     named = {t.integrator for t in build_tasks(scenes=("fixed_length",), integrators=sorted(extended))}

@@ -53,6 +53,24 @@ def test_solve_refuses_what_the_command_line_refuses(small, name, kwargs, match,
         get_integrator(name).solve(small, **kwargs)
 
 
+def test_a_class_says_what_the_method_is_and_the_studies_choose_where_it_runs():
+    """Study settings live in each study's table keyed by method name, not on the class; every
+    name a table lists is one of the project's methods, and every method of the energy study's
+    plan has its setting there."""
+    from benchmark.runs import sweep
+    from benchmark.studies import horizon, stability
+    from integrators import registry
+
+    for name in available():
+        for attr in ("horizon_settings", "paper_settings", "sweep_rtols", "default_sweep", "expensive"):
+            assert not hasattr(get_integrator(name), attr), (name, attr)
+    planned = {name for _, name, _, _ in horizon.PLAN}
+    assert planned <= set(horizon.SETTINGS)
+    listed = {*sweep.EXTENDED_METHODS, *sweep.SWEEP_RTOLS, sweep.PAPER_METHOD.name, *horizon.SETTINGS, *planned,
+              *stability.EXPENSIVE}
+    assert listed <= set(registry.own())
+
+
 def test_the_horizon_bound_is_the_scene_files():
     from models.scene import PLAUSIBLE
 

@@ -416,7 +416,9 @@ def test_declarations_and_refused_options():
     integ = get_integrator("rattle")
     assert integ.capabilities == frozenset({Capability.FIXED_STEP, Capability.IMPLICIT, Capability.VARIATIONAL})
     assert integ.order == 2 and integ.orders is None and integ.implementation == "jax-compiled"
-    assert integ.horizon_settings == {"dt": 0.005}
+    from benchmark.studies import horizon
+
+    assert horizon.declared("rattle").settings == {"dt": 0.005}  # the energy study's setting
     scene = scene_with_effects(FIXED, elements=3)
     with pytest.raises(ValueError, match="rhs"):
         integ.solve(scene, t_end=0.1, dt=0.01, rhs="autodiff")

@@ -43,7 +43,7 @@ def test_a_restricted_run_keeps_the_other_rows_and_a_resume_trusts_only_checked_
     assert "`rk45`" in readme and "`lgvi`" in readme and "the other 2 come from earlier runs" in readme
     assert not (out / "cheapest.csv").exists()  # the grid ranks nothing: the answer is `answer`'s
     energy = pd.read_csv(out / "energy_horizon.csv")
-    # rk45 declares no energy-study settings (the compiled tsit5 stands for it): the LGVI's history is kept
+    # rk45 is not in the energy study's plan (`horizon.PLAN`): the LGVI's history is kept
     assert set(energy["integrator"]) == {"lgvi"}
 
     # hand edits: a plausible error, a text where a time belongs; both are named and recomputed

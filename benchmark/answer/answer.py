@@ -56,11 +56,9 @@ MAIN_JOB_EXTRA = ("dopri8",)
 def default_methods(extended: bool = False) -> tuple[str, ...]:
     """The methods the answer searches unless named: the project's own default-sweep methods and
     `MAIN_JOB_EXTRA`, or every own method (``extended``)."""
-    from benchmark.runs.sweep import default_names
-    from integrators import get_integrator
+    from benchmark.runs.sweep import EXTENDED_METHODS, default_names
 
-    return tuple(n for n in default_names()
-                 if extended or get_integrator(n).default_sweep or n in MAIN_JOB_EXTRA)
+    return tuple(n for n in default_names() if extended or n not in EXTENDED_METHODS or n in MAIN_JOB_EXTRA)
 
 
 #: The string sizes of the main job, and of the extended answer.

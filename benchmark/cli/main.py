@@ -89,9 +89,7 @@ def cmd_run(args) -> int:
         if args.integrators:
             raise UsageError("--with-plugins adds every installed plugin to the default methods: with --integrators "
                              "name the plugins you want instead")
-        from integrators import get_integrator
-
-        every = [n for n in sweep.default_names(plugins=True) if get_integrator(n).default_sweep]
+        every = sweep.default_sweep_names(plugins=True)
         if sweep.plugin_names(every):  # none installed: this is the default sweep
             args.integrators = every
     if args.extended and args.scenes:
@@ -113,7 +111,7 @@ def cmd_run(args) -> int:
                            save_option=None)  # run saves every SAVE_EVERY: no option to raise
     out = opt.writable_dir(_run_out(args))
     opt.no_directory_at(out, ("runs.csv", "runs.md", "orders.csv", "README.md", "figures.json"))
-    _check_horizon_size(args, ov)  # the registry's declared horizon settings (no JAX)
+    _check_horizon_size(args, ov)  # the energy study's plan and settings (no JAX)
 
     from benchmark.cli import pipelines
 
@@ -465,7 +463,7 @@ def cmd_energy(args) -> int:
 
     for sc in args.scenes or ():
         load_scene(sc)
-    horizon.methods(args.integrators)  # an unknown name, or one without energy-study settings, is refused
+    horizon.methods(args.integrators)  # an unknown name is refused (one outside the plan makes no runs)
     variants = tuple(args.variants) if args.variants else tuple(horizon.VARIANTS)
     unknown = [v for v in variants if v not in horizon.VARIANTS and v != "plain"]
     if unknown:
@@ -513,6 +511,7 @@ def cmd_work_rule(args) -> int:
 
 
 def cmd_list(args) -> int:
+    from benchmark.runs.sweep import EXTENDED_METHODS
     from integrators import available, get_integrator, origin, plugin_errors
     from models import available_scenes
 
@@ -523,16 +522,14 @@ def cmd_list(args) -> int:
         integ = get_integrator(name)
         caps = ", ".join(sorted(c.value for c in integ.capabilities))
         own = origin(name).own
-        # a plugin is a guest: it joins no sweep unasked, whatever its default_sweep says
-        sweep = ("default" if integ.default_sweep else "extended") if own else (
-            "plugins" if integ.default_sweep else "named")
+        # a plugin is a guest: it joins no sweep unasked
+        sweep = ("extended" if name in EXTENDED_METHODS else "default") if own else "plugins"
         guest = "" if own else f"  ({origin(name).label()})"
         print(f"  {name:{width}s}  order {integ.order}  {sweep:10s}  [{caps}]  {integ.description}{guest}")
     for name, err in failed_methods.items():
         print(f"  {name:{width}s}  FAILED TO LOAD: {err}")
     print("  (default: in the default sweep; extended: only in the extended sweep, or when --integrators names it; "
-          "plugins: a plugin, swept with --with-plugins or when --integrators names it; named: a plugin swept only "
-          "when --integrators names it)")
+          "plugins: a plugin, swept with --with-plugins or when --integrators names it)")
     from models import EFFECTS
     from models.effects import effect_origin, plugin_errors as effect_plugin_errors
 
@@ -803,11 +800,11 @@ def _add_energy(sub) -> None:
                       "the least tension, the modified-energy offset told apart from drift -> "
                       "OUT/energy_horizon.csv, figures and OUT/energy_horizon.md",
             "The energy study (benchmark/studies/horizon.py): the runs of its plan (horizon.PLAN: methods, N = "
-            f"{_csv(horizon.ELEMENTS)}, the declared step and {horizon.FINER:g}x finer), on each scene and with "
-            "the tension-only string (`slack`); the histories already in OUT/energy_horizon.csv for the same "
-            "settings and code are kept, rows of other methods and scenes too.")
+            f"{_csv(horizon.ELEMENTS)}, each method's setting in horizon.SETTINGS and {horizon.FINER:g}x finer), "
+            "on each scene and with the tension-only string (`slack`); the histories already in "
+            "OUT/energy_horizon.csv for the same settings and code are kept, rows of other methods and scenes too.")
     common.add_scenes(e, f"(default: {horizon.DEFAULT_SCENE})")
-    common.add_integrators(e, "(default: every one that declares energy-study settings)", registered=False)
+    common.add_integrators(e, "(default: every method of the study's plan)", registered=False)
     e.add_argument("--horizon", type=opt.positive_float, default=horizon.HORIZON, help="length in s")
     e.add_argument("--variants", type=opt.names, help="comma-separated string laws: plain (the scene as it is), "
                                                       "slack (tension-only) (default: both)")

@@ -20,7 +20,7 @@ FLUID_SCENES = ("deployment_in_water", "towed", "towed_offset")
 EXTENDED_SCENES = PAPER_SCENES + FLUID_SCENES
 #: The order in which the shipped methods appear in tables and plots (an order only: every
 #: registered method runs, plugins after these; which settings a method gets follows from its
-#: declared capabilities and attributes).
+#: declared capabilities and the tables below).
 PRESENTATION_ORDER = ("lgvi", "lgvi_sym", "lgvi_yoshida4", "lgvi_suzuki4", "rk45", "dop853", "radau", "tsit5",
                       "kvaerno5")
 #: The words for a sweep axis in labels: a run with ``dt`` set, or an adaptive one (``rtol``).
@@ -44,6 +44,25 @@ QUICK_RTOLS = (1e-5, 1e-8)
 # under an hour on 2 cores.
 IMPLICIT_FULL_RTOLS = (1e-3, 1e-4, 1e-6)
 IMPLICIT_QUICK_RTOLS = (1e-4, 1e-6)
+#: The project's methods the default sweep (`run` without ``--integrators``) leaves out, and why.
+#: Each runs when ``--integrators`` names it (its rows merge into the same table), and in the
+#: extended answer. Every other own method is in the default sweep; a plugin joins when named
+#: or with ``--with-plugins``.
+EXTENDED_METHODS = {
+    "kvaerno5": "an implicit method on a non-stiff problem, 67 s of worker time in the default sweep "
+                "(measured); radau represents the implicit ones",
+    "crouch_grossman3": "lie_rk4 represents the Lie group methods in the default run",
+    "dopri5": "the compiled twin of rk45's tableau (the default run keeps to ~5 min)",
+    "dopri8": "the compiled twin of dop853's order (the default run keeps to ~5 min)",
+    "rk45_projected": "a variant of rk45 for one side question (does projecting the quaternion help?)",
+}
+#: An adaptive method's own tolerances in the full default sweep, where the shared ones reach
+#: past its useful range; every other method gets the shared ones (`FULL_RTOLS`, or
+#: `IMPLICIT_FULL_RTOLS` for an implicit one), and ``--rtols`` and ``--quick`` override these.
+#: rk45 and rk45_projected stop at 1e-8: at 1e-10 a fifth-order pair takes 20-36 s of
+#: Python-level steps per scene (measured), a third of the default run's time, for an accuracy
+#: DOP853 and the compiled twin `dopri5` reach in the same sweep.
+SWEEP_RTOLS = {"rk45": (1e-4, 1e-6, 1e-8), "rk45_projected": (1e-4, 1e-6, 1e-8)}
 QUICK_T_END = 1.0
 #: s of timed solves per run (`benchmark.runs.runner.timing_repeats`): a run is timed
 #: clamp(floor(TIMING_BUDGET / first solve), --repeats, MAX_REPEATS) times, or once when its
@@ -137,6 +156,12 @@ def default_names(plugins: bool = False) -> list[str]:
         n for n in names if n not in PRESENTATION_ORDER and not n.startswith("test_")]
 
 
+def default_sweep_names(plugins: bool = False) -> list[str]:
+    """The methods of the default sweep: `default_names` less `EXTENDED_METHODS` (with
+    ``plugins``, every installed plugin too)."""
+    return [n for n in default_names(plugins) if n not in EXTENDED_METHODS]
+
+
 def plugin_names(names) -> list[str]:
     """Those of ``names`` that are plugins (not the project's own methods)."""
     names = list(names)
@@ -158,29 +183,22 @@ class MethodSettings(NamedTuple):
         return f"{self.name} {', '.join(f'{k}={v:g}' for k, v in self.settings.items())}"
 
 
+#: The run that draws the paper's panels (`run`'s paper_<scene>.png): the paper's LGVI at
+#: dt = 2.5 ms, inside its stability limit (h ω_max < 2) on all three paper scenes at N = 10
+#: (deployment's short elements diverge at 5 ms, measured).
+PAPER_METHOD = MethodSettings("lgvi", {"dt": 0.0025})
+
+
 def paper_method() -> MethodSettings:
-    """The method whose run draws the paper's panels: the first default integrator declaring
-    `Integrator.paper_settings` (the paper's LGVI at dt = 2.5 ms)."""
-    from integrators import get_integrator
-
-    return next(MethodSettings(n, dict(s)) for n in default_names() if (s := get_integrator(n).paper_settings))
+    """The method whose run draws the paper's panels (`PAPER_METHOD`, a copy)."""
+    return MethodSettings(PAPER_METHOD.name, dict(PAPER_METHOD.settings))
 
 
-def horizon_methods() -> tuple[MethodSettings, ...]:
-    """The methods of the long-horizon energy study, chosen by what they declare
-    (`Integrator.horizon_settings`), not by name: every default integrator and plugin with
-    settings for it, fixed-step first, then the loosest tolerance first (ties: the sweep's order)."""
-    from integrators import get_integrator
-
-    chosen = [MethodSettings(n, dict(s)) for n in default_names() if (s := get_integrator(n).horizon_settings)]
-    return tuple(sorted(chosen, key=lambda m: ("dt" not in m.settings, -m.settings.get("rtol", 0.0))))
-
-
-def _own(shared: tuple, declared: tuple | None, overridden: bool) -> tuple:
-    """An adaptive method's tolerances in the sweep: its declared ones (`Integrator.sweep_rtols`)
-    in the full default sweep, else the shared ones (also whenever the command line or --quick
-    sets them). Step sizes have no such exception: every fixed-step method gets `FULL_DTS`."""
-    return shared if overridden or not declared else tuple(declared)
+def _own(name: str, shared: tuple, overridden: bool) -> tuple:
+    """An adaptive method's tolerances in the sweep: its own ones (`SWEEP_RTOLS`) in the full
+    default sweep, else the shared ones (also whenever the command line or --quick sets them).
+    Step sizes have no such exception: every fixed-step method gets `FULL_DTS`."""
+    return shared if overridden or name not in SWEEP_RTOLS else tuple(SWEEP_RTOLS[name])
 
 
 def build_tasks(
@@ -194,18 +212,18 @@ def build_tasks(
     overrides: dict | None = None,
 ) -> list[Task]:
     """The sweep as tasks. ``integrators=None`` means the project's methods of the default
-    sweep (`default_names`); unknown names raise ValueError before anything runs."""
+    sweep (`default_sweep_names`); unknown names raise ValueError before anything runs."""
     from integrators import Capability, get_integrator  # JAX: only once the input is known good
 
-    names = list(integrators) if integrators else [n for n in default_names() if get_integrator(n).default_sweep]
+    names = list(integrators) if integrators else default_sweep_names()
     dts = sweep_dts(dts, quick)
     given_rtols = bool(rtols)
     implicit_rtols = tuple(rtols) if rtols else (IMPLICIT_QUICK_RTOLS if quick else IMPLICIT_FULL_RTOLS)
     rtols = tuple(rtols) if rtols else (QUICK_RTOLS if quick else FULL_RTOLS)
     t_end = sweep_t_end(t_end, quick)
     methods = {name: get_integrator(name) for name in names}  # raises for unknown names, before any work
-    own_rtols = {name: _own(implicit_rtols if integ.has(Capability.IMPLICIT) else rtols, integ.sweep_rtols,
-                            given_rtols or quick) for name, integ in methods.items()}
+    own_rtols = {name: _own(name, implicit_rtols if integ.has(Capability.IMPLICIT) else rtols, given_rtols or quick)
+                 for name, integ in methods.items()}
     check_settings(dts,
                    tuple(v for r in own_rtols.values() for v in r) + rtols + implicit_rtols)
     ov = tuple(sorted((overrides or {}).items()))

@@ -67,7 +67,7 @@ def energy_horizon(table: pd.DataFrame, scene: str, out_dir: Path) -> Path:
     −c_p h^p⟨P_p⟩ (`benchmark.studies.properties`: P_2 = U''(v, v) of the string, P_4 = P4;
     `correction_of`; unchanged for a method without one);
     (3) the axial measure P/max T; (4) the least element tension (window minimum). One colour per
-    method (`benchmark.figures.styles`), solid: its declared setting, dotted: the finer one; the accurate
+    method (`benchmark.figures.styles`), solid: its setting in the plan, dotted: the finer one; the accurate
     reference (`benchmark.studies.horizon.REFERENCE`) is drawn thick, under the others."""
 
     path = inside(out_dir, f"energy_horizon_{scene}.png")  # the scene name comes from a table: refused if it walks out
@@ -109,7 +109,7 @@ def energy_horizon(table: pd.DataFrame, scene: str, out_dir: Path) -> Path:
         style_axes(axes[2, j], ylabel="P = Σ EA l (dε/dt)² / max T (1/s²)", legend=None)
         style_axes(axes[3, j], xlabel="t (s)", ylabel="least tension (N)", legend=None)
         axes[3, j].axhline(0.0, color="k", lw=0.6)
-    fig.suptitle(f"energy over a long horizon, {WINDOW_S:g}-s window means (solid: the declared setting, dotted: "
+    fig.suptitle(f"energy over a long horizon, {WINDOW_S:g}-s window means (solid: the plan's setting, dotted: "
                  "the finer one)\nrows: energy error; what is left after the modified-energy offset; axial vibration "
                  "P; least tension (< 0: compression)", fontsize=10)
     fig.tight_layout()
