@@ -8,8 +8,19 @@ def _stop_early(signum, frame):
     raise KeyboardInterrupt(f"signal {signal.Signals(signum).name}")
 
 
+def _send_again(unraisable):
+    # A stop raised where Python drops exceptions (an import lock's callback, a finalizer) is
+    # printed as "Exception ignored" and lost: send it again, to land in a frame that raises it.
+    if isinstance(unraisable.exc_value, KeyboardInterrupt):
+        term = "SIGTERM" in str(unraisable.exc_value)
+        signal.raise_signal(signal.SIGTERM if term else signal.SIGINT)
+    else:
+        sys.__unraisablehook__(unraisable)
+
+
 signal.signal(signal.SIGINT, _stop_early)
 signal.signal(signal.SIGTERM, _stop_early)
+sys.unraisablehook = _send_again
 try:
     from benchmark.cli.main import main
 except KeyboardInterrupt as exc:
