@@ -588,27 +588,26 @@ def _digest(row: dict) -> str:
                          if k not in _NOT_DIGESTED and canonical(v) != ""))
 
 
-def read_rows(path: Path, log=engine.log_stderr) -> list[dict]:
-    """The rows of an earlier search.csv / timing.csv whose digest matches (the others are
-    named and recomputed); none when the file is missing or unreadable."""
-    import pandas as pd
+#: A row's place in search.csv / timing.csv: one row per search, one per timing.
+SEARCH_IDENTITY = ("scene", "elements", "integrator", "sweep", "metric", "target")
+TIMING_IDENTITY = ("scene", "elements", "metric", "target")
+#: Each table's row identity, by its file name.
+IDENTITY = {"search.csv": SEARCH_IDENTITY, "timing.csv": TIMING_IDENTITY}
 
-    if not Path(path).exists():
-        return []
-    try:
-        rows = pd.read_csv(path).to_dict("records")
-    except Exception as exc:  # a damaged table: recompute, and say so
-        log(f"warning: {path} cannot be read ({type(exc).__name__}); its rows are recomputed")
-        return []
+
+def read_rows(path: Path, log=engine.log_stderr, identity: tuple | None = None) -> list[dict]:
+    """The rows of an earlier search.csv / timing.csv whose digest matches (the others are
+    named and recomputed); none when the file is missing. A file that cannot be read, or is not
+    a table of this study (no ``identity`` column; by default its file name's), is refused before
+    any work, as every study's earlier table is (`benchmark.core.study_store.read_rows`): this
+    run would overwrite it."""
+    from benchmark.core.study_store import read_rows as read_table
+
+    rows = read_table(Path(path), IDENTITY[Path(path).name] if identity is None else identity)
     good = [r for r in rows if isinstance(r.get("row_digest"), str) and r["row_digest"] == _digest(r)]
     if len(good) < len(rows):
         log(f"warning: {path}: {len(rows) - len(good)} row(s) fail their digest; they are recomputed")
     return good
-
-
-#: A row's place in search.csv / timing.csv: one row per search, one per timing.
-SEARCH_IDENTITY = ("scene", "elements", "integrator", "sweep", "metric", "target")
-TIMING_IDENTITY = ("scene", "elements", "metric", "target")
 
 
 def merged(base: list[dict], new: list[dict], identity: tuple) -> list[dict]:
