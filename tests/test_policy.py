@@ -150,7 +150,7 @@ def test_the_defaults_of_a_request_are_the_command_line_s():
 def test_the_reel_reversal_table_and_the_order_ladders_compute_an_order_alike():
     from types import SimpleNamespace
 
-    from benchmark.studies import orders
+    from benchmark.core.order import successive_orders
     from benchmark.studies import reel_reversal
 
     errors = [reel_reversal.Errors(1e-3, 2e-3, 4e-3), reel_reversal.Errors(2.5e-4, 2.5e-4, 1e-3)]
@@ -158,4 +158,64 @@ def test_the_reel_reversal_table_and_the_order_ladders_compute_an_order_alike():
             for h, e in zip((0.01, 0.005), errors)]
     text = reel_reversal.table(SimpleNamespace(name="s", string=SimpleNamespace(elements=2)), 1.0, [0.5], rows)
     assert text.splitlines()[-1].endswith("| 2.00 / 3.00 / 2.00 |")
-    assert orders.slopes((0.01, 0.005), (1e-3, 2.5e-4))[0] == pytest.approx(2.0)
+    assert successive_orders((0.01, 0.005), (1e-3, 2.5e-4))[0] == pytest.approx(2.0)
+
+
+# ---- the observed order (R29): one function, every study calls it --------------------------
+def _ladder(order, sizes=(0.04, 0.02, 0.01, 0.005, 0.0025), c=3.0):
+    import numpy as np
+
+    h = np.asarray(sizes, float)
+    return h, c * h ** order
+
+
+@pytest.mark.parametrize("order", [1, 2, 4, 8])
+def test_the_observed_order_of_a_ladder_of_known_order(order):
+    import numpy as np
+
+    from benchmark.core.order import fitted_order, last_order, successive_orders
+
+    h, e = _ladder(order)
+    assert np.allclose(successive_orders(h, e), order) and len(successive_orders(h, e)) == len(h) - 1
+    assert np.allclose(successive_orders(h[::-1], e[::-1]), order)  # either direction
+    assert last_order(h, e) == pytest.approx(order) and fitted_order(h, e) == pytest.approx(order)
+    assert math.isnan(last_order(h[:1], e[:1])) and math.isnan(fitted_order((0.01, 0.01), (1e-3, 2e-3)))
+    # a ladder whose last halving leaves the asymptotic range (order 1 there): the last pair and the
+    # fit tell it apart
+    e2 = e.copy()
+    e2[-1] = e2[-2] / 2
+    assert order == 1 or last_order(h, e2) == pytest.approx(1.0) and order > fitted_order(h, e2) > 1.0
+
+
+def test_every_study_takes_the_observed_order_from_one_place(monkeypatch):
+    """The drift check, the order ladders, reel reversal, the slack orders and the contract each
+    call `benchmark.core.order`: none restates the formula."""
+    import re
+    from pathlib import Path
+
+    import numpy as np
+    import pandas as pd
+
+    from benchmark.runs import metrics
+    from benchmark.studies import slack_orders
+
+    h, e = _ladder(2.0)
+    runs = pd.DataFrame({"scene": "s", "integrator": "m", "dt": h, "steps": np.round(1.0 / h), "status": "ok",
+                         "position_error_final": e})
+    got = metrics.observed_orders(runs).iloc[0]
+    assert got.observed_order == pytest.approx(2.0) and got.finest_pair_order == pytest.approx(2.0)
+    table = pd.DataFrame({"scene": "s", "integrator": "m", "dt": h, "position_error": e, "energy_error": e ** 2,
+                          "reference_slack_share": 0.0})
+    row = slack_orders.orders(table).iloc[0]
+    assert np.allclose(row.position_orders, 2.0) and np.allclose(row.energy_orders, 4.0)
+    # the formulas, by their shape: log2 of a ratio, a difference of logs, a fit of logs
+    root = Path(__file__).resolve().parents[1] / "benchmark"
+    shapes = re.compile(r"np\.log2\(|np\.diff\(np\.log\(|polyfit\(np\.log\(")
+    found = [f"{p.relative_to(root)}:{k}" for p in sorted(root.rglob("*.py")) if p.name != "order.py"
+             for k, line in enumerate(p.read_text(encoding="utf-8").splitlines(), 1) if shapes.search(line)]
+    # lgvi_speed fits how the cost grows with N (an exponent, not an order of convergence)
+    assert found == [f for f in found if f.startswith("studies/lgvi_speed.py")], found
+    callers = {"runs/metrics.py", "studies/orders.py", "studies/reel_reversal.py", "studies/slack_orders.py",
+               "contract/verify.py"}
+    for name in callers:
+        assert "from benchmark.core.order import" in (root / name).read_text(encoding="utf-8"), name

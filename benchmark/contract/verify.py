@@ -49,12 +49,12 @@ Small N and short horizons: a method takes seconds to tens of seconds (its compi
 from __future__ import annotations
 
 import functools
-import math
 from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
 
+from benchmark.core.order import fitted_order, last_order
 from benchmark.core.policy import VERIFY_BALANCE_REFERENCE, VERIFY_REFERENCE, atol_for
 
 #: the two situations an order is declared for, as small scenes (effects of the retrieval scene)
@@ -287,10 +287,8 @@ def _order(integ, key: str, runs: dict) -> Check:
     if e[-1] < ROUND_OFF:
         return Check(name, False, f"errors {_fmt(e)} reach round-off: the order cannot be observed at "
                                   f"{_words(settings[-1])} (an order this high is not measurable by these settings)")
-    if fixed:
-        observed = math.log(e[-2] / e[-1]) / math.log(h[-2] / h[-1])
-    else:  # the slope of log error against log(1 / steps)
-        observed = float(np.polyfit(np.log(h), np.log(e), 1)[0]) if len(set(h)) > 1 else float("nan")
+    # fixed steps: the last halving; adaptive: the least-squares slope against log(1 / steps)
+    observed = last_order(h, e) if fixed else fitted_order(h, e)
     tol = ORDER_TOLERANCE * (1 if fixed else 2)
     ok = declared - tol < observed < declared + ABOVE + tol
     how = ("dt " + ", ".join(f"{s['dt']:g}" for s in settings) if "dt" in settings[0]
