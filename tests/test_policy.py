@@ -219,3 +219,44 @@ def test_every_study_takes_the_observed_order_from_one_place(monkeypatch):
                "contract/verify.py"}
     for name in callers:
         assert "from benchmark.core.order import" in (root / name).read_text(encoding="utf-8"), name
+
+
+# ---- the verdicts' words (R23): each listed once, beside the code that decides them ---------
+def _string_constants(words: set) -> list[str]:
+    """file:line of every string literal in benchmark/ that is one of ``words``."""
+    import ast
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1] / "benchmark"
+    return [f"{p.relative_to(root)}:{n.lineno}" for p in sorted(root.rglob("*.py"))
+            for n in ast.walk(ast.parse(p.read_text(encoding="utf-8")))
+            if isinstance(n, ast.Constant) and isinstance(n.value, str) and n.value in words]
+
+
+def test_each_verdict_word_is_written_once():
+    from benchmark.runs import reproducibility
+
+    answer_words = {*policy.RANKED_VERDICTS, *policy.UNRANKED_VERDICTS}
+    assert policy.BEST_VERDICTS == policy.RANKED_VERDICTS[:2] and len(answer_words) == 7
+    assert _string_constants(answer_words) == ["core/policy.py:" + _line_of("WINNER, TIE, SLOWER")] * 3 + [
+        "core/policy.py:" + _line_of("IDENTICAL, NO_FLOPS_COUNT")] * 4
+    found = _string_constants(set(reproducibility.VERDICTS))
+    assert len(found) == 6 and {f.split(":")[0] for f in found} == {"runs/reproducibility.py"}, found
+
+
+def _line_of(text: str) -> str:
+    lines = policy.__loader__.get_source(policy.__name__).splitlines()
+    return str(next(k for k, line in enumerate(lines, 1) if line.startswith(text)))
+
+
+def test_the_rankings_and_the_answer_give_the_verdicts_of_policy():
+    from benchmark.answer import paired
+    from benchmark.runs.ranking import work_verdicts
+
+    ratios = paired.verdicts([paired.Ratio("a", 1.0, 1.0, 1.0, 1.0, 10), paired.Ratio("b", 2.0, 2.0, 1.9, 2.1, 10),
+                              paired.Ratio("c", 1.05, 1.05, 0.9, 1.2, 10)])
+    assert [(r.method, r.verdict) for r in ratios] == [("a", policy.TIE), ("c", policy.TIE), ("b", policy.SLOWER)]
+    rows = [{"entry": "a", "cost": 1.0, "cost_low": 0.9, "cost_high": 1.0},
+            {"entry": "b", "cost": 2.0, "cost_low": 1.8, "cost_high": 2.0}]
+    work_verdicts(rows)
+    assert [r["verdict"] for r in rows] == [policy.WINNER, policy.SLOWER]

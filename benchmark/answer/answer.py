@@ -37,7 +37,9 @@ import numpy as np
 from benchmark.core import engine
 from benchmark.answer import paired as _paired
 from benchmark.answer import search as _search
-from benchmark.core.policy import CHEAPEST_FILE, PAIRED_BUDGET, RESULTS, SAVE_EVERY, SEARCH_TIME_LIMIT, Setting
+from benchmark.core.policy import (BEST_VERDICTS, CHEAPEST_FILE, IDENTICAL, LOWER_BOUND, NO_FLOPS_COUNT, NOT_REACHED,
+                                   PAIRED_BUDGET, RANKED_VERDICTS, RESULTS, SAVE_EVERY, SEARCH_TIME_LIMIT, SLOWER, TIE,
+                                   Setting)
 from benchmark.core.store import code_version, frame, key_of
 from benchmark.runs.table import kept_rows
 from benchmark.runs.sweep import DEFAULT_EXECUTOR
@@ -414,7 +416,7 @@ def answer_table(searched: pd.DataFrame, timed: pd.DataFrame) -> pd.DataFrame:
             if (integ, sweep) in same:
                 rows.append(dict(scene=scene, elements=int(n), metric=metric, target=target, cost_kind="work",
                                  integrator=integ, entry=entry_name(integ, sweep, axes[integ] > 1), sweep=sweep,
-                                 setting=_setting_text(sweep, r["setting"]), verdict="identical",
+                                 setting=_setting_text(sweep, r["setting"]), verdict=IDENTICAL,
                                  cost_column=r["cost_column"], error=r["error"], runs=r["runs"],
                                  note=f"its search is bit-identical to {same[(integ, sweep)]}'s "
                                       f"({', '.join(TWIN_COLUMNS)}): ranked as one entry"))
@@ -429,7 +431,7 @@ def answer_table(searched: pd.DataFrame, timed: pd.DataFrame) -> pd.DataFrame:
             if np.isfinite(r["setting"]) and r["cost_column"] != "flops":
                 # a cost in another unit (steps: a method XLA's cost model cannot count) is no
                 # point on the flops axis: it reached the target, but is not ranked by work
-                base.update(cost=np.nan, verdict="no flops count",
+                base.update(cost=np.nan, verdict=NO_FLOPS_COUNT,
                             note=f"its cost at the target is {r['cost']:.4g} {r['cost_column']}, not flops: not ranked "
                                  "by work")
             elif np.isfinite(r["setting"]) and _counts_whole_step(integ):
@@ -441,7 +443,7 @@ def answer_table(searched: pd.DataFrame, timed: pd.DataFrame) -> pd.DataFrame:
                 base.update(cost=r["cost"], cost_low=r["cost"] / (1.0 + max(spread, 0.0)), cost_high=np.inf,
                             verdict=LOWER_BOUND, note=LOWER_BOUND_NOTE)
             else:
-                base.update(cost=np.nan, verdict="not reached")
+                base.update(cost=np.nan, verdict=NOT_REACHED)
             work.append(base)
         work_verdicts([w for w in work if w.get("verdict") != LOWER_BOUND])
         _rank_lower_bounds(work)
@@ -464,9 +466,8 @@ def answer_table(searched: pd.DataFrame, timed: pd.DataFrame) -> pd.DataFrame:
     return frame(rows, COLUMNS, extra=False)
 
 
-#: The verdict of a work cost that is only a lower bound (`benchmark.work.flops.counting_rule`
-#: "evaluations") and lies below the winner's: it cannot be ranked.
-LOWER_BOUND = "lower bound"
+#: The note of a work cost that is only a lower bound (`benchmark.work.flops.counting_rule`
+#: "evaluations"): one below the winner's has the verdict `LOWER_BOUND` (it cannot be ranked).
 LOWER_BOUND_NOTE = ("its flops count right-hand sides, Jacobians and LU factorisations only (its Newton solves "
                     "and stage arithmetic left out): a lower bound of its work, ranked only where it is above "
                     "the winner's")
@@ -484,11 +485,11 @@ def _counts_whole_step(integrator: str) -> bool:
 def _rank_lower_bounds(work: list[dict]) -> None:
     """A lower-bound cost above the winner's (or the tie's best) cost interval is `slower`
     (its ratio interval open above); one below it stays a `LOWER_BOUND`, unranked."""
-    ranked = [w for w in work if w.get("verdict") in ("winner", "tie")]
+    ranked = [w for w in work if w.get("verdict") in BEST_VERDICTS]
     best = min(ranked, key=lambda w: (w["cost"], w["entry"])) if ranked else None
     for w in work:
         if w.get("verdict") == LOWER_BOUND and best is not None and w["cost_low"] > best["cost_high"]:
-            w.update(verdict="slower", ratio=w["cost"] / best["cost"], ratio_low=w["cost_low"] / best["cost_high"],
+            w.update(verdict=SLOWER, ratio=w["cost"] / best["cost"], ratio_low=w["cost_low"] / best["cost_high"],
                      ratio_high=np.inf)
 
 
@@ -496,7 +497,7 @@ def _use_line(g: pd.DataFrame) -> str:
     """"use X (setting, cost, interval); next Y at r× [lo–hi]" for one cost kind's rows; a tie
     (only where the intervals overlap) names its members with their ratios, then the first
     method outside it."""
-    ranked = g[g["verdict"].isin(["winner", "tie", "slower"])].sort_values(["ratio", "entry"])
+    ranked = g[g["verdict"].isin(RANKED_VERDICTS)].sort_values(["ratio", "entry"])
     if ranked.empty:
         return "no method reached it"
     kind = g["cost_kind"].iloc[0]
@@ -512,9 +513,9 @@ def _use_line(g: pd.DataFrame) -> str:
 
     own = (f"{best['setting']}, {unit(best['cost'])}, {int(best['pairs'])} pairs" if kind == "wall"
            else f"{best['setting']}, {unit(best['cost'])} [{best['cost_low']:.3g}–{best['cost_high']:.3g}]")
-    ties = ranked[ranked["verdict"] == "tie"].iloc[1:]
-    rest = ranked[ranked["verdict"] == "slower"]
-    if best["verdict"] == "tie":
+    ties = ranked[ranked["verdict"] == TIE].iloc[1:]
+    rest = ranked[ranked["verdict"] == SLOWER]
+    if best["verdict"] == TIE:
         head = f"tie: `{best['entry']}` ({own}), " + ", ".join(f"`{r['entry']}` at {rel(r)}"
                                                                     for _, r in ties.iterrows())
     else:
@@ -524,7 +525,7 @@ def _use_line(g: pd.DataFrame) -> str:
     nxt = rest.iloc[0]
     # a tie goes by the intervals, the order by the ratios: a wide interval can keep a member at
     # 1.33x in the tie while a narrow one puts 1.18x outside it, so "next" would misread
-    after = "first outside the tie" if best["verdict"] == "tie" else "next"
+    after = "first outside the tie" if best["verdict"] == TIE else "next"
     return head + f"; {after} `{nxt['entry']}` at {rel(nxt)}"
 
 

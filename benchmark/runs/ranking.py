@@ -24,7 +24,7 @@ import numpy as np
 import pandas as pd
 
 from benchmark.runs.metrics import INACCURATE
-from benchmark.core.policy import ROW_IDENTITY
+from benchmark.core.policy import ROW_IDENTITY, SLOWER, TIE, WINNER
 from benchmark.runs.sweep import PRESENTATION_ORDER, SWEEP_WORDS
 from integrators.base import BUDGET_STATUSES, ERROR, FINISHED_STATUSES  # a budget ends a run, not a failure of the method
 
@@ -56,10 +56,10 @@ def work_verdicts(rows: list[dict]) -> None:
         return
     best, others = reached[0], reached[1:]
     alone = all(best["cost_high"] < o["cost_low"] for o in others)
-    best["verdict"] = "winner" if alone else "tie"
+    best["verdict"] = WINNER if alone else TIE
     best.update(ratio=1.0, ratio_low=1.0, ratio_high=1.0)
     for o in others:
-        o["verdict"] = "tie" if (not alone and o["cost_low"] <= best["cost_high"]) else "slower"
+        o["verdict"] = TIE if (not alone and o["cost_low"] <= best["cost_high"]) else SLOWER
         o.update(ratio=o["cost"] / best["cost"], ratio_low=o["cost_low"] / best["cost_high"],
                  ratio_high=o["cost_high"] / best["cost_low"])
 
