@@ -260,3 +260,42 @@ def test_the_rankings_and_the_answer_give_the_verdicts_of_policy():
             {"entry": "b", "cost": 2.0, "cost_low": 1.8, "cost_high": 2.0}]
     work_verdicts(rows)
     assert [r["verdict"] for r in rows] == [policy.WINNER, policy.SLOWER]
+
+
+# ---- statuses (R15, R16): compared and written by their names, never as literals ------------
+def test_no_status_is_compared_or_written_as_a_literal():
+    """A status word (`integrators.base.Status`, the table-only statuses, the stability map's
+    `SKIPPED`) in a comparison, an ``isin``, or as the ``status`` / ``bound`` a row is given, is
+    written by its name: a renamed status cannot leave a reader behind."""
+    import ast
+    from pathlib import Path
+
+    from benchmark.studies.stability import SKIPPED
+    from integrators.base import TABLE_ONLY_STATUSES, Status
+
+    words = {s.value for s in Status} | set(TABLE_ONLY_STATUSES) | {SKIPPED}
+
+    def strings(node):
+        if isinstance(node, ast.Constant) and isinstance(node.value, str):
+            return [node.value]
+        if isinstance(node, (ast.Tuple, ast.List, ast.Set)):
+            return [v for e in node.elts for v in strings(e)]
+        return []
+
+    root = Path(__file__).resolve().parents[1] / "benchmark"
+    found = []
+    for path in sorted(root.rglob("*.py")):
+        for n in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(n, ast.Compare):
+                values = [v for x in (n.left, *n.comparators) for v in strings(x)]
+            elif isinstance(n, ast.keyword) and n.arg in ("status", "bound", "bounded", "high_status"):
+                values = strings(n.value)
+            elif isinstance(n, ast.Dict):
+                values = [v for k, x in zip(n.keys, n.values) if k is not None and strings(k)[:1] in (["status"], ["bound"])
+                          for v in strings(x)]
+            elif isinstance(n, ast.Call) and isinstance(n.func, ast.Attribute) and n.func.attr == "isin":
+                values = [v for a in n.args for v in strings(a)]
+            else:
+                continue
+            found += [f"{path.relative_to(root)}:{n.lineno} {v!r}" for v in values if v in words]
+    assert found == [], found

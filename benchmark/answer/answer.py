@@ -43,6 +43,7 @@ from benchmark.core.policy import (BEST_VERDICTS, CHEAPEST_FILE, IDENTICAL, LOWE
 from benchmark.core.store import code_version, frame, key_of
 from benchmark.runs.table import kept_rows
 from benchmark.runs.sweep import DEFAULT_EXECUTOR
+from integrators.base import CRASHED, ERROR
 
 #: The default targets: (metric, target, label); ``--targets`` asks for others, on any metric
 #: of `benchmark.runs.metrics.METRICS`.
@@ -139,7 +140,7 @@ def _solve_once(job: SearchJob, setting: float, cache_dir: str) -> tuple[str, di
     from benchmark.runs.metrics import INACCURATE, inaccurate_reason, run_metrics
     from benchmark.core.reference import get_reference
     from integrators import get_integrator
-    from integrators.base import is_finished
+    from integrators.base import Status, is_finished
     from models import build_model
 
     scene = _scene(job.scene, job.elements, job.t_end)
@@ -153,7 +154,7 @@ def _solve_once(job: SearchJob, setting: float, cache_dir: str) -> tuple[str, di
         traj = get_integrator(job.integrator).solve(scene, time_limit=SEARCH_TIME_LIMIT,
                                                     **solve_kwargs(job.sweep, setting, t_end))
     except ValueError:  # a setting the method refuses (e.g. dt beyond t_end): not finished
-        out = ("failed", {}, math.nan, "flops", {})
+        out = (Status.FAILED.value, {}, math.nan, "flops", {})
         _SOLVED[key] = out
         return out
     model = build_model(scene)
@@ -199,7 +200,7 @@ def run_search(job: SearchJob, cache_dir: str) -> dict:
                    cost_column="flops" if columns == {"flops"} else "+".join(sorted(columns)),
                    note=_search_note(job.sweep, found), points=json.dumps(points, default=float))
     except Exception as exc:  # a bug in one search must not lose the others
-        row.update(bound="error", note=f"{type(exc).__name__}: {exc}"[:300])
+        row.update(bound=ERROR, note=f"{type(exc).__name__}: {exc}"[:300])
     row["job_time"] = time.perf_counter() - started  # the progress line's ETA learns from it
     return row
 
@@ -375,7 +376,7 @@ def run_search_stage(jobs: list[SearchJob], *, workers: int, cache_dir: str, pre
                            setup_labels=[f"reference {p.scene} N={dict(p.overrides)['elements']}" for p in problems],
                            group=lambda i: (jobs[i].scene, jobs[i].elements, jobs[i].integrator),
                            cost=search_costs(jobs).__getitem__,
-                           crash_row=lambda i, exc: {**asdict(jobs[i]), "bound": "crashed",
+                           crash_row=lambda i, exc: {**asdict(jobs[i]), "bound": CRASHED,
                                                      "note": engine.crash_reason(exc)},
                            done=kept, finish=lambda i, row: _finish(row, keys[i]), describe=_describe_search,
                            on_row=on_row, log=log)

@@ -153,7 +153,7 @@ LADDER_COLUMNS = ("scene", "integrator", "situation", "declared_order", "element
 def run_job(job: Job) -> dict:
     """One method's ladder on one scene: a row per step (status, error) in ``ladder``."""
     from integrators import get_integrator
-    from integrators.base import situation
+    from integrators.base import Status, situation
 
     ref = job.reference or _reference(job.scene, job.elements, job.t_end)
     scene = load(job.scene, job.elements)
@@ -168,13 +168,14 @@ def run_job(job: Job) -> dict:
                        "setting": Setting.fixed(h).label(), "dt": h, "status": tr.status, "reason": tr.reason,
                        "error": float(np.abs(np.asarray(tr.x) - ref.x).max()) if same else np.nan,
                        "reference_error": ref.error_bound, "reference_check": ref.check})
-    return {"scene": job.scene, "integrator": job.integrator, "status": "ok", "ladder": ladder}
+    return {"scene": job.scene, "integrator": job.integrator, "status": Status.OK.value, "ladder": ladder}
 
 
 def crash_row(job: Job, exc: BaseException) -> dict:
     from benchmark.core.engine import crash_reason
+    from integrators.base import CRASHED
 
-    return {"scene": job.scene, "integrator": job.integrator, "status": "crashed", "reason": crash_reason(exc),
+    return {"scene": job.scene, "integrator": job.integrator, "status": CRASHED, "reason": crash_reason(exc),
             "elements": job.elements, "t_end": job.t_end, "ladder": []}
 
 

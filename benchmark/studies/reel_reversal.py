@@ -139,9 +139,10 @@ COLUMNS = (*IDENTITY, "scene", "elements", "t_end", "h", "status", "reason", "er
 def crash_row(job: Job, exc: BaseException) -> dict:
     """The row of a job whose worker died."""
     from benchmark.core.engine import crash_reason
+    from integrators.base import CRASHED
     from models import load_scene
 
-    return {**_base_row(job, load_scene(job.scene_name, elements=job.elements)), "status": "crashed",
+    return {**_base_row(job, load_scene(job.scene_name, elements=job.elements)), "status": CRASHED,
             "reason": crash_reason(exc)}
 
 
