@@ -8,7 +8,8 @@ One subpackage per layer; a package imports only from those listed before it:
 
 - `core`: the job engine (worker processes, this process or Dask; stop signals, progress,
   crash rows), the output store and its lock, what every study does when it writes into a
-  directory (`core.study`), JAX-free input checks, the rules stated once (`core.policy`),
+  directory (`core.study`), JAX-free input checks, the rules stated once (`core.policy`; the
+  observed order, `core.order`),
   report provenance, and the one cached reference solution every study compares with;
 - `work`: flops, the one work unit, checked against compiled floors (`work.work_rule`);
 - `runs`: the runs table: what a sweep runs (`sweep`), one run measured (`runner`, `metrics`),

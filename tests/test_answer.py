@@ -294,3 +294,16 @@ def test_the_time_accounting_counts_only_the_rows_this_run_made():
     assert "2 row(s) kept from earlier runs are not counted" in own and "not counted" not in everything
     assert "not counted" not in accounting(searched, timed, 10.0, 1, kept={"elsewhere"})  # none was kept here
     assert accounting(searched.iloc[:1], timed.iloc[:1], 10.0, 1, kept={"old"}).startswith("Time: every search")
+
+
+@pytest.mark.parametrize("content", [b"scene,elements\nfixed_length,10\nfixed_length,10,3,4\n",
+                                     b"\x00\xff garbage \n\x01", b"integrator,cost\nlgvi,1.0\n"])
+def test_an_unreadable_earlier_search_table_is_refused_before_any_work_and_left_as_it_was(tmp_path, monkeypatch,
+                                                                                           content):
+    (tmp_path / "search.csv").write_bytes(content)
+    monkeypatch.setattr(answer, "search_jobs", lambda *a, **k: pytest.fail("work began"))
+    request = answer.AnswerRequest(out=tmp_path, scenes=("fixed_length",), integrators=("lgvi",))
+    with pytest.raises(ValueError, match="search.csv.*move it away, or give another --out"):
+        answer.run_answer(request, log=lambda m: None)
+    assert (tmp_path / "search.csv").read_bytes() == content
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["search.csv"]

@@ -150,7 +150,7 @@ def test_the_defaults_of_a_request_are_the_command_line_s():
 def test_the_reel_reversal_table_and_the_order_ladders_compute_an_order_alike():
     from types import SimpleNamespace
 
-    from benchmark.studies import orders
+    from benchmark.core.order import successive_orders
     from benchmark.studies import reel_reversal
 
     errors = [reel_reversal.Errors(1e-3, 2e-3, 4e-3), reel_reversal.Errors(2.5e-4, 2.5e-4, 1e-3)]
@@ -158,4 +158,144 @@ def test_the_reel_reversal_table_and_the_order_ladders_compute_an_order_alike():
             for h, e in zip((0.01, 0.005), errors)]
     text = reel_reversal.table(SimpleNamespace(name="s", string=SimpleNamespace(elements=2)), 1.0, [0.5], rows)
     assert text.splitlines()[-1].endswith("| 2.00 / 3.00 / 2.00 |")
-    assert orders.slopes((0.01, 0.005), (1e-3, 2.5e-4))[0] == pytest.approx(2.0)
+    assert successive_orders((0.01, 0.005), (1e-3, 2.5e-4))[0] == pytest.approx(2.0)
+
+
+# ---- the observed order (R29): one function, every study calls it --------------------------
+def _ladder(order, sizes=(0.04, 0.02, 0.01, 0.005, 0.0025), c=3.0):
+    import numpy as np
+
+    h = np.asarray(sizes, float)
+    return h, c * h ** order
+
+
+@pytest.mark.parametrize("order", [1, 2, 4, 8])
+def test_the_observed_order_of_a_ladder_of_known_order(order):
+    import numpy as np
+
+    from benchmark.core.order import fitted_order, last_order, successive_orders
+
+    h, e = _ladder(order)
+    assert np.allclose(successive_orders(h, e), order) and len(successive_orders(h, e)) == len(h) - 1
+    assert np.allclose(successive_orders(h[::-1], e[::-1]), order)  # either direction
+    assert last_order(h, e) == pytest.approx(order) and fitted_order(h, e) == pytest.approx(order)
+    assert math.isnan(last_order(h[:1], e[:1])) and math.isnan(fitted_order((0.01, 0.01), (1e-3, 2e-3)))
+    # a ladder whose last halving leaves the asymptotic range (order 1 there): the last pair and the
+    # fit tell it apart
+    e2 = e.copy()
+    e2[-1] = e2[-2] / 2
+    assert order == 1 or last_order(h, e2) == pytest.approx(1.0) and order > fitted_order(h, e2) > 1.0
+
+
+def test_every_study_takes_the_observed_order_from_one_place(monkeypatch):
+    """The drift check, the order ladders, reel reversal, the slack orders and the contract each
+    call `benchmark.core.order`: none restates the formula."""
+    import re
+    from pathlib import Path
+
+    import numpy as np
+    import pandas as pd
+
+    from benchmark.runs import metrics
+    from benchmark.studies import slack_orders
+
+    h, e = _ladder(2.0)
+    runs = pd.DataFrame({"scene": "s", "integrator": "m", "dt": h, "steps": np.round(1.0 / h), "status": "ok",
+                         "position_error_final": e})
+    got = metrics.observed_orders(runs).iloc[0]
+    assert got.observed_order == pytest.approx(2.0) and got.finest_pair_order == pytest.approx(2.0)
+    table = pd.DataFrame({"scene": "s", "integrator": "m", "dt": h, "position_error": e, "energy_error": e ** 2,
+                          "reference_slack_share": 0.0})
+    row = slack_orders.orders(table).iloc[0]
+    assert np.allclose(row.position_orders, 2.0) and np.allclose(row.energy_orders, 4.0)
+    # the formulas, by their shape: log2 of a ratio, a difference of logs, a fit of logs
+    root = Path(__file__).resolve().parents[1] / "benchmark"
+    shapes = re.compile(r"np\.log2\(|np\.diff\(np\.log\(|polyfit\(np\.log\(")
+    found = [f"{p.relative_to(root)}:{k}" for p in sorted(root.rglob("*.py")) if p.name != "order.py"
+             for k, line in enumerate(p.read_text(encoding="utf-8").splitlines(), 1) if shapes.search(line)]
+    # lgvi_speed fits how the cost grows with N (an exponent, not an order of convergence)
+    assert found == [f for f in found if f.startswith("studies/lgvi_speed.py")], found
+    callers = {"runs/metrics.py", "studies/orders.py", "studies/reel_reversal.py", "studies/slack_orders.py",
+               "contract/verify.py"}
+    for name in callers:
+        assert "from benchmark.core.order import" in (root / name).read_text(encoding="utf-8"), name
+
+
+# ---- the verdicts' words (R23): each listed once, beside the code that decides them ---------
+def _string_constants(words: set) -> list[str]:
+    """file:line of every string literal in benchmark/ that is one of ``words``."""
+    import ast
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1] / "benchmark"
+    return [f"{p.relative_to(root)}:{n.lineno}" for p in sorted(root.rglob("*.py"))
+            for n in ast.walk(ast.parse(p.read_text(encoding="utf-8")))
+            if isinstance(n, ast.Constant) and isinstance(n.value, str) and n.value in words]
+
+
+def test_each_verdict_word_is_written_once():
+    from benchmark.runs import reproducibility
+
+    answer_words = {*policy.RANKED_VERDICTS, *policy.UNRANKED_VERDICTS}
+    assert policy.BEST_VERDICTS == policy.RANKED_VERDICTS[:2] and len(answer_words) == 7
+    assert _string_constants(answer_words) == ["core/policy.py:" + _line_of("WINNER, TIE, SLOWER")] * 3 + [
+        "core/policy.py:" + _line_of("IDENTICAL, NO_FLOPS_COUNT")] * 4
+    found = _string_constants(set(reproducibility.VERDICTS))
+    assert len(found) == 6 and {f.split(":")[0] for f in found} == {"runs/reproducibility.py"}, found
+
+
+def _line_of(text: str) -> str:
+    lines = policy.__loader__.get_source(policy.__name__).splitlines()
+    return str(next(k for k, line in enumerate(lines, 1) if line.startswith(text)))
+
+
+def test_the_rankings_and_the_answer_give_the_verdicts_of_policy():
+    from benchmark.answer import paired
+    from benchmark.runs.ranking import work_verdicts
+
+    ratios = paired.verdicts([paired.Ratio("a", 1.0, 1.0, 1.0, 1.0, 10), paired.Ratio("b", 2.0, 2.0, 1.9, 2.1, 10),
+                              paired.Ratio("c", 1.05, 1.05, 0.9, 1.2, 10)])
+    assert [(r.method, r.verdict) for r in ratios] == [("a", policy.TIE), ("c", policy.TIE), ("b", policy.SLOWER)]
+    rows = [{"entry": "a", "cost": 1.0, "cost_low": 0.9, "cost_high": 1.0},
+            {"entry": "b", "cost": 2.0, "cost_low": 1.8, "cost_high": 2.0}]
+    work_verdicts(rows)
+    assert [r["verdict"] for r in rows] == [policy.WINNER, policy.SLOWER]
+
+
+# ---- statuses (R15, R16): compared and written by their names, never as literals ------------
+def test_no_status_is_compared_or_written_as_a_literal():
+    """A status word (`integrators.base.Status`, the table-only statuses, the stability map's
+    `SKIPPED`) in a comparison, an ``isin``, or as the ``status`` / ``bound`` a row is given, is
+    written by its name: a renamed status cannot leave a reader behind."""
+    import ast
+    from pathlib import Path
+
+    from benchmark.studies.stability import SKIPPED
+    from integrators.base import TABLE_ONLY_STATUSES, Status
+
+    words = {s.value for s in Status} | set(TABLE_ONLY_STATUSES) | {SKIPPED}
+
+    def strings(node):
+        if isinstance(node, ast.Constant) and isinstance(node.value, str):
+            return [node.value]
+        if isinstance(node, (ast.Tuple, ast.List, ast.Set)):
+            return [v for e in node.elts for v in strings(e)]
+        return []
+
+    root = Path(__file__).resolve().parents[1] / "benchmark"
+    found = []
+    for path in sorted(root.rglob("*.py")):
+        for n in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(n, ast.Compare):
+                values = [v for x in (n.left, *n.comparators) for v in strings(x)]
+            elif isinstance(n, ast.keyword) and n.arg in ("status", "bound", "bounded", "high_status"):
+                values = strings(n.value)
+            elif isinstance(n, ast.Dict):
+                values = [v for k, x in zip(n.keys, n.values) if k is not None and strings(k)[:1] in (["status"], ["bound"])
+                          for v in strings(x)]
+            elif isinstance(n, ast.Call) and isinstance(n.func, ast.Attribute) and n.func.attr == "isin":
+                values = [v for a in n.args for v in strings(a)]
+            else:
+                continue
+            found += [f"{path.relative_to(root)}:{n.lineno} {v!r}" for v in values if v in words]
+    assert found == [], found

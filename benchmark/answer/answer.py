@@ -37,10 +37,13 @@ import numpy as np
 from benchmark.core import engine
 from benchmark.answer import paired as _paired
 from benchmark.answer import search as _search
-from benchmark.core.policy import CHEAPEST_FILE, PAIRED_BUDGET, RESULTS, SAVE_EVERY, SEARCH_TIME_LIMIT, Setting
+from benchmark.core.policy import (BEST_VERDICTS, CHEAPEST_FILE, IDENTICAL, LOWER_BOUND, NO_FLOPS_COUNT, NOT_REACHED,
+                                   PAIRED_BUDGET, RANKED_VERDICTS, RESULTS, SAVE_EVERY, SEARCH_TIME_LIMIT, SLOWER, TIE,
+                                   Setting)
 from benchmark.core.store import code_version, frame, key_of
 from benchmark.runs.table import kept_rows
 from benchmark.runs.sweep import DEFAULT_EXECUTOR
+from integrators.base import CRASHED, ERROR
 
 #: The default targets: (metric, target, label); ``--targets`` asks for others, on any metric
 #: of `benchmark.runs.metrics.METRICS`.
@@ -137,7 +140,7 @@ def _solve_once(job: SearchJob, setting: float, cache_dir: str) -> tuple[str, di
     from benchmark.runs.metrics import INACCURATE, inaccurate_reason, run_metrics
     from benchmark.core.reference import get_reference
     from integrators import get_integrator
-    from integrators.base import is_finished
+    from integrators.base import Status, is_finished
     from models import build_model
 
     scene = _scene(job.scene, job.elements, job.t_end)
@@ -151,7 +154,7 @@ def _solve_once(job: SearchJob, setting: float, cache_dir: str) -> tuple[str, di
         traj = get_integrator(job.integrator).solve(scene, time_limit=SEARCH_TIME_LIMIT,
                                                     **solve_kwargs(job.sweep, setting, t_end))
     except ValueError:  # a setting the method refuses (e.g. dt beyond t_end): not finished
-        out = ("failed", {}, math.nan, "flops", {})
+        out = (Status.FAILED.value, {}, math.nan, "flops", {})
         _SOLVED[key] = out
         return out
     model = build_model(scene)
@@ -197,7 +200,7 @@ def run_search(job: SearchJob, cache_dir: str) -> dict:
                    cost_column="flops" if columns == {"flops"} else "+".join(sorted(columns)),
                    note=_search_note(job.sweep, found), points=json.dumps(points, default=float))
     except Exception as exc:  # a bug in one search must not lose the others
-        row.update(bound="error", note=f"{type(exc).__name__}: {exc}"[:300])
+        row.update(bound=ERROR, note=f"{type(exc).__name__}: {exc}"[:300])
     row["job_time"] = time.perf_counter() - started  # the progress line's ETA learns from it
     return row
 
@@ -373,7 +376,7 @@ def run_search_stage(jobs: list[SearchJob], *, workers: int, cache_dir: str, pre
                            setup_labels=[f"reference {p.scene} N={dict(p.overrides)['elements']}" for p in problems],
                            group=lambda i: (jobs[i].scene, jobs[i].elements, jobs[i].integrator),
                            cost=search_costs(jobs).__getitem__,
-                           crash_row=lambda i, exc: {**asdict(jobs[i]), "bound": "crashed",
+                           crash_row=lambda i, exc: {**asdict(jobs[i]), "bound": CRASHED,
                                                      "note": engine.crash_reason(exc)},
                            done=kept, finish=lambda i, row: _finish(row, keys[i]), describe=_describe_search,
                            on_row=on_row, log=log)
@@ -414,7 +417,7 @@ def answer_table(searched: pd.DataFrame, timed: pd.DataFrame) -> pd.DataFrame:
             if (integ, sweep) in same:
                 rows.append(dict(scene=scene, elements=int(n), metric=metric, target=target, cost_kind="work",
                                  integrator=integ, entry=entry_name(integ, sweep, axes[integ] > 1), sweep=sweep,
-                                 setting=_setting_text(sweep, r["setting"]), verdict="identical",
+                                 setting=_setting_text(sweep, r["setting"]), verdict=IDENTICAL,
                                  cost_column=r["cost_column"], error=r["error"], runs=r["runs"],
                                  note=f"its search is bit-identical to {same[(integ, sweep)]}'s "
                                       f"({', '.join(TWIN_COLUMNS)}): ranked as one entry"))
@@ -429,7 +432,7 @@ def answer_table(searched: pd.DataFrame, timed: pd.DataFrame) -> pd.DataFrame:
             if np.isfinite(r["setting"]) and r["cost_column"] != "flops":
                 # a cost in another unit (steps: a method XLA's cost model cannot count) is no
                 # point on the flops axis: it reached the target, but is not ranked by work
-                base.update(cost=np.nan, verdict="no flops count",
+                base.update(cost=np.nan, verdict=NO_FLOPS_COUNT,
                             note=f"its cost at the target is {r['cost']:.4g} {r['cost_column']}, not flops: not ranked "
                                  "by work")
             elif np.isfinite(r["setting"]) and _counts_whole_step(integ):
@@ -441,7 +444,7 @@ def answer_table(searched: pd.DataFrame, timed: pd.DataFrame) -> pd.DataFrame:
                 base.update(cost=r["cost"], cost_low=r["cost"] / (1.0 + max(spread, 0.0)), cost_high=np.inf,
                             verdict=LOWER_BOUND, note=LOWER_BOUND_NOTE)
             else:
-                base.update(cost=np.nan, verdict="not reached")
+                base.update(cost=np.nan, verdict=NOT_REACHED)
             work.append(base)
         work_verdicts([w for w in work if w.get("verdict") != LOWER_BOUND])
         _rank_lower_bounds(work)
@@ -464,9 +467,8 @@ def answer_table(searched: pd.DataFrame, timed: pd.DataFrame) -> pd.DataFrame:
     return frame(rows, COLUMNS, extra=False)
 
 
-#: The verdict of a work cost that is only a lower bound (`benchmark.work.flops.counting_rule`
-#: "evaluations") and lies below the winner's: it cannot be ranked.
-LOWER_BOUND = "lower bound"
+#: The note of a work cost that is only a lower bound (`benchmark.work.flops.counting_rule`
+#: "evaluations"): one below the winner's has the verdict `LOWER_BOUND` (it cannot be ranked).
 LOWER_BOUND_NOTE = ("its flops count right-hand sides, Jacobians and LU factorisations only (its Newton solves "
                     "and stage arithmetic left out): a lower bound of its work, ranked only where it is above "
                     "the winner's")
@@ -484,11 +486,11 @@ def _counts_whole_step(integrator: str) -> bool:
 def _rank_lower_bounds(work: list[dict]) -> None:
     """A lower-bound cost above the winner's (or the tie's best) cost interval is `slower`
     (its ratio interval open above); one below it stays a `LOWER_BOUND`, unranked."""
-    ranked = [w for w in work if w.get("verdict") in ("winner", "tie")]
+    ranked = [w for w in work if w.get("verdict") in BEST_VERDICTS]
     best = min(ranked, key=lambda w: (w["cost"], w["entry"])) if ranked else None
     for w in work:
         if w.get("verdict") == LOWER_BOUND and best is not None and w["cost_low"] > best["cost_high"]:
-            w.update(verdict="slower", ratio=w["cost"] / best["cost"], ratio_low=w["cost_low"] / best["cost_high"],
+            w.update(verdict=SLOWER, ratio=w["cost"] / best["cost"], ratio_low=w["cost_low"] / best["cost_high"],
                      ratio_high=np.inf)
 
 
@@ -496,7 +498,7 @@ def _use_line(g: pd.DataFrame) -> str:
     """"use X (setting, cost, interval); next Y at r× [lo–hi]" for one cost kind's rows; a tie
     (only where the intervals overlap) names its members with their ratios, then the first
     method outside it."""
-    ranked = g[g["verdict"].isin(["winner", "tie", "slower"])].sort_values(["ratio", "entry"])
+    ranked = g[g["verdict"].isin(RANKED_VERDICTS)].sort_values(["ratio", "entry"])
     if ranked.empty:
         return "no method reached it"
     kind = g["cost_kind"].iloc[0]
@@ -512,9 +514,9 @@ def _use_line(g: pd.DataFrame) -> str:
 
     own = (f"{best['setting']}, {unit(best['cost'])}, {int(best['pairs'])} pairs" if kind == "wall"
            else f"{best['setting']}, {unit(best['cost'])} [{best['cost_low']:.3g}–{best['cost_high']:.3g}]")
-    ties = ranked[ranked["verdict"] == "tie"].iloc[1:]
-    rest = ranked[ranked["verdict"] == "slower"]
-    if best["verdict"] == "tie":
+    ties = ranked[ranked["verdict"] == TIE].iloc[1:]
+    rest = ranked[ranked["verdict"] == SLOWER]
+    if best["verdict"] == TIE:
         head = f"tie: `{best['entry']}` ({own}), " + ", ".join(f"`{r['entry']}` at {rel(r)}"
                                                                     for _, r in ties.iterrows())
     else:
@@ -524,7 +526,7 @@ def _use_line(g: pd.DataFrame) -> str:
     nxt = rest.iloc[0]
     # a tie goes by the intervals, the order by the ratios: a wide interval can keep a member at
     # 1.33x in the tie while a narrow one puts 1.18x outside it, so "next" would misread
-    after = "first outside the tie" if best["verdict"] == "tie" else "next"
+    after = "first outside the tie" if best["verdict"] == TIE else "next"
     return head + f"; {after} `{nxt['entry']}` at {rel(nxt)}"
 
 
@@ -588,27 +590,26 @@ def _digest(row: dict) -> str:
                          if k not in _NOT_DIGESTED and canonical(v) != ""))
 
 
-def read_rows(path: Path, log=engine.log_stderr) -> list[dict]:
-    """The rows of an earlier search.csv / timing.csv whose digest matches (the others are
-    named and recomputed); none when the file is missing or unreadable."""
-    import pandas as pd
+#: A row's place in search.csv / timing.csv: one row per search, one per timing.
+SEARCH_IDENTITY = ("scene", "elements", "integrator", "sweep", "metric", "target")
+TIMING_IDENTITY = ("scene", "elements", "metric", "target")
+#: Each table's row identity, by its file name.
+IDENTITY = {"search.csv": SEARCH_IDENTITY, "timing.csv": TIMING_IDENTITY}
 
-    if not Path(path).exists():
-        return []
-    try:
-        rows = pd.read_csv(path).to_dict("records")
-    except Exception as exc:  # a damaged table: recompute, and say so
-        log(f"warning: {path} cannot be read ({type(exc).__name__}); its rows are recomputed")
-        return []
+
+def read_rows(path: Path, log=engine.log_stderr, identity: tuple | None = None) -> list[dict]:
+    """The rows of an earlier search.csv / timing.csv whose digest matches (the others are
+    named and recomputed); none when the file is missing. A file that cannot be read, or is not
+    a table of this study (no ``identity`` column; by default its file name's), is refused before
+    any work, as every study's earlier table is (`benchmark.core.study_store.read_rows`): this
+    run would overwrite it."""
+    from benchmark.core.study_store import read_rows as read_table
+
+    rows = read_table(Path(path), IDENTITY[Path(path).name] if identity is None else identity)
     good = [r for r in rows if isinstance(r.get("row_digest"), str) and r["row_digest"] == _digest(r)]
     if len(good) < len(rows):
         log(f"warning: {path}: {len(rows) - len(good)} row(s) fail their digest; they are recomputed")
     return good
-
-
-#: A row's place in search.csv / timing.csv: one row per search, one per timing.
-SEARCH_IDENTITY = ("scene", "elements", "integrator", "sweep", "metric", "target")
-TIMING_IDENTITY = ("scene", "elements", "metric", "target")
 
 
 def merged(base: list[dict], new: list[dict], identity: tuple) -> list[dict]:

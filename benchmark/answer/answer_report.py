@@ -16,6 +16,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from benchmark.core.policy import BEST_VERDICTS, RANKED_VERDICTS, SLOWER, TIE
+
 #: The markers of the project README's generated answer block.
 ANSWER_START, ANSWER_END = "<!-- answer:start -->", "<!-- answer:end -->"
 
@@ -57,16 +59,16 @@ def _amount(r, kind: str) -> str:
 def best_and_next(g: pd.DataFrame) -> tuple[str, str, pd.Series | None]:
     """(the best cell, the runner-up cell, the best row) of one cost kind's rows of one target: a
     tie names its members with their ratios, the runner-up is then the first method outside it."""
-    ranked = g[g["verdict"].isin(["winner", "tie", "slower"])].sort_values(["ratio", "entry"])
+    ranked = g[g["verdict"].isin(RANKED_VERDICTS)].sort_values(["ratio", "entry"])
     if ranked.empty:
         return "no method reached it", "", None
     kind = g["cost_kind"].iloc[0]
     best = ranked.iloc[0]
     head = f"`{best['entry']}` ({best['setting']}, {_amount(best, kind)})"
-    ties = ranked[ranked["verdict"] == "tie"].iloc[1:]
-    if best["verdict"] == "tie":
+    ties = ranked[ranked["verdict"] == TIE].iloc[1:]
+    if best["verdict"] == TIE:
         head = "tie: " + ", ".join([head] + [f"`{r['entry']}` {_ratio(r)}" for _, r in ties.iterrows()])
-    rest = ranked[ranked["verdict"] == "slower"]
+    rest = ranked[ranked["verdict"] == SLOWER]
     nxt = "—" if rest.empty else f"`{rest.iloc[0]['entry']}` {_ratio(rest.iloc[0])}"
     return head, nxt, best
 
@@ -109,7 +111,7 @@ def sentences(h: pd.DataFrame, labels: dict) -> list[str]:
             work = t[(t["cost_kind"] == "work") & (t["entry"] == best["entry"])]
             bound = work["bound"].iloc[0] if len(work) else ""
             held = f"; its setting held by {LIMITED_BY[bound]}" if bound in LIMITED_BY else ""
-            tie = ", in a tie" if best["verdict"] == "tie" else ""
+            tie = ", in a tie" if best["verdict"] == TIE else ""
             parts.append(f"for {_target_text(metric, target, labels)} use {family(best['integrator'])} "
                          f"(`{best['entry']}`{tie}{held})")
         lines.append(f"**{scene}**: " + "; ".join(parts) + ".")
@@ -183,11 +185,11 @@ def readme(block: list[str], figures_made: list[str], provenance: str, compared:
 
 def _front(g: pd.DataFrame) -> tuple[str, set]:
     """(the best entry, the entries of its tie or just it) of one cost kind's rows of one target."""
-    ranked = g[g["verdict"].isin(["winner", "tie", "slower"])].sort_values(["ratio", "entry"])
+    ranked = g[g["verdict"].isin(RANKED_VERDICTS)].sort_values(["ratio", "entry"])
     if ranked.empty:
         return "", set()
     best = ranked["entry"].iloc[0]
-    return best, set(ranked.loc[ranked["verdict"].isin(["winner", "tie"]), "entry"]) | {best}
+    return best, set(ranked.loc[ranked["verdict"].isin(BEST_VERDICTS), "entry"]) | {best}
 
 
 def agreement(mine: pd.DataFrame, other: pd.DataFrame) -> pd.DataFrame:

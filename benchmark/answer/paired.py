@@ -37,7 +37,7 @@ from typing import Callable
 
 import numpy as np
 
-from benchmark.core.policy import PAIRED_BUDGET, RESOLUTION, TIE_MARGIN
+from benchmark.core.policy import PAIRED_BUDGET, RESOLUTION, SLOWER, TIE, TIE_MARGIN, WINNER
 
 #: Seconds of timing per target (all methods' solves together, the setup excluded).
 BUDGET = PAIRED_BUDGET
@@ -56,7 +56,6 @@ MIN_ROUNDS = 8
 RACE_ROUNDS = 4
 RACE_MARGIN = 2 * TIE_MARGIN
 MAX_ROUNDS = 2000
-VERDICTS = ("winner", "tie", "slower")
 
 
 @dataclass
@@ -93,9 +92,9 @@ def verdicts(ratios: list[Ratio], equivalence: float = EQUIVALENCE) -> list[Rati
     ratios = sorted(ratios, key=lambda r: (r.ratio, r.method))
     best, others = ratios[0], ratios[1:]
     alone = all(o.low > 1.0 + equivalence for o in others)
-    best.verdict = "winner" if alone else "tie"
+    best.verdict = WINNER if alone else TIE
     for o in others:
-        o.verdict = "slower" if o.low > 1.0 + equivalence else "tie"
+        o.verdict = SLOWER if o.low > 1.0 + equivalence else TIE
     return ratios
 
 

@@ -38,7 +38,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Callable
 
-from benchmark.core.policy import RESOLUTION  # two settings this close in cost are close enough (the 10 %)
+from benchmark.core.policy import NOT_REACHED, RESOLUTION  # two settings this close in cost are close enough (the 10 %)
 
 #: The most runs of one search (bracket, bisection and confirmation together).
 MAX_RUNS = 24
@@ -243,7 +243,7 @@ def _found(points: dict[int, Point], target: float, lat: _Lattice, resolution: f
     meeting = [k for k in ks if points[k].meets(target)]
     if not meeting:  # the finest setting allowed missed it too, or the runs (or a run's own budget) ran out
         finest = points[ks[0]]
-        return Found(target, "not reached" if ks[0] <= lat.k_min and not _stopped_by_budget(finest.status)
+        return Found(target, NOT_REACHED if ks[0] <= lat.k_min and not _stopped_by_budget(finest.status)
                      else "budget", setting_high=finest.setting, high_status=finest.status, points=plist)
     standing = [k for k in meeting if _stands(points, k, lat, confirm, target)]
 

@@ -49,12 +49,12 @@ Small N and short horizons: a method takes seconds to tens of seconds (its compi
 from __future__ import annotations
 
 import functools
-import math
 from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
 
+from benchmark.core.order import fitted_order, last_order
 from benchmark.core.policy import VERIFY_BALANCE_REFERENCE, VERIFY_REFERENCE, atol_for
 
 #: the two situations an order is declared for, as small scenes (effects of the retrieval scene)
@@ -287,10 +287,8 @@ def _order(integ, key: str, runs: dict) -> Check:
     if e[-1] < ROUND_OFF:
         return Check(name, False, f"errors {_fmt(e)} reach round-off: the order cannot be observed at "
                                   f"{_words(settings[-1])} (an order this high is not measurable by these settings)")
-    if fixed:
-        observed = math.log(e[-2] / e[-1]) / math.log(h[-2] / h[-1])
-    else:  # the slope of log error against log(1 / steps)
-        observed = float(np.polyfit(np.log(h), np.log(e), 1)[0]) if len(set(h)) > 1 else float("nan")
+    # fixed steps: the last halving; adaptive: the least-squares slope against log(1 / steps)
+    observed = last_order(h, e) if fixed else fitted_order(h, e)
     tol = ORDER_TOLERANCE * (1 if fixed else 2)
     ok = declared - tol < observed < declared + ABOVE + tol
     how = ("dt " + ", ".join(f"{s['dt']:g}" for s in settings) if "dt" in settings[0]
@@ -335,15 +333,18 @@ def _finite(traj) -> bool:
 
 
 def _budget(integ) -> Check:
+    from integrators import Status
+
     scene = small_scene(ORDER_SCENES["fixed_length"])
     tr = integ.solve(scene, t_end=T_END, save_every=SAVE_EVERY, max_steps=3, **_setting(integ, 2))
-    ok = tr.status == "max_steps" and bool(tr.reason) and len(tr.t) >= 1 and _finite(tr)
+    ok = tr.status == Status.MAX_STEPS.value and bool(tr.reason) and len(tr.t) >= 1 and _finite(tr)
     return Check("budget", ok, f"max_steps = 3: status {tr.status} ({tr.reason or 'no reason given'}), "
                                f"{len(tr.t)} saved point(s) kept{'' if _finite(tr) else ', NOT FINITE'}")
 
 
 def _length_limit(integ) -> Check:
     """A string paid out from near its end runs out within 0.3 s: every correct method stops there."""
+    from integrators import Status
     from models import build_model
 
     scene = small_scene(ORDER_SCENES["reel"], deployed_length=38.8, reel_rate=-1.5, control_moment=0.0)
@@ -351,7 +352,7 @@ def _length_limit(integ) -> Check:
     tr = integ.solve(scene, t_end=0.8, save_every=0.02, **_setting(integ, 1))
     ell = model.L - np.asarray(tr.x)[:, 0]
     inside = bool(np.all(ell < model.L - model.b)) and _finite(tr)
-    ok = tr.status == "length_limit" and inside
+    ok = tr.status == Status.LENGTH_LIMIT.value and inside
     at = tr.stats.get("event_time")
     return Check("length limit", ok, f"status {tr.status}" + (f" at t = {at:.3g} s" if at is not None else "")
                  + f", longest saved ℓ {model.L - model.b - ell.max():.2g} m short of L − b = {model.L - model.b:g} m"

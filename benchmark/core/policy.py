@@ -1,7 +1,7 @@
 """The benchmark's rules, each stated once: how a run is saved and toleranced, what one solve may
-spend, how finely an answer is resolved, which reference each study compares with, and where
-results go. Every study reads them from here; nothing here imports JAX (the command line checks
-its input against them in milliseconds).
+spend, how finely an answer is resolved and the words of its verdicts, which reference each
+study compares with, and where results go. Every study reads them from here; nothing here
+imports JAX (the command line checks its input against them in milliseconds).
 
 Rules of one integrator call (the number of fixed steps, the saved memory, the planned-step cap,
 the horizon, the step mode) are the integrators' own: `integrators.base` and
@@ -156,6 +156,23 @@ TIE_MARGIN = 0.10
 #: when lower than its baseline by more than CHECK_ORDER_MARGIN.
 CHECK_FACTOR = 2.0
 CHECK_ORDER_MARGIN = 0.5
+
+# ------------------------------------------------------------------------------------------
+# The words of the answer's verdicts (cheapest.csv's ``verdict``)
+# ------------------------------------------------------------------------------------------
+#: A ranking's verdicts, by wall time (`benchmark.answer.paired.verdicts`) and by work
+#: (`benchmark.runs.ranking.work_verdicts`): the cheapest alone; the cheapest, and each method
+#: whose interval it cannot be told from; every other method.
+WINNER, TIE, SLOWER = "winner", "tie", "slower"
+RANKED_VERDICTS = (WINNER, TIE, SLOWER)
+#: The ranked verdicts of the methods the answer recommends.
+BEST_VERDICTS = (WINNER, TIE)
+#: The work verdicts of a method the answer does not rank (`benchmark.answer.answer.answer_table`):
+#: its search is bit-identical to another method's (ranked as one entry); its cost is not in
+#: flops; its flops are only a lower bound, below the winner's; it reached no setting at the
+#: target (also the search's ``bound``, `benchmark.answer.search`).
+IDENTICAL, NO_FLOPS_COUNT, LOWER_BOUND, NOT_REACHED = "identical", "no flops count", "lower bound", "not reached"
+UNRANKED_VERDICTS = (IDENTICAL, NO_FLOPS_COUNT, LOWER_BOUND, NOT_REACHED)
 
 # ------------------------------------------------------------------------------------------
 # References: what each study compares with (they differ where their purpose does)

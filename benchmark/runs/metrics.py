@@ -8,6 +8,7 @@ from typing import Callable
 import numpy as np
 import pandas as pd
 
+from benchmark.core.order import successive_orders
 from models._lazy import lazy_function
 from integrators.base import FINISHED_STATUSES
 from integrators.base import INACCURATE as _INACCURATE
@@ -243,9 +244,9 @@ def energy_history(scene, traj) -> pd.DataFrame:
 def observed_orders(runs: pd.DataFrame, error: str = "position_error_final") -> pd.DataFrame:
     """Observed order per scene and integrator: slope p of error ∝ steps^(-p).
 
-    For fixed-step runs this is the classical order in dt (mean of log2 of error ratios
-    over halved steps, as DiffEqDevTools does); adaptive runs use the same definition
-    along their tolerance sweep. Only finished runs above round-off (error > 1e-12) count.
+    For fixed-step runs this is the classical order in dt (the mean of
+    `benchmark.core.order.successive_orders` over the sweep, with h = 1 / steps); adaptive
+    runs use the same definition along their tolerance sweep. Only finished runs above round-off (error > 1e-12) count.
     ``finest_pair_order`` uses only the two runs with the most steps, the ones most likely
     in the asymptotic range (coarse steps near a stability limit, or a long horizon of this
     chaotic system, can make the mean meaningless).
@@ -255,7 +256,7 @@ def observed_orders(runs: pd.DataFrame, error: str = "position_error_final") -> 
         ["scene", "integrator", "axis"]
     ):
         g = g[g["status"].isin(FINISHED_STATUSES) & (g[error] > 1e-12) & (g["steps"] > 0)].sort_values("steps")
-        slopes = -np.diff(np.log(g[error].to_numpy(float))) / np.diff(np.log(g["steps"].to_numpy(float)))
+        slopes = successive_orders(1.0 / g["steps"].to_numpy(float), g[error].to_numpy(float))
         rows.append({"scene": scene, "integrator": integ, "sweep": axis, "points": len(g),
                      "observed_order": float(np.mean(slopes)) if len(slopes) else np.nan,
                      "finest_pair_order": float(slopes[-1]) if len(slopes) else np.nan})

@@ -23,10 +23,9 @@ from typing import Sequence
 import numpy as np
 import pandas as pd
 
-from benchmark.runs.metrics import INACCURATE
-from benchmark.core.policy import ROW_IDENTITY
+from benchmark.core.policy import ROW_IDENTITY, SLOWER, TIE, WINNER
 from benchmark.runs.sweep import PRESENTATION_ORDER, SWEEP_WORDS
-from integrators.base import BUDGET_STATUSES, ERROR, FINISHED_STATUSES  # a budget ends a run, not a failure of the method
+from integrators.base import BUDGET_STATUSES, ERROR, FINISHED_STATUSES, INACCURATE  # a budget ends a run, not a failure of the method
 
 #: The columns `failure_causes` reads from a runs table.
 _KEY_COLUMNS = (*ROW_IDENTITY, "dt", "rtol", "status")
@@ -56,10 +55,10 @@ def work_verdicts(rows: list[dict]) -> None:
         return
     best, others = reached[0], reached[1:]
     alone = all(best["cost_high"] < o["cost_low"] for o in others)
-    best["verdict"] = "winner" if alone else "tie"
+    best["verdict"] = WINNER if alone else TIE
     best.update(ratio=1.0, ratio_low=1.0, ratio_high=1.0)
     for o in others:
-        o["verdict"] = "tie" if (not alone and o["cost_low"] <= best["cost_high"]) else "slower"
+        o["verdict"] = TIE if (not alone and o["cost_low"] <= best["cost_high"]) else SLOWER
         o.update(ratio=o["cost"] / best["cost"], ratio_low=o["cost_low"] / best["cost_high"],
                  ratio_high=o["cost_high"] / best["cost_low"])
 
@@ -75,13 +74,13 @@ CAUSES = {
     "budget": "stopped by their step or time budget",
     "no finished run": "of a method that finished no fixed-step run of the scene",
     "within its finishing range": "failed although the same method finished the scene with a larger step",
-    "inaccurate": "finished with an error beyond a sanity bound (no longer a solution)",
+    INACCURATE: "finished with an error beyond a sanity bound (no longer a solution)",
     "adaptive": "adaptive runs that did not finish",
-    "error": "raised an exception (a bug)",
+    ERROR: "raised an exception (a bug)",
 }
 #: An inaccurate run is expected: a method's coarsest settings may be too coarse to solve the
 #: scene (the sweep reaches beyond the accuracy range on purpose, to find where it ends).
-EXPECTED_CAUSES = ("beyond the stability map's limit", "beyond its largest finishing step", "budget", "inaccurate")
+EXPECTED_CAUSES = ("beyond the stability map's limit", "beyond its largest finishing step", "budget", INACCURATE)
 
 
 def failure_causes(runs: pd.DataFrame, stability: pd.DataFrame | None = None) -> pd.DataFrame:
@@ -110,9 +109,9 @@ def failure_causes(runs: pd.DataFrame, stability: pd.DataFrame | None = None) ->
         if r.status in BUDGET_STATUSES:
             cause = "budget"
         elif r.status == INACCURATE:
-            cause = "inaccurate"
+            cause = INACCURATE
         elif r.status == ERROR:
-            cause = "error"
+            cause = ERROR
         elif pd.isna(r.dt):
             cause = "adaptive"
         elif key in limits and r.dt > limits[key]:

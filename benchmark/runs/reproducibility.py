@@ -54,9 +54,14 @@ from integrators.base import FINISHED_STATUSES, is_finished
 KEY = list(ROW_IDENTITY)
 _REQUIRED = (*KEY, "dt", "rtol", "status", "steps")
 
-#: Verdicts of one row, and whether each breaks the reproducibility statement.
-VERDICTS = {"equal": False, "within tolerance": False, "at stability limit": False,
-            "stopped elsewhere": False, "differs": True, "only in one table": True}
+#: Verdicts of one row (`compare_runs` decides them, `statement` writes them): equal to the last
+#: digit; within `AgreementTolerance`; statuses differ at the method's stability limit; both
+#: stopped early, after different step counts; differs; in one table only.
+EQUAL, WITHIN_TOLERANCE, AT_STABILITY_LIMIT = "equal", "within tolerance", "at stability limit"
+STOPPED_ELSEWHERE, DIFFERS, ONLY_IN_ONE_TABLE = "stopped elsewhere", "differs", "only in one table"
+#: Each verdict, and whether it breaks the reproducibility statement.
+VERDICTS = {EQUAL: False, WITHIN_TOLERANCE: False, AT_STABILITY_LIMIT: False, STOPPED_ELSEWHERE: False,
+            DIFFERS: True, ONLY_IN_ONE_TABLE: True}
 
 COLUMNS = [*KEY, "status_a", "status_b", "steps_a", "steps_b", "metric", "value_a", "value_b", "used", "verdict",
            "reason"]
@@ -157,16 +162,16 @@ def compare_runs(a: pd.DataFrame, b: pd.DataFrame, tol: AgreementTolerance = DEF
                    metric="", value_a=np.nan, value_b=np.nan, used=np.nan, reason="")
         dt = r["dt_a"] if pd.notna(r["dt_a"]) else r["dt_b"]
         if r["_merge"] != "both":
-            out.update(verdict="only in one table",
+            out.update(verdict=ONLY_IN_ONE_TABLE,
                        reason=f"only in the {'first' if r['_merge'] == 'left_only' else 'second'} table")
         elif r["status_a"] != r["status_b"]:
             at_limit = pd.notna(dt) and (r["scene"], r["integrator"], float(dt)) in limits
-            out.update(verdict="at stability limit" if at_limit else "differs",
+            out.update(verdict=AT_STABILITY_LIMIT if at_limit else DIFFERS,
                        reason=f"status {r['status_a']} vs {r['status_b']}"
                               + (" at the method's stability limit" if at_limit else ""))
         elif not is_finished(r["status_a"]):
             same = r["steps_a"] == r["steps_b"]
-            out.update(verdict="equal" if same else "stopped elsewhere",
+            out.update(verdict=EQUAL if same else STOPPED_ELSEWHERE,
                        reason="" if same else f"both {r['status_a']}, after {r['steps_a']:.0f} vs {r['steps_b']:.0f} steps")
         else:
             out.update(_compare_finished(r, metrics, None if pd.notna(dt) else float(r["rtol_a"]), tol))
@@ -189,7 +194,7 @@ def _compare_finished(r: dict, metrics, rtol: float | None, tol: AgreementTolera
     worst = max(shares, key=lambda k: shares[k][0])
     used, va, vb = shares[worst]
     exact = all(s[1] == s[2] or (np.isnan(s[1]) and np.isnan(s[2])) for s in shares.values())
-    verdict = "equal" if exact else ("within tolerance" if used <= 1 else "differs")
+    verdict = EQUAL if exact else (WITHIN_TOLERANCE if used <= 1 else DIFFERS)
     fmt = ".0f" if worst == "steps" else ".3g"
     return {"verdict": verdict, "metric": "" if exact else worst, "value_a": va, "value_b": vb, "used": used,
             "reason": "" if exact else f"{worst} {va:{fmt}} vs {vb:{fmt}} ({used:.2g} of its allowance)"}
@@ -207,9 +212,9 @@ def statement(comparison: pd.DataFrame, tol: AgreementTolerance = DEFAULT_TOLERA
     c = comparison
     n = c["verdict"].value_counts()
     fixed = c["setting"].map(axis_of) == "dt"
-    within = c["verdict"] == "within tolerance"
-    text = (f"{len(c)} runs compared: {n.get('equal', 0)} equal to the last digit, "
-            f"{n.get('within tolerance', 0)} within tolerance (fixed-step: same steps, errors within "
+    within = c["verdict"] == WITHIN_TOLERANCE
+    text = (f"{len(c)} runs compared: {n.get(EQUAL, 0)} equal to the last digit, "
+            f"{n.get(WITHIN_TOLERANCE, 0)} {WITHIN_TOLERANCE} (fixed-step: same steps, errors within "
             f"{tol.fixed_error_rtol:g} relative plus {tol.fixed_error_atol:g} and the metric's floor; "
             f"adaptive: steps within {tol.adaptive_steps_rtol:.0%}, "
             f"errors within a factor {tol.adaptive_error_factor:g} or "
@@ -219,7 +224,7 @@ def statement(comparison: pd.DataFrame, tol: AgreementTolerance = DEFAULT_TOLERA
               if (within & sel).any()]
     if shares:
         text += "; largest share of the allowance used: " + ", ".join(shares)
-    for v in ("at stability limit", "stopped elsewhere"):
+    for v in (AT_STABILITY_LIMIT, STOPPED_ELSEWHERE):
         g = c[c["verdict"] == v]
         if len(g):
             text += f"; {len(g)} {v}: " + ", ".join(f"`{r.integrator}` {r.setting} on {r.scene} ({r.reason})"

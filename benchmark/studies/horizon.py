@@ -281,9 +281,10 @@ def blocks(history, width: float = BLOCK_S):
 
 def crash_row(job: Job, exc: BaseException) -> dict:
     from benchmark.core.engine import crash_reason
+    from integrators.base import CRASHED
 
     return {**_run_columns(job), "label": f"{label(job.scene, job.elements, job.method)} [crashed]",
-            "status": "crashed", "reason": crash_reason(exc), "history": None}
+            "status": CRASHED, "reason": crash_reason(exc), "history": None}
 
 
 def describe(row: dict) -> str:

@@ -173,11 +173,13 @@ TEXT_COLUMNS = ("kind", "method", "rhs", "scene", "skipped", "flops_note", "stat
 
 
 def run_job(job) -> dict:
+    from integrators.base import Status
+
     if isinstance(job, StepJob):
         return {"kind": "step", "rhs": "", **measure(job.scene, job.N, job.steps, job.repeats, job.dt, job.method)}
     if job.skip:
         return {"kind": "rhs", "method": "", "scene": job.scene, "N": job.N, "rhs": job.rhs, "skipped": job.skip}
-    return {"kind": "rhs", "method": "", "skipped": "", **measure_rhs(job.scene, job.N, job.rhs), "status": "ok"}
+    return {"kind": "rhs", "method": "", "skipped": "", **measure_rhs(job.scene, job.N, job.rhs), "status": Status.OK.value}
 
 
 def identity_of(job) -> tuple:

@@ -41,6 +41,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from benchmark.core.order import successive_orders
 from benchmark.core.policy import ORDERS_CHECK_METHOD, ORDERS_REFERENCE_DT, ORDERS_REFERENCE_METHOD, Setting
 
 #: One scene per situation (`integrators.base.SITUATIONS`): fixed length, and the reel retrieving.
@@ -152,7 +153,7 @@ LADDER_COLUMNS = ("scene", "integrator", "situation", "declared_order", "element
 def run_job(job: Job) -> dict:
     """One method's ladder on one scene: a row per step (status, error) in ``ladder``."""
     from integrators import get_integrator
-    from integrators.base import situation
+    from integrators.base import Status, situation
 
     ref = job.reference or _reference(job.scene, job.elements, job.t_end)
     scene = load(job.scene, job.elements)
@@ -167,13 +168,14 @@ def run_job(job: Job) -> dict:
                        "setting": Setting.fixed(h).label(), "dt": h, "status": tr.status, "reason": tr.reason,
                        "error": float(np.abs(np.asarray(tr.x) - ref.x).max()) if same else np.nan,
                        "reference_error": ref.error_bound, "reference_check": ref.check})
-    return {"scene": job.scene, "integrator": job.integrator, "status": "ok", "ladder": ladder}
+    return {"scene": job.scene, "integrator": job.integrator, "status": Status.OK.value, "ladder": ladder}
 
 
 def crash_row(job: Job, exc: BaseException) -> dict:
     from benchmark.core.engine import crash_reason
+    from integrators.base import CRASHED
 
-    return {"scene": job.scene, "integrator": job.integrator, "status": "crashed", "reason": crash_reason(exc),
+    return {"scene": job.scene, "integrator": job.integrator, "status": CRASHED, "reason": crash_reason(exc),
             "elements": job.elements, "t_end": job.t_end, "ladder": []}
 
 
@@ -232,14 +234,6 @@ def describe(row: dict) -> str:
     return f"orders {row['scene']} / {row['integrator']}: {errs or row['status']}"
 
 
-def slopes(dts, errors) -> np.ndarray:
-    """The observed order p of error ∝ h^p between each two successive steps: log of the error ratio
-    over log of the step ratio (log2 of the error ratio of a halving). The order ladders' and the
-    reel-reversal table's."""
-    e = np.asarray(errors, float)
-    return np.log(e[:-1] / e[1:]) / np.log(np.asarray(dts[:-1], float) / np.asarray(dts[1:], float))
-
-
 def in_order(ladder: pd.DataFrame) -> pd.DataFrame:
     """The ladder rows by scene (`SCENES` first) and method (`fixed_step_methods`' order), each
     ladder coarsest step first: a merged table reads like a fresh one."""
@@ -261,7 +255,7 @@ def summarise(ladder: pd.DataFrame) -> pd.DataFrame:
         g = g.sort_values("dt", ascending=False)
         floor = FLOOR_FACTOR * float(g["reference_error"].max())
         counted = g["status"].isin(FINISHED_STATUSES) & np.isfinite(g["error"]) & (g["error"] >= floor)
-        s = slopes(g["dt"].to_numpy(), g["error"].to_numpy())
+        s = successive_orders(g["dt"].to_numpy(), g["error"].to_numpy())
         pair_ok = counted.to_numpy()[:-1] & counted.to_numpy()[1:]
         valid = [k for k in range(len(s)) if pair_ok[k]]
         last = valid[-1] if valid else None

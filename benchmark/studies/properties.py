@@ -44,7 +44,7 @@ import numpy as np
 import pandas as pd
 
 from benchmark.core.policy import axis_of, setting_value
-from integrators.base import FINISHED_STATUSES, is_finished
+from integrators.base import FINISHED_STATUSES, Status, is_finished
 
 #: Equal windows of the horizon whose largest energy error the classification fits, and the
 #: fraction of the horizon after which they are fitted.
@@ -223,7 +223,7 @@ def energy_table(horizon: pd.DataFrame | None) -> pd.DataFrame:
     if horizon is None or not len(horizon):
         return pd.DataFrame(columns=cols)
     h = horizon.assign(**{c: horizon[c] if c in horizon else d for c, d in
-                          (("scene", "fixed_length"), ("elements", 10), ("status", "ok"), ("tension_min", np.nan),
+                          (("scene", "fixed_length"), ("elements", 10), ("status", Status.OK.value), ("tension_min", np.nan),
                            ("energy_dev", np.nan), ("axial_P", np.nan), ("axial_P4", np.nan))})
     if "setting" not in h:  # a table from before the study had sizes: "lgvi dt=0.005" -> "dt=0.005"
         h = h.assign(setting=h["method"].map(lambda m: str(m).split(" ", 1)[-1]))

@@ -25,6 +25,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from benchmark.core.order import last_order
 from benchmark.core.policy import RESULTS, Setting
 
 #: Where the study writes by default.
@@ -138,9 +139,10 @@ COLUMNS = (*IDENTITY, "scene", "elements", "t_end", "h", "status", "reason", "er
 def crash_row(job: Job, exc: BaseException) -> dict:
     """The row of a job whose worker died."""
     from benchmark.core.engine import crash_reason
+    from integrators.base import CRASHED
     from models import load_scene
 
-    return {**_base_row(job, load_scene(job.scene_name, elements=job.elements)), "status": "crashed",
+    return {**_base_row(job, load_scene(job.scene_name, elements=job.elements)), "status": CRASHED,
             "reason": crash_reason(exc)}
 
 
@@ -173,7 +175,6 @@ def table(scene, t_end: float, flips, rows: list[dict]) -> str:
 def _table(title: str, flips, rows: list[dict]) -> str:
     lines = [f"{title}; s_p-dot changes sign at t = " + ", ".join(f"{t:.3f}" for t in flips) + " s",
              "", "| method | h [ms] | body [m] | s_p [m] | E-W [J] | orders (body / s_p / E-W) |", "|---|---|---|---|---|---|"]
-    from benchmark.studies.orders import slopes  # the observed order between two steps, as the order ladders compute it
 
     prev = prev_h = None
     for i, r in enumerate(rows):
@@ -184,7 +185,7 @@ def _table(title: str, flips, rows: list[dict]) -> str:
             lines.append(f"| {r['method']} | {r['h'] * 1e3:g} | {r['status']}: {r['reason']} | | | |")
             continue
         steps = (prev_h, r["h"])
-        orders = " / ".join(f"{slopes(steps, (a, b))[0]:.2f}" for a, b in zip(prev, e)) if prev else ""
+        orders = " / ".join(f"{last_order(steps, (a, b)):.2f}" for a, b in zip(prev, e)) if prev else ""
         lines.append(f"| {r['method']} | {r['h'] * 1e3:g} | {e.body:.2e} | {e.s_p:.2e} | {e.energy:.2e} | {orders} |")
         prev, prev_h = e, r["h"]
     return "\n".join(lines)

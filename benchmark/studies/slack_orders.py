@@ -6,7 +6,7 @@ instants. This measures it: the energy study's scene at N = `ELEMENTS`, with the
 string and with `slack`, over `T_END` s (elements go slack in it), each method of `METHODS` at the
 steps `DTS`; the error is the largest body-position difference over the saved times against
 `REFERENCE_SETTINGS` (DOP853, far more accurate than the finest step), with the largest energy
-error beside it, and the observed order is log2 of the ratio between halved steps. Table:
+error beside it, and the observed order is that of each halving (`benchmark.core.order`). Table:
 energy_slack_orders.csv, read by `benchmark.studies.properties` for the energy section.
 """
 
@@ -17,6 +17,8 @@ from typing import Callable
 
 import numpy as np
 import pandas as pd
+
+from benchmark.core.order import successive_orders
 
 ELEMENTS = 10
 T_END = 10.0
@@ -88,13 +90,13 @@ def fresh(out: Path) -> bool:
 
 
 def orders(table: pd.DataFrame) -> pd.DataFrame:
-    """Observed orders of ``table`` (`study`): per scene and method, log2 of the error ratio of
-    each pair of halved steps, in position and in energy."""
+    """Observed orders of ``table`` (`study`): per scene and method, the order between each pair
+    of halved steps (`benchmark.core.order.successive_orders`), in position and in energy."""
     out = []
     for (scene, name), g in table.groupby(["scene", "integrator"], sort=False):
         g = g.sort_values("dt", ascending=False)
-        pos, en = g["position_error"].to_numpy(float), g["energy_error"].to_numpy(float)
+        dt, pos, en = g["dt"].to_numpy(float), g["position_error"].to_numpy(float), g["energy_error"].to_numpy(float)
         out.append({"scene": scene, "integrator": name,
-                    "position_orders": np.log2(pos[:-1] / pos[1:]), "energy_orders": np.log2(en[:-1] / en[1:]),
+                    "position_orders": successive_orders(dt, pos), "energy_orders": successive_orders(dt, en),
                     "slack_share": float(g["reference_slack_share"].iloc[0])})
     return pd.DataFrame(out)

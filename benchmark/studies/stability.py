@@ -36,13 +36,15 @@ from benchmark.core import engine
 from benchmark.runs.metrics import CONSERVATION
 from benchmark.core.store import frame
 from benchmark.runs.sweep import Task
-from integrators.base import FINISHED_STATUSES
+from integrators.base import CRASHED, ERROR, FINISHED_STATUSES, Status
 
 #: Largest step of the fixed-step ladder (s) and the number of halvings tried below it.
 DT_MAX = 0.04
 LADDER_RUNGS = 12  # down to 0.04 / 2^11 ≈ 2e-5 s
 ADAPTIVE_RTOL = 1e-6
 ADAPTIVE_ATOL = 1e-8
+#: The status of a row the map does not run (`skip_reason`): a status of this table only.
+SKIPPED = "skipped"
 SAVED_POINTS = 100  # per run: the energy guard is checked at these (LGVI, scipy)
 
 def implicit_baseline(integ) -> bool:
@@ -139,9 +141,9 @@ CASES = (
     Case("fast_spin", 2.0, note="|Omega0| = 30 rad/s"),
     # every adaptive method at rtol 1e-6 reaches the 2 m limit at 1.10 s and the 39 m end at 2.10 s
     # (measured); a fixed-step run at an unstable step was seen "reaching" the limit at 0.05 s
-    Case("retrieval_to_limit", 10.0, bounded=("length_limit",), overrides=(("deployed_length", 3.0),), earliest_end=0.55,
+    Case("retrieval_to_limit", 10.0, bounded=(Status.LENGTH_LIMIT.value,), overrides=(("deployed_length", 3.0),), earliest_end=0.55,
          note="started at 3 m (scene: 15 m) to reach the 2 m limit sooner; bounded = ends with length_limit at t >= 0.55 s"),
-    Case("deployment_to_end", 10.0, bounded=("length_limit",), overrides=(("deployed_length", 36.0),), earliest_end=1.05,
+    Case("deployment_to_end", 10.0, bounded=(Status.LENGTH_LIMIT.value,), overrides=(("deployed_length", 36.0),), earliest_end=1.05,
          note="started at 36 m (scene: 3 m) to reach the 39 m limit sooner; bounded = ends with length_limit at t >= 1.05 s"),
     Case("long_horizon", 500.0, note="the scene's full 500 s for the fixed-step methods",
          short={implicit_baseline: (20.0, "implicit baseline: 500 s is ~1e5 steps with a Newton solve each"),
@@ -251,7 +253,7 @@ def run_job(job: Job) -> dict:
     row = _base_row(case, integrator, kind)
     why = skip_reason(case, integrator, default_run)
     if why:
-        row.update(status="skipped", reason=why, bounded=False)
+        row.update(status=SKIPPED, reason=why, bounded=False)
         return row
     try:
         if kind == "fixed":
@@ -270,7 +272,7 @@ def run_job(job: Job) -> dict:
         if steps is not None and np.isfinite(steps) and steps > 0:
             row["mean_step"] = row["t_reached"] / steps
     except Exception as exc:  # one bad job must not lose the other rows
-        row.update(status="error", reason=f"{type(exc).__name__}: {exc}".splitlines()[0][:300], bounded=False)
+        row.update(status=ERROR, reason=f"{type(exc).__name__}: {exc}".splitlines()[0][:300], bounded=False)
     row["job_time"] = time.perf_counter() - t0
     return row
 
@@ -315,7 +317,7 @@ def describe(row: dict) -> str:
 
 def crash_row(job: Job, exc: BaseException) -> dict:
     """The row of a job whose worker died."""
-    return {**_base_row(job.case, job.integrator, job.kind), "status": "crashed", "reason": engine.crash_reason(exc),
+    return {**_base_row(job.case, job.integrator, job.kind), "status": CRASHED, "reason": engine.crash_reason(exc),
             "bounded": False}
 
 

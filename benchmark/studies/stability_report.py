@@ -17,9 +17,9 @@ from matplotlib.lines import Line2D
 from benchmark.figures import styles
 from benchmark.figures.plots import plt, save_figure, style_axes
 from benchmark.core.report import Provenance, code_list, fmt, markdown_table
-from benchmark.studies.stability import ADAPTIVE_ATOL, ADAPTIVE_RTOL, CASES, DT_MAX, LADDER_RUNGS
+from benchmark.studies.stability import ADAPTIVE_ATOL, ADAPTIVE_RTOL, CASES, DT_MAX, LADDER_RUNGS, SKIPPED
 from models.io import atomic_write_text
-from integrators.base import FINISHED_STATUSES
+from integrators.base import FINISHED_STATUSES, Status
 
 #: The scenes whose largest stable steps the summary compares with the adaptive methods' steps.
 STIFF_SCENES = ("stiff_string", "many_elements")
@@ -162,7 +162,7 @@ def _fixed_parts(fx: pd.DataFrame) -> list[str]:
 def _adaptive_parts(ad: pd.DataFrame) -> list[str]:
     """What the adaptive runs of one scene did (``ad``: its adaptive rows)."""
     parts = []
-    ran = ad[ad["status"] != "skipped"]
+    ran = ad[ad["status"] != SKIPPED]
     ok = ran[ran["bounded"] == True]  # noqa: E712
     if len(ran):
         text = f"at rtol {ADAPTIVE_RTOL:g}, {len(ok)} of {len(ran)} adaptive runs stay bounded"
@@ -177,7 +177,7 @@ def _adaptive_parts(ad: pd.DataFrame) -> list[str]:
     bad = ran[ran["bounded"] != True]  # noqa: E712
     if len(bad):
         parts.append("not bounded: " + ", ".join(f"`{r['integrator']}` ({r['status']})" for _, r in bad.iterrows()))
-    skipped = ad[ad["status"] == "skipped"]
+    skipped = ad[ad["status"] == SKIPPED]
     if len(skipped):
         parts.append("left out: " + code_list(skipped["integrator"]))
     return parts
@@ -185,7 +185,7 @@ def _adaptive_parts(ad: pd.DataFrame) -> list[str]:
 
 def _scene_line(scene: str, g: pd.DataFrame) -> str:
     parts = _fixed_parts(g[g["kind"] == "fixed"].set_index("integrator")) + _adaptive_parts(g[g["kind"] == "adaptive"])
-    horizons = sorted(set(float(h) for h in g.loc[g["status"] != "skipped", "horizon"] if np.isfinite(h)))
+    horizons = sorted(set(float(h) for h in g.loc[g["status"] != SKIPPED, "horizon"] if np.isfinite(h)))
     return f"- **{scene}** (horizon {' / '.join(f'{h:g}' for h in horizons)} s): " + "; ".join(parts) + "."
 
 
@@ -243,11 +243,11 @@ def _long_horizon(df: pd.DataFrame) -> list[str]:
 
 def _adaptive_summary(df: pd.DataFrame) -> str:
     ad = df[df["kind"] == "adaptive"]
-    ran = ad[ad["status"] != "skipped"]
+    ran = ad[ad["status"] != SKIPPED]
     unbounded = ran[ran["bounded"] != True]  # noqa: E712
     scenes, stiff_dt = _stiff(df)
     stiff = df[df["scene"].isin(scenes)]
-    typical = [_typical_step(r) for _, r in stiff[(stiff["kind"] == "adaptive") & (stiff["status"] != "skipped")].iterrows()]
+    typical = [_typical_step(r) for _, r in stiff[(stiff["kind"] == "adaptive") & (stiff["status"] != SKIPPED)].iterrows()]
     text = (f"**Adaptive methods.** {len(ran) - len(unbounded)} of {len(ran)} adaptive runs stayed bounded"
             + (" (not bounded: " + ", ".join(f"{r['integrator']} on {r['scene']} ({r['status']})"
                                              for _, r in unbounded.iterrows()) + ")" if len(unbounded) else "")
@@ -255,11 +255,12 @@ def _adaptive_summary(df: pd.DataFrame) -> str:
             + (f" On {code_list(scenes, ' and ')} their typical (median or mean) steps are "
                f"{fmt(min(typical))}–{fmt(max(typical))} s, against {fmt(stiff_dt[0])}–{fmt(stiff_dt[1])} s "
                "for the fixed-step methods." if typical and stiff_dt else ""))
-    limits = [c.scene for c in CASES if "length_limit" in c.bounded and c.scene in set(df["scene"])]
-    at_limit = df[df["scene"].isin(limits) & (df["status"] != "skipped")]
+    limits = [c.scene for c in CASES if Status.LENGTH_LIMIT.value in c.bounded and c.scene in set(df["scene"])]
+    at_limit = df[df["scene"].isin(limits) & (df["status"] != SKIPPED)]
     if len(at_limit):
         text += (f" On the length-limit scenes ({code_list(limits)}) "
-                 f"{int((at_limit['status'] == 'length_limit').sum())} of {len(at_limit)} runs end with `length_limit`.")
+                 f"{int((at_limit['status'] == Status.LENGTH_LIMIT.value).sum())} of {len(at_limit)} runs end with "
+                 f"`{Status.LENGTH_LIMIT.value}`.")
     return text
 
 
