@@ -43,7 +43,6 @@ from benchmark.core.policy import (BEST_VERDICTS, CHEAPEST_FILE, IDENTICAL, LOWE
 from benchmark.core.store import code_version, frame, key_of
 from benchmark.runs.table import kept_rows
 from benchmark.runs.sweep import DEFAULT_EXECUTOR
-from integrators.base import CRASHED, ERROR
 
 #: The default targets: (metric, target, label); ``--targets`` asks for others, on any metric
 #: of `benchmark.runs.metrics.METRICS`.
@@ -200,6 +199,8 @@ def run_search(job: SearchJob, cache_dir: str) -> dict:
                    cost_column="flops" if columns == {"flops"} else "+".join(sorted(columns)),
                    note=_search_note(job.sweep, found), points=json.dumps(points, default=float))
     except Exception as exc:  # a bug in one search must not lose the others
+        from integrators.base import ERROR  # here: the command line's start loads no integrator
+
         row.update(bound=ERROR, note=f"{type(exc).__name__}: {exc}"[:300])
     row["job_time"] = time.perf_counter() - started  # the progress line's ETA learns from it
     return row
@@ -365,6 +366,8 @@ def run_search_stage(jobs: list[SearchJob], *, workers: int, cache_dir: str, pre
     if kept:
         log(f"resuming: {len(kept)} of {len(jobs)} searches already done (kept)")
     from benchmark.core.reference import ReferenceProblem, prepare_reference
+
+    from integrators.base import CRASHED  # here: the command line's start loads no integrator
 
     todo = [j for i, j in enumerate(jobs) if i not in kept]
     # each reference once, before the searches read it (two workers never compute the same one)
