@@ -4,10 +4,11 @@
 Every command checks all of its input first -- option types and ranges, conflicting options,
 integrator and study names, the scene (and the plausibility of its values), the output place
 (proved writable, but created only when the work starts, so a refused command leaves no
---out behind) and the size of the run -- and only then imports JAX and calls its pipeline
-(`benchmark.cli.pipelines`). A mistake is answered in well under a second with ``error: ...`` and
-exit status 2, without a traceback (set REELBENCH_DEBUG=1 to see where a ValueError came
-from); a file-system fault during the work (a full disk, a read-only place) is one
+--out behind) and the size of the run -- and only then imports JAX and calls its pipeline,
+which lives with what it does (`benchmark.studies.grid.run_sweep`, `benchmark.core.study.run`
+for the studies on the one runner, `benchmark.studies.check.run_check`, ...). A mistake is
+answered in well under a second with ``error: ...`` and exit status 2, without a traceback
+(set REELBENCH_DEBUG=1 to see where a ValueError came from); a file-system fault during the work (a full disk, a read-only place) is one
 ``error: cannot write FILE: ...`` line and exit status 1, with the rows finished so far kept;
 any other exception is an internal error and keeps its traceback. Ctrl-C or SIGTERM stops
 every command with one line saying what was saved (exit status 130 or 143).
@@ -113,9 +114,9 @@ def cmd_run(args) -> int:
     opt.no_directory_at(out, ("runs.csv", "runs.md", "orders.csv", "README.md", "figures.json"))
     _check_horizon_size(args, ov)  # the energy study's plan and settings (no JAX)
 
-    from benchmark.cli import pipelines
+    from benchmark.studies import grid
 
-    return pipelines.run_sweep(pipelines.SweepRequest(
+    return grid.run_sweep(grid.SweepRequest(
         out=out, scenes=tuple(scene_names), integrators=tuple(args.integrators) if args.integrators else None,
         quick=args.quick, dts=tuple(args.dts) if args.dts else None, rtols=tuple(args.rtols) if args.rtols else None,
         t_end=args.t_end, overrides=tuple(sorted((k, v) for k, v in ov.items() if k != "t_end")), jobs=args.jobs,
@@ -142,7 +143,7 @@ def _check_horizon_size(args, overrides: dict) -> None:
                        what=f"--horizon {t_end:g}: the energy study of {m.name} at N = {n}")
 
 
-#: `run`'s default output directory: the committed grid sweep (`pipelines.COMMITTED_RESULTS`).
+#: `run`'s default output directory: the committed grid sweep (`benchmark.studies.grid.COMMITTED_RESULTS`).
 GRID_OUT = str(policy.GRID_DIR)
 
 #: The options of `run` that make it something other than the default sweep (other rows).
@@ -201,9 +202,9 @@ def cmd_simulate(args) -> int:
     if args.rtol is not None:
         settings.update(policy.Setting.adaptive(args.rtol, args.atol).solve_kwargs())
 
-    from benchmark.cli import pipelines
+    from benchmark.cli import simulate
 
-    return pipelines.simulate(scene, args.integrator, settings, out, estimate=size["seconds"], log=_log)
+    return simulate.simulate(scene, args.integrator, settings, out, estimate=size["seconds"], log=_log)
 
 
 def cmd_figures(args) -> int:
@@ -250,9 +251,9 @@ def cmd_figures(args) -> int:
                          f"point{' and an attitude' if traj.attitude is not None else ''}, the scene "
                          f"{lay.nx}{' and an attitude' if lay.has_attitude else ''}; give the scene the trajectory "
                          f"was computed with (recorded: {traj.scene_name!r}), with the same --set overrides")
-    from benchmark.cli import pipelines
+    from benchmark.cli import simulate
 
-    return pipelines.draw_figures(scene, traj, out, log=_log)
+    return simulate.draw_figures(scene, traj, out, log=_log)
 
 
 def _check_trajectory(src: Path, traj) -> None:
@@ -291,12 +292,10 @@ def cmd_check(args) -> int:
     command = check.UPDATE_COMMAND + "".join(f" --{k} {shlex.quote(v)}" for k, v in
                                              (("integrators", ",".join(args.integrators or ())),
                                               ("baseline", args.baseline)) if v)
-    from benchmark.cli import pipelines
-
     # --integrators and --allow-new: registered names, --factor and --order-margin in range (parsed)
-    return pipelines.run_check(update=args.update, baseline=args.baseline, integrators=args.integrators,
-                               factor=args.factor, order_margin=args.order_margin, jobs=args.jobs, command=command,
-                               allow_new=tuple(args.allow_new or ()), budget=common.budget(args), log=_log)
+    return check.run_check(update=args.update, baseline=args.baseline, integrators=args.integrators,
+                           factor=args.factor, order_margin=args.order_margin, jobs=args.jobs, command=command,
+                           allow_new=tuple(args.allow_new or ()), budget=common.budget(args), log=_log)
 
 
 def cmd_speed(args) -> int:
@@ -414,10 +413,8 @@ def cmd_xval(args) -> int:
     missing = [m for m in ("moordyn", "mujoco") if importlib.util.find_spec(m) is None]
     if missing:
         raise UsageError(f"xval needs {', '.join(missing)}: pip install 'reelbench[xval]'")
-    from benchmark.cli import pipelines
-
-    return pipelines.run_xval(args.scene, ints or list(xval.DEFAULT_ELEMENTS), args.t_end or xval.DEFAULT_T_END, out,
-                              command=_command(args), log=_log, cases=args.cases)
+    return xval.run_xval(args.scene, ints or list(xval.DEFAULT_ELEMENTS), args.t_end or xval.DEFAULT_T_END, out,
+                         command=_command(args), log=_log, cases=args.cases)
 
 
 def cmd_reel_reversal(args) -> int:
