@@ -20,10 +20,12 @@ One subpackage per layer; a package imports only from those listed before it:
   (`search`), the contenders timed in pairs (`paired`), the answer written (`answer_report`);
 - `studies`: the other studies and their writers: the drift check, stability, the energy
   horizon, observed orders, reel reversal, cross-validation against MoorDyn and MuJoCo, speed,
-  the grid sweep's report;
+  the grid sweep (`grid`) and its report;
 - `contract`: what a plugin integrator or effect must pass (`python -m benchmark verify NAME`);
-- `cli`: parses and checks each command's input (`cli.main`), then calls its pipeline
-  (`cli.pipelines`).
+- `cli`: one module per command (`cli.run`, `cli.check`, ...) parses and checks its input,
+  then calls its pipeline in the study's own module (`studies.grid.run_sweep`,
+  `studies.check.run_check`, ...); `simulate` and `figures` are the command line's own
+  (`cli.simulate`); `cli.main` assembles the commands.
 
 Names from input (scenes, integrators, rows read back) reach a file name only through
 `models.io.inside`, which refuses one that leaves its directory (or a link inside it that leads

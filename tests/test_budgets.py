@@ -23,10 +23,10 @@ def _err(capsys) -> str:
 def test_simulate_runs_within_default_budgets_that_options_raise(monkeypatch, tmp_path, capsys):
     """The issue's request (rk45 at rtol 1e-13 to t = 1e5 s) gets the default budgets; the options
     raise them."""
-    from benchmark.cli import pipelines
+    from benchmark.cli import simulate
 
     seen = []
-    monkeypatch.setattr(pipelines, "simulate", lambda scene, integ, settings, out, **k: seen.append(settings) or 0)
+    monkeypatch.setattr(simulate, "simulate", lambda scene, integ, settings, out, **k: seen.append(settings) or 0)
     out = str(tmp_path / "t.npz")
     assert main(["simulate", "fixed_length", "--integrators", "rk45", "--rtol", "1e-13", "--t-end", "1e5",
                  "--out", out]) == 0
@@ -130,14 +130,14 @@ def test_every_solve_of_a_sweep_has_a_budget_and_a_run_past_it_is_a_status_not_a
 
 
 def test_the_studies_take_their_budget_from_the_command_line(monkeypatch, tmp_path):
-    from benchmark.cli import pipelines
     from benchmark.core import study
+    from benchmark.studies import check, grid
     from benchmark.runs.runner import SolveBudget
 
     seen = {}
-    monkeypatch.setattr(pipelines, "run_sweep", lambda request, log=None: seen.update(run=request.budget) or 0)
+    monkeypatch.setattr(grid, "run_sweep", lambda request, log=None: seen.update(run=request.budget) or 0)
     monkeypatch.setattr(study, "run", lambda s, *a, **k: seen.update(stability=s.jobs[0].budget) or 0)
-    monkeypatch.setattr(pipelines, "run_check", lambda *, budget=None, **k: seen.update(check=budget) or 0)
+    monkeypatch.setattr(check, "run_check", lambda *, budget=None, **k: seen.update(check=budget) or 0)
     assert main(["run", "--quick", "--scenes", "fixed_length", "--integrators", "lgvi", "--out", str(tmp_path / "r"),
                  "--time-limit", "30", "--max-steps", "1000"]) == 0
     assert main(["stability", "--scenes", "stiff_string", "--integrators", "lgvi", "--out", str(tmp_path / "s")]) == 0

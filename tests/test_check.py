@@ -9,7 +9,6 @@ import pandas as pd
 import pytest
 
 from benchmark.studies import check
-from benchmark.cli import pipelines
 from benchmark.runs.metrics import ACCURACY
 from integrators import registry
 
@@ -49,7 +48,7 @@ def cache(tmp_path_factory):
 
 def run_check(cache, path, tasks, **kw):
     out = []
-    code = pipelines.run_check(baseline=path, tasks=tasks, executor="serial", cache_dir=cache, log=lambda s: None,
+    code = check.run_check(baseline=path, tasks=tasks, executor="serial", cache_dir=cache, log=lambda s: None,
                                echo=out.append, **kw)
     return code, "\n".join(out)
 
@@ -404,7 +403,7 @@ def test_an_update_that_would_write_a_baseline_that_could_not_fail_leaves_the_ol
     monkeypatch.setattr(check, "measure", lambda tasks, **kw: _set(baseline_of(["lgvi"]), lambda d: d.index == 2,
                                                                     status="diverged", energy_error=np.nan))
     out = []
-    assert pipelines.run_check(update=True, baseline=path, integrators=["lgvi"], echo=out.append) == 1
+    assert check.run_check(update=True, baseline=path, integrators=["lgvi"], echo=out.append) == 1
     assert "baseline NOT written" in out[-1] and "deployment / lgvi / dt=0.0025: status diverged" in out[-1], out
     assert path.read_text() == before
 

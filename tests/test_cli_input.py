@@ -202,12 +202,14 @@ def test_size_estimate_warns_about_a_long_run_and_refuses_what_cannot_fit():
 @pytest.fixture
 def no_pipeline(monkeypatch):
     """Every pipeline replaced by a failure: a bad input that got through would start work."""
-    from benchmark.cli import pipelines
+    from benchmark.cli import simulate
     from benchmark.core import study
+    from benchmark.studies import check, grid, xval
 
     monkeypatch.setattr(study, "run", lambda s, *a, **k: pytest.fail(f"reached the study {s.name}"))
-    for name in ("run_sweep", "simulate", "draw_figures", "run_check", "run_xval"):
-        monkeypatch.setattr(pipelines, name, lambda *a, _n=name, **k: pytest.fail(f"reached pipelines.{_n}"))
+    for module, name in ((grid, "run_sweep"), (simulate, "simulate"), (simulate, "draw_figures"), (check, "run_check"),
+                         (xval, "run_xval")):
+        monkeypatch.setattr(module, name, lambda *a, _n=name, **k: pytest.fail(f"reached the pipeline {_n}"))
 
 
 NOTHING = [

@@ -120,8 +120,9 @@ def test_the_docs_show_the_commands_this_test_runs():
 _VALIDATE = r"""
 import json, sys
 from pathlib import Path
-from benchmark.cli import pipelines
+from benchmark.cli import simulate
 from benchmark.cli.main import main
+from benchmark.studies import check, grid, xval
 calls = []
 def recorder(name):
     def record(*args, **kw):
@@ -136,8 +137,9 @@ def recorder(name):
 from benchmark.core import study
 study.run = lambda s, out, **kw: calls.append({"pipeline": "study:" + s.name, "out": str(out),
                                               "table": str(Path(out) / s.table)}) or 0
-for name in ("run_sweep", "simulate", "draw_figures", "run_check", "run_xval"):
-    setattr(pipelines, name, recorder(name))
+for module, name in ((grid, "run_sweep"), (simulate, "simulate"), (simulate, "draw_figures"), (check, "run_check"),
+                     (xval, "run_xval")):
+    setattr(module, name, recorder(name))
 from benchmark.answer import answer
 answer.run_answer = lambda request, *a, **kw: recorder("run_answer")(out=request.out)
 results = []

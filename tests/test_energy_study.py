@@ -5,9 +5,8 @@ would recompute identically."""
 
 import pandas as pd
 
-from benchmark.cli import pipelines
 from benchmark.core import study
-from benchmark.studies import horizon, horizon_report
+from benchmark.studies import grid, horizon, horizon_report
 from benchmark.runs.sweep import MethodSettings
 
 
@@ -95,7 +94,7 @@ def test_run_makes_the_energy_study_only_when_given_a_horizon(tmp_path, monkeypa
     from benchmark.cli.main import main
 
     seen = []
-    monkeypatch.setattr(pipelines, "run_sweep", lambda request, log: seen.append(request) or 0)
+    monkeypatch.setattr(grid, "run_sweep", lambda request, log: seen.append(request) or 0)
     run = ["run", "--quick", "--scenes", "fixed_length", "--integrators", "lgvi", "--out", str(tmp_path / "o")]
     assert main(run) == 0 and main([*run, "--horizon", "5"]) == 0 and main([*run, "--horizon", "0"]) == 0
     assert [r.energy_horizon for r in seen] == [0.0, 5.0, 0.0]

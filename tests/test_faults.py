@@ -100,9 +100,9 @@ def test_a_sweep_on_a_disk_that_fills_keeps_the_rows_it_saved(tmp_path, monkeypa
 
 
 def test_a_directory_in_place_of_a_result_file_is_refused_before_any_work(tmp_path, monkeypatch, capsys):
-    from benchmark.cli import pipelines
+    from benchmark.studies import grid
 
-    monkeypatch.setattr(pipelines, "run_sweep", lambda *a, **k: pytest.fail("started the sweep"))
+    monkeypatch.setattr(grid, "run_sweep", lambda *a, **k: pytest.fail("started the sweep"))
     (tmp_path / "out" / "runs.csv").mkdir(parents=True)
     rc = main(TINY + ["--dts", "0.01", "--out", str(tmp_path / "out")])
     err, line = outcome(capsys)
@@ -111,9 +111,9 @@ def test_a_directory_in_place_of_a_result_file_is_refused_before_any_work(tmp_pa
 
 @pytest.mark.parametrize("kind", ["fifo", "link to /dev/zero"])
 def test_a_special_file_in_place_of_the_runs_table_is_refused_without_reading_it(tmp_path, monkeypatch, capsys, kind):
-    from benchmark.cli import pipelines
+    from benchmark.studies import grid
 
-    monkeypatch.setattr(pipelines, "run_sweep", lambda *a, **k: pytest.fail("started the sweep"))
+    monkeypatch.setattr(grid, "run_sweep", lambda *a, **k: pytest.fail("started the sweep"))
     out = tmp_path / "out"
     out.mkdir()
     if kind == "fifo":
@@ -607,9 +607,9 @@ WITH_FIGURES = [a for a in TINY if a != "--no-figures"]
 
 
 def test_an_energy_study_too_long_to_run_is_refused_before_any_work(tmp_path, monkeypatch, capsys):
-    from benchmark.cli import pipelines
+    from benchmark.studies import grid
 
-    monkeypatch.setattr(pipelines, "run_sweep", lambda *a, **k: pytest.fail("started the sweep"))
+    monkeypatch.setattr(grid, "run_sweep", lambda *a, **k: pytest.fail("started the sweep"))
     rc = main(WITH_FIGURES + ["--dts", "0.01", "--horizon", "1e9", "--out", str(tmp_path / "o")])
     err, line = outcome(capsys)
     assert rc == 2 and "--horizon 1e+09: the energy study of lgvi at N = 1 would keep" in line, err

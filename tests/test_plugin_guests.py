@@ -107,10 +107,10 @@ def test_provenance_follows_the_package_and_the_plugins_source(installed, tmp_pa
 def test_with_plugins_or_a_name_brings_them_in(installed, tmp_path, monkeypatch, capsys):
     """What `run` hands its pipeline (stubbed: nothing runs): the plugin joins only when asked."""
     from benchmark.cli import main as cli
-    from benchmark.cli import pipelines
+    from benchmark.studies import grid
 
     seen = []
-    monkeypatch.setattr(pipelines, "run_sweep", lambda request, log: seen.append(request) or 0)
+    monkeypatch.setattr(grid, "run_sweep", lambda request, log: seen.append(request) or 0)
     monkeypatch.chdir(ROOT)
     out = str(tmp_path / "out")
     assert cli.main(["run", "--quick", "--scenes", "fixed_length", "--out", out]) == 0

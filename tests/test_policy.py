@@ -127,20 +127,20 @@ def test_a_row_s_identity_is_one_rule_and_a_new_metric_is_range_checked_on_read_
 def test_the_output_places_are_the_policy_s():
     from benchmark.answer import answer
     from benchmark.studies import check
-    from benchmark.cli import main as cli
-    from benchmark.cli import pipelines
+    from benchmark.cli import run as cli_run
+    from benchmark.studies import grid
     from benchmark.core import store
 
     assert check.BASELINE == policy.BASELINE_FILE and answer.COMMITTED_ANSWER == policy.RESULTS
-    assert cli.GRID_OUT == str(policy.GRID_DIR) and pipelines.COMMITTED_RESULTS == store.ROOT / policy.GRID_DIR
+    assert cli_run.GRID_OUT == str(policy.GRID_DIR) and grid.COMMITTED_RESULTS == store.ROOT / policy.GRID_DIR
 
 
 def test_the_defaults_of_a_request_are_the_command_line_s():
     from benchmark.studies import check
-    from benchmark.cli import pipelines
+    from benchmark.studies import grid
     from benchmark.runs import sweep
 
-    request = pipelines.SweepRequest(out=".", scenes=("fixed_length",), quick=True)
+    request = grid.SweepRequest(out=".", scenes=("fixed_length",), quick=True)
     assert (request.executor, request.repeats) == (sweep.DEFAULT_EXECUTOR, sweep.MIN_REPEATS)
     assert request.sweep_t_end == sweep.sweep_t_end(None, True) == sweep.QUICK_T_END
     assert sweep.sweep_dts(None, True) == sweep.QUICK_DTS and sweep.sweep_dts((0.3,), True) == (0.3,)

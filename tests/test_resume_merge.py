@@ -95,14 +95,14 @@ def test_a_run_other_than_the_default_sweep_needs_an_explicit_out(tmp_path, caps
 def test_the_committed_grid_cites_the_other_studies_where_they_write_by_default(tmp_path):
     """results/grid/ is the grid sweep's; the orders, stability and energy studies write into
     results/ by default, and the grid's README cites them there unless its own directory has them."""
-    from benchmark.cli import pipelines
+    from benchmark.studies import grid
 
-    grid = pipelines.COMMITTED_RESULTS
-    assert grid == pipelines.store.ROOT / "results" / "grid" and pipelines.is_committed_results(grid)
-    assert pipelines.study_file(grid, "orders.csv") == grid.parent / "orders.csv"
-    assert pipelines.study_file(grid, "stability/stability.csv") == grid.parent / "stability" / "stability.csv"
-    assert pipelines.study_file(grid, "runs.csv") == grid / "runs.csv"  # its own, where it is
-    assert pipelines.study_file(tmp_path, "orders.csv") == tmp_path / "orders.csv"  # any other --out: its own
+    committed = grid.COMMITTED_RESULTS
+    assert committed == grid.store.ROOT / "results" / "grid" and grid.is_committed_results(committed)
+    assert grid.study_file(committed, "orders.csv") == committed.parent / "orders.csv"
+    assert grid.study_file(committed, "stability/stability.csv") == committed.parent / "stability" / "stability.csv"
+    assert grid.study_file(committed, "runs.csv") == committed / "runs.csv"  # its own, where it is
+    assert grid.study_file(tmp_path, "orders.csv") == tmp_path / "orders.csv"  # any other --out: its own
 
 
 @pytest.mark.parametrize("text, wrote", [

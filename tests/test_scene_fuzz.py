@@ -434,11 +434,12 @@ def test_a_file_with_an_integer_too_long_to_read_is_refused(tmp_path):
 @pytest.fixture
 def stubbed(monkeypatch):
     """The pipelines replaced by a recorder: an accepted command line does no work."""
-    from benchmark.cli import pipelines
+    from benchmark.cli import simulate
+    from benchmark.studies import grid
 
     calls = []
-    for name in ("run_sweep", "simulate"):
-        monkeypatch.setattr(pipelines, name, lambda *a, _n=name, **k: calls.append(_n) or 0)
+    for module, name in ((grid, "run_sweep"), (simulate, "simulate")):
+        monkeypatch.setattr(module, name, lambda *a, _n=name, **k: calls.append(_n) or 0)
     return calls
 
 

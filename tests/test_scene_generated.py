@@ -227,14 +227,14 @@ ACCEPTED: list[str] = []  # the pipelines reached, for the test below
 @pytest.fixture
 def stubbed(monkeypatch):
     """The pipelines replaced by a recorder: an accepted command line does no work."""
-    from benchmark.cli import pipelines
-
+    from benchmark.cli import simulate
     from benchmark.core import study
+    from benchmark.studies import check, grid, xval
 
     calls = []
     monkeypatch.setattr(study, "run", lambda s, *a, **k: calls.append((f"study:{s.name}", a, k)) or 0)
-    for name in ("run_sweep", "simulate", "run_check", "run_xval"):
-        monkeypatch.setattr(pipelines, name, lambda *a, _n=name, **k: calls.append((_n, a, k)) or 0)
+    for module, name in ((grid, "run_sweep"), (simulate, "simulate"), (check, "run_check"), (xval, "run_xval")):
+        monkeypatch.setattr(module, name, lambda *a, _n=name, **k: calls.append((_n, a, k)) or 0)
     return calls
 
 

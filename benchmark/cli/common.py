@@ -17,19 +17,31 @@ One name per concept, on every command that has it:
 * ``--fresh`` recomputes what a resumable command would keep;
 * ``--max-steps`` and ``--time-limit`` the budget of each solve.
 
-Nothing here imports JAX: `--help` and every refusal answer at once.
+The few helpers every command uses are here too (`command`, `csv_of`). Nothing here imports
+JAX: `--help` and every refusal answer at once.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 from typing import Callable
 
 from benchmark.core import options as opt
 from benchmark.core import policy
 from benchmark.core.options import UsageError
+
+
+def command(args) -> str:
+    """The command as the user typed it, for the headers of the files it writes."""
+    return "python -m benchmark " + " ".join(shlex.quote(a) for a in args.argv)
+
+
+def csv_of(values) -> str:
+    """Values as one comma-separated option value (a default shown in --help, a message)."""
+    return ",".join(f"{v:g}" if isinstance(v, float) else str(v) for v in values)
 
 
 # ------------------------------------------------------------------------------------------

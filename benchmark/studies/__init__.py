@@ -1,1 +1,2 @@
-"""The other studies: drift check, stability, the energy horizon, observed orders, reel reversal, cross-validation, speed."""
+"""The other studies: the grid sweep, drift check, stability, the energy horizon, observed orders, reel reversal,
+cross-validation, speed."""

@@ -7,7 +7,7 @@ It only composes existing pieces: `sweep.build_tasks` defines the runs (a short 
 three paper scenes × every registered integrator), `runner.execute` runs them on the engine
 (process executor: each worker pinned to one XLA thread, so on one machine two checks give
 bit-identical numbers), `metrics` gives the accuracy columns and the observed orders. The
-pipeline is `benchmark.cli.pipelines.run_check`.
+command's pipeline is `run_check`, at the end.
 
 Tolerance rules (a regression fails the check, exit status 1):
 
@@ -53,6 +53,8 @@ from typing import Callable, NamedTuple
 import numpy as np
 import pandas as pd
 
+from benchmark.core import engine
+from benchmark.core.engine import log_stderr
 from benchmark.runs import runner
 from benchmark.runs import sweep
 from benchmark.runs.metrics import ACCURACY, DIRECTIONS, observed_orders
@@ -664,3 +666,50 @@ def baseline_for(path: str | os.PathLike, *, update: bool, warn: Callable[[str],
     except ValueError as exc:
         warn(f"warning: {exc}; writing a new one")
         return None
+
+
+def run_check(*, update: bool = False, baseline=None, integrators=None, factor: float | None = None,
+              order_margin: float | None = None, jobs: int | None = None, executor: str = sweep.DEFAULT_EXECUTOR,
+              cache_dir: str | None = None, tasks=None, command: str | None = None, allow_new=(), budget=None,
+              log: Callable[[str], None] | None = None, echo: Callable[[str], None] = print) -> int:
+    """Recompute the check sweep and compare it with the baseline (or with ``update``, rewrite
+    the baseline). Returns the exit status: 0 passed or updated, 1 regressions. Bad input
+    raises ValueError before any work, a baseline that leaves a selected integrator (not in
+    ``allow_new``) with nothing to compare included."""
+    baseline = BASELINE if baseline is None else baseline
+    provenance = Provenance(command or UPDATE_COMMAND)
+    tol = RegressionTolerance(factor=DEFAULT_FACTOR if factor is None else factor,
+                              order_margin=DEFAULT_ORDER_MARGIN if order_margin is None else order_margin)
+    if jobs is not None and jobs < 1:
+        raise ValueError(f"--jobs = {jobs!r} is invalid (allowed: >= 1)")
+    tasks = build_check_tasks(integrators) if tasks is None else tasks
+    old = baseline_for(baseline, update=update, warn=log or echo)
+    table = old.table if old is not None else None
+    unknown = [] if update else comparable(table, tasks, baseline, allow_new)
+    if not update and integrators is None:  # installed plugins are guests: reported, not run
+        unknown += [n for n in guests_not_gated(table) if n not in unknown]
+    tasks = [t for t in tasks if t.integrator not in set(unknown)]  # nothing to compare them with
+    try:
+        current = measure(tasks, executor=executor, jobs=jobs, cache_dir=cache_dir or str(CACHE_DIR),
+                          costs=costs_of(table), budget=budget, log=log)
+    except KeyboardInterrupt as exc:
+        return engine.stopped(exc, "the baseline was not changed", log or log_stderr)
+    cmp = compare(table, current, tol) if old is not None else None
+    if cmp is not None:
+        cmp.notes += not_gated(unknown)
+        echo(format_report(cmp, tol, baseline, old.header))
+        if not update and cmp.compared == 0:
+            raise ValueError(f"baseline {baseline}: no row of this check was compared (a check of nothing cannot pass)")
+    if update:
+        problems = row_problems(current.set_axis(range(1, len(current) + 1)))
+        if problems:  # a baseline that could not fail is not written (the old one stays)
+            lines = [f"  {why}" for _, why in problems[:10]]
+            echo("\n".join([f"baseline NOT written: {len(problems)} row(s) of this sweep could not fail a check "
+                             f"(fix the method, or leave it out with --integrators); {baseline} is unchanged:",
+                             *lines]))
+            return 1
+        path = write_baseline(merge(table, current), baseline, provenance=provenance,
+                              sweep_note=describe(tasks))
+        echo(f"baseline written: {path} ({len(current)} rows recomputed)")
+        return 0
+    return 1 if cmp.failed else 0

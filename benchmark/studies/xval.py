@@ -33,7 +33,8 @@ that the tables show the outside codes' own time error too; both must be below
 (tests/test_xval.py checks the difference to 1e-8 m in vacuum and 1e-9 m in water); our consistent
 model converges to the same continuum limit. `study` runs every code of every case at every N (one
 engine job per (case, N), in this process: the per-step costs are compared); its tables, plots
-and README are `benchmark.studies.xval_report`'s.
+and README are `benchmark.studies.xval_report`'s. `run_xval`, the command's pipeline, keeps
+the runs of an earlier study in its output directory that it does not recompute.
 
 Not translated (refused with `Untranslatable`, naming it): a reel or its effects, `slack` for
 MuJoCo (its tendon springs are two-sided; MoorDyn's lines are tension-only, so MoorDyn takes
@@ -53,11 +54,13 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import numpy as np
 
 from benchmark.core import engine
+from benchmark.core.engine import log_stderr
+from benchmark.core.report import Provenance
 from benchmark.runs.metrics import body_positions
 from benchmark.core.reference import CACHE_DIR, get_reference
 from models.scene import Scene
@@ -667,3 +670,33 @@ def earlier_xval(out: Path, scene, t_end: float, this_run: set) -> tuple[dict, d
             runs[(case, n)][str(r["code"])] = CodeRun(str(r["code"]), n, dt, np.asarray(tip), int(r["steps"]),
                                                        float(r["wall_s"]), extra)
     return runs, {k: earlier[k] for k in outside}
+
+
+def run_xval(scene_name: str, elements, t_end: float, out: Path, *, command: str = "python -m benchmark xval",
+             log: Callable[[str], None] = log_stderr, cases=None) -> int:
+    """The cross-validation against MoorDyn and MuJoCo into ``out``; returns the exit status. The runs
+    of an earlier study in ``out`` that this one does not recompute (other N) are kept and every
+    file is written from the merged study (`earlier_xval`, which refuses,
+    before any work, earlier runs that cannot be kept). The study writes when it ends: a stopped
+    one leaves ``out`` as it was."""
+    from benchmark.studies import xval_report
+    from benchmark.core.report import earlier_runs
+    from models import load_scene
+
+    out = Path(out)
+    provenance = Provenance(command)
+    scene = load_scene(scene_name)
+    check_scene(scene)  # refuses an untranslatable scene before any work
+    this_run = {(c, int(n)) for c in (cases or cases_of(scene)) for n in elements}
+    kept, kept_settings = earlier_xval(out, scene, t_end, this_run)
+    try:
+        result = study(scene, elements, t_end, cases=cases, log=log)
+    except KeyboardInterrupt as exc:
+        return engine.stopped(exc, f"{out}/ is as it was (the study writes its files when it ends)", log)
+    if kept:
+        log(f"xval: kept {len(kept)} earlier (case, N) run(s) of {out}/ as they were: "
+            + ", ".join(f"{c} N={n}" for c, n in sorted(kept)))
+        result = Study(result.times, {**kept, **result.runs})
+        provenance = provenance.merged_into(earlier_runs(out / "README.md"))
+    log(f"wrote {xval_report.write_outputs(result, scene, out, provenance, kept=kept_settings)}")
+    return 0

@@ -1,19 +1,18 @@
-"""Every command's pipeline: the one function the command line calls once its input is checked.
+"""The grid sweep, `python -m benchmark run`: every scene × integrator × setting of the sweep
+(`benchmark.runs.sweep`) measured once each (`benchmark.runs.runner`) into ``--out``
+(results/grid/ by default): runs.csv (written after every run), runs.md, the figures, the
+energy study when --horizon asks for one (`benchmark.studies.horizon`) and README.md
+(`runs_report`). It ranks nothing: the answer is `benchmark.answer.answer`'s.
 
-Each composes the layers below it and nothing else: the jobs of a study (`runner`,
-`stability`, `check`, `horizon`, `orders`, `xval`, `lgvi_speed`, `reel_reversal`) run on the engine
-(`engine.run_jobs`), their rows go to the results store (`store`: the output lock, atomic
-tables), their words and figures through the report and plot layers (`report`, `plots` and
-the writers `runs_report`, `stability_report`, `xval_report`). A study that writes into a
-directory holds its lock, merges its rows into the table there (`store.merge_rows`,
-`study_store`: the rows it does not recompute are kept) and writes its other files from the
-whole table; it turns Ctrl-C / SIGTERM into one line saying what was saved, and the exit
-status 130 / 143.
+The run's rows join the table already in ``--out`` (`benchmark.core.store.merge_rows`; what
+may join is `benchmark.runs.table`'s): rows of other scenes, methods or settings are kept and
+every file is written from the merged table. The output lock is held for the whole sweep;
+Ctrl-C / SIGTERM keeps every finished row and ends in one line saying what was saved, with
+the exit status 130 / 143.
 """
 
 from __future__ import annotations
 
-import contextlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -29,9 +28,6 @@ from benchmark.core.report import Provenance
 from models.io import inside, printable
 
 
-# ------------------------------------------------------------------------------------------
-# run: the grid sweep -> results/grid/
-# ------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class SweepRequest:
     """What `python -m benchmark run` asks for (its options, checked)."""
@@ -173,7 +169,6 @@ def _merge_plan(request: SweepRequest, tasks, stored: runs_table.StoredRuns, pat
 def _sweep(request: SweepRequest, runs_csv: store.TableWriter, log) -> int:
     from benchmark.runs import runner
     from benchmark.studies import runs_report
-    from benchmark.runs import sweep
     from benchmark.core.reference import CACHE_DIR
     from benchmark.core.report import markdown_table
     from models.io import atomic_write_text
@@ -259,7 +254,6 @@ def _sweep_figures(request: SweepRequest, merged, log, failed: list | None = Non
     import time
 
     from benchmark.figures import plots
-    from benchmark.runs import sweep
     from integrators import get_integrator
     from models.diagnostics import evaluate
 
@@ -389,175 +383,3 @@ def _energy_study(request: SweepRequest, log):
         return None
     read_rows(request.out / energy.table, energy.identity, energy.text_columns, energy.read_earlier)
     return energy
-
-
-# ------------------------------------------------------------------------------------------
-# stability, check, xval, speed, reel-reversal
-# ------------------------------------------------------------------------------------------
-def run_check(*, update: bool = False, baseline=None, integrators=None, factor: float | None = None,
-              order_margin: float | None = None, jobs: int | None = None, executor: str = sweep.DEFAULT_EXECUTOR,
-              cache_dir: str | None = None, tasks=None, command: str | None = None, allow_new=(), budget=None,
-              log: Callable[[str], None] | None = None, echo: Callable[[str], None] = print) -> int:
-    """Recompute the check sweep and compare it with the baseline (or with ``update``, rewrite
-    the baseline). Returns the exit status: 0 passed or updated, 1 regressions. Bad input
-    raises ValueError before any work, a baseline that leaves a selected integrator (not in
-    ``allow_new``) with nothing to compare included."""
-    from benchmark.studies import check
-    from benchmark.core.reference import CACHE_DIR
-
-    baseline = check.BASELINE if baseline is None else baseline
-    provenance = Provenance(command or check.UPDATE_COMMAND)
-    tol = check.RegressionTolerance(factor=check.DEFAULT_FACTOR if factor is None else factor,
-                                    order_margin=check.DEFAULT_ORDER_MARGIN if order_margin is None else order_margin)
-    if jobs is not None and jobs < 1:
-        raise ValueError(f"--jobs = {jobs!r} is invalid (allowed: >= 1)")
-    tasks = check.build_check_tasks(integrators) if tasks is None else tasks
-    old = check.baseline_for(baseline, update=update, warn=log or echo)
-    table = old.table if old is not None else None
-    unknown = [] if update else check.comparable(table, tasks, baseline, allow_new)
-    if not update and integrators is None:  # installed plugins are guests: reported, not run
-        unknown += [n for n in check.guests_not_gated(table) if n not in unknown]
-    tasks = [t for t in tasks if t.integrator not in set(unknown)]  # nothing to compare them with
-    try:
-        current = check.measure(tasks, executor=executor, jobs=jobs, cache_dir=cache_dir or str(CACHE_DIR),
-                                costs=check.costs_of(table), budget=budget, log=log)
-    except KeyboardInterrupt as exc:
-        return engine.stopped(exc, "the baseline was not changed", log or log_stderr)
-    cmp = check.compare(table, current, tol) if old is not None else None
-    if cmp is not None:
-        cmp.notes += check.not_gated(unknown)
-        echo(check.format_report(cmp, tol, baseline, old.header))
-        if not update and cmp.compared == 0:
-            raise ValueError(f"baseline {baseline}: no row of this check was compared (a check of nothing cannot pass)")
-    if update:
-        problems = check.row_problems(current.set_axis(range(1, len(current) + 1)))
-        if problems:  # a baseline that could not fail is not written (the old one stays)
-            lines = [f"  {why}" for _, why in problems[:10]]
-            echo("\n".join([f"baseline NOT written: {len(problems)} row(s) of this sweep could not fail a check "
-                             f"(fix the method, or leave it out with --integrators); {baseline} is unchanged:",
-                             *lines]))
-            return 1
-        path = check.write_baseline(check.merge(table, current), baseline, provenance=provenance,
-                                    sweep_note=check.describe(tasks))
-        echo(f"baseline written: {path} ({len(current)} rows recomputed)")
-        return 0
-    return 1 if cmp.failed else 0
-
-
-def run_xval(scene_name: str, elements, t_end: float, out: Path, *, command: str = "python -m benchmark xval",
-             log: Callable[[str], None] = log_stderr, cases=None) -> int:
-    """The cross-validation against MoorDyn and MuJoCo into ``out``; returns the exit status. The runs
-    of an earlier study in ``out`` that this one does not recompute (other N) are kept and every
-    file is written from the merged study (`benchmark.studies.xval.earlier_xval`, which refuses,
-    before any work, earlier runs that cannot be kept). The study writes when it ends: a stopped
-    one leaves ``out`` as it was."""
-    from benchmark.studies import xval
-    from benchmark.studies import xval_report
-    from benchmark.core.report import earlier_runs
-    from benchmark.studies.xval import earlier_xval
-    from models import load_scene
-
-    out = Path(out)
-    provenance = Provenance(command)
-    scene = load_scene(scene_name)
-    xval.check_scene(scene)  # refuses an untranslatable scene before any work
-    this_run = {(c, int(n)) for c in (cases or xval.cases_of(scene)) for n in elements}
-    kept, kept_settings = earlier_xval(out, scene, t_end, this_run)
-    try:
-        study = xval.study(scene, elements, t_end, cases=cases, log=log)
-    except KeyboardInterrupt as exc:
-        return engine.stopped(exc, f"{out}/ is as it was (the study writes its files when it ends)", log)
-    if kept:
-        log(f"xval: kept {len(kept)} earlier (case, N) run(s) of {out}/ as they were: "
-            + ", ".join(f"{c} N={n}" for c, n in sorted(kept)))
-        study = xval.Study(study.times, {**kept, **study.runs})
-        provenance = provenance.merged_into(earlier_runs(out / "README.md"))
-    log(f"wrote {xval_report.write_outputs(study, scene, out, provenance, kept=kept_settings)}")
-    return 0
-
-
-# ------------------------------------------------------------------------------------------
-# simulate, figures
-# ------------------------------------------------------------------------------------------
-@contextlib.contextmanager
-def _finish_on_stop(log: Callable[[str], None]):
-    """A first Ctrl-C / SIGTERM ends the running solve at its next clock check, as its time budget
-    would (`integrators.lifecycle.request_stop`): it returns what it has, to be saved; a second
-    stops at once (KeyboardInterrupt). Yields the list that receives the first signal's name."""
-    import signal
-    import threading
-
-    from integrators import lifecycle
-
-    caught: list[str] = []
-    if threading.current_thread() is not threading.main_thread():
-        yield caught
-        return
-
-    def soft(signum, frame):
-        name = signal.Signals(signum).name
-        if caught:
-            raise KeyboardInterrupt(f"signal {name}")
-        caught.append(name)
-        lifecycle.request_stop()
-        log(f"stopping ({'Ctrl-C' if name == 'SIGINT' else name}): the run ends at its next check and what it "
-            "has is saved; stop again to quit at once, without saving")
-
-    old = {sig: signal.signal(sig, soft) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        yield caught
-    finally:
-        for sig, handler in old.items():
-            signal.signal(sig, handler)
-        lifecycle.request_stop(False)
-
-
-def simulate(scene, integrator: str, settings: dict, out: Path, *, estimate: float | None = None,
-             log: Callable[[str], None] = log_stderr) -> int:
-    """One run: the trajectory (.npz) and its diagnostics (.csv beside it); exit status 1 when
-    the run did not finish (its budget ran out: ``max_steps`` / ``time_limit`` in ``settings``),
-    130 / 143 when stopped by Ctrl-C / SIGTERM: a first stop ends the run where it is and saves
-    it. ``estimate``: its expected seconds (a progress line every 30 s)."""
-    import json
-
-    import numpy as np
-
-    from integrators import get_integrator
-    from models.diagnostics import evaluate
-    from models.io import atomic_write_text
-
-    integ = get_integrator(integrator)
-    try:
-        with _finish_on_stop(log) as caught, engine.Heartbeat(f"{scene.name} / {integ.name}", estimate, log=log):
-            traj = integ.solve(scene, t_end=scene.t_end, **settings)
-    except KeyboardInterrupt as exc:
-        return engine.stopped(exc, "nothing saved (stopped twice: the run did not reach a point to save)", log)
-    stop = KeyboardInterrupt(f"signal {caught[0]}") if caught else None
-    if stop is not None:
-        reached = float(traj.t[-1]) if len(traj.t) else 0.0
-        traj.reason = f"stopped by {engine.stop_cause(stop)} at t = {reached:.6g} s (t_end = {scene.t_end:g} s)"
-    traj.scene = scene.to_dict()  # `figures` draws it without the scene file
-    try:
-        traj.save(out)
-        atomic_write_text(out.with_suffix(".csv"), evaluate(scene, traj).to_csv(index=False))
-    except OSError as exc:
-        log(f"error: {exc}; the run ended ({traj.status}) but is not saved: free space and run it again")
-        return 1
-    log(f"{scene.name} / {integ.name}: status {traj.status} {traj.reason}; {len(traj.t)} saved points; "
-        f"stats {json.dumps({k: v for k, v in traj.stats.items() if np.isscalar(v)}, default=str)}")
-    if stop is not None:
-        return engine.stopped(stop, f"the run up to t = {traj.t[-1] if len(traj.t) else 0:.6g} s is saved in {out} "
-                                    f"and {out.with_suffix('.csv')}", log)
-    log(f"wrote {out} and {out.with_suffix('.csv')}")
-    return 0 if traj.ok else 1
-
-
-def draw_figures(scene, traj, out: Path, log: Callable[[str], None] = log_stderr) -> int:
-    """The paper's panels (a)-(d) of a saved trajectory."""
-    from benchmark.figures import plots
-    from models.diagnostics import evaluate
-
-    plots.paper_panels(scene, traj, evaluate(scene, traj), out)
-    log(f"wrote {out}")
-    return 0
-

@@ -1,0 +1,47 @@
+"""`python -m benchmark xval`: the cross-validation against MoorDyn and MuJoCo
+(`benchmark.studies.xval`), its scene checked as translatable, then `benchmark.studies.xval.run_xval`.
+"""
+
+from __future__ import annotations
+
+
+from benchmark.cli import common
+from benchmark.core import options as opt
+from benchmark.core import policy
+from benchmark.core.engine import log_stderr as _log  # the engine's: its lines go above a progress bar
+from benchmark.core.options import UsageError
+
+
+def cmd_xval(args) -> int:
+    """Cross-validation against MoorDyn and MuJoCo; exit 2 on a scene it cannot translate."""
+    import importlib.util
+
+    ints = args.elements or None  # two or more N >= 2 (parsed)
+    from benchmark.studies import xval
+    from models import load_scene
+
+    scene = load_scene(args.scene, **({"t_end": args.t_end} if args.t_end else {}))  # plausible horizon
+    unknown = [c for c in args.cases or () if c not in xval.CASES]
+    if unknown:
+        raise UsageError(f"--cases {common.csv_of(unknown)}: allowed {common.csv_of(xval.CASES)}")
+    xval.check_scene(scene)  # names what cannot be translated, before any work
+    opt.check_size(scene, args.t_end or xval.DEFAULT_T_END, xval.OUTPUT_INTERVAL, what=f"xval of {scene.name}",
+                   save_option=None)
+    out = opt.writable_dir(args.out)
+    missing = [m for m in ("moordyn", "mujoco") if importlib.util.find_spec(m) is None]
+    if missing:
+        raise UsageError(f"xval needs {', '.join(missing)}: pip install 'reelbench[xval]'")
+    return xval.run_xval(args.scene, ints or list(xval.DEFAULT_ELEMENTS), args.t_end or xval.DEFAULT_T_END, out,
+                         command=common.command(args), log=_log, cases=args.cases)
+
+
+def add_xval(sub) -> None:
+    xv = sub("xval", "cross-validation against MoorDyn and MuJoCo at equal N -> --out (needs the [xval] extra)")
+    common.add_scenes(xv, "a fixed-length scene", one=True, default="fixed_length")
+    common.add_elements(xv, "two or more N >= 2 (default: 5,10,20,40,80; 5,10,20,40,80,160 takes about 4x longer)",
+                        least=2, two_or_more=True)
+    common.add_t_end(xv, "(default: 5)")
+    xv.add_argument("--cases", type=opt.names, help="comma-separated cases of point_mass, rigid_body, in_water "
+                                                    "(default: every case the scene has)")
+    common.add_out(xv, "output directory (created if missing)", default=str(policy.XVAL_DIR))
+    xv.set_defaults(func=cmd_xval)
