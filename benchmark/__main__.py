@@ -22,7 +22,7 @@ signal.signal(signal.SIGINT, _stop_early)
 signal.signal(signal.SIGTERM, _stop_early)
 sys.unraisablehook = _send_again
 try:
-    from benchmark.cli.main import main
+    from reelbench.benchmark.cli.main import main
 except KeyboardInterrupt as exc:
     term = "SIGTERM" in str(exc)
     print(f"stopped by {'SIGTERM' if term else 'Ctrl-C'}: nothing was written (it had not started)", file=sys.stderr)

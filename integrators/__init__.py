@@ -1,6 +1,6 @@
 """Integrators behind one small interface (`Integrator.solve -> Trajectory`).
 
-    from integrators import get_integrator
+    from reelbench.integrators import get_integrator
     traj = get_integrator("dop853").solve(scene, t_end=1.0, rtol=1e-10, atol=1e-12)
 
 Built-in: ``lgvi`` and the symmetric ``lgvi_sym``, ``lgvi_yoshida4``, ``lgvi_suzuki4``
@@ -13,10 +13,10 @@ import it inside the functions that trace and compile (through `models._jax`, wh
 JAX to float64 first).
 """
 
-from integrators.base import IMPLEMENTATIONS, Capability, Integrator, Status, Trajectory, save_times
-from integrators.fixed_step import FixedStepMethod, StepCode, StepResult
-from integrators.lifecycle import Guards, LibraryAdapter, ODEProblem, Outcome, Run
-from integrators.registry import ENTRY_POINT_GROUP, available, get_integrator, origin, plugin_errors, register, unregister
+from reelbench.integrators.base import IMPLEMENTATIONS, Capability, Integrator, Status, Trajectory, save_times
+from reelbench.integrators.fixed_step import FixedStepMethod, StepCode, StepResult
+from reelbench.integrators.lifecycle import Guards, LibraryAdapter, ODEProblem, Outcome, Run
+from reelbench.integrators.registry import ENTRY_POINT_GROUP, available, get_integrator, origin, plugin_errors, register, unregister
 
 __all__ = [
     "Capability",
@@ -41,5 +41,5 @@ __all__ = [
     "save_times",
     "unregister",
 ]
-from integrators import lgvi  # noqa: F401,E402  (registers "lgvi")
-from integrators import lgvi_sym  # noqa: F401,E402  (registers "lgvi_sym", "lgvi_yoshida4", "lgvi_suzuki4")
+from reelbench.integrators import lgvi  # noqa: F401,E402  (registers "lgvi")
+from reelbench.integrators import lgvi_sym  # noqa: F401,E402  (registers "lgvi_sym", "lgvi_yoshida4", "lgvi_suzuki4")

@@ -53,9 +53,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from models._jax import jax, jnp
-from models.closed_form import ClosedFormEOM
-from models.model import hat, vee
+from reelbench.models._jax import jax, jnp
+from reelbench.models.closed_form import ClosedFormEOM
+from reelbench.models.model import hat, vee
 
 #: Tridiagonal systems up to this size are unrolled at trace time (fast for small N);
 #: larger ones use lax.scan (bounded compile time).

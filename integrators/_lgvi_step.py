@@ -20,9 +20,9 @@ import functools
 
 import numpy as np
 
-from integrators._lgvi_core import DiscreteLagrangian, cayley, small_solve
-from integrators.fixed_step import StepCode, StepResult
-from models._jax import jax, jnp
+from reelbench.integrators._lgvi_core import DiscreteLagrangian, cayley, small_solve
+from reelbench.integrators.fixed_step import StepCode, StepResult
+from reelbench.models._jax import jax, jnp
 
 #: re-assemble the chord-Newton Jacobian when |dz| shrinks by less than this factor
 CHORD_REFRESH = 0.1

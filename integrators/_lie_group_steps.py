@@ -10,10 +10,10 @@ from __future__ import annotations
 
 from typing import Callable
 
-from integrators.lifecycle import ODEProblem
-from integrators.rhs import closed_form_of
-from models._jax import jax, jnp
-from models.model import hat, quat_to_rot
+from reelbench.integrators.lifecycle import ODEProblem
+from reelbench.integrators.rhs import closed_form_of
+from reelbench.models._jax import jax, jnp
+from reelbench.models.model import hat, quat_to_rot
 
 __all__ = ["CG3_A", "CG3_B", "CG3_C", "crouch_grossman3_step", "equations_of", "join_ode_state", "pendulum_field",
            "rkmk4_step", "rotation_to_quat", "so3_exp", "split_ode_state"]

@@ -12,10 +12,10 @@ from typing import Callable, NamedTuple
 
 import numpy as np
 
-from integrators.fixed_step import StepCode
-from integrators.rhs import closed_form_of
-from models._jax import jax, jnp
-from models.model import quat_rate, quat_to_rot
+from reelbench.integrators.fixed_step import StepCode
+from reelbench.integrators.rhs import closed_form_of
+from reelbench.models._jax import jax, jnp
+from reelbench.models.model import quat_rate, quat_to_rot
 
 __all__ = ["QuaternionSystem", "RattleState", "body_rate", "extension_inertia", "initial_state", "ode_state",
            "pendulum_system", "quat_matrix", "rattle_step"]

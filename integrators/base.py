@@ -122,7 +122,7 @@ class Trajectory:
         """Write to .npz atomically (temporary file, then rename)."""
         import json
 
-        from models.io import atomic_path
+        from reelbench.models.io import atomic_path
 
         arrays = {k: v for k, v in (("t", self.t), ("x", self.x), ("attitude", self.attitude),
                                      ("velocity", self.velocity), ("momentum", self.momentum),
@@ -158,7 +158,7 @@ def build_model_timed(scene):
     """(model of ``scene``, seconds spent building it): 0.0 when `models.build_model` had it
     cached. A first build (which also starts JAX's backend) is one-time setup: the adapters book
     it with ``compile_time``, not with the run time of `stamp_wall_time`."""
-    from models import build_model
+    from reelbench.models import build_model
 
     misses = build_model.cache_info().misses
     t0 = time.perf_counter()
@@ -251,7 +251,7 @@ def initial_energy(model) -> float:
 
 def energy_error(model, x, R, w, W, E0):
     """|E(x, R, w) − W − E0| (traceable by JAX; w are velocities)."""
-    from models._jax import jnp
+    from reelbench.models._jax import jnp
 
     return jnp.abs(model.energy(x, R, w) - W - E0)
 
@@ -289,7 +289,7 @@ def situation(scene) -> str:
 
     Read from the state layout (the effects that add s_p, `models.effects.Effect.state`), not
     from an effect's name."""
-    from models.layout import StateLayout
+    from reelbench.models.layout import StateLayout
 
     return "reel" if StateLayout.from_scene(scene).has_reel else "fixed_length"
 

@@ -73,9 +73,9 @@ from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
 
-from integrators import rhs as _rhs
-from integrators.base import Capability, Status, energy_reason, fixed_step_grid, save_times
-from integrators.lifecycle import (CompileCache, LibraryAdapter, Outcome, Run, blowup_reason, length_reason,
+from reelbench.integrators import rhs as _rhs
+from reelbench.integrators.base import Capability, Status, energy_reason, fixed_step_grid, save_times
+from reelbench.integrators.lifecycle import (CompileCache, LibraryAdapter, Outcome, Run, blowup_reason, length_reason,
                                    library_attribute, run_in_chunks, state_ok)
 
 #: Default step budget (diffrax's own default, 4096, is too small for tight tolerances here).
@@ -161,7 +161,7 @@ class _Loop:
     def conditions(self, y, blowup):
         """(guard, margin): a non-finite / blown-up state (bool) and, with a reel, the deployed
         length's margin (its sign change is the event; 1.0 without a reel)."""
-        from models._jax import jnp
+        from reelbench.models._jax import jnp
 
         bad = ~jnp.all(jnp.isfinite(y)) | (jnp.max(jnp.abs(y)) >= blowup)
         margin = self.model.deployed_length_margin(y[self.lay.y_x]) if self.reel else jnp.ones((), y.dtype)
@@ -186,7 +186,7 @@ class _Loop:
     def start(self, y0, t1, dt0, blowup, solver, controller):
         import diffrax as dfx
 
-        from models._jax import jax, jnp
+        from reelbench.models._jax import jax, jnp
 
         RESULTS, term = dfx.RESULTS, self.term
         t0 = jnp.zeros((), t1.dtype)
@@ -216,7 +216,7 @@ class _Loop:
         import diffrax as dfx
         import equinox.internal as eqxi
 
-        from models._jax import jax
+        from reelbench.models._jax import jax
 
         solver, controller = self.pieces(rtol, atol, min_step)
         state = jax.lax.cond(fresh, lambda s: self.start(y0, t1, dt0, blowup, solver, controller), lambda s: s, state)
@@ -237,7 +237,7 @@ class _Loop:
         """One attempted step of diffrax's loop body, its saved times and the conditions."""
         import diffrax as dfx
 
-        from models._jax import jax, jnp
+        from reelbench.models._jax import jax, jnp
 
         RESULTS = dfx.RESULTS
         y, y_error, dense_info, solver_state, solver_result = solver.step(self.term, s.tprev, s.tnext, s.y, None,
@@ -268,8 +268,8 @@ class _Loop:
 
     def save(self, s, keep_step, interpolator, ts, E0):
         """(next slot, ts, ys, energy errors): the saved times the accepted step passed."""
-        from integrators.base import energy_error_ode
-        from models._jax import jax
+        from reelbench.integrators.base import energy_error_ode
+        from reelbench.models._jax import jax
 
         def save_cond(c):
             j = c[0]
@@ -289,7 +289,7 @@ class _Loop:
         import diffrax as dfx
         import optimistix as optx
 
-        from models._jax import jax, jnp
+        from reelbench.models._jax import jax, jnp
 
         lax, RESULTS = jax.lax, dfx.RESULTS
         if not self.reel:  # no root finder (diffrax's ``Event(root_finder=None)``): where the loop stopped
@@ -323,7 +323,7 @@ def _counting(f, counts: list):
     """``f`` counting its evaluations (counts[0]) and linearisations (counts[1], the Jacobians of
     a Newton iteration) with host callbacks inside the compiled code (Kvaerno5: diffrax does not
     expose the counts)."""
-    from models._jax import jax
+    from reelbench.models._jax import jax
 
     def tick(i):
         return lambda *_: counts.__setitem__(i, counts[i] + 1)
@@ -372,7 +372,7 @@ class DiffraxODE(LibraryAdapter):
         return result
 
     def check_option_values(self, options: dict, mode: str) -> None:
-        from integrators.base import check_positive
+        from reelbench.integrators.base import check_positive
 
         if "min_step" in options:
             if mode == "fixed":
@@ -426,7 +426,7 @@ class DiffraxODE(LibraryAdapter):
         """The chunk of the solve (`_Loop.advance`), compiled ahead of time for these argument
         shapes, with the zero state its first (fresh) call passes and, when ``counting``, the
         list its counting callbacks add to."""
-        from models._jax import jax, jnp
+        from reelbench.models._jax import jax, jnp
 
         counts = [0, 0] if counting else None
         loop = _Loop(run.model, run.rhs, counts, self.make_solver, constant, run.dt is not None, len(args[2]))
@@ -516,7 +516,7 @@ def _solve(run: Run, prog: _Program, args, budget: int, timed: bool) -> tuple[di
     time limit stopped it)."""
     import diffrax as dfx
 
-    from models._jax import jax
+    from reelbench.models._jax import jax
 
 
     successful = int(dfx.RESULTS.successful._value)
@@ -549,7 +549,7 @@ def _solve(run: Run, prog: _Program, args, budget: int, timed: bool) -> tuple[di
 
 def jax_block(out):
     """Wait for a compiled call and for its host callbacks."""
-    from models._jax import jax
+    from reelbench.models._jax import jax
 
     out = jax.block_until_ready(out)
     jax.effects_barrier()

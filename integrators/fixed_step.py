@@ -25,10 +25,10 @@ from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
 
-from integrators import rhs as _rhs
-from integrators.base import (Capability, Integrator, Status, Trajectory, energy_reason, fixed_step_grid, last_step,
+from reelbench.integrators import rhs as _rhs
+from reelbench.integrators.base import (Capability, Integrator, Status, Trajectory, energy_reason, fixed_step_grid, last_step,
                               step_times)
-from integrators.lifecycle import (CompileCache, ODEProblem, Run, blowup_reason, bucket, length_reason,
+from reelbench.integrators.lifecycle import (CompileCache, ODEProblem, Run, blowup_reason, bucket, length_reason,
                                    ode_trajectory, run_in_chunks, start_run, step_indices)
 
 __all__ = ["FixedStepMethod", "StepCode", "StepFailure", "StepResult", "run_fixed_step"]
@@ -49,7 +49,7 @@ class StepResult(NamedTuple):
     @classmethod
     def of(cls, code=0, iterations=0) -> "StepResult":
         """A result with int32 fields (traceable)."""
-        from models._jax import jnp
+        from reelbench.models._jax import jnp
 
         return cls(jnp.asarray(code, jnp.int32), jnp.asarray(iterations, jnp.int32))
 
@@ -164,7 +164,7 @@ class FixedStepMethod(Integrator):
 
     def saved_energy_error(self, ode: ODEProblem, saved, E0):
         """|E − W − E0| of a saved state (the energy guard, at saved points)."""
-        from integrators.base import energy_error_ode
+        from reelbench.integrators.base import energy_error_ode
 
         return energy_error_ode(ode.model, saved, E0)
 
@@ -223,7 +223,7 @@ def _take_step(method, ode, carry, t, h):
 
 def _guard(method, ode, carry, result, blowup):
     """(StepCode, deployed length) of a new carry: the step's own code, else the state guards."""
-    from models._jax import jax, jnp
+    from reelbench.models._jax import jax, jnp
 
     model, lay = ode.model, ode.layout
     saved = method.saved(ode, carry)
@@ -250,7 +250,7 @@ def _keep_saved_if_failed(method, ode, good, carry1, carry):
     history) are never read after a failure, and each select skipped saves a pass over the array
     every step (~1 µs per 2,000 numbers on XLA CPU). Where ``saved`` computes new arrays from
     the carry (RATTLE's ODE state), every leaf is kept."""
-    from models._jax import jax, jnp
+    from reelbench.models._jax import jax, jnp
 
     carry_ids = {id(a) for a in jax.tree_util.tree_leaves(carry1)}
     saved_ids = {id(a) for a in jax.tree_util.tree_leaves(method.saved(ode, carry1))}
@@ -264,7 +264,7 @@ def _steps_until(method, ode, h, k_last, h_last, blowup, seen: dict):
     ``h_last`` (the one that lands on t_end), every other ``h`` (run-time values: a new step size
     compiles nothing). ``seen["result"]`` records (at trace time) whether the step returns a
     `StepResult`."""
-    from models._jax import jax, jnp
+    from reelbench.models._jax import jax, jnp
 
     def cond(c):
         s, target = c
@@ -287,7 +287,7 @@ def _steps_until(method, ode, h, k_last, h_last, blowup, seen: dict):
 
 def _fresh(method, ode, y0):
     """The lifecycle's state at the start of a run (explicit dtypes: no weak types in the loop)."""
-    from models._jax import jnp
+    from reelbench.models._jax import jnp
 
     i0, f0 = jnp.zeros((), jnp.int32), jnp.zeros((), jnp.float64)
     return LoopState(method.init(ode, y0), i0, i0, i0, i0, f0, f0)
@@ -301,7 +301,7 @@ def _make_loop(method: FixedStepMethod, ode: ODEProblem, n_buf: int, seen: dict)
 
     The slots are the save grid's; when a step fails, the last good state before it is kept as
     one more slot (off the grid unless it is on it), within the energy bound."""
-    from models._jax import jax, jnp
+    from reelbench.models._jax import jax, jnp
 
     def run(values, y0, state, j0, k_stop, h, k_last, h_last, save_idx, n_save, E0, e_bound, blowup, params):
         ode_t = ode.bind(values, params)  # the scene's numbers are arguments, not constants
@@ -345,7 +345,7 @@ class _Loop:
 
 def _compile_loop(method, ode, n_buf, y0, params, rest) -> _Loop:
     """AOT-compile the loop for these argument shapes (``rest``: j0 .. blowup, numpy)."""
-    from models._jax import jax, jnp
+    from reelbench.models._jax import jax, jnp
 
     values = _rhs.device_values(ode.model)
     shape = jax.eval_shape(lambda v, y, p: _fresh(method, ode.bind(v, p), y), values, y0, params)
@@ -375,7 +375,7 @@ class _Progress:
 def _run_chunks(run: Run, loop: _Loop, values, y0, n_run: int, n_save: int, rest: tuple, params) -> _Progress:
     """Call the compiled loop until the run ends, in chunks when there is a time limit
     (`run_in_chunks`: the clock is read between chunks, never inside the compiled loop)."""
-    from models._jax import jax
+    from reelbench.models._jax import jax
 
     prog = _Progress(state=loop.zero_state)
 
@@ -393,14 +393,14 @@ def _run_chunks(run: Run, loop: _Loop, values, y0, n_run: int, n_save: int, rest
 
 
 def _device_get(tree):
-    from models._jax import jax
+    from reelbench.models._jax import jax
 
     return jax.device_get(tree)
 
 
 def _saved_buffers(prog: _Progress, n_buf: int):
     """The saved slots of every chunk in one buffer of the bucketed length, and their count."""
-    from models._jax import jax
+    from reelbench.models._jax import jax
 
     if len(prog.pieces) == 1:
         bufs, n = prog.pieces[0]
@@ -490,7 +490,7 @@ def run_fixed_step(method: FixedStepMethod, scene, t_end=None, *, dt=None, rtol=
 
 def _nbytes(state) -> int:
     """Bytes of a method's state (a pytree of arrays)."""
-    from models._jax import jax
+    from reelbench.models._jax import jax
 
     return sum(np.asarray(a).nbytes for a in jax.tree_util.tree_leaves(state))
 

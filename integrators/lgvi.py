@@ -34,10 +34,10 @@ from typing import ClassVar
 
 import numpy as np
 
-from integrators.base import Capability, Status, Trajectory, check_positive
-from integrators.fixed_step import FixedStepMethod, StepCode
-from integrators.lifecycle import CompileCache, ODEProblem, Run
-from integrators.registry import register
+from reelbench.integrators.base import Capability, Status, Trajectory, check_positive
+from reelbench.integrators.fixed_step import FixedStepMethod, StepCode
+from reelbench.integrators.lifecycle import CompileCache, ODEProblem, Run
+from reelbench.integrators.registry import register
 
 #: Cayley guard: a step whose Cayley parameter has |c| = tan(θ/2) > CAYLEY_BOUND, i.e. rotates
 #: the body by θ > 90° in one step, does not resolve the rotation: the run stops there (status
@@ -74,8 +74,8 @@ SECTION6 = Scheme()
 def _momentum_fn(model):
     """Jitted p = M(x, R) w by the O(N) closed form (the initial momentum), the model's numbers
     an argument (one program per model structure)."""
-    from integrators.rhs import closed_form_of
-    from models._jax import jax
+    from reelbench.integrators.rhs import closed_form_of
+    from reelbench.models._jax import jax
 
     return jax.jit(lambda values, x, R, w: closed_form_of(model.bind(values)).momentum(x, R, w))
 
@@ -120,19 +120,19 @@ class LGVI(FixedStepMethod):
     def initial_state(self, run: Run, ode: ODEProblem):
         """(x0, R0, p0 = M(g0) w0): the initial momentum by the compiled closed form (setup)."""
         x0, R0, w0 = (np.asarray(a, dtype=float) for a in ode.model.initial_state())
-        from integrators import rhs as _rhs
+        from reelbench.integrators import rhs as _rhs
 
         momentum = run.compiled(_MOMENTUM, _rhs.structure_of(ode.model), lambda: _momentum_fn(ode.model))
         p0 = run.setup(lambda: np.asarray(momentum(_rhs.device_values(ode.model), x0, R0, w0)))
         return x0, R0, p0
 
     def init(self, ode: ODEProblem, y0):
-        from integrators._lgvi_step import lgvi_step
+        from reelbench.integrators._lgvi_step import lgvi_step
 
         return lgvi_step(ode.model, self.scheme, CAYLEY_CODE).initial(*y0)
 
     def step(self, ode: ODEProblem, carry, t, h):
-        from integrators._lgvi_step import lgvi_step
+        from reelbench.integrators._lgvi_step import lgvi_step
 
         return lgvi_step(ode.model, self.scheme, CAYLEY_CODE).step(carry, t, h, ode.params)
 
@@ -145,8 +145,8 @@ class LGVI(FixedStepMethod):
         return saved[0]
 
     def saved_energy_error(self, ode: ODEProblem, saved, E0):
-        from integrators._lgvi_step import lgvi_step
-        from integrators.base import energy_error
+        from reelbench.integrators._lgvi_step import lgvi_step
+        from reelbench.integrators.base import energy_error
 
         x, R, p, W = saved
         return energy_error(ode.model, x, R, lgvi_step(ode.model, self.scheme, CAYLEY_CODE).dl.legendre(x, R, p), W, E0)
@@ -156,7 +156,7 @@ class LGVI(FixedStepMethod):
         bucketed buffer, so that one compiled map serves every run of that length)."""
         X, Rs, P, Ws = (np.asarray(a) for a in saved)
         n_buf = len(X)
-        from integrators import rhs as _rhs
+        from reelbench.integrators import rhs as _rhs
 
         values = _rhs.device_values(ode.model)
         velocity = run.compiled(_VELOCITY, (_rhs.structure_of(ode.model), n_buf),
@@ -188,8 +188,8 @@ def _velocity_map(model, values, X, Rs, P):
     """AOT-compiled w = M⁻¹ p of the first n slots of a save buffer of this length (n a run-time
     argument: one compiled map serves every run of that length, and a run pays only for the slots
     it filled; a vmap over the whole buffer cost ~25 ms per run at N = 640, 256 slots)."""
-    from integrators.rhs import closed_form_of
-    from models._jax import jax, jnp
+    from reelbench.integrators.rhs import closed_form_of
+    from reelbench.models._jax import jax, jnp
 
     def velocities(values, X, Rs, P, n):
         velocity = closed_form_of(model.bind(values)).velocity_from_momentum

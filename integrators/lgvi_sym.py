@@ -17,8 +17,8 @@ backward one), so at the same h it is both more accurate and more stable per ste
 
 from __future__ import annotations
 
-from integrators.lgvi import LGVI, Scheme
-from integrators.registry import register
+from reelbench.integrators.lgvi import LGVI, Scheme
+from reelbench.integrators.registry import register
 
 _CBRT2, _CBRT4 = 2.0 ** (1.0 / 3.0), 4.0 ** (1.0 / 3.0)
 #: Yoshida's triple jump: γ1 = γ3 = 1/(2 − 2^{1/3}), γ2 = 1 − 2 γ1 (≈ 1.3512, −1.7024, 1.3512)

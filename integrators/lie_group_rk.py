@@ -51,9 +51,9 @@ from typing import ClassVar
 
 import numpy as np
 
-from integrators.base import Capability, Trajectory
-from integrators.fixed_step import FixedStepMethod
-from integrators.lifecycle import ODEProblem, Run
+from reelbench.integrators.base import Capability, Trajectory
+from reelbench.integrators.fixed_step import FixedStepMethod
+from reelbench.integrators.lifecycle import ODEProblem, Run
 
 __all__ = ["CrouchGrossman3", "LieRK4"]
 
@@ -74,19 +74,19 @@ class _LieGroupMethod(FixedStepMethod):
     cost_hint = (20.0, 1.0)
 
     def init(self, ode: ODEProblem, y0):
-        from integrators._lie_group_steps import split_ode_state
-        from models._jax import jnp
+        from reelbench.integrators._lie_group_steps import split_ode_state
+        from reelbench.models._jax import jnp
 
         return split_ode_state(ode.layout, jnp.asarray(y0))
 
     def step(self, ode: ODEProblem, carry, t, h):
-        from integrators import _lie_group_steps as steps
+        from reelbench.integrators import _lie_group_steps as steps
 
         field = steps.pendulum_field(ode.model, steps.equations_of(ode))
         return getattr(steps, self.lie_step)(field, carry, t, h)
 
     def state(self, ode: ODEProblem, carry):
-        from integrators._lie_group_steps import join_ode_state
+        from reelbench.integrators._lie_group_steps import join_ode_state
 
         return join_ode_state(ode.layout, *carry)
 
@@ -97,7 +97,7 @@ class _LieGroupMethod(FixedStepMethod):
         return saved[1][:ode.layout.nx]
 
     def saved_energy_error(self, ode: ODEProblem, saved, E0):
-        from integrators.base import energy_error
+        from reelbench.integrators.base import energy_error
 
         x, R, w, W = _split(ode.layout, *saved)
         return energy_error(ode.model, x, R, w, W, E0)

@@ -40,10 +40,10 @@ from typing import Any, Callable, ClassVar, TypedDict
 
 import numpy as np
 
-from integrators import rhs as _rhs
-from integrators.base import (Capability, Integrator, Status, Trajectory, build_model_timed, check_positive,
+from reelbench.integrators import rhs as _rhs
+from reelbench.integrators.base import (Capability, Integrator, Status, Trajectory, build_model_timed, check_positive,
                               energy_reason, fixed_step_count, initial_energy, save_interval, stamp_wall_time)
-from models.schema import PLAUSIBLE as _PLAUSIBLE
+from reelbench.models.schema import PLAUSIBLE as _PLAUSIBLE
 
 
 #: Set (`request_stop`) to end every solve that has a ``time_limit`` at its next clock check, as if
@@ -84,8 +84,8 @@ MAX_SAVED_BYTES = 8 * 2**30
 # ------------------------------------------------------------------------------------------
 def resolve_scene(scene):
     """A `models.Scene` from a scene or a scene name."""
-    from models import load_scene
-    from models.scene import Scene
+    from reelbench.models import load_scene
+    from reelbench.models.scene import Scene
 
     if isinstance(scene, Scene):
         return scene
@@ -197,7 +197,7 @@ def saved_interval(t_end, save_every, fixed_dt=None) -> float:
 def saved_size(scene, t_end, save_every, fixed_dt=None) -> tuple[int, int]:
     """(saved states, bytes) of the trajectory a run keeps, at most: the one size `check_horizon`
     refuses beyond `MAX_SAVED_BYTES` and the command line estimates (`benchmark.core.options.run_size`)."""
-    from models.layout import StateLayout  # JAX-free: the sizes the scene's effects give
+    from reelbench.models.layout import StateLayout  # JAX-free: the sizes the scene's effects give
 
     lay = StateLayout.from_scene(scene)
     points = math.floor(t_end / saved_interval(t_end, save_every, fixed_dt)) + 2
@@ -212,7 +212,7 @@ def step_indices(t_end, dt, save_every, max_steps):
     """Step indices to save (0 first, the last step run last), the number of steps run and
     whether max_steps cut the run short (`integrators.base.fixed_step_grid`: any dt, the last
     step shortened to end at t_end)."""
-    from integrators.base import fixed_step_grid
+    from reelbench.integrators.base import fixed_step_grid
 
     n, idx = fixed_step_grid(t_end, dt, save_every)
     truncated = max_steps is not None and n > max_steps
@@ -333,7 +333,7 @@ def guards_timed(model) -> tuple[Guards, float]:
 
 @functools.lru_cache(maxsize=64)
 def _model_guards(model) -> Guards:
-    from integrators.base import energy_bound
+    from reelbench.integrators.base import energy_bound
 
     return Guards(E0=initial_energy(model), energy_bound=energy_bound(model))
 
@@ -354,8 +354,8 @@ def state_ok(y: np.ndarray, blowup: float = BLOWUP) -> bool:
 def energy_guard(model):
     """(error, bound): ``error(y)`` = |E − W − E0| of an ODE state (float, jitted), and the bound
     of `integrators.base.energy_bound` beyond which the run is ``diverged`` (the model's `Guards`)."""
-    from integrators.base import energy_error_ode
-    from models._jax import jax
+    from reelbench.integrators.base import energy_error_ode
+    from reelbench.models._jax import jax
 
     guards = Guards.for_model(model)
     f = _rhs.program(_energy_error_program, model)  # one program per model structure
@@ -366,8 +366,8 @@ def energy_guard(model):
 @functools.lru_cache(maxsize=64)
 def _energy_error_program(structure, template):
     """|E − W − E0| of an ODE state as f(values, y, E0), jitted (`energy_guard`)."""
-    from integrators.base import energy_error_ode
-    from models._jax import jax
+    from reelbench.integrators.base import energy_error_ode
+    from reelbench.models._jax import jax
 
     return jax.jit(lambda values, y, E0: energy_error_ode(template.bind(values), y, E0))
 
@@ -522,7 +522,7 @@ def start_run(method: Integrator, scene, t_end, *, dt, rtol, atol, save_every, m
     run = Run(method=method, scene=scene, mode=mode, t_end=float(t_end), dt=None if dt is None else float(dt),
               rtol=rtol, atol=atol, save_every=save_every, max_steps=max_steps, time_limit=time_limit, rhs=rhs,
               options=options, started=started)
-    if "models.model" not in sys.modules:  # the first solve() of a process imports JAX: setup
+    if "reelbench.models.model" not in sys.modules:  # the first solve() of a process imports JAX: setup
         run.setup(_import_jax)
     run.model, setup = build_model_timed(scene)  # a first build also starts JAX's backend: setup
     run.guards, guards_time = guards_timed(run.model)
@@ -531,8 +531,10 @@ def start_run(method: Integrator, scene, t_end, *, dt, rtol, atol, save_every, m
 
 
 def _import_jax() -> None:
-    import models._jax  # noqa: F401  (float64 and the XLA options first)
-    import models.model  # noqa: F401
+    import reelbench.models._jax  # noqa: F401  (float64 and the XLA options first)
+    from reelbench import models
+    import reelbench.models.model  # noqa: F401
+    from reelbench import models
 
 
 def ode_trajectory(model, scene, t, y, *, status, reason, stats, integrator, settings) -> Trajectory:

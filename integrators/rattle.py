@@ -61,9 +61,9 @@ from __future__ import annotations
 
 from typing import ClassVar
 
-from integrators.base import Capability
-from integrators.fixed_step import FixedStepMethod, StepResult
-from integrators.lifecycle import ODEProblem
+from reelbench.integrators.base import Capability
+from reelbench.integrators.fixed_step import FixedStepMethod, StepResult
+from reelbench.integrators.lifecycle import ODEProblem
 
 __all__ = ["Rattle"]
 
@@ -90,19 +90,19 @@ class Rattle(FixedStepMethod):
     newton_max_iter: ClassVar[int] = 20
 
     def init(self, ode: ODEProblem, y0):
-        from integrators._rattle_step import initial_state
-        from models._jax import jnp
+        from reelbench.integrators._rattle_step import initial_state
+        from reelbench.models._jax import jnp
 
         return initial_state(ode.model, jnp.asarray(y0))
 
     def step(self, ode: ODEProblem, carry, t, h):
-        from integrators._rattle_step import pendulum_system, rattle_step
+        from reelbench.integrators._rattle_step import pendulum_system, rattle_step
 
         new, code, iterations = rattle_step(pendulum_system(ode.model), carry, t, h, self.newton_tol,
                                             self.newton_max_iter)
         return new, StepResult.of(code, iterations)
 
     def state(self, ode: ODEProblem, carry):
-        from integrators._rattle_step import ode_state
+        from reelbench.integrators._rattle_step import ode_state
 
         return ode_state(ode.model, carry)

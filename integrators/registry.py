@@ -15,8 +15,8 @@ from __future__ import annotations
 import difflib
 from importlib.metadata import entry_points
 
-from integrators.base import Integrator
-from models import origin as _origin
+from reelbench.integrators.base import Integrator
+from reelbench.models import origin as _origin
 
 ENTRY_POINT_GROUP = "reelbench.integrators"
 

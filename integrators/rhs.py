@@ -42,7 +42,7 @@ def closed_form_of(model):
     """The closed-form equations of a model (cached per model, like `models.build_model`; a
     model bound to run-time values (`StringPendulum.bind`) gets new ones each time: they hold
     values of the trace that asked, which no other trace may see)."""
-    from models.closed_form import ClosedFormEOM
+    from reelbench.models.closed_form import ClosedFormEOM
 
     if model.is_bound:
         made = model.__dict__.get("_closed_form")
@@ -55,7 +55,7 @@ def prepare(model):
     program, outside its loops), so that every step reuses the quantities it derives from the
     values instead of deriving them again inside the loop. Only there: what it holds belongs to
     that trace."""
-    from models.closed_form import ClosedFormEOM
+    from reelbench.models.closed_form import ClosedFormEOM
 
     if model.is_bound and "_closed_form" not in model.__dict__:
         model.__dict__["_closed_form"] = ClosedFormEOM(model)
@@ -64,7 +64,7 @@ def prepare(model):
 
 @functools.lru_cache(maxsize=64)
 def _closed_form_cached(model):
-    from models.closed_form import ClosedFormEOM
+    from reelbench.models.closed_form import ClosedFormEOM
 
     return ClosedFormEOM(model)
 
@@ -79,7 +79,7 @@ def device_values(model):
     once per model: the run-time argument of every compiled program of its structure."""
     cached = model.__dict__.get("_device_values")
     if cached is None:
-        from models._jax import jax
+        from reelbench.models._jax import jax
 
         cached = model.__dict__["_device_values"] = jax.device_put(model.value_vector())
     return cached
@@ -89,14 +89,14 @@ def device_values(model):
 def _rhs_program(structure, template, rhs: str):
     """f(values, t, y), jitted once per model structure and rhs (``template``: the first model of
     that structure seen; any other binds its own values on the same structure)."""
-    from models._jax import jax
+    from reelbench.models._jax import jax
 
     return jax.jit(lambda values, t, y: ode_rhs(template.bind(values), rhs)(t, y))
 
 
 @functools.lru_cache(maxsize=128)
 def _jacobian_program(structure, template, rhs: str):
-    from models._jax import jax
+    from reelbench.models._jax import jax
 
     return jax.jit(lambda values, t, y: jax.jacfwd(ode_rhs(template.bind(values), rhs), argnums=1)(t, y))
 
@@ -143,7 +143,7 @@ def jacobian_jit(model, rhs: str = DEFAULT_RHS):
 def _host_program(model, rhs: str, jacobian: bool):
     import numpy as np
 
-    from models._jax import jax
+    from reelbench.models._jax import jax
 
     shared = program(_jacobian_program if jacobian else _rhs_program, model, rhs)
     values = np.asarray(model.value_vector())  # numpy: a constant of this program

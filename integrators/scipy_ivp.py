@@ -27,9 +27,9 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from integrators import rhs as _rhs
-from integrators.base import Capability, Status, energy_reason, save_times
-from integrators.lifecycle import (LibraryAdapter, Outcome, Run, blowup_reason, energy_guard, length_reason,
+from reelbench.integrators import rhs as _rhs
+from reelbench.integrators.base import Capability, Status, energy_reason, save_times
+from reelbench.integrators.lifecycle import (LibraryAdapter, Outcome, Run, blowup_reason, energy_guard, length_reason,
                                    library_attribute, state_ok)
 
 #: Step budget when ``max_steps`` is not given: far above what any shipped run needs (a DOP853

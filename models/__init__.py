@@ -2,10 +2,10 @@
 
 Public API::
 
-    from models import load_scene, build_model
+    from reelbench.models import load_scene, build_model
     scene = load_scene("fixed_length", elements=20)
     model = build_model(scene)        # energies, forces, Legendre transform, EOM
-    from models.diagnostics import evaluate
+    from reelbench.models.diagnostics import evaluate
 
 The model and the scene format are described in models/README.md; the scene schema (keys,
 rules, ranges, errors) is `models.schema`; each physical effect (its scene keys, energy terms,
@@ -18,12 +18,12 @@ bad input in a fraction of a second. Every module that touches JAX imports `mode
 first, which switches JAX to float64 before anything else.
 """
 
-from models.effects import Effect, register_effect, unregister_effect
-from models.schema import SceneChecks
-from models.layout import StateLayout
-from models.scene import EFFECTS, Scene, SceneError, available_scenes, load_scene, scene_from_dict
+from reelbench.models.effects import Effect, register_effect, unregister_effect
+from reelbench.models.schema import SceneChecks
+from reelbench.models.layout import StateLayout
+from reelbench.models.scene import EFFECTS, Scene, SceneError, available_scenes, load_scene, scene_from_dict
 
-_LAZY = {"StringPendulum": "models.model", "build_model": "models.model"}
+_LAZY = {"StringPendulum": "reelbench.models.model", "build_model": "reelbench.models.model"}
 
 
 def __getattr__(name):

@@ -57,7 +57,7 @@ def compile_cache_dir(env=os.environ) -> str | None:
     if value.lower() in ("0", "off", "false", "no", ""):
         return None
     if value.lower() in ("1", "on", "true", "yes"):
-        from models.io import user_cache_dir
+        from reelbench.models.io import user_cache_dir
 
         return str(user_cache_dir(env) / "jax")
     return os.path.expanduser(value)

@@ -38,5 +38,5 @@ def lazy_function(module: str, name: str):
 
 
 #: ``jax`` and ``jax.numpy`` as `models._jax` configures them (float64).
-jax = LazyModule("models._jax", "jax")
-jnp = LazyModule("models._jax", "jnp")
+jax = LazyModule("reelbench.models._jax", "jax")
+jnp = LazyModule("reelbench.models._jax", "jnp")

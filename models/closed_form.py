@@ -75,8 +75,8 @@ import functools
 
 import numpy as np
 
-from models._jax import jax, jnp
-from models.model import StringPendulum, hat, quat_rate
+from reelbench.models._jax import jax, jnp
+from reelbench.models.model import StringPendulum, hat, quat_rate
 
 TRI_SOLVERS = ("auto", "doubling", "dense")
 
@@ -580,6 +580,6 @@ class ClosedFormEOM:
 @functools.lru_cache(maxsize=64)
 def build_closed_form(scene) -> ClosedFormEOM:
     """The closed-form equations of a scene (cached like `models.build_model`)."""
-    from models.model import build_model
+    from reelbench.models.model import build_model
 
     return ClosedFormEOM(build_model(scene))

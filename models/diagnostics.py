@@ -24,8 +24,8 @@ import functools
 import numpy as np
 import pandas as pd
 
-from models._jax import jax, jnp
-from models.model import StringPendulum, build_model, quat_to_rot
+from reelbench.models._jax import jax, jnp
+from reelbench.models.model import StringPendulum, build_model, quat_to_rot
 
 E3 = jnp.array([0.0, 0.0, 1.0])
 

@@ -38,8 +38,8 @@ from typing import Callable, NamedTuple
 
 import numpy as np
 
-from models.origin import of_distribution as origin_of_distribution, of_object as origin_of_object, project_origin
-from models.schema import BASE_SCHEMA, GYRATION_RADIUS, Key, SceneChecks
+from reelbench.models.origin import of_distribution as origin_of_distribution, of_object as origin_of_object, project_origin
+from reelbench.models.schema import BASE_SCHEMA, GYRATION_RADIUS, Key, SceneChecks
 
 E3 = np.array([0.0, 0.0, 1.0])
 
@@ -166,7 +166,7 @@ def _weight_terms(m, per_length, body):
     body's centre of mass: per_length (N/m, along +e3) on each element at its midpoint (exact for
     linear elements), body (N) at r_p + q_{N+1} (+ R ρ_c). Gravity's weights (μ g, m_b g) and
     buoyancy's (−ρ_f g A, −ρ_f g V) are this one formula with their own signs."""
-    from models._jax import jnp
+    from reelbench.models._jax import jnp
 
     e3 = jnp.asarray(E3)
 
@@ -213,7 +213,7 @@ class Gravity(Effect):
     summary = "potential of the string, the body and the reel-side string (g along +e3)"
 
     def potentials(self, m):
-        from models._jax import jnp
+        from reelbench.models._jax import jnp
 
         string, body = _weight_terms(m, m.mu * m.g, m.m_b * m.g)
         terms = {"V_string_gravity": string, "V_body_gravity": body}
@@ -242,7 +242,7 @@ class Elasticity(Effect):
     summary = "axial strain energy (EA/2l)(stretched length − l)² of every element"
 
     def potentials(self, m):
-        from models._jax import jax, jnp
+        from reelbench.models._jax import jax, jnp
 
         def V(x, R):
             """Σ_a (EA/2l)(|q_{a+1} − q_a| − l)², or with `slack` Σ_a (EA/2l) max(|q_{a+1} − q_a| − l, 0)²."""
@@ -351,14 +351,14 @@ class Carnot(Effect):
     @staticmethod
     def _jump_force(m, x, w):
         """Q_c = -½ μ ṡ|ṡ| |q_2/l − t_g|², so Q_c ṡ = -½ μ |ṡ|³ |q_2/l − t_g|² ≤ 0."""
-        from models._jax import jnp
+        from reelbench.models._jax import jnp
 
         sd = w[0]
         jump = m.nodes(x)[1] / m.element_length(x) - m.t_g
         return -0.5 * m.mu * sd * jnp.abs(sd) * (jump @ jump)
 
     def power(self, m, t, x, w):
-        from models._jax import jnp
+        from reelbench.models._jax import jnp
 
         jump = m.nodes(x)[1] / m.element_length(x) - m.t_g
         return -0.5 * m.mu * jnp.abs(w[0]) ** 3 * (jump @ jump)
@@ -377,7 +377,7 @@ class ReelControl(Effect):
     plausible = {"reel.control_moment": (0.0, 1e12)}
 
     def reel_forces(self, m):
-        from models._jax import jnp
+        from reelbench.models._jax import jnp
 
         return {"Q_control": lambda t, x, w: jnp.asarray(m.u / m.d)}
 
@@ -391,13 +391,13 @@ class ReelControl(Effect):
 
 def _tension_only(stretch, l):
     """Elastic length of a tension-only element: max(stretch, l), no energy when shorter."""
-    from models._jax import jnp
+    from reelbench.models._jax import jnp
 
     return jnp.maximum(stretch, l)
 
 
 def _clip_compression(tension):
-    from models._jax import jnp
+    from reelbench.models._jax import jnp
 
     return jnp.maximum(tension, 0.0)
 
@@ -425,7 +425,7 @@ class AxialDamping(Effect):
     plausible = {"string.axial_damping": (0.0, 1e12)}
 
     def string_forces(self, m):
-        from models._jax import jnp
+        from reelbench.models._jax import jnp
 
         def Q(t, x, w):
             """Kelvin–Voigt strain-rate damping: Q = −∂D/∂w, D = Σ_a (c l/2) ε̇_a² (Rayleigh).
@@ -444,7 +444,7 @@ class AxialDamping(Effect):
         return {"Q_axial_damping": Q}
 
     def power(self, m, t, x, w):
-        from models._jax import jnp
+        from reelbench.models._jax import jnp
 
         rate = m.strain_rates(x, w)
         return -jnp.sum(m.axial_damping * m.element_length(x) * rate * rate)
@@ -519,7 +519,7 @@ GAUSS_WEIGHTS = np.array([5.0, 8.0, 5.0]) / 18.0
 
 def _norm(v):
     """|v| along the last axis, with derivative 0 (not NaN) at v = 0: |v| v is differentiable there."""
-    from models._jax import jnp
+    from reelbench.models._jax import jnp
 
     vv = jnp.sum(v * v, axis=-1)
     pos = vv > 0.0
@@ -570,7 +570,7 @@ class Drag(Effect):
     @staticmethod
     def _morison(kn, kt, u, t):
         """kn |u_n| u_n + kt |u_t| u_t for relative velocities u and unit tangents t (…, 3)."""
-        from models._jax import jnp
+        from reelbench.models._jax import jnp
 
         ut = jnp.sum(u * t, axis=-1, keepdims=True) * t
         un = u - ut
@@ -579,7 +579,7 @@ class Drag(Effect):
     def _element_loads(self, m, x, w):
         """FE string: per Gauss point g, (f_g (N, 3) per unstretched length, material velocity v_g
         (N, 3), ∂r/∂s_p β_g Δ (N, 3) or None)."""
-        from models._jax import jnp
+        from reelbench.models._jax import jnp
 
         kn, kt, _, U = self._params(m)
         q, v, l = m.nodes(x), m.node_velocities(w), m.element_length(x)
@@ -599,7 +599,7 @@ class Drag(Effect):
 
     def _node_loads(self, m, x, w):
         """Lumped string (MoorDyn's nodes): forces on nodes 2 … N+1 (N, 3) and their velocities."""
-        from models._jax import jnp
+        from reelbench.models._jax import jnp
 
         kn, kt, _, U = self._params(m)
         q, v, l = m.nodes(x), m.node_velocities(w), m.element_length(x)
@@ -622,7 +622,7 @@ class Drag(Effect):
 
     def _com_load(self, m, R, w):
         """(f_b, v_c): the drag at the centre of mass of an offset body and that point's velocity."""
-        from models._jax import jnp
+        from reelbench.models._jax import jnp
 
         _, _, kb, U = self._params(m)
         v = m.node_velocities(w)[-1] + R @ jnp.cross(m.omega(w), m.rho_c)
@@ -631,7 +631,7 @@ class Drag(Effect):
 
     # -- the hooks ----------------------------------------------------------------------------
     def string_forces(self, m):
-        from models._jax import jnp
+        from reelbench.models._jax import jnp
 
         lumped = m.scene.string.mass_model == "lumped"
         offset = self._offset(m)
@@ -660,7 +660,7 @@ class Drag(Effect):
         return {"Q_drag": Q}
 
     def body_loads(self, m):
-        from models._jax import jnp
+        from reelbench.models._jax import jnp
 
         if not self._offset(m):
             return {}
@@ -683,7 +683,7 @@ class Drag(Effect):
 
     def power(self, m, t, x, w):
         """∫ f·v over the string (the same quadrature, at the material velocity) + f_body·v_body."""
-        from models._jax import jnp
+        from reelbench.models._jax import jnp
 
         if m.scene.string.mass_model == "lumped":
             f, v = self._node_loads(m, x, w)

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from models.effects import get_effect
+from reelbench.models.effects import get_effect
 
 
 @dataclass(frozen=True)

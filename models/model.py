@@ -24,10 +24,10 @@ from typing import Callable
 
 import numpy as np
 
-from models._jax import jax, jnp
-from models.effects import get_effect
-from models.layout import StateLayout
-from models.scene import Scene
+from reelbench.models._jax import jax, jnp
+from reelbench.models.effects import get_effect
+from reelbench.models.layout import StateLayout
+from reelbench.models.scene import Scene
 
 
 def hat(v):
@@ -99,7 +99,7 @@ def _number(value) -> float:
 
 
 def _builtin_effects() -> frozenset:
-    from models.effects import _BUILTIN
+    from reelbench.models.effects import _BUILTIN
 
     return _BUILTIN
 
@@ -258,7 +258,7 @@ class StringPendulum:
         """The effects a compiled program of this model composes: the listed ones, plus those
         that vanish when unlisted (`Effect.zero_when_unlisted`, e.g. `reel_control` with u = 0)
         where they need no new coordinate, in the order `__init__` composes them."""
-        from models.effects import EFFECTS
+        from reelbench.models.effects import EFFECTS
 
         listed = {e.name for e in self.effects}
         extra = {e.name for e in EFFECTS.values()

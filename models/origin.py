@@ -14,9 +14,10 @@ import sys
 from importlib import metadata
 from typing import NamedTuple
 
-#: The distribution of this repository and the top-level packages it ships.
+#: The distribution of this repository; it ships one top-level package, reelbench
+#: (reelbench.models, reelbench.integrators, reelbench.benchmark).
 PROJECT = "reelbench"
-PROJECT_PACKAGES = frozenset({"models", "integrators", "benchmark"})
+PROJECT_PACKAGES = frozenset({PROJECT})
 
 
 class Origin(NamedTuple):

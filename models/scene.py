@@ -9,7 +9,7 @@ and every error is a `SceneError` naming the file, the key and the allowed range
 file is read only if it is a regular file of at most `MAX_SCENE_BYTES` (`models.io`). No JAX
 is imported here.
 
-    >>> from models import load_scene
+    >>> from reelbench.models import load_scene
     >>> scene = load_scene("fixed_length", elements=40)
     >>> scene.string.elements
     40
@@ -31,12 +31,12 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from models import effects as _effects
-from models import io as _io
-from models.effects import EFFECTS, body_inertia
-from models.schema import (BASE_SCHEMA, MASS_MODELS, MAX_DEPTH, NESTED_TOO_DEEPLY, PLAUSIBLE, STRETCH_RANGE,
+from reelbench.models import effects as _effects
+from reelbench.models import io as _io
+from reelbench.models.effects import EFFECTS, body_inertia
+from reelbench.models.schema import (BASE_SCHEMA, MASS_MODELS, MAX_DEPTH, NESTED_TOO_DEEPLY, PLAUSIBLE, STRETCH_RANGE,
                            SceneError, Validator, full_schema, is_safe_name, nesting_depth, suggest, too_deep)
-from models.schema import plausible_ranges as _plausible_ranges
+from reelbench.models.schema import plausible_ranges as _plausible_ranges
 
 __all__ = ["BASE_SCHEMA", "EFFECTS", "MASS_MODELS", "MAX_SCENE_BYTES", "PLAUSIBLE", "SCENE_DIR", "STRETCH_RANGE",
            "Scene", "SceneError", "available_scenes", "load_scene", "plausible_ranges", "required_effects",

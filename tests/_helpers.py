@@ -5,8 +5,8 @@ import itertools
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from integrators.base import Trajectory
-from models import build_model, load_scene
+from reelbench.integrators.base import Trajectory
+from reelbench.models import build_model, load_scene
 
 
 #: The fluid's keys of the water scenes (drag and buoyancy), as `scene_with_effects` adds them
@@ -69,7 +69,7 @@ def random_state(model, rng, scale=0.2):
     w = w + rng.standard_normal(w.shape)
     quat = rng.standard_normal(4)
     quat /= np.linalg.norm(quat)
-    from models.model import quat_to_rot
+    from reelbench.models.model import quat_to_rot
 
     R = np.asarray(quat_to_rot(quat)) if model.layout.has_attitude else np.eye(3)
     return x, R, w

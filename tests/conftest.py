@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-import models  # noqa: F401  (enables float64 before any test touches JAX)
+from reelbench import models  # noqa: F401  (enables float64 before any test touches JAX)
 
 
 @pytest.fixture

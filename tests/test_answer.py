@@ -7,7 +7,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from benchmark.answer import answer
+from reelbench.benchmark.answer import answer
 
 
 def _search_row(integ, n, metric, target, setting, cost, bound="target", spread=0.08, impl="jax-compiled"):
@@ -80,7 +80,7 @@ def test_a_count_of_evaluations_alone_is_a_lower_bound_and_never_wins(tables):
     """radau's flops count right-hand sides, Jacobians and LU factorisations, not its Newton
     solves: a lower bound. Below the winner's cost it is unranked (and does not make the winner
     a tie); above the winner's interval it is slower, its ratio open above."""
-    from benchmark.work.flops import counting_rule
+    from reelbench.benchmark.work.flops import counting_rule
 
     assert counting_rule("radau") == "evaluations" and counting_rule("lgvi") == "step"
     assert counting_rule("tsit5") == "diffrax" and counting_rule("dop853") == "twin"
@@ -131,7 +131,7 @@ def test_the_answer_block_says_one_thing_per_scene_and_target(tables):
 def test_after_a_tie_the_next_method_is_named_as_outside_it():
     """Tie membership goes by the interval, the order by the ratio: after a tie whose wide member
     lies at 1.33x, a narrow 1.18x is "first outside the tie", never "next"."""
-    from benchmark.answer.answer import _use_line
+    from reelbench.benchmark.answer.answer import _use_line
 
     def wall(entry, ratio, low, high, verdict):
         return dict(entry=entry, ratio=ratio, ratio_low=low, ratio_high=high, verdict=verdict, cost=ratio * 1e-3,
@@ -164,7 +164,7 @@ def test_a_row_digest_survives_the_csv_and_a_changed_row_is_recomputed(tmp_path)
 
 @pytest.mark.slow
 def test_the_study_end_to_end_resumes_without_losing_a_row(tmp_path, capsys):
-    from benchmark.cli.main import main
+    from reelbench.benchmark.cli.main import main
 
     args = ["answer", "--scenes", "fixed_length", "--integrators", "lie_rk4,lgvi", "--elements", "2",
             "--t-end", "0.2", "--timing-budget", "1", "--out", str(tmp_path)]
@@ -200,8 +200,8 @@ def test_a_run_keeps_the_rows_of_other_sizes_and_replaces_its_own():
 def test_the_readme_answer_block_is_what_the_main_job_wrote():
     """The project README's block between the answer markers is results/answer.md, as the main job
     (`python -m benchmark answer`, into results/) wrote it: no hand edit, no stale block."""
-    from benchmark.answer.answer_report import ANSWER_END, ANSWER_START
-    from benchmark.core.store import ROOT
+    from reelbench.benchmark.answer.answer_report import ANSWER_END, ANSWER_START
+    from reelbench.benchmark.core.store import ROOT
 
     text = (ROOT / "README.md").read_text(encoding="utf-8")
     block = text[text.index(ANSWER_START) + len(ANSWER_START): text.index(ANSWER_END)]
@@ -212,7 +212,7 @@ def test_the_searches_run_on_a_dask_cluster_and_the_timing_here(tmp_path):
     """`answer --executor dask`: the searches are tasks of the cluster (one search here), the paired
     timing runs in this process; the table is the same kind as a local run's."""
     distributed = pytest.importorskip("distributed")
-    from benchmark.cli.main import main
+    from reelbench.benchmark.cli.main import main
 
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
         rc = main(["answer", "--executor", "dask", "--scheduler", cluster.scheduler_address, "--scenes", "fixed_length",
@@ -233,7 +233,7 @@ def test_the_searches_run_on_a_dask_cluster_and_the_timing_here(tmp_path):
     (["--targets", "energy_error=1e-4,energy_error=1e-5"], "each metric at most once"),
 ])
 def test_bad_answer_options_are_refused_before_any_work(tmp_path, capsys, args, message):
-    from benchmark.cli.main import main
+    from reelbench.benchmark.cli.main import main
 
     assert main(["answer", *args, "--out", str(tmp_path / "o")]) == 2
     assert message in capsys.readouterr().err
@@ -241,7 +241,7 @@ def test_bad_answer_options_are_refused_before_any_work(tmp_path, capsys, args, 
 
 
 def test_two_answers_agree_on_a_winner_or_on_ties_that_contain_each_others_best(tables):
-    from benchmark.answer import answer_report
+    from reelbench.benchmark.answer import answer_report
 
     table = answer.answer_table(*tables)
     same = answer_report.agreement(table, table)
@@ -261,8 +261,8 @@ def test_two_answers_agree_on_a_winner_or_on_ties_that_contain_each_others_best(
 
 
 def test_the_main_job_runs_the_default_methods_and_dopri8_and_extended_runs_every_own_method():
-    from benchmark.answer import answer
-    from benchmark.runs import sweep
+    from reelbench.benchmark.answer import answer
+    from reelbench.benchmark.runs import sweep
 
     main = answer.default_methods()
     assert "dopri8" in main and set(main) == set(sweep.default_sweep_names()) | {"dopri8"}
@@ -276,7 +276,7 @@ def test_the_time_accounting_counts_only_the_rows_this_run_made():
 
     import pandas as pd
 
-    from benchmark.answer.answer_report import accounting
+    from reelbench.benchmark.answer.answer_report import accounting
 
     def search_row(digest, seconds, setting):
         pts = [{"setting": setting, "status": "ok", "cost": 1.0, "cost_column": "flops", "run_time": seconds,

@@ -11,10 +11,10 @@ from importlib.metadata import entry_points
 import numpy as np
 import pytest
 
-from integrators import ENTRY_POINT_GROUP, Capability, available, get_integrator
-from models import build_model, load_scene
-from models._jax import jax, jnp
-from models.model import quat_to_rot
+from reelbench.integrators import ENTRY_POINT_GROUP, Capability, available, get_integrator
+from reelbench.models import build_model, load_scene
+from reelbench.models._jax import jax, jnp
+from reelbench.models.model import quat_to_rot
 
 BASELINES = ["rk45", "radau", "dop853", "tsit5", "dopri5", "dopri8", "kvaerno5"]
 T = 0.5
@@ -85,7 +85,7 @@ def test_baselines_are_entry_point_plugins():
         integ = get_integrator(name)
         assert integ.name == name
         module = type(integ).__module__
-        assert module in ("integrators.scipy_ivp", "integrators.diffrax_ode")
+        assert module in ("reelbench.integrators.scipy_ivp", "reelbench.integrators.diffrax_ode")
         assert declared[name].startswith(module + ":")
         assert Capability.ADAPTIVE in integ.capabilities
     assert Capability.IMPLICIT in get_integrator("radau").capabilities

@@ -3,16 +3,16 @@
 import numpy as np
 import pytest
 
-from benchmark.runs import runner
-from benchmark.runs import sweep
-from benchmark.runs.metrics import ACCURACY, COLUMNS, fastest_at, observed_orders
-from benchmark.core.reference import get_reference, reference_path
-from integrators import Capability, Integrator, Status, Trajectory, get_integrator, register
-from integrators import registry
-from models import load_scene
-from models.io import atomic_path, atomic_write_text
+from reelbench.benchmark.runs import runner
+from reelbench.benchmark.runs import sweep
+from reelbench.benchmark.runs.metrics import ACCURACY, COLUMNS, fastest_at, observed_orders
+from reelbench.benchmark.core.reference import get_reference, reference_path
+from reelbench.integrators import Capability, Integrator, Status, Trajectory, get_integrator, register
+from reelbench.integrators import registry
+from reelbench.models import load_scene
+from reelbench.models.io import atomic_path, atomic_write_text
 
-pytest.importorskip("integrators.scipy_ivp")
+pytest.importorskip("reelbench.integrators.scipy_ivp")
 
 
 @pytest.fixture
@@ -93,7 +93,7 @@ def test_reference_is_cached_and_reused(tmp_path, monkeypatch):
     path = reference_path(scene, 0.1, 0.02, tmp_path)
     assert path.exists() and ref.ok
     # a second call must not integrate again
-    monkeypatch.setattr("benchmark.core.reference.get_integrator", lambda name: pytest.fail("recomputed"))
+    monkeypatch.setattr("reelbench.benchmark.core.reference.get_integrator", lambda name: pytest.fail("recomputed"))
     again = get_reference(scene, 0.1, 0.02, tmp_path)
     np.testing.assert_array_equal(again.x, ref.x)
     # a different scene gets a different key
@@ -121,7 +121,7 @@ def test_trajectory_save_load_round_trip(tmp_path):
 
 
 def test_cli_refuses_bad_input_before_work(tmp_path, capsys):
-    from benchmark.cli.main import main
+    from reelbench.benchmark.cli.main import main
 
     assert main(["run", "--dts", "20", "--out", str(tmp_path)]) == 2
     assert "dt = 20 s is longer than the run" in capsys.readouterr().err
@@ -145,7 +145,7 @@ def test_atomic_writes_keep_the_umask_mode(tmp_path):
 def test_reel_reversal_command_prints_errors_falling_with_the_step(tmp_path, capsys):
     """The reel-reversal study on the engine, against the cached reference: one row per step
     size, each error smaller at the smaller step, and an order between successive steps."""
-    from benchmark.cli.main import main
+    from reelbench.benchmark.cli.main import main
 
     args = ["reel-reversal", "--integrators", "lgvi_sym", "--elements", "2", "--t-end", "0.16", "--jobs", "0",
             "--cache-dir", str(tmp_path), "--out", str(tmp_path / "out")]
@@ -160,7 +160,7 @@ def test_reel_reversal_command_prints_errors_falling_with_the_step(tmp_path, cap
 
 
 def test_speed_command_writes_its_tables_under_the_report_header(tmp_path, capsys):
-    from benchmark.cli.main import main
+    from reelbench.benchmark.cli.main import main
 
     out = tmp_path / "speed.md"
     assert main(["speed", "--integrators", "lgvi,tsit5", "--scenes", "fixed_length", "--elements", "2", "--steps", "20",
@@ -180,7 +180,7 @@ def test_speed_command_writes_its_tables_under_the_report_header(tmp_path, capsy
 def test_a_method_s_own_sweep_tolerances_and_their_overrides():
     """`SWEEP_RTOLS` (rk45 and its projected variant stop at 1e-8) applies to the full default
     sweep only; --rtols and --quick override it, and the other adaptive methods keep the shared ones."""
-    from benchmark.runs.sweep import FULL_RTOLS, QUICK_RTOLS, build_tasks
+    from reelbench.benchmark.runs.sweep import FULL_RTOLS, QUICK_RTOLS, build_tasks
 
     def rtols(tasks, name):
         return sorted({t.rtol for t in tasks if t.integrator == name and t.rtol is not None})
@@ -196,8 +196,8 @@ def test_every_fixed_step_method_gets_the_one_step_grid():
     """Like with like: the full default sweep gives every fixed-step method the same step sizes
     (the symmetric LGVIs had their own, down to 78 µs, while Suzuki started at 10 ms); --dts
     replaces the grid for all of them at once."""
-    from benchmark.runs.sweep import FULL_DTS, SAVE_EVERY, build_tasks
-    from integrators import Capability, get_integrator
+    from reelbench.benchmark.runs.sweep import FULL_DTS, SAVE_EVERY, build_tasks
+    from reelbench.integrators import Capability, get_integrator
 
     tasks = build_tasks(scenes=("fixed_length",))
     grids = {}
@@ -215,7 +215,7 @@ def test_every_fixed_step_method_gets_the_one_step_grid():
 def test_extended_sweep_methods_run_only_when_named():
     """A method of the sweep's ``EXTENDED_METHODS`` is left out of `run` without --integrators and
     runs when named; every other registered method is in the default sweep."""
-    from benchmark.runs.sweep import EXTENDED_METHODS, build_tasks, default_names
+    from reelbench.benchmark.runs.sweep import EXTENDED_METHODS, build_tasks, default_names
 
     default = {t.integrator for t in build_tasks(scenes=("fixed_length",))}
     extended = {n for n in default_names() if n in EXTENDED_METHODS}

@@ -18,11 +18,11 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from integrators import get_integrator
-from models import EFFECTS, build_model, load_scene
-from models.closed_form import ClosedFormEOM
-from models.diagnostics import evaluate, summary
-from models.effects import Effect, register_effect, unregister_effect
+from reelbench.integrators import get_integrator
+from reelbench.models import EFFECTS, build_model, load_scene
+from reelbench.models.closed_form import ClosedFormEOM
+from reelbench.models.diagnostics import evaluate, summary
+from reelbench.models.effects import Effect, register_effect, unregister_effect
 
 from _helpers import reference_solution
 
@@ -49,7 +49,7 @@ class ConstantMoment(Effect):
     forcing = True
 
     def body_loads(self, model):
-        from models._jax import jnp
+        from reelbench.models._jax import jnp
 
         return {"M_constant": lambda t, x, R, w: model.over_w(deta=jnp.asarray(MOMENT))}
 

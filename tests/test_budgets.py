@@ -10,8 +10,8 @@ import zipfile
 import numpy as np
 import pytest
 
-from benchmark.core import options as opt
-from benchmark.cli.main import main
+from reelbench.benchmark.core import options as opt
+from reelbench.benchmark.cli.main import main
 
 
 def _err(capsys) -> str:
@@ -23,7 +23,7 @@ def _err(capsys) -> str:
 def test_simulate_runs_within_default_budgets_that_options_raise(monkeypatch, tmp_path, capsys):
     """The issue's request (rk45 at rtol 1e-13 to t = 1e5 s) gets the default budgets; the options
     raise them."""
-    from benchmark.cli import simulate
+    from reelbench.benchmark.cli import simulate
 
     seen = []
     monkeypatch.setattr(simulate, "simulate", lambda scene, integ, settings, out, **k: seen.append(settings) or 0)
@@ -45,7 +45,7 @@ def test_a_run_out_of_its_time_budget_ends_with_its_trajectory_saved(tmp_path, c
                "--time-limit", "1", "--save-every", "0.1", "--out", str(out)])
     err = _err(capsys)
     assert rc == 1 and "status time_limit stopped by time_limit = 1 s" in err, err
-    from benchmark.core.store import read_trajectory
+    from reelbench.benchmark.core.store import read_trajectory
 
     traj = read_trajectory(out)
     assert traj.status == "time_limit" and 0 < traj.t[-1] < 20000 and out.with_suffix(".csv").is_file()
@@ -54,7 +54,7 @@ def test_a_run_out_of_its_time_budget_ends_with_its_trajectory_saved(tmp_path, c
 def test_a_first_ctrl_c_ends_simulate_where_it_is_and_saves_it(tmp_path, monkeypatch, capsys):
     """The first clock check of the run sends this process SIGINT: the run ends at the next check,
     its trajectory is saved, one line says where, exit 130."""
-    from integrators import lifecycle
+    from reelbench.integrators import lifecycle
 
     real = lifecycle.Run.out_of_time
     sent = []
@@ -72,7 +72,7 @@ def test_a_first_ctrl_c_ends_simulate_where_it_is_and_saves_it(tmp_path, monkeyp
     assert rc == 130, err
     last = err.strip().splitlines()[-1]
     assert last.startswith("stopped by Ctrl-C: the run up to t = ") and f"is saved in {out}" in last, err
-    from benchmark.core.store import read_trajectory
+    from reelbench.benchmark.core.store import read_trajectory
 
     traj = read_trajectory(out)
     assert traj.t[-1] < 20000 and traj.reason.startswith("stopped by Ctrl-C at t = ")
@@ -80,7 +80,7 @@ def test_a_first_ctrl_c_ends_simulate_where_it_is_and_saves_it(tmp_path, monkeyp
 
 
 def test_an_archive_that_expands_past_the_limit_is_refused_before_it_is_read(tmp_path, monkeypatch, capsys):
-    from benchmark.core import store
+    from reelbench.benchmark.core import store
 
     monkeypatch.setattr(store, "MAX_ARCHIVE_BYTES", 2**20)
     bomb = tmp_path / "bomb.npz"
@@ -96,7 +96,7 @@ def test_an_archive_that_expands_past_the_limit_is_refused_before_it_is_read(tmp
 
 
 def test_figures_of_a_trajectory_from_a_scene_file_needs_no_scene_option(tmp_path, capsys):
-    from models.scene import SCENE_DIR
+    from reelbench.models.scene import SCENE_DIR
 
     scene = tmp_path / "damped_tip.toml"
     scene.write_text((SCENE_DIR / "fixed_length.toml").read_text().replace('name = "fixed_length"',
@@ -113,8 +113,8 @@ def test_every_solve_of_a_sweep_has_a_budget_and_a_run_past_it_is_a_status_not_a
     """`run`, `stability` and `check` bound each first solve (`runner.SolveBudget`): a run past
     its steps or seconds is a row with status max_steps / time_limit; the timed repeats are the
     same unbudgeted work (no chunked loop is timed)."""
-    from benchmark.runs import runner
-    from benchmark.runs.sweep import Task
+    from reelbench.benchmark.runs import runner
+    from reelbench.benchmark.runs.sweep import Task
 
     long = Task("fixed_length", "lgvi", dt=0.001, t_end=5000.0, save_every=1.0, overrides=(("elements", 1),))
     row = runner.run_task(long, cache_dir=str(tmp_path), repeats=0, reference=False,
@@ -130,9 +130,9 @@ def test_every_solve_of_a_sweep_has_a_budget_and_a_run_past_it_is_a_status_not_a
 
 
 def test_the_studies_take_their_budget_from_the_command_line(monkeypatch, tmp_path):
-    from benchmark.core import study
-    from benchmark.studies import check, grid
-    from benchmark.runs.runner import SolveBudget
+    from reelbench.benchmark.core import study
+    from reelbench.benchmark.studies import check, grid
+    from reelbench.benchmark.runs.runner import SolveBudget
 
     seen = {}
     monkeypatch.setattr(grid, "run_sweep", lambda request, log=None: seen.update(run=request.budget) or 0)

@@ -8,12 +8,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from benchmark.studies import check
-from benchmark.runs.metrics import ACCURACY
-from integrators import registry
+from reelbench.benchmark.studies import check
+from reelbench.benchmark.runs.metrics import ACCURACY
+from reelbench.integrators import registry
 
-pytest.importorskip("integrators.scipy_ivp")
-from integrators.scipy_ivp import RK45  # noqa: E402
+pytest.importorskip("reelbench.integrators.scipy_ivp")
+from reelbench.integrators.scipy_ivp import RK45  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -112,7 +112,7 @@ def test_update_is_atomic(tmp_path, monkeypatch):
     def interrupted(src, dst):
         raise OSError("disk full")
 
-    monkeypatch.setattr("models.io.os.replace", interrupted)
+    monkeypatch.setattr("reelbench.models.io.os.replace", interrupted)
     with pytest.raises(OSError, match="disk full"):
         check.write_baseline(table(["ok"], energy_error=5e-6), path)
     assert path.read_text() == before
@@ -226,7 +226,7 @@ def test_timing_never_fails():
 # bad input, before any work; the CI contract
 
 def test_bad_input_is_refused_before_any_work(tmp_path, monkeypatch, capsys):
-    from benchmark.cli.main import main
+    from reelbench.benchmark.cli.main import main
 
     monkeypatch.setattr(check, "measure", lambda *a, **k: pytest.fail("ran the sweep"))
     check.write_baseline(table(["ok"]), tmp_path / "b.csv")
@@ -281,7 +281,7 @@ def no_sweep(monkeypatch):
 
 
 def check_cli(capsys, path, *args):
-    from benchmark.cli.main import main
+    from reelbench.benchmark.cli.main import main
 
     rc = main(["check", "--baseline", str(path), *args])
     captured = capsys.readouterr()
@@ -427,7 +427,7 @@ def test_an_installed_plugin_is_reported_not_failed_and_a_method_of_the_baseline
         tmp_path, capsys, no_sweep):
     """Installing a plugin must not break a user's CI: the default check reports it and says
     how to add it; a method the baseline gates that is no longer registered fails closed."""
-    from benchmark.runs import sweep
+    from reelbench.benchmark.runs import sweep
 
     shipped = sweep.default_names()
     path = tmp_path / "b.csv"

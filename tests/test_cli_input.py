@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from benchmark.cli.main import main
+from reelbench.benchmark.cli.main import main
 
 ROOT = Path(__file__).resolve().parent.parent
 TINY = ["--scenes", "fixed_length", "--integrators", "lgvi", "--t-end", "0.02", "--no-figures"]
@@ -97,8 +97,8 @@ def test_check_outside_the_repository_says_where_to_run_it(tmp_path, monkeypatch
 
 
 def test_figures_refuses_a_trajectory_of_another_scene(tmp_path, capsys):
-    from integrators import get_integrator
-    from models import load_scene
+    from reelbench.integrators import get_integrator
+    from reelbench.models import load_scene
 
     traj = get_integrator("lgvi").solve(load_scene("fixed_length", elements=1), t_end=0.02, dt=0.01)
     traj.save(tmp_path / "t.npz")
@@ -112,7 +112,7 @@ def test_every_option_is_documented_with_its_default(capsys):
     to show (not None, not a flag's False) shows it as "(default: VALUE)"."""
     import argparse
 
-    from benchmark.cli.main import parser
+    from reelbench.benchmark.cli.main import parser
 
     p = parser()
     sub = next(a for a in p._actions if a.__class__.__name__ == "_SubParsersAction")
@@ -138,9 +138,9 @@ def test_every_option_is_documented_with_its_default(capsys):
 PROBE = textwrap.dedent("""
     import json, sys, time
     t0 = time.perf_counter()
-    from benchmark.cli.main import main
+    from reelbench.benchmark.cli.main import main
     rc = main(json.loads(sys.argv[1]))
-    heavy = sorted(m for m in ("jax", "diffrax", "pandas", "matplotlib", "integrators", "scipy.integrate")
+    heavy = sorted(m for m in ("jax", "diffrax", "pandas", "matplotlib", "reelbench.integrators", "scipy.integrate")
                    if m in sys.modules)
     print(json.dumps({"rc": rc, "heavy": heavy, "seconds": time.perf_counter() - t0}))
 """)
@@ -178,8 +178,8 @@ def test_simulate_and_figures_write_next_to_the_user(tmp_path, monkeypatch, caps
 
 
 def test_size_estimate_warns_about_a_long_run_and_refuses_what_cannot_fit():
-    from benchmark.core import options
-    from models import load_scene
+    from reelbench.benchmark.core import options
+    from reelbench.models import load_scene
 
     said = []
     big = load_scene("fixed_length", elements=2000)
@@ -202,9 +202,9 @@ def test_size_estimate_warns_about_a_long_run_and_refuses_what_cannot_fit():
 @pytest.fixture
 def no_pipeline(monkeypatch):
     """Every pipeline replaced by a failure: a bad input that got through would start work."""
-    from benchmark.cli import simulate
-    from benchmark.core import study
-    from benchmark.studies import check, grid, xval
+    from reelbench.benchmark.cli import simulate
+    from reelbench.benchmark.core import study
+    from reelbench.benchmark.studies import check, grid, xval
 
     monkeypatch.setattr(study, "run", lambda s, *a, **k: pytest.fail(f"reached the study {s.name}"))
     for module, name in ((grid, "run_sweep"), (simulate, "simulate"), (simulate, "draw_figures"), (check, "run_check"),
@@ -251,8 +251,8 @@ def test_a_run_that_would_do_nothing_is_refused_and_creates_nothing(tmp_path, ca
 def test_figures_of_a_trajectory_without_a_finite_point_is_refused(tmp_path, capsys):
     import numpy as np
 
-    from integrators import get_integrator
-    from models import load_scene
+    from reelbench.integrators import get_integrator
+    from reelbench.models import load_scene
 
     traj = get_integrator("lgvi").solve(load_scene("fixed_length", elements=1), t_end=0.02, dt=0.01)
     traj.x = np.full_like(np.asarray(traj.x), np.nan)
@@ -318,7 +318,7 @@ FIX = ("allowed", "available:", "give", "e.g.", "raise", "shorten", "expected", 
 
 def test_more_than_150_bad_inputs_are_each_refused_with_exit_2_and_the_fix(tmp_path, capsys, no_pipeline):
     assert len(BULK) >= 150, len(BULK)
-    from benchmark.studies import check
+    from reelbench.benchmark.studies import check
 
     check.write_baseline(check.to_table.__globals__["pd"].DataFrame(columns=check.COLUMNS), tmp_path / "b.csv")
     failures = []
@@ -382,8 +382,8 @@ def test_figures_does_not_follow_a_scene_path_recorded_in_a_trajectory(tmp_path,
     """The scene name stored in a .npz is data: a path there (to a FIFO, say) is never opened."""
     import os
 
-    from integrators import get_integrator
-    from models import load_scene
+    from reelbench.integrators import get_integrator
+    from reelbench.models import load_scene
 
     traj = get_integrator("lgvi").solve(load_scene("fixed_length", elements=1), t_end=0.02, dt=0.01)
     os.mkfifo(tmp_path / "pipe.toml")

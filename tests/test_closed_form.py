@@ -13,10 +13,10 @@ import tokenize
 import numpy as np
 import pytest
 
-from models import build_model
-from models._jax import jax, jnp
-from models.closed_form import ClosedFormEOM
-import models.closed_form as closed_form_module
+from reelbench.models import build_model
+from reelbench.models._jax import jax, jnp
+from reelbench.models.closed_form import ClosedFormEOM
+import reelbench.models.closed_form as closed_form_module
 
 from _helpers import effect_combinations, fluid_combinations, scene_with_effects
 

@@ -10,9 +10,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from integrators import get_integrator, lifecycle
-from integrators import diffrax_ode as dx
-from models import build_model, load_scene
+from reelbench.integrators import get_integrator, lifecycle
+from reelbench.integrators import diffrax_ode as dx
+from reelbench.models import build_model, load_scene
 
 T = 0.3
 SAVE = 0.05
@@ -27,7 +27,7 @@ def diffeqsolve(scene, name, t_save, **kw):
     """diffrax's own `diffeqsolve` of the same problem (no event: the run stays inside its guards)."""
     import diffrax as dfx
 
-    from integrators import rhs as _rhs
+    from reelbench.integrators import rhs as _rhs
 
     model = build_model(scene)
     f = _rhs.ode_rhs(model, _rhs.DEFAULT_RHS)

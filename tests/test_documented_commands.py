@@ -120,9 +120,9 @@ def test_the_docs_show_the_commands_this_test_runs():
 _VALIDATE = r"""
 import json, sys
 from pathlib import Path
-from benchmark.cli import simulate
-from benchmark.cli.main import main
-from benchmark.studies import check, grid, xval
+from reelbench.benchmark.cli import simulate
+from reelbench.benchmark.cli.main import main
+from reelbench.benchmark.studies import check, grid, xval
 calls = []
 def recorder(name):
     def record(*args, **kw):
@@ -134,13 +134,13 @@ def recorder(name):
         calls.append({"pipeline": name, "out": None if out is None else str(out)})
         return 0
     return record
-from benchmark.core import study
+from reelbench.benchmark.core import study
 study.run = lambda s, out, **kw: calls.append({"pipeline": "study:" + s.name, "out": str(out),
                                               "table": str(Path(out) / s.table)}) or 0
 for module, name in ((grid, "run_sweep"), (simulate, "simulate"), (simulate, "draw_figures"), (check, "run_check"),
                      (xval, "run_xval")):
     setattr(module, name, recorder(name))
-from benchmark.answer import answer
+from reelbench.benchmark.answer import answer
 answer.run_answer = lambda request, *a, **kw: recorder("run_answer")(out=request.out)
 results = []
 for args in json.loads(sys.argv[1]):
@@ -180,7 +180,7 @@ def test_every_documented_command_parses_and_passes_its_checks(tmp_path):
 
 
 def test_every_documented_template_names_options_that_exist():
-    from benchmark.cli.main import parser
+    from reelbench.benchmark.cli.main import parser
 
     commands = parser()._subparsers._group_actions[0].choices
     for template in templates():
@@ -196,22 +196,22 @@ def _python_block(doc: Path, starts: str) -> str:
 
 
 def test_the_readme_example_runs_and_finishes_as_documented():
-    code = _python_block(ROOT / "README.md", "from models import load_scene")
+    code = _python_block(ROOT / "README.md", "from reelbench.models import load_scene")
     space: dict = {}
     exec(compile(code, "README.md: Using it", "exec"), space)
     traj, df = space["traj"], space["df"]
     assert traj.status == "ok", traj.reason  # the comment's outcome
     assert {"t", "energy", "work", "pi3", "orthogonality_error", "deployed_length"} <= set(df.columns)
     # and the step it warns about does stop with "diverged"
-    from integrators import get_integrator
+    from reelbench.integrators import get_integrator
 
     assert get_integrator("lgvi").solve(space["scene"], t_end=1.0, dt=0.005).status == "diverged"
 
 
 def test_the_scene_file_example_of_models_readme_runs(tmp_path, monkeypatch):
-    from models.scene import SCENE_DIR
+    from reelbench.models.scene import SCENE_DIR
 
-    code = _python_block(ROOT / "models" / "README.md", "from models import load_scene")
+    code = _python_block(ROOT / "models" / "README.md", "from reelbench.models import load_scene")
     assert "my_scene.toml" in code
     monkeypatch.chdir(tmp_path)
     (tmp_path / "my_scene.toml").write_text((SCENE_DIR / "fixed_length.toml").read_text())  # "a file of your own"

@@ -20,10 +20,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from integrators import get_integrator
-from models import EFFECTS, SceneError, build_model, load_scene, scene_from_dict
-from models import effects as effect_registry
-from models.effects import ENTRY_POINT_GROUP, unregister_effect
+from reelbench.integrators import get_integrator
+from reelbench.models import EFFECTS, SceneError, build_model, load_scene, scene_from_dict
+from reelbench.models import effects as effect_registry
+from reelbench.models.effects import ENTRY_POINT_GROUP, unregister_effect
 
 from test_effects import check_effect
 from test_scene_input import scene_text
@@ -34,7 +34,7 @@ PLUGIN = textwrap.dedent('''
     """A constant force F on the body's attachment point (wind on the body, say)."""
     import numpy as np
 
-    from models.effects import Effect, Key, PotentialTerm
+    from reelbench.models.effects import Effect, Key, PotentialTerm
 
 
     class TipForce(Effect):
@@ -46,7 +46,7 @@ PLUGIN = textwrap.dedent('''
         plausible = {"tip_force.force": (0.0, 1e6)}
 
         def potentials(self, model):
-            from models._jax import jnp
+            from reelbench.models._jax import jnp
 
             F = jnp.asarray(model.scene.section("tip_force")["force"])
 

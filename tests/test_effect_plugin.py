@@ -15,11 +15,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from integrators import get_integrator
-from models import EFFECTS, SceneError, build_model, load_scene, scene_from_dict
-from models._jax import jnp
-from models.diagnostics import evaluate, summary
-from models.effects import Effect, Key, register_effect, unregister_effect
+from reelbench.integrators import get_integrator
+from reelbench.models import EFFECTS, SceneError, build_model, load_scene, scene_from_dict
+from reelbench.models._jax import jnp
+from reelbench.models.diagnostics import evaluate, summary
+from reelbench.models.effects import Effect, Key, register_effect, unregister_effect
 
 from test_effects import check_effect
 

@@ -8,9 +8,9 @@ it claims (≤ 0 when it says it is dissipative), and its declarations are consi
 import numpy as np
 import pytest
 
-from models import EFFECTS, build_model, load_scene
-from models._jax import jax, jnp
-from models.model import hat
+from reelbench.models import EFFECTS, build_model, load_scene
+from reelbench.models._jax import jax, jnp
+from reelbench.models.model import hat
 
 from _helpers import random_state, scene_with_effects
 
@@ -109,7 +109,7 @@ def test_effect_terms_match_autodiff_and_claimed_power(name, rng):
 
 
 def test_registry_declarations_are_consistent():
-    from models.scene import BASE_SCHEMA
+    from reelbench.models.scene import BASE_SCHEMA
 
     for name, effect in EFFECTS.items():
         assert effect.name == name and all(n in EFFECTS and n != name for n in effect.needs)

@@ -5,9 +5,9 @@ would recompute identically."""
 
 import pandas as pd
 
-from benchmark.core import study
-from benchmark.studies import grid, horizon, horizon_report
-from benchmark.runs.sweep import MethodSettings
+from reelbench.benchmark.core import study
+from reelbench.benchmark.studies import grid, horizon, horizon_report
+from reelbench.benchmark.runs.sweep import MethodSettings
 
 
 def run_horizon_study(t_end, out, overrides=(), jobs=None, log=None, selected=None, scenes=None, failed=None):
@@ -39,7 +39,7 @@ def test_the_plan_runs_what_it_lists():
 
 
 def test_the_slack_variant_adds_the_effect_and_names_its_table_scene():
-    from models import load_scene
+    from reelbench.models import load_scene
 
     scene = load_scene("fixed_length")
     assert horizon.variant_overrides(scene, "") == ()
@@ -79,7 +79,7 @@ def test_a_rerun_merges_into_the_table_and_keeps_what_it_did_not_recompute(tmp_p
 
 
 def test_bad_input_is_refused_before_any_work(tmp_path, capsys):
-    from benchmark.cli.main import main
+    from reelbench.benchmark.cli.main import main
 
     assert main(["energy", "--integrators", "no_such_method", "--out", str(tmp_path / "e")]) == 2
     assert capsys.readouterr().err.startswith("error:") and not (tmp_path / "e").exists()
@@ -91,7 +91,7 @@ def test_bad_input_is_refused_before_any_work(tmp_path, capsys):
 def test_run_makes_the_energy_study_only_when_given_a_horizon(tmp_path, monkeypatch, capsys):
     """The study is its own command (`energy`); `run` makes it too only with --horizon T, and
     only then checks its size (a horizon far too long is refused before any work)."""
-    from benchmark.cli.main import main
+    from reelbench.benchmark.cli.main import main
 
     seen = []
     monkeypatch.setattr(grid, "run_sweep", lambda request, log: seen.append(request) or 0)
@@ -103,7 +103,7 @@ def test_run_makes_the_energy_study_only_when_given_a_horizon(tmp_path, monkeypa
 
 
 def test_merge_study_table_replaces_a_run_as_a_whole_and_keeps_the_others():
-    from benchmark.core.store import merge_study_table
+    from reelbench.benchmark.core.store import merge_study_table
 
     old = pd.DataFrame({"run": ["a", "a", "b"], "v": [1, 2, 3]})
     new = pd.DataFrame({"run": ["a"], "v": [9]})
@@ -112,7 +112,7 @@ def test_merge_study_table_replaces_a_run_as_a_whole_and_keeps_the_others():
 
 
 def test_the_energy_command_rewrites_only_its_section_of_the_readme(tmp_path):
-    from benchmark.studies.properties import SECTION, write_energy_section
+    from reelbench.benchmark.studies.properties import SECTION, write_energy_section
 
     t = [0.0, 10.0, 20.0]
     pd.DataFrame({"t": t, "energy_error": [0.0, 1e-9, 2e-9], "energy_dev": [0.0, -1e-9, -2e-9], "axial_P": 1.0,
@@ -185,7 +185,7 @@ def test_a_stopped_study_keeps_its_finished_runs_and_a_rerun_computes_the_rest(t
 
 
 def test_a_run_whose_worker_died_is_left_out_and_the_energy_command_fails(tmp_path, monkeypatch, capsys):
-    from benchmark.cli.main import main
+    from reelbench.benchmark.cli.main import main
 
     _no_figure(monkeypatch)
 

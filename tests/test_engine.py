@@ -6,10 +6,10 @@ import os
 import numpy as np
 import pytest
 
-from benchmark.core import engine
-from benchmark.runs import runner
-from benchmark.studies import stability
-from benchmark.core import store
+from reelbench.benchmark.core import engine
+from reelbench.benchmark.runs import runner
+from reelbench.benchmark.studies import stability
+from reelbench.benchmark.core import store
 
 
 def job(spec: tuple) -> dict:
@@ -102,8 +102,8 @@ def test_frame_one_helper_for_both_tables():
 
 
 def test_a_horizon_run_whose_worker_died_is_a_row_without_history():
-    from benchmark.studies import horizon
-    from benchmark.runs.sweep import MethodSettings
+    from reelbench.benchmark.studies import horizon
+    from reelbench.benchmark.runs.sweep import MethodSettings
 
     job = horizon.Job("fixed_length", 10, MethodSettings("lgvi", {"dt": 0.005}), 1.0, ())
     dead = horizon.crash_row(job, RuntimeError("worker died"))
@@ -131,7 +131,7 @@ def test_on_a_terminal_a_bar_is_drawn_below_the_lines_and_taken_away():
     import sys
     import termios
 
-    script = ("from benchmark.core import engine\nimport time\n"
+    script = ("from reelbench.benchmark.core import engine\nimport time\n"
               "engine.run_jobs(lambda x: time.sleep(0.05) or {'x': x}, list(range(3)), workers=0,"
               " cost=lambda i: 1.0, describe=lambda r: f\"job {r['x']}\")\n"
               "engine.log_stderr('after')\n")

@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from benchmark.cli.main import main
-from models import io as model_io
+from reelbench.benchmark.cli.main import main
+from reelbench.models import io as model_io
 
 #: The smallest sweep: one scene, one method, two steps, no figures, in this process.
 TINY = ["run", "--scenes", "fixed_length", "--integrators", "lgvi", "--t-end", "0.04", "--set", "elements=1",
@@ -80,7 +80,7 @@ def test_a_sweep_on_a_disk_that_fills_keeps_the_rows_it_saved(tmp_path, monkeypa
             return len(writes) > 1
         return target.suffix == ".npz"  # the reference cache too
 
-    from benchmark.core import reference
+    from reelbench.benchmark.core import reference
 
     disk_full(monkeypatch, full_after_first_table)
     # an empty cache of references (the user's may hold this one already): the run must write it
@@ -100,7 +100,7 @@ def test_a_sweep_on_a_disk_that_fills_keeps_the_rows_it_saved(tmp_path, monkeypa
 
 
 def test_a_directory_in_place_of_a_result_file_is_refused_before_any_work(tmp_path, monkeypatch, capsys):
-    from benchmark.studies import grid
+    from reelbench.benchmark.studies import grid
 
     monkeypatch.setattr(grid, "run_sweep", lambda *a, **k: pytest.fail("started the sweep"))
     (tmp_path / "out" / "runs.csv").mkdir(parents=True)
@@ -111,7 +111,7 @@ def test_a_directory_in_place_of_a_result_file_is_refused_before_any_work(tmp_pa
 
 @pytest.mark.parametrize("kind", ["fifo", "link to /dev/zero"])
 def test_a_special_file_in_place_of_the_runs_table_is_refused_without_reading_it(tmp_path, monkeypatch, capsys, kind):
-    from benchmark.studies import grid
+    from reelbench.benchmark.studies import grid
 
     monkeypatch.setattr(grid, "run_sweep", lambda *a, **k: pytest.fail("started the sweep"))
     out = tmp_path / "out"
@@ -126,8 +126,8 @@ def test_a_special_file_in_place_of_the_runs_table_is_refused_without_reading_it
 
 
 def test_a_directory_in_place_of_a_cached_reference_costs_the_cache_only(tmp_path, capsys):
-    from benchmark.core.reference import get_reference, reference_path
-    from models import load_scene
+    from reelbench.benchmark.core.reference import get_reference, reference_path
+    from reelbench.models import load_scene
 
     scene = load_scene("fixed_length", elements=1)
     reference_path(scene, 0.04, 0.02, tmp_path).mkdir()
@@ -140,9 +140,9 @@ def test_a_directory_in_place_of_a_cached_reference_costs_the_cache_only(tmp_pat
 def test_a_reference_that_cannot_finish_names_the_scene_and_the_fix(tmp_path, monkeypatch):
     """The reference solver has a step budget (scipy's adapters: max_steps); when it runs out the
     error names the scene, not just the solver's status."""
-    from benchmark.core import reference
-    from integrators import get_integrator
-    from models import load_scene
+    from reelbench.benchmark.core import reference
+    from reelbench.integrators import get_integrator
+    from reelbench.models import load_scene
 
     real = get_integrator(reference.REFERENCE_METHOD["integrator"])
 
@@ -159,8 +159,8 @@ def test_a_reference_that_cannot_finish_names_the_scene_and_the_fix(tmp_path, mo
 
 
 def test_a_fifo_in_place_of_a_cached_reference_is_not_opened(tmp_path):
-    from benchmark.core.reference import get_reference, reference_path
-    from models import load_scene
+    from reelbench.benchmark.core.reference import get_reference, reference_path
+    from reelbench.models import load_scene
 
     scene = load_scene("fixed_length", elements=1)
     os.mkfifo(reference_path(scene, 0.04, 0.02, tmp_path))
@@ -170,8 +170,8 @@ def test_a_fifo_in_place_of_a_cached_reference_is_not_opened(tmp_path):
 
 
 def test_figures_on_a_full_disk_exit_1_naming_the_figure(tmp_path, monkeypatch, capsys):
-    from integrators import get_integrator
-    from models import load_scene
+    from reelbench.integrators import get_integrator
+    from reelbench.models import load_scene
 
     traj = get_integrator("lgvi").solve(load_scene("fixed_length", elements=1), t_end=0.04, dt=0.01)
     traj.save(tmp_path / "t.npz")
@@ -348,7 +348,7 @@ def test_a_scene_file_that_cannot_be_a_scene_is_one_error_line_for_every_command
 # ------------------------------------------------------------------------------------------
 def stored_row(scene="deployment", setting="dt=0.01", **values) -> dict:
     """A finished row as the runner writes it (with its digest), of a scene other than TINY's."""
-    from benchmark.runs import runner
+    from reelbench.benchmark.runs import runner
 
     row = {"scene": scene, "scene_key": "abc", "integrator": "lgvi", "setting": setting, "dt": 0.01,
            "rtol": np.nan, "atol": np.nan, "t_end": 2.0, "status": "ok", "reason": "", "rhs": "closed_form",
@@ -361,7 +361,7 @@ def stored_row(scene="deployment", setting="dt=0.01", **values) -> dict:
 
 
 def table_bytes(rows) -> bytes:
-    from benchmark.runs import runner
+    from reelbench.benchmark.runs import runner
 
     return runner.runs_frame(rows).to_csv(index=False).encode()
 
@@ -385,7 +385,7 @@ def _with_stray_byte(data: bytes) -> bytes:
     (lambda: table_bytes(many_rows(3) + many_rows(1)), "1 row(s) repeat", 3),
 ], ids=["a stray byte", "binary", "empty", "foreign", "an exact repeat"])
 def test_a_table_that_cannot_be_read_whole_is_kept_intact_and_its_rows_salvaged(tmp_path, content, why, kept):
-    from benchmark.runs import table
+    from reelbench.benchmark.runs import table
 
     path = tmp_path / "runs.csv"
     data = content()
@@ -400,7 +400,7 @@ def test_a_table_that_cannot_be_read_whole_is_kept_intact_and_its_rows_salvaged(
 
 
 def test_rows_that_repeat_with_different_values_are_caught_on_read_none_trusted(tmp_path):
-    from benchmark.runs import table
+    from reelbench.benchmark.runs import table
 
     path = tmp_path / "runs.csv"
     path.write_bytes(table_bytes(many_rows(2) + [stored_row(setting="dt=0.01", energy_error=5e-5)]))
@@ -435,7 +435,7 @@ def test_a_sweep_into_a_table_with_a_stray_byte_keeps_its_other_rows(tmp_path, c
     {"compile_time": 0.0}, {"energy_error": 1e-12},
 ], ids=["run times", "flops", "us_per_eval", "compile_time", "energy_error"])
 def test_every_column_a_conclusion_reads_is_covered_by_the_digest(tmp_path, edit):
-    from benchmark.runs import table
+    from reelbench.benchmark.runs import table
 
     rows = many_rows(2)
     path = tmp_path / "runs.csv"
@@ -445,7 +445,7 @@ def test_every_column_a_conclusion_reads_is_covered_by_the_digest(tmp_path, edit
 
 
 def test_a_row_whose_digest_was_blanked_is_tampered(tmp_path):
-    from benchmark.runs import table
+    from reelbench.benchmark.runs import table
 
     rows = many_rows(3)
     path = tmp_path / "runs.csv"
@@ -458,7 +458,7 @@ def test_a_row_whose_digest_was_blanked_is_tampered(tmp_path):
 def test_rows_from_before_digests_need_an_explicit_one_time_accept_legacy(tmp_path, capsys):
     import pandas as pd
 
-    from benchmark.runs import table
+    from reelbench.benchmark.runs import table
 
     out = tmp_path / "out"
     out.mkdir()
@@ -480,7 +480,7 @@ def test_rows_from_before_digests_need_an_explicit_one_time_accept_legacy(tmp_pa
 # Edges of the stop signals and the output lock
 # ------------------------------------------------------------------------------------------
 def test_a_row_printed_as_finished_is_already_on_disk():
-    from benchmark.core import engine
+    from reelbench.benchmark.core import engine
 
     events = []
     p = engine.Progress(2, on_row=lambda rows: events.append(("saved", len(rows))),
@@ -494,7 +494,7 @@ def test_a_row_printed_as_finished_is_already_on_disk():
 def test_temporaries_left_by_a_killed_run_are_removed_under_the_lock_and_only_stale_ones(tmp_path):
     import time
 
-    from benchmark.core import store
+    from reelbench.benchmark.core import store
 
     (tmp_path / "cache").mkdir()
     stale = [tmp_path / ".runs.csv.k9ab_x12.tmp.csv", tmp_path / "cache" / ".reference-a-1.npz.zz99yy88.tmp.npz"]
@@ -512,7 +512,7 @@ def test_temporaries_left_by_a_killed_run_are_removed_under_the_lock_and_only_st
 
 
 def test_a_lock_that_cannot_be_written_is_the_cannot_write_line_and_leaves_no_lock(tmp_path, monkeypatch, capsys):
-    from benchmark.core import store
+    from reelbench.benchmark.core import store
 
     real = os.open
 
@@ -607,7 +607,7 @@ WITH_FIGURES = [a for a in TINY if a != "--no-figures"]
 
 
 def test_an_energy_study_too_long_to_run_is_refused_before_any_work(tmp_path, monkeypatch, capsys):
-    from benchmark.studies import grid
+    from reelbench.benchmark.studies import grid
 
     monkeypatch.setattr(grid, "run_sweep", lambda *a, **k: pytest.fail("started the sweep"))
     rc = main(WITH_FIGURES + ["--dts", "0.01", "--horizon", "1e9", "--out", str(tmp_path / "o")])
@@ -619,7 +619,7 @@ def test_an_energy_study_too_long_to_run_is_refused_before_any_work(tmp_path, mo
 
 def test_an_energy_study_whose_worker_crashed_ends_with_exit_1(tmp_path, monkeypatch, capsys):
     """It logged `horizon lgvi dt=0.005 [crashed]` and then exited 0."""
-    from benchmark.studies import horizon
+    from reelbench.benchmark.studies import horizon
 
     def crashed(job):
         return horizon.crash_row(job, MemoryError("out of memory"))
@@ -650,8 +650,8 @@ def test_reel_reversal_on_a_scene_without_a_reel_is_refused(tmp_path, capsys):
 def test_figures_refuse_a_trajectory_that_simulate_did_not_write(tmp_path, capsys, damage, fragment):
     import json
 
-    from integrators import get_integrator
-    from models import load_scene
+    from reelbench.integrators import get_integrator
+    from reelbench.models import load_scene
 
     traj = get_integrator("lgvi").solve(load_scene("fixed_length", elements=1), t_end=0.04, dt=0.01)
     traj.save(tmp_path / "t.npz")
@@ -668,9 +668,9 @@ def test_figures_refuse_a_trajectory_that_simulate_did_not_write(tmp_path, capsy
 
 def test_the_step_limit_is_at_most_1e9_planned_steps_in_the_command_line_and_the_integrators():
     """Exactly 1e9 steps is allowed and one more refused, by the same count (the loop's)."""
-    from benchmark.core import options
-    from integrators import lifecycle
-    from models import load_scene
+    from reelbench.benchmark.core import options
+    from reelbench.integrators import lifecycle
+    from reelbench.models import load_scene
 
     scene = load_scene("fixed_length", elements=1)
     dt = 2.0 ** -20  # t_end / dt exact

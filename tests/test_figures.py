@@ -5,9 +5,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from benchmark.figures import plots
-from benchmark.studies import stability_report
-from benchmark.figures.styles import style
+from reelbench.benchmark.figures import plots
+from reelbench.benchmark.studies import stability_report
+from reelbench.benchmark.figures.styles import style
 
 
 @pytest.fixture
@@ -126,9 +126,9 @@ def _rgb(bar, names, scenes):
 def test_the_energy_panel_draws_every_effects_potential_so_the_parts_add_up(figures):
     """towed_offset lists buoyancy: its potential is a diagnostics column of its own (V_buoyancy)
     and a line of the paper figure's energy panel (b), and T + V_gravity + V_elastic + V_buoyancy = E."""
-    from integrators import Trajectory
-    from models import build_model, load_scene
-    from models.diagnostics import evaluate
+    from reelbench.integrators import Trajectory
+    from reelbench.models import build_model, load_scene
+    from reelbench.models.diagnostics import evaluate
 
     scene = load_scene("towed_offset", elements=2, t_end=0.1)
     x, R, w = build_model(scene).initial_state()

@@ -5,8 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from benchmark.work import flops
-from models import build_model, load_scene
+from reelbench.benchmark.work import flops
+from reelbench.models import build_model, load_scene
 
 
 @pytest.fixture(scope="module")
@@ -20,8 +20,8 @@ def model():
 def _linear_methods(n):
     """Explicit Euler, classical RK4 and a 3-iteration fixed-point implicit Euler on y' = A y
     (A a fixed n × n matrix), as fixed-step methods with their own equations."""
-    from integrators import FixedStepMethod
-    from models._jax import jax, jnp
+    from reelbench.integrators import FixedStepMethod
+    from reelbench.models._jax import jax, jnp
 
     A = jnp.asarray(np.random.default_rng(0).normal(size=(n, n)))
 
@@ -54,7 +54,7 @@ def _linear_methods(n):
 
 
 def test_the_flop_rule_equals_the_hand_count_of_euler_rk4_and_a_newton_like_loop(model):
-    from integrators import registry
+    from reelbench.integrators import registry
 
     n = model.layout.ny
     classes = _linear_methods(n)
@@ -120,7 +120,7 @@ def test_lgvi_flops_scale_with_steps_and_newton_iterations(model):
 
 
 def test_loop_terms_multiply_a_scan_by_its_length():
-    from models._jax import jax, jnp
+    from reelbench.models._jax import jax, jnp
 
     def f(x):
         return jax.lax.scan(lambda c, _: (c * 1.5 + 2.0, None), x, None, length=10)[0]
@@ -135,7 +135,7 @@ def test_loop_terms_multiply_a_scan_by_its_length():
 def test_an_uneven_cond_is_found_and_said(model):
     """A cond whose branches differ in cost (a fallback beside a no-op) is counted at its costlier
     branch on every step: found, and the note says that the count is an upper bound."""
-    from models._jax import jax, jnp
+    from reelbench.models._jax import jax, jnp
 
     def f(pred, x):
         return jax.lax.cond(pred, lambda y: jnp.outer(y, y) @ (jnp.outer(y, y) @ y), lambda y: y, x)
@@ -164,7 +164,7 @@ def test_a_count_kept_on_disk_is_the_traced_count(model, tmp_path, monkeypatch):
     """Counts are kept beside the compiled programs: one read back equals one traced, a plugin's
     step (code outside the hashed source) is never kept, and the compile cache's switch turns
     the keeping off."""
-    from integrators import registry
+    from reelbench.integrators import registry
 
     monkeypatch.setenv("REELBENCH_CACHE", str(tmp_path))
     monkeypatch.delenv("REELBENCH_COMPILE_CACHE", raising=False)

@@ -16,12 +16,12 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq
 
-from integrators import get_integrator
-from models import build_model, load_scene
-from models._jax import jnp
-from models.diagnostics import evaluate
-from models.effects import Buoyancy, FloatingStringWarning
-from models.scene import SceneError
+from reelbench.integrators import get_integrator
+from reelbench.models import build_model, load_scene
+from reelbench.models._jax import jnp
+from reelbench.models.diagnostics import evaluate
+from reelbench.models.effects import Buoyancy, FloatingStringWarning
+from reelbench.models.scene import SceneError
 
 from _helpers import WATER, reference_solution
 

@@ -9,11 +9,11 @@ marked ``slow``. The outcomes asserted here are the ones `results/stability/READ
 import numpy as np
 import pytest
 
-from integrators import Status, get_integrator
-from integrators import lgvi as lgvi_module
-from integrators.base import energy_bound, energy_scale
-from models import available_scenes, build_model, load_scene
-from models.diagnostics import evaluate, summary
+from reelbench.integrators import Status, get_integrator
+from reelbench.integrators import lgvi as lgvi_module
+from reelbench.integrators.base import energy_bound, energy_scale
+from reelbench.models import available_scenes, build_model, load_scene
+from reelbench.models.diagnostics import evaluate, summary
 
 HARD = ("stiff_string", "many_elements", "fast_spin", "retrieval_to_limit", "deployment_to_end", "long_horizon",
         "near_slack", "strong_drag")

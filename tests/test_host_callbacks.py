@@ -12,8 +12,8 @@ import re
 
 import pytest
 
-from integrators import diffrax_ode, fixed_step, get_integrator
-from models import load_scene
+from reelbench.integrators import diffrax_ode, fixed_step, get_integrator
+from reelbench.models import load_scene
 
 COMPILED = {"lgvi": dict(dt=1e-3), "lgvi_sym": dict(dt=1e-3), "lgvi_yoshida4": dict(dt=1e-3),
             "lgvi_suzuki4": dict(dt=1e-3), "lie_rk4": dict(dt=1e-3), "crouch_grossman3": dict(dt=1e-3),
@@ -32,7 +32,7 @@ def callbacks(text: str) -> list[str]:
 def lowered(monkeypatch):
     """The StableHLO text of every program compiled ahead of time while the test runs (the solves
     compile through ``jit(...).lower(...).compile()``), from empty compile caches."""
-    from models._jax import jax
+    from reelbench.models._jax import jax
 
     texts = []
     real = jax.stages.Lowered.compile

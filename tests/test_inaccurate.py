@@ -4,11 +4,11 @@ not "ok", keeps no accuracy values and is a status the runs table knows."""
 import numpy as np
 import pytest
 
-from benchmark.runs import metrics
-from benchmark.runs import runner
-from benchmark.runs import table
-from benchmark.runs.sweep import Task
-from models import load_scene
+from reelbench.benchmark.runs import metrics
+from reelbench.benchmark.runs import runner
+from reelbench.benchmark.runs import table
+from reelbench.benchmark.runs.sweep import Task
+from reelbench.models import load_scene
 
 
 def test_the_sanity_bounds_are_a_tenth_of_the_energy_scale_and_a_hundredth_of_the_string():

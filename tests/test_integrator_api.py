@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from integrators import (IMPLEMENTATIONS, FixedStepMethod, Status, available, get_integrator)
-from integrators import fixed_step, lifecycle
-from models import load_scene
+from reelbench.integrators import (IMPLEMENTATIONS, FixedStepMethod, Status, available, get_integrator)
+from reelbench.integrators import fixed_step, lifecycle
+from reelbench.models import load_scene
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -57,9 +57,9 @@ def test_a_class_says_what_the_method_is_and_the_studies_choose_where_it_runs():
     """Study settings live in each study's table keyed by method name, not on the class; every
     name a table lists is one of the project's methods, and every method of the energy study's
     plan has its setting there."""
-    from benchmark.runs import sweep
-    from benchmark.studies import horizon, stability
-    from integrators import registry
+    from reelbench.benchmark.runs import sweep
+    from reelbench.benchmark.studies import horizon, stability
+    from reelbench.integrators import registry
 
     for name in available():
         for attr in ("horizon_settings", "paper_settings", "sweep_rtols", "default_sweep", "expensive"):
@@ -72,7 +72,7 @@ def test_a_class_says_what_the_method_is_and_the_studies_choose_where_it_runs():
 
 
 def test_the_horizon_bound_is_the_scene_files():
-    from models.scene import PLAUSIBLE
+    from reelbench.models.scene import PLAUSIBLE
 
     assert lifecycle.T_END_MAX == PLAUSIBLE["t_end"][1]
 
@@ -119,7 +119,7 @@ def test_time_limit_ends_an_adapter_run(small, name, kw):
 
 
 def test_scipy_has_a_default_step_budget_and_max_steps_ends_in_its_status(small):
-    from integrators.scipy_ivp import DEFAULT_MAX_STEPS
+    from reelbench.integrators.scipy_ivp import DEFAULT_MAX_STEPS
 
     tr = get_integrator("dop853").solve(small, t_end=0.05, rtol=1e-6, atol=1e-8)
     assert tr.ok and tr.settings["max_steps"] == DEFAULT_MAX_STEPS
@@ -165,7 +165,7 @@ def test_compile_caches_are_bounded_least_recently_used_first_out():
         value, seconds = cache.get(key, lambda k=key: built.append(k) or k.upper())
         assert value == key.upper() and seconds >= 0
     assert built == ["a", "b", "c"] and len(cache) == 2 and "a" in cache and "b" not in cache
-    from integrators import diffrax_ode, lgvi
+    from reelbench.integrators import diffrax_ode, lgvi
 
     for c in (fixed_step._LOOPS, lgvi._VELOCITY, diffrax_ode._SOLVES):
         assert isinstance(c, lifecycle.CompileCache) and c.maxsize <= 64
@@ -174,7 +174,7 @@ def test_compile_caches_are_bounded_least_recently_used_first_out():
 def test_the_loop_cache_holds_the_model_structure_not_its_id(small):
     """A loop is keyed by what it depends on, the model's structure (its numbers are run-time
     arguments), never by an object id that a later model may reuse."""
-    from models import build_model
+    from reelbench.models import build_model
 
     get_integrator("lgvi").solve(small, t_end=0.01, dt=1e-3)
     model = build_model(small)
@@ -192,7 +192,7 @@ def test_every_method_declares_how_it_runs():
         if name.startswith("test_"):
             continue
         assert integ.implementation in IMPLEMENTATIONS, (name, integ.implementation)
-        expected = "scipy-python" if type(integ).__module__ == "integrators.scipy_ivp" else "jax-compiled"
+        expected = "scipy-python" if type(integ).__module__ == "reelbench.integrators.scipy_ivp" else "jax-compiled"
         assert integ.implementation == expected, name
 
 
@@ -226,7 +226,7 @@ class Poisoned(FixedStepMethod):
     order = 1
 
     def step(self, ode, y, t, h):
-        from models._jax import jnp
+        from reelbench.models._jax import jnp
 
         return jnp.where(t >= 0.0049, jnp.nan, y + h * ode.f(t, y))
 
@@ -249,12 +249,12 @@ class PoisonedCarry(FixedStepMethod):
     copy = False
 
     def init(self, ode, y0):
-        from models._jax import jnp
+        from reelbench.models._jax import jnp
 
         return y0, jnp.zeros(())
 
     def step(self, ode, carry, t, h):
-        from models._jax import jnp
+        from reelbench.models._jax import jnp
 
         y, n = carry
         return jnp.where(t >= 0.0049, jnp.nan, y + h * ode.f(t, y)), n + 1.0

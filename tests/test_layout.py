@@ -29,9 +29,12 @@ def _imports(path: Path) -> list[tuple[int, str]]:
                 module = ".".join(base + ([node.module] if node.module else []))
             else:
                 module = node.module or ""
-            # `from benchmark import runs` imports the subpackage `runs`
-            found += [(node.lineno, f"{module}.{a.name}" if module == "benchmark" else module) for a in node.names]
-    return [(line, m) for line, m in found if m == "benchmark" or m.startswith("benchmark.")]
+            # `from reelbench.benchmark import runs` imports the subpackage `runs`
+            found += [(node.lineno, f"{module}.{a.name}" if module == "reelbench.benchmark" else module)
+                      for a in node.names]
+    # the installed name is reelbench.benchmark; a bare `benchmark` import would be the folder's duplicate
+    return [(line, m.removeprefix("reelbench.")) for line, m in found
+            if m.removeprefix("reelbench.") == "benchmark" or m.removeprefix("reelbench.").startswith("benchmark.")]
 
 
 def test_the_layers_are_the_subpackages_in_order():
@@ -62,3 +65,19 @@ def test_each_layer_imports_only_from_itself_and_the_layers_before_it():
             elif rank[target] > rank[mine]:
                 wrong.append(f"benchmark/{'/'.join(parts)}:{line} ({mine}) imports {module} ({target} comes after it)")
     assert not wrong, "layers import only from the layers before them:\n" + "\n".join(wrong)
+
+
+def test_code_imports_the_installed_names_only():
+    """models, integrators and benchmark install as reelbench.models, reelbench.integrators and
+    reelbench.benchmark; a bare `import models` would load a second copy of the folder (from
+    the repository root on sys.path), with registries of its own."""
+    root = BENCHMARK.parent
+    bare = []
+    for folder in ("models", "integrators", "benchmark", "tests"):
+        for path in sorted((root / folder).rglob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+                names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                         else [node.module or ""] if isinstance(node, ast.ImportFrom) and not node.level else [])
+                bare += [f"{path.relative_to(root)}:{node.lineno} imports {n}" for n in names
+                         if n.split(".")[0] in ("models", "integrators", "benchmark")]
+    assert not bare, "import the installed names (reelbench.models, ...):\n" + "\n".join(bare)

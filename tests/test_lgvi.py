@@ -9,13 +9,13 @@ reuses the same executable.
 import numpy as np
 import pytest
 
-from integrators import Status, get_integrator
-from integrators._lgvi_core import DiscreteLagrangian, cayley
-from integrators.lgvi import LGVI
-from models import build_model, load_scene
-from models._jax import jax, jnp
-from models.diagnostics import evaluate, summary
-from models.model import hat
+from reelbench.integrators import Status, get_integrator
+from reelbench.integrators._lgvi_core import DiscreteLagrangian, cayley
+from reelbench.integrators.lgvi import LGVI
+from reelbench.models import build_model, load_scene
+from reelbench.models._jax import jax, jnp
+from reelbench.models.diagnostics import evaluate, summary
+from reelbench.models.model import hat
 
 from _helpers import random_state, reference_solution, scene_with_effects
 

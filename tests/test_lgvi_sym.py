@@ -8,12 +8,12 @@ Runs are small (N = 5, at most 0.5 s) and share one compiled loop per (scene, sc
 import numpy as np
 import pytest
 
-from integrators import Status, get_integrator
-from integrators._lgvi_core import DiscreteLagrangian, cayley
-from integrators.lgvi_sym import SUZUKI4, YOSHIDA4
-from models import build_model, load_scene
-from models._jax import jnp
-from models.diagnostics import evaluate, summary
+from reelbench.integrators import Status, get_integrator
+from reelbench.integrators._lgvi_core import DiscreteLagrangian, cayley
+from reelbench.integrators.lgvi_sym import SUZUKI4, YOSHIDA4
+from reelbench.models import build_model, load_scene
+from reelbench.models._jax import jnp
+from reelbench.models.diagnostics import evaluate, summary
 
 from _helpers import effect_combinations, random_state, reference_solution, scene_with_effects
 from test_lgvi import autodiff_momenta, check_step_equations
@@ -291,7 +291,7 @@ def test_reel_reversal_keeps_the_orders(tmp_path):
     here). Measured with ``python -m benchmark reel-reversal`` (h = 4 → 0.5 ms, Suzuki 8 → 1 ms:
     lgvi_sym 1.99-2.00, Yoshida 4.00-4.02, Suzuki 3.98-4.01; even constant-step Tsit5 (order 5)
     shows 5.1-6.6 on body and s_p, 4.2-4.9 on E − W)."""
-    from benchmark.studies.reel_reversal import errors, reference
+    from reelbench.benchmark.studies.reel_reversal import errors, reference
     scene = load_scene("reel_reversal", elements=5)
     ref, flips = reference(scene, 0.96, tmp_path)
     assert len(flips) == 1 and 0.4 < flips[0] < 0.6

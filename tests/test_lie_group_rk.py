@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from integrators import Capability, get_integrator
-from integrators._lie_group_steps import (crouch_grossman3_step, pendulum_field, rkmk4_step, rotation_to_quat,
+from reelbench.integrators import Capability, get_integrator
+from reelbench.integrators._lie_group_steps import (crouch_grossman3_step, pendulum_field, rkmk4_step, rotation_to_quat,
                                       so3_exp, split_ode_state)
-from integrators.rhs import closed_form_of
-from models import build_model
-from models._jax import jax, jnp
-from models.model import hat, quat_to_rot
+from reelbench.integrators.rhs import closed_form_of
+from reelbench.models import build_model
+from reelbench.models._jax import jax, jnp
+from reelbench.models.model import hat, quat_to_rot
 
 from _helpers import scene_with_effects
 
@@ -163,9 +163,9 @@ def test_the_run_s_right_hand_side_drives_the_field(rng):
     """``rhs="autodiff"`` (``ode.f`` is the model's own ``ode_rhs``) drives the step with the
     autodiff model's accelerations, the default with the closed form: the two fields agree to
     round-off (the closed form is checked against autodiff in tests/test_closed_form.py)."""
-    from integrators import ODEProblem
-    from integrators._lie_group_steps import equations_of
-    from integrators.rhs import ode_rhs
+    from reelbench.integrators import ODEProblem
+    from reelbench.integrators._lie_group_steps import equations_of
+    from reelbench.integrators.rhs import ode_rhs
 
     model = build_model(scene_with_effects(["elasticity", "gravity", "rigid_body", "reel", "carnot", "reel_control"],
                                            elements=2))

@@ -5,13 +5,13 @@ and lumped models converging to each other as N grows."""
 import numpy as np
 import pytest
 
-from integrators._lgvi_core import DiscreteLagrangian, cayley
-from integrators.lgvi import LGVI
-from models import SceneError, build_model, load_scene
-from models._jax import jax, jnp
-from models.closed_form import ClosedFormEOM
-from models.diagnostics import evaluate, summary
-from models.model import STRING_MASS
+from reelbench.integrators._lgvi_core import DiscreteLagrangian, cayley
+from reelbench.integrators.lgvi import LGVI
+from reelbench.models import SceneError, build_model, load_scene
+from reelbench.models._jax import jax, jnp
+from reelbench.models.closed_form import ClosedFormEOM
+from reelbench.models.diagnostics import evaluate, summary
+from reelbench.models.model import STRING_MASS
 
 from _helpers import reference_solution
 from test_lgvi import autodiff_momenta
@@ -158,7 +158,7 @@ def test_consistent_and_lumped_converge_to_each_other():
 def test_baselines_follow_the_lumped_mass():
     """The baselines integrate the model's RHS: DOP853 (the plugin) on the lumped scene equals
     solve_ivp on the lumped model, and differs from the consistent one."""
-    from integrators import get_integrator
+    from reelbench.integrators import get_integrator
 
     scene = lumped(elements=3, body=False, t_end=0.3)
     tr = get_integrator("dop853").solve(scene, t_end=0.3, rtol=1e-11, atol=1e-12, save_every=0.3)

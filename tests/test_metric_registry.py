@@ -3,11 +3,11 @@
 import numpy as np
 import pandas as pd
 
-from benchmark.studies import check
-from benchmark.runs import metrics
-from integrators import get_integrator
-from models import build_model, load_scene
-from models.diagnostics import evaluate, summary
+from reelbench.benchmark.studies import check
+from reelbench.benchmark.runs import metrics
+from reelbench.integrators import get_integrator
+from reelbench.models import build_model, load_scene
+from reelbench.models.diagnostics import evaluate, summary
 
 
 def test_every_reader_lists_every_registry_metric():
@@ -16,7 +16,7 @@ def test_every_reader_lists_every_registry_metric():
     reference metric, and `check` compares each metric with the registry's floor: a reader that
     stops taking its metrics from `METRICS` fails here. (That `ACCURACY`, `CONSERVATION`,
     `FLOORS` and `DIRECTIONS` are the registry's holds by their definitions: not asserted.)"""
-    from benchmark.studies import stability
+    from reelbench.benchmark.studies import stability
 
     names = [m.name for m in metrics.METRICS]
     assert len(set(names)) == len(names)
@@ -37,7 +37,7 @@ def test_every_reader_lists_every_registry_metric():
 
 def test_stability_map_table_holds_every_conservation_metric():
     """metrics.Metric: the stability map reports the metrics that need no reference."""
-    from benchmark.studies import stability
+    from reelbench.benchmark.studies import stability
 
     conservation = [m.name for m in metrics.METRICS if not m.reference]
     assert conservation and set(conservation) <= set(stability.COLUMNS)

@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from models import build_model, load_scene
-from models._jax import jax, jnp
-from models.diagnostics import evaluate, summary
-from models.model import hat, quat_to_rot, rot_to_quat
-from integrators.base import Trajectory
+from reelbench.models import build_model, load_scene
+from reelbench.models._jax import jax, jnp
+from reelbench.models.diagnostics import evaluate, summary
+from reelbench.models.model import hat, quat_to_rot, rot_to_quat
+from reelbench.integrators.base import Trajectory
 
 from _helpers import effect_combinations, random_state, reference_solution, scene_with_effects
 
@@ -145,7 +145,7 @@ def test_stiff_light_string_is_a_simple_pendulum():
 def test_quat_to_rot_many_is_quat_to_rot_bit_for_bit():
     """The host's batched twin (the metrics' attitude matrices) equals the JAX formula exactly,
     unit and non-unit quaternions (the baselines' are not renormalised)."""
-    from models.model import quat_to_rot_many
+    from reelbench.models.model import quat_to_rot_many
 
     q = np.random.default_rng(3).normal(size=(50, 4))
     q[:25] /= np.linalg.norm(q[:25], axis=1, keepdims=True)

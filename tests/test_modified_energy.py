@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from benchmark.studies.properties import (classify, correction_of, drift_fit, energy_table, shadow_coefficient,
+from reelbench.benchmark.studies.properties import (classify, correction_of, drift_fit, energy_table, shadow_coefficient,
                                   window_means)
 
 # --- the elastic pendulum (a point mass on a linear spring under gravity, in a plane), integrated by
@@ -74,7 +74,7 @@ def test_the_mode_averaged_offset_is_the_closed_form_one_averaged():
 
 
 def test_the_composition_coefficients_follow_from_their_substeps():
-    from integrators.lgvi_sym import SUZUKI4, YOSHIDA4
+    from reelbench.integrators.lgvi_sym import SUZUKI4, YOSHIDA4
 
     assert shadow_coefficient(YOSHIDA4, 4) == pytest.approx(-0.06614, rel=1e-3)
     assert shadow_coefficient(SUZUKI4, 4) == pytest.approx(-0.000930, rel=1e-2)

@@ -8,8 +8,8 @@ New fixed-step methods (built-in or plugin) are picked up automatically. The sce
 import numpy as np
 import pytest
 
-from integrators import Capability, available, get_integrator
-from integrators.base import SITUATIONS, situation
+from reelbench.integrators import Capability, available, get_integrator
+from reelbench.integrators.base import SITUATIONS, situation
 
 from _helpers import reference_solution, scene_with_effects
 

@@ -14,7 +14,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from benchmark.studies import orders
+from reelbench.benchmark.studies import orders
 
 RESULTS = Path(__file__).resolve().parent.parent / "results"
 
@@ -25,7 +25,7 @@ def committed():
 
 
 def _check_against_theory(summary: pd.DataFrame, ladder: pd.DataFrame, methods):
-    from integrators import get_integrator
+    from reelbench.integrators import get_integrator
 
     for scene in orders.SCENES:
         declared = {m: get_integrator(m).order_for(orders.load(scene)) for m in methods}
@@ -84,7 +84,7 @@ def test_the_slope_is_the_last_halving_above_the_floor():
 
 @pytest.mark.slow
 def test_the_whole_table_recomputed_matches_theory(tmp_path):
-    from benchmark.core import study
+    from reelbench.benchmark.core import study
 
     the_study = orders.study(workers=0, echo=lambda m: None)
     assert study.run(the_study, tmp_path, command="python -m benchmark orders", log=lambda m: None) == 0
@@ -93,7 +93,7 @@ def test_the_whole_table_recomputed_matches_theory(tmp_path):
 
 
 def test_a_method_without_a_constant_step_is_refused_before_any_work(tmp_path, capsys):
-    from benchmark.cli.main import main
+    from reelbench.benchmark.cli.main import main
 
     assert main(["orders", "--integrators", "rk45", "--out", str(tmp_path / "o")]) == 2
     assert "error: --integrators: 'rk45' has no constant-step mode" in capsys.readouterr().err

@@ -4,7 +4,7 @@ with the ratio inside its interval; two equal methods are a tie."""
 import numpy as np
 import pytest
 
-from benchmark.answer.paired import RACE_MARGIN, compare, pinned, resolved, time_paired
+from reelbench.benchmark.answer.paired import RACE_MARGIN, compare, pinned, resolved, time_paired
 
 
 def synthetic(base: float, rng, load):
@@ -79,7 +79,7 @@ def test_pinned_restores_the_affinity():
 def test_a_ratio_within_the_equivalence_margin_is_a_tie_whatever_its_interval():
     """Two quiet passes of the same settings moved a ratio by up to 10.7 %: an interval of
     [1.06, 1.16] in one pass (a 'winner' by its interval alone) was the fastest in the next."""
-    from benchmark.answer.paired import EQUIVALENCE, Ratio, verdicts
+    from reelbench.benchmark.answer.paired import EQUIVALENCE, Ratio, verdicts
 
     out = verdicts([Ratio("a", 1.0, 1.0, 1.0, 1.0, 17), Ratio("b", 1.09, 1.09, 1.06, 1.16, 17)])
     assert [r.verdict for r in out] == ["tie", "tie"]

@@ -28,7 +28,7 @@ def site(tmp_path_factory):
 
 @pytest.fixture
 def installed(site, monkeypatch):
-    from integrators import registry
+    from reelbench.integrators import registry
 
     monkeypatch.syspath_prepend(str(site))
     yield site
@@ -43,9 +43,9 @@ def _benchmark(site, *args):
 
 
 def test_defaults_keep_to_the_projects_own_methods(installed):
-    from benchmark.studies import stability
-    from benchmark.runs import sweep
-    from integrators import available, origin, registry
+    from reelbench.benchmark.studies import stability
+    from reelbench.benchmark.runs import sweep
+    from reelbench.integrators import available, origin, registry
 
     assert NAME in available()
     assert origin(NAME) == ("my-stepper", "0.1", False)
@@ -81,9 +81,9 @@ def test_list_marks_plugins_with_their_package_and_version(site):
 
 
 def test_provenance_follows_the_package_and_the_plugins_source(installed, tmp_path):
-    from benchmark.runs.runner import provenance
-    from benchmark.core.store import code_version
-    from models.origin import source_digest, project_origin
+    from reelbench.benchmark.runs.runner import provenance
+    from reelbench.benchmark.core.store import code_version
+    from reelbench.models.origin import source_digest, project_origin
 
     code = code_version()
     own = provenance("lgvi", code)
@@ -92,7 +92,7 @@ def test_provenance_follows_the_package_and_the_plugins_source(installed, tmp_pa
     assert guest["package"] == "my-stepper" and guest["package_version"] == "0.1"
     assert guest["code_digest"] != code and len(guest["code_digest"]) == 12
     # an edit of the plugin's source changes the digest its rows' resume keys use
-    from integrators import get_integrator
+    from reelbench.integrators import get_integrator
 
     cls = type(get_integrator(NAME))
     before = source_digest(cls)
@@ -106,8 +106,8 @@ def test_provenance_follows_the_package_and_the_plugins_source(installed, tmp_pa
 
 def test_with_plugins_or_a_name_brings_them_in(installed, tmp_path, monkeypatch, capsys):
     """What `run` hands its pipeline (stubbed: nothing runs): the plugin joins only when asked."""
-    from benchmark.cli import main as cli
-    from benchmark.studies import grid
+    from reelbench.benchmark.cli import main as cli
+    from reelbench.benchmark.studies import grid
 
     seen = []
     monkeypatch.setattr(grid, "run_sweep", lambda request, log: seen.append(request) or 0)

@@ -6,15 +6,15 @@ import textwrap
 import numpy as np
 import pytest
 
-import integrators
-from integrators import Capability, Integrator, get_integrator, register
-from integrators import registry
+from reelbench import integrators
+from reelbench.integrators import Capability, Integrator, get_integrator, register
+from reelbench.integrators import registry
 
 
 PLUGIN_MODULE = '''
 import numpy as np
-from integrators import Capability, Integrator, Trajectory
-from models import build_model
+from reelbench.integrators import Capability, Integrator, Trajectory
+from reelbench.models import build_model
 
 
 class ExplicitEuler(Integrator):
@@ -65,8 +65,8 @@ def plugin_on_path(tmp_path, monkeypatch):
 
 
 def test_entry_point_plugin_is_discovered_and_integrates_to_first_order(plugin_on_path):
-    from models import load_scene
-    from models.diagnostics import evaluate
+    from reelbench.models import load_scene
+    from reelbench.models.diagnostics import evaluate
 
     from _helpers import reference_solution
 

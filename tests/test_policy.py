@@ -5,8 +5,8 @@ import math
 
 import pytest
 
-from benchmark.core import policy
-from benchmark.core.policy import Setting
+from reelbench.benchmark.core import policy
+from reelbench.benchmark.core.policy import Setting
 
 
 def test_a_setting_carries_its_label_its_solve_arguments_and_parses_back():
@@ -26,8 +26,8 @@ def test_a_setting_carries_its_label_its_solve_arguments_and_parses_back():
 
 
 def test_the_sweep_and_the_answer_solve_a_setting_alike():
-    from benchmark.answer import answer
-    from benchmark.runs.sweep import Task, build_tasks
+    from reelbench.benchmark.answer import answer
+    from reelbench.benchmark.runs.sweep import Task, build_tasks
 
     for axis, value in (("dt", 0.005), ("rtol", 1e-6)):
         task = Task("fixed_length", "tsit5", **vars(Setting.on_axis(axis, value)), t_end=1.0)
@@ -38,12 +38,12 @@ def test_the_sweep_and_the_answer_solve_a_setting_alike():
 
 
 def test_the_budgets_and_the_resolution_are_read_from_the_policy():
-    from benchmark.answer import answer
-    from benchmark.studies import horizon
-    from benchmark.core import options
-    from benchmark.answer import paired
-    from benchmark.runs import runner
-    from benchmark.answer import search
+    from reelbench.benchmark.answer import answer
+    from reelbench.benchmark.studies import horizon
+    from reelbench.benchmark.core import options
+    from reelbench.benchmark.answer import paired
+    from reelbench.benchmark.runs import runner
+    from reelbench.benchmark.answer import search
 
     assert runner.SolveBudget() == runner.SolveBudget(policy.SOLVE_MAX_STEPS, policy.SOLVE_TIME_LIMIT)
     assert (options.SOLVE_MAX_STEPS, options.SOLVE_TIME_LIMIT) == (policy.SOLVE_MAX_STEPS, policy.SOLVE_TIME_LIMIT)
@@ -54,8 +54,8 @@ def test_the_budgets_and_the_resolution_are_read_from_the_policy():
 
 
 def test_every_reference_setup_is_the_policy_s():
-    from benchmark.studies import orders
-    from benchmark.core import reference
+    from reelbench.benchmark.studies import orders
+    from reelbench.benchmark.core import reference
 
     assert reference.REFERENCE_METHOD is policy.REFERENCE_METHOD
     assert (orders.REFERENCE_METHOD, orders.REFERENCE_DT) == (policy.ORDERS_REFERENCE_METHOD,
@@ -64,11 +64,11 @@ def test_every_reference_setup_is_the_policy_s():
 
 
 def test_the_status_sets_are_named_once_beside_the_statuses():
-    from benchmark.runs import metrics
-    from benchmark.runs import ranking
-    from benchmark.answer import search
-    from benchmark.runs import table
-    from integrators.base import (BUDGET_STATUSES, FINISHED_STATUSES, RETRY_STATUSES, TABLE_ONLY_STATUSES, Status,
+    from reelbench.benchmark.runs import metrics
+    from reelbench.benchmark.runs import ranking
+    from reelbench.benchmark.answer import search
+    from reelbench.benchmark.runs import table
+    from reelbench.integrators.base import (BUDGET_STATUSES, FINISHED_STATUSES, RETRY_STATUSES, TABLE_ONLY_STATUSES, Status,
                                   is_finished)
 
     assert FINISHED_STATUSES == (Status.OK.value,) and is_finished("ok") and not is_finished(float("nan"))
@@ -85,10 +85,10 @@ def test_the_command_line_counts_the_steps_and_the_memory_the_integrators_do(t_e
     """options.run_size restates two integrator rules (it must not import the integrators package):
     its step count is the loop's, also where dt does not divide t_end, and its saved size is the one
     the integrators refuse beyond, with the same limits."""
-    from benchmark.core import options
-    from integrators import lifecycle
-    from integrators.base import fixed_step_count, fixed_step_grid
-    from models import load_scene
+    from reelbench.benchmark.core import options
+    from reelbench.integrators import lifecycle
+    from reelbench.integrators.base import fixed_step_count, fixed_step_grid
+    from reelbench.models import load_scene
 
     scene = load_scene("deployment", elements=3)
     size = options.run_size(scene, t_end, 0.02, dt)
@@ -101,19 +101,19 @@ def test_the_command_line_counts_the_steps_and_the_memory_the_integrators_do(t_e
 
 
 def test_the_longest_horizon_is_the_scene_files():
-    from integrators import lifecycle
-    from models.schema import PLAUSIBLE
+    from reelbench.integrators import lifecycle
+    from reelbench.models.schema import PLAUSIBLE
 
     assert lifecycle.T_END_MAX == PLAUSIBLE["t_end"][1]
 
 
 def test_a_row_s_identity_is_one_rule_and_a_new_metric_is_range_checked_on_read_back(monkeypatch):
-    from benchmark.studies import check
-    from benchmark.runs import metrics
-    from benchmark.runs import reproducibility
-    from benchmark.runs import table
-    from benchmark.core import store
-    from benchmark.runs.sweep import Task
+    from reelbench.benchmark.studies import check
+    from reelbench.benchmark.runs import metrics
+    from reelbench.benchmark.runs import reproducibility
+    from reelbench.benchmark.runs import table
+    from reelbench.benchmark.core import store
+    from reelbench.benchmark.runs.sweep import Task
 
     task = Task("fixed_length", "lgvi", dt=0.01)
     row = {"scene": "fixed_length", "integrator": "lgvi", "setting": task.setting, "status": "ok", "run_time": 0.1,
@@ -125,20 +125,20 @@ def test_a_row_s_identity_is_one_rule_and_a_new_metric_is_range_checked_on_read_
 
 
 def test_the_output_places_are_the_policy_s():
-    from benchmark.answer import answer
-    from benchmark.studies import check
-    from benchmark.cli import run as cli_run
-    from benchmark.studies import grid
-    from benchmark.core import store
+    from reelbench.benchmark.answer import answer
+    from reelbench.benchmark.studies import check
+    from reelbench.benchmark.cli import run as cli_run
+    from reelbench.benchmark.studies import grid
+    from reelbench.benchmark.core import store
 
     assert check.BASELINE == policy.BASELINE_FILE and answer.COMMITTED_ANSWER == policy.RESULTS
     assert cli_run.GRID_OUT == str(policy.GRID_DIR) and grid.COMMITTED_RESULTS == store.ROOT / policy.GRID_DIR
 
 
 def test_the_defaults_of_a_request_are_the_command_line_s():
-    from benchmark.studies import check
-    from benchmark.studies import grid
-    from benchmark.runs import sweep
+    from reelbench.benchmark.studies import check
+    from reelbench.benchmark.studies import grid
+    from reelbench.benchmark.runs import sweep
 
     request = grid.SweepRequest(out=".", scenes=("fixed_length",), quick=True)
     assert (request.executor, request.repeats) == (sweep.DEFAULT_EXECUTOR, sweep.MIN_REPEATS)
@@ -150,8 +150,8 @@ def test_the_defaults_of_a_request_are_the_command_line_s():
 def test_the_reel_reversal_table_and_the_order_ladders_compute_an_order_alike():
     from types import SimpleNamespace
 
-    from benchmark.core.order import successive_orders
-    from benchmark.studies import reel_reversal
+    from reelbench.benchmark.core.order import successive_orders
+    from reelbench.benchmark.studies import reel_reversal
 
     errors = [reel_reversal.Errors(1e-3, 2e-3, 4e-3), reel_reversal.Errors(2.5e-4, 2.5e-4, 1e-3)]
     rows = [{"method": "lgvi", "h": h, "status": "ok", **{f"error_{k}": v for k, v in e._asdict().items()}}
@@ -173,7 +173,7 @@ def _ladder(order, sizes=(0.04, 0.02, 0.01, 0.005, 0.0025), c=3.0):
 def test_the_observed_order_of_a_ladder_of_known_order(order):
     import numpy as np
 
-    from benchmark.core.order import fitted_order, last_order, successive_orders
+    from reelbench.benchmark.core.order import fitted_order, last_order, successive_orders
 
     h, e = _ladder(order)
     assert np.allclose(successive_orders(h, e), order) and len(successive_orders(h, e)) == len(h) - 1
@@ -196,8 +196,8 @@ def test_every_study_takes_the_observed_order_from_one_place(monkeypatch):
     import numpy as np
     import pandas as pd
 
-    from benchmark.runs import metrics
-    from benchmark.studies import slack_orders
+    from reelbench.benchmark.runs import metrics
+    from reelbench.benchmark.studies import slack_orders
 
     h, e = _ladder(2.0)
     runs = pd.DataFrame({"scene": "s", "integrator": "m", "dt": h, "steps": np.round(1.0 / h), "status": "ok",
@@ -218,7 +218,7 @@ def test_every_study_takes_the_observed_order_from_one_place(monkeypatch):
     callers = {"runs/metrics.py", "studies/orders.py", "studies/reel_reversal.py", "studies/slack_orders.py",
                "contract/verify.py"}
     for name in callers:
-        assert "from benchmark.core.order import" in (root / name).read_text(encoding="utf-8"), name
+        assert "from reelbench.benchmark.core.order import" in (root / name).read_text(encoding="utf-8"), name
 
 
 # ---- the verdicts' words (R23): each listed once, beside the code that decides them ---------
@@ -234,7 +234,7 @@ def _string_constants(words: set) -> list[str]:
 
 
 def test_each_verdict_word_is_written_once():
-    from benchmark.runs import reproducibility
+    from reelbench.benchmark.runs import reproducibility
 
     answer_words = {*policy.RANKED_VERDICTS, *policy.UNRANKED_VERDICTS}
     assert policy.BEST_VERDICTS == policy.RANKED_VERDICTS[:2] and len(answer_words) == 7
@@ -250,8 +250,8 @@ def _line_of(text: str) -> str:
 
 
 def test_the_rankings_and_the_answer_give_the_verdicts_of_policy():
-    from benchmark.answer import paired
-    from benchmark.runs.ranking import work_verdicts
+    from reelbench.benchmark.answer import paired
+    from reelbench.benchmark.runs.ranking import work_verdicts
 
     ratios = paired.verdicts([paired.Ratio("a", 1.0, 1.0, 1.0, 1.0, 10), paired.Ratio("b", 2.0, 2.0, 1.9, 2.1, 10),
                               paired.Ratio("c", 1.05, 1.05, 0.9, 1.2, 10)])
@@ -270,8 +270,8 @@ def test_no_status_is_compared_or_written_as_a_literal():
     import ast
     from pathlib import Path
 
-    from benchmark.studies.stability import SKIPPED
-    from integrators.base import TABLE_ONLY_STATUSES, Status
+    from reelbench.benchmark.studies.stability import SKIPPED
+    from reelbench.integrators.base import TABLE_ONLY_STATUSES, Status
 
     words = {s.value for s in Status} | set(TABLE_ONLY_STATUSES) | {SKIPPED}
 

@@ -6,7 +6,7 @@ modified-energy offset), and the words follow the numbers."""
 import numpy as np
 import pandas as pd
 
-from benchmark.studies.properties import BOUNDED_BELOW, DRIFTING_FROM, classify, energy_table, properties_text
+from reelbench.benchmark.studies.properties import BOUNDED_BELOW, DRIFTING_FROM, classify, energy_table, properties_text
 
 T = np.linspace(0.0, 100.0, 1001)
 

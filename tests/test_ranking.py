@@ -1,4 +1,4 @@
-"""benchmark.runs.ranking: what a verdict ranks (entries), the work verdicts that say "tie" where the
+"""reelbench.benchmark.runs.ranking: what a verdict ranks (entries), the work verdicts that say "tie" where the
 intervals overlap, and why runs failed."""
 
 import pandas as pd
@@ -6,8 +6,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from benchmark.runs.ranking import entry_name, failure_causes, failure_summary, presentation_rank, work_verdicts
-from benchmark.runs.sweep import PRESENTATION_ORDER
+from reelbench.benchmark.runs.ranking import entry_name, failure_causes, failure_summary, presentation_rank, work_verdicts
+from reelbench.benchmark.runs.sweep import PRESENTATION_ORDER
 
 
 def row(integrator, setting, *, status="ok", error=1e-6, scene="s", **extra):

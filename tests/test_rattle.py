@@ -10,15 +10,15 @@ import functools
 import numpy as np
 import pytest
 
-from integrators import Capability, Status, get_integrator
-from integrators._lie_group_steps import pendulum_field, rkmk4_step
-from integrators._rattle_step import (RattleState, extension_inertia, initial_state, pendulum_system, quat_matrix,
+from reelbench.integrators import Capability, Status, get_integrator
+from reelbench.integrators._lie_group_steps import pendulum_field, rkmk4_step
+from reelbench.integrators._rattle_step import (RattleState, extension_inertia, initial_state, pendulum_system, quat_matrix,
                                 rattle_step)
-from integrators.rhs import closed_form_of
-from models import build_model
-from models._jax import jax, jnp
-from models.diagnostics import evaluate
-from models.model import quat_rate, quat_to_rot, vee
+from reelbench.integrators.rhs import closed_form_of
+from reelbench.models import build_model
+from reelbench.models._jax import jax, jnp
+from reelbench.models.diagnostics import evaluate
+from reelbench.models.model import quat_rate, quat_to_rot, vee
 
 from _helpers import random_state, scene_with_effects
 
@@ -127,7 +127,7 @@ def test_quaternion_lagrangian_momenta_and_mass_are_the_models(rng):
     """On the constraint (|Q| = 1, Q̇ = ½ Q ⊗ (0, Ω)), with a reel and a rigid body: L(q, q̇) =
     L_model(x, R, w), p_x is the model's, p_Q = 2 G(Q)ᵀ Π, the hidden constraint Q·p_Q = 0
     holds; the structured M⁻¹ equals the inverse of ∂²L/∂q̇² (autodiff) for any right-hand side."""
-    from models.model import rot_to_quat
+    from reelbench.models.model import rot_to_quat
 
     model = model_of("reel")
     lay = model.layout
@@ -416,7 +416,7 @@ def test_declarations_and_refused_options():
     integ = get_integrator("rattle")
     assert integ.capabilities == frozenset({Capability.FIXED_STEP, Capability.IMPLICIT, Capability.VARIATIONAL})
     assert integ.order == 2 and integ.orders is None and integ.implementation == "jax-compiled"
-    from benchmark.studies import horizon
+    from reelbench.benchmark.studies import horizon
 
     assert horizon.declared("rattle").settings == {"dt": 0.005}  # the energy study's setting
     scene = scene_with_effects(FIXED, elements=3)
@@ -439,7 +439,7 @@ def test_a_failed_newton_solve_ends_the_run_as_newton_failed_with_its_iterations
     the Newton iterations into the stats; a cap of one iteration cannot converge (the stopping
     rule needs two updates to estimate the contraction), so the run stops at its first step as
     ``newton_failed``, keeping the initial state."""
-    from integrators.rattle import Rattle
+    from reelbench.integrators.rattle import Rattle
 
     scene = scene_with_effects(VARIANTS["fixed_length"][0], elements=2)
     ok = get_integrator("rattle").solve(scene, t_end=0.05, dt=0.005, save_every=0.05)

@@ -7,9 +7,9 @@ import shutil
 import numpy as np
 import pytest
 
-from benchmark.core import reference
-from benchmark.core.reference import CacheError, get_reference, load_reference, reference_path
-from models import load_scene
+from reelbench.benchmark.core import reference
+from reelbench.benchmark.core.reference import CacheError, get_reference, load_reference, reference_path
+from reelbench.models import load_scene
 
 T_END, SAVE = 0.04, 0.02
 

@@ -2,8 +2,8 @@
 
 import pandas as pd
 
-from benchmark.studies import runs_report
-from benchmark.cli.main import main
+from reelbench.benchmark.studies import runs_report
+from reelbench.benchmark.cli.main import main
 
 
 def _rows(costs: dict) -> pd.DataFrame:
@@ -61,7 +61,7 @@ def _sweep_rows() -> pd.DataFrame:
 def test_the_sweeps_readme_ranks_nothing_and_names_the_answers_command(tmp_path):
     """The grid sweep's README describes its table (the time per evaluation by implementation,
     the failures) and sends the reader to the main job for which method to use."""
-    from benchmark.core.report import Provenance
+    from reelbench.benchmark.core.report import Provenance
 
     runs = _sweep_rows().assign(orthogonality_error=1e-12)
     per_eval = runs_report.evaluation_costs(runs).set_index("integrator")
@@ -82,8 +82,8 @@ def test_one_load_helper_nan_where_the_platform_does_not_say(monkeypatch):
     import math
     import os
 
-    from benchmark.core import report
-    from benchmark.core.report import Provenance
+    from reelbench.benchmark.core import report
+    from reelbench.benchmark.core.report import Provenance
 
     assert report.one_minute_load() >= 0
     monkeypatch.delattr(os, "getloadavg")

@@ -1,4 +1,4 @@
-"""benchmark.runs.reproducibility: what two runs tables from different CPUs must share, checked on
+"""reelbench.benchmark.runs.reproducibility: what two runs tables from different CPUs must share, checked on
 the measured pair (tests/data) and on small made-up differences."""
 
 import re
@@ -8,8 +8,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from benchmark.runs.ranking import failure_causes, failure_summary
-from benchmark.runs.reproducibility import DEFAULT_TOLERANCE, AgreementTolerance, compare_runs, reproducible, statement
+from reelbench.benchmark.runs.ranking import failure_causes, failure_summary
+from reelbench.benchmark.runs.reproducibility import DEFAULT_TOLERANCE, AgreementTolerance, compare_runs, reproducible, statement
 
 DATA = Path(__file__).parent / "data"
 

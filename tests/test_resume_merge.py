@@ -7,7 +7,7 @@ The sweeps are tiny (fixed_length with one element, 0.04 s, serial executor)."""
 import pandas as pd
 import pytest
 
-from benchmark.cli.main import main
+from reelbench.benchmark.cli.main import main
 
 TINY = ["--scenes", "fixed_length", "--t-end", "0.04", "--set", "elements=1", "--executor", "serial", "--repeats",
         "1", "--horizon", "0.1", "--jobs", "1"]
@@ -95,7 +95,7 @@ def test_a_run_other_than_the_default_sweep_needs_an_explicit_out(tmp_path, caps
 def test_the_committed_grid_cites_the_other_studies_where_they_write_by_default(tmp_path):
     """results/grid/ is the grid sweep's; the orders, stability and energy studies write into
     results/ by default, and the grid's README cites them there unless its own directory has them."""
-    from benchmark.studies import grid
+    from reelbench.benchmark.studies import grid
 
     committed = grid.COMMITTED_RESULTS
     assert committed == grid.store.ROOT / "results" / "grid" and grid.is_committed_results(committed)
@@ -111,7 +111,7 @@ def test_the_committed_grid_cites_the_other_studies_where_they_write_by_default(
     ("<!-- answer:end -->\n<!-- answer:start -->\n", False),
 ])
 def test_the_answer_block_replaces_only_the_text_between_its_markers(tmp_path, text, wrote):
-    from benchmark.answer.answer_report import write_answer
+    from reelbench.benchmark.answer.answer_report import write_answer
 
     readme = tmp_path / "README.md"
     readme.write_text(text)

@@ -6,11 +6,11 @@ import time
 import numpy as np
 import pytest
 
-import integrators.rhs as rhs_module
-from benchmark.runs.metrics import work_evals
-from integrators import Capability, available, get_integrator
-from models import build_model
-from models._jax import DEFAULT_XLA_FLAGS, append_xla_flags, jax, jnp, xla_flags
+import reelbench.integrators.rhs as rhs_module
+from reelbench.benchmark.runs.metrics import work_evals
+from reelbench.integrators import Capability, available, get_integrator
+from reelbench.models import build_model
+from reelbench.models._jax import DEFAULT_XLA_FLAGS, append_xla_flags, jax, jnp, xla_flags
 
 from _helpers import scene_with_effects
 
@@ -85,8 +85,8 @@ def test_rhs_option_is_validated_and_recorded():
 def test_explicit_diffrax_rhs_evals_match_a_counting_rhs(name, stages, monkeypatch):
     """stats["rhs_evals"] of the explicit FSAL methods (derived from their steps) = evaluations
     actually made."""
-    import integrators.diffrax_ode as dx
-    from integrators.lifecycle import CompileCache
+    import reelbench.integrators.diffrax_ode as dx
+    from reelbench.integrators.lifecycle import CompileCache
 
     count = [0]
     plain = rhs_module.ode_rhs
@@ -117,7 +117,7 @@ def test_explicit_diffrax_rhs_evals_match_a_counting_rhs(name, stages, monkeypat
 def test_the_counting_wrapper_counts_evaluations_and_linearisations():
     """Kvaerno5's counts come from its right-hand side wrapped to count, inside the compiled code,
     its evaluations and its linearisations (a Jacobian, however many tangents it pushes)."""
-    from integrators.diffrax_ode import _counting
+    from reelbench.integrators.diffrax_ode import _counting
 
     counts = [0, 0]
     f = _counting(lambda t, y: jnp.sin(y) * t, counts)
@@ -150,7 +150,7 @@ def test_run_time_includes_output_conversion(name, monkeypatch):
     registered integrator; the constructor is patched wherever an integrator module uses it)."""
     import sys
 
-    import integrators.base as base
+    import reelbench.integrators.base as base
 
     integ = get_integrator(name)
     scene = _scene(["elasticity", "gravity"], elements=2)
@@ -163,7 +163,7 @@ def test_run_time_includes_output_conversion(name, monkeypatch):
             time.sleep(SLEEP)
             super().__init__(*a, **k)
 
-    patched = [m for m in list(sys.modules.values()) if getattr(m, "__name__", "").startswith("integrators")
+    patched = [m for m in list(sys.modules.values()) if getattr(m, "__name__", "").startswith("reelbench.integrators")
                and getattr(m, "Trajectory", None) is base.Trajectory and m is not base]
     for m in patched:
         monkeypatch.setattr(m, "Trajectory", SlowTrajectory)
@@ -201,7 +201,7 @@ def test_xla_flags_are_appended_not_clobbered():
 def test_the_persistent_compile_cache_is_in_the_users_cache_directory_unless_turned_off():
     import os
 
-    from models._jax import compile_cache_dir
+    from reelbench.models._jax import compile_cache_dir
 
     home = os.path.expanduser("~")
     assert compile_cache_dir({}) == os.path.join(home, ".cache", "reelbench", "jax")
@@ -216,9 +216,9 @@ def test_the_persistent_compile_cache_is_in_the_users_cache_directory_unless_tur
 
 def test_speed_covers_every_registered_fixed_step_method(monkeypatch):
     """`python -m benchmark speed` takes its methods from the registry, not from a list."""
-    from benchmark.studies import lgvi_speed
-    from integrators import registry
-    from integrators.base import Integrator
+    from reelbench.benchmark.studies import lgvi_speed
+    from reelbench.integrators import registry
+    from reelbench.integrators.base import Integrator
 
     class Probe(Integrator):
         name = "speed_probe"
@@ -244,7 +244,7 @@ def test_speed_times_each_rhs_per_call():
     """us_per_call is the median of single calls: at least half the calls took that long, so
     calls x median / 2 cannot exceed the wall time of the whole measurement (a total reported
     as per-call would)."""
-    from benchmark.studies import lgvi_speed
+    from reelbench.benchmark.studies import lgvi_speed
 
     for rhs in rhs_module.RHS_CHOICES:
         t0 = time.perf_counter()

@@ -24,7 +24,7 @@ PLUGIN = '''
 import os
 import time
 
-from integrators.lgvi import LGVI
+from reelbench.integrators.lgvi import LGVI
 
 
 class SlowLGVI(LGVI):
@@ -153,9 +153,9 @@ def test_killed_sweep_leaves_no_worker_and_a_rerun_resumes(tmp_path, plugin_env)
 
 
 def test_fresh_ignores_the_rows_already_there(tmp_path, monkeypatch):
-    from benchmark.cli import main as cli
-    from benchmark.runs import runner
-    from benchmark.runs import table
+    from reelbench.benchmark.cli import main as cli
+    from reelbench.benchmark.runs import runner
+    from reelbench.benchmark.runs import table
 
     class Stop(Exception):
         pass
@@ -181,8 +181,8 @@ def test_fresh_ignores_the_rows_already_there(tmp_path, monkeypatch):
 # the lock
 
 def test_a_second_run_into_a_locked_out_is_refused_naming_the_lock_and_holder(tmp_path, capsys):
-    from benchmark.cli.main import main
-    from benchmark.core.store import OutputLock
+    from reelbench.benchmark.cli.main import main
+    from reelbench.benchmark.core.store import OutputLock
 
     with OutputLock(tmp_path) as lock:
         rc = main(["run", "--scenes", "fixed_length", "--integrators", "lgvi", "--dts", "0.01", "--t-end", "0.02",
@@ -195,7 +195,7 @@ def test_a_second_run_into_a_locked_out_is_refused_naming_the_lock_and_holder(tm
 
 
 def test_the_lock_file_of_a_dead_process_blocks_nobody(tmp_path):
-    from benchmark.core.store import OutputLock
+    from reelbench.benchmark.core.store import OutputLock
 
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()
@@ -210,7 +210,7 @@ def test_the_lock_file_of_a_dead_process_blocks_nobody(tmp_path):
 def test_a_second_process_is_refused_at_once_naming_the_directory_and_holder(tmp_path):
     """The lock is the kernel's: another process is refused while this one holds it, and takes
     it as soon as this one is gone, even killed with -9."""
-    from benchmark.core.store import OutputLock
+    from reelbench.benchmark.core.store import OutputLock
 
     probe = ("import sys, time\nfrom benchmark.core.store import OutputLock, LockedError\nt = time.perf_counter()\n"
              "try:\n    OutputLock(sys.argv[1]).acquire()\nexcept LockedError as e:\n"
@@ -241,8 +241,8 @@ def test_a_second_process_is_refused_at_once_naming_the_directory_and_holder(tmp
 
 def test_resume_keeps_only_rows_of_the_same_sweep():
     """The run key changes with the scene's physics, the setting, the horizon and the code."""
-    from benchmark.runs.table import run_key
-    from benchmark.runs.sweep import Task
+    from reelbench.benchmark.runs.table import run_key
+    from reelbench.benchmark.runs.sweep import Task
 
     base = Task("fixed_length", "lgvi", dt=0.01, t_end=0.1, overrides=(("elements", 2),))
     key = run_key(base, "code1")
@@ -262,7 +262,7 @@ def test_worker_pool_workers_exit_when_their_parent_dies(tmp_path):
     script = textwrap.dedent(f"""
         import os, sys, time
         sys.path.insert(0, {str(ROOT)!r})
-        from benchmark.core.engine import worker_pool
+        from reelbench.benchmark.core.engine import worker_pool
         pool = worker_pool(2)
         futs = [pool.submit(time.sleep, 60) for _ in range(2)]
         time.sleep(0.5)
@@ -279,7 +279,7 @@ def test_worker_pool_workers_exit_when_their_parent_dies(tmp_path):
 
 def test_dask_workers_get_one_xla_thread_and_run_the_sweep(tmp_path, monkeypatch):
     distributed = pytest.importorskip("distributed")
-    from benchmark.cli.main import main
+    from reelbench.benchmark.cli.main import main
 
     monkeypatch.delenv("XLA_FLAGS", raising=False)  # the workers must get it from the runner, not inherit it
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
@@ -289,7 +289,7 @@ def test_dask_workers_get_one_xla_thread_and_run_the_sweep(tmp_path, monkeypatch
         assert rc == 0
         with distributed.Client(cluster.scheduler_address) as client:
             flags = list(client.run(lambda: os.environ.get("XLA_FLAGS")).values())
-    from models._jax import DEFAULT_XLA_FLAGS  # reelbench's own options, then the worker's one thread
+    from reelbench.models._jax import DEFAULT_XLA_FLAGS  # reelbench's own options, then the worker's one thread
 
     one_thread = ["--xla_cpu_multi_thread_eigen=false", "intra_op_parallelism_threads=1"]
     assert flags == [" ".join([*DEFAULT_XLA_FLAGS, *one_thread])]

@@ -5,12 +5,12 @@ times a run saved by its dense output."""
 import numpy as np
 import pytest
 
-from benchmark.runs import sweep
-from benchmark.runs.metrics import run_metrics
-from benchmark.core.reference import get_reference, reference_at
-from integrators import get_integrator
-from integrators.base import fixed_step_grid, save_times
-from models import load_scene
+from reelbench.benchmark.runs import sweep
+from reelbench.benchmark.runs.metrics import run_metrics
+from reelbench.benchmark.core.reference import get_reference, reference_at
+from reelbench.integrators import get_integrator
+from reelbench.integrators.base import fixed_step_grid, save_times
+from reelbench.models import load_scene
 
 
 @pytest.mark.parametrize("t_end, dt", [(1.0, 0.003), (1.0, 0.005), (10.0, 0.00889), (1.0, 0.3), (0.2, 0.2)])
@@ -85,8 +85,8 @@ def test_the_reference_is_read_at_the_times_a_run_saved(tmp_path):
 def test_simulate_at_a_step_that_does_not_divide_the_save_interval_ends_at_t_end(tmp_path):
     """`simulate --dt 0.003 --t-end 1` saved every 0.021 s and ended at t = 0.999 s: now its
     saved times are the step points nearest every 0.02 s and its last one is t_end."""
-    from benchmark.cli.main import main
-    from integrators import Trajectory
+    from reelbench.benchmark.cli.main import main
+    from reelbench.integrators import Trajectory
 
     out = tmp_path / "t.npz"
     assert main(["simulate", "fixed_length", "--integrators", "lie_rk4", "--dt", "0.003", "--t-end", "0.5",

@@ -5,8 +5,8 @@ import tomllib
 import numpy as np
 import pytest
 
-from models import EFFECTS, SceneError, available_scenes, load_scene, scene_from_dict
-from models.scene import SCENE_DIR
+from reelbench.models import EFFECTS, SceneError, available_scenes, load_scene, scene_from_dict
+from reelbench.models.scene import SCENE_DIR
 
 
 def base_dict(name="retrieval"):

@@ -39,9 +39,9 @@ from hypothesis import HealthCheck, given, seed, settings
 from hypothesis import strategies as st
 
 from _toml import to_toml, toml_value
-from models import SceneError, available_scenes, build_model, load_scene, scene_from_dict
-from models.schema import MASS_MODELS, NAME_PATTERN
-from models.scene import EFFECTS, plausible_ranges, schema
+from reelbench.models import SceneError, available_scenes, build_model, load_scene, scene_from_dict
+from reelbench.models.schema import MASS_MODELS, NAME_PATTERN
+from reelbench.models.scene import EFFECTS, plausible_ranges, schema
 
 DEFAULT_EXAMPLES = 250
 SLOW_EXAMPLES = int(os.environ.get("REELBENCH_FUZZ_EXAMPLES", "5000"))
@@ -301,7 +301,7 @@ def load(mode, what, workdir: Path):
 
 
 def assert_builds_a_finite_model(scene):
-    from models._jax import jnp
+    from reelbench.models._jax import jnp
 
     model = build_model(scene)
     x, R, w = model.initial_state()
@@ -434,8 +434,8 @@ def test_a_file_with_an_integer_too_long_to_read_is_refused(tmp_path):
 @pytest.fixture
 def stubbed(monkeypatch):
     """The pipelines replaced by a recorder: an accepted command line does no work."""
-    from benchmark.cli import simulate
-    from benchmark.studies import grid
+    from reelbench.benchmark.cli import simulate
+    from reelbench.benchmark.studies import grid
 
     calls = []
     for module, name in ((grid, "run_sweep"), (simulate, "simulate")):
@@ -478,9 +478,9 @@ def commands(key_text, out: Path):
                                  HealthCheck.function_scoped_fixture])
 @given(key_text=set_texts())
 def test_hostile_set_values_on_simulate_and_run_are_one_error_line_and_exit_2(tmp_path, capsys, stubbed, key_text):
-    from benchmark.cli.common import overrides as _overrides
-    from benchmark.cli.main import main
-    from benchmark.core.options import UsageError
+    from reelbench.benchmark.cli.common import overrides as _overrides
+    from reelbench.benchmark.cli.main import main
+    from reelbench.benchmark.core.options import UsageError
 
     try:
         load_scene("retrieval", **_overrides([f"{key_text[0]}={key_text[1]}"]))

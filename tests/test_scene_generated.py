@@ -24,8 +24,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from _toml import Deep, to_toml
-from models import EFFECTS, SceneError, load_scene
-from models.scene import SCENE_DIR, schema
+from reelbench.models import EFFECTS, SceneError, load_scene
+from reelbench.models.scene import SCENE_DIR, schema
 
 BASES = {name: tomllib.loads((SCENE_DIR / f"{name}.toml").read_text()) for name in ("fixed_length", "deployment",
                                                                                       "retrieval")}
@@ -227,9 +227,9 @@ ACCEPTED: list[str] = []  # the pipelines reached, for the test below
 @pytest.fixture
 def stubbed(monkeypatch):
     """The pipelines replaced by a recorder: an accepted command line does no work."""
-    from benchmark.cli import simulate
-    from benchmark.core import study
-    from benchmark.studies import check, grid, xval
+    from reelbench.benchmark.cli import simulate
+    from reelbench.benchmark.core import study
+    from reelbench.benchmark.studies import check, grid, xval
 
     calls = []
     monkeypatch.setattr(study, "run", lambda s, *a, **k: calls.append((f"study:{s.name}", a, k)) or 0)
@@ -246,7 +246,7 @@ def test_generated_command_lines_are_refused_with_a_message_or_accepted_as_given
                                                                                    raw):
     """Every generated command line ends in exit 2 with one `error:` line, or reaches its
     pipeline (stubbed) with the values it was given: no traceback, no hang, nothing written."""
-    from benchmark.cli.main import main
+    from reelbench.benchmark.cli.main import main
 
     (tmp_path / "scene.toml").write_bytes(raw)
     args = data.draw(command_lines(tmp_path))

@@ -16,14 +16,14 @@ from pathlib import Path
 
 import pytest
 
-from benchmark.cli.main import main
-from models import (EFFECTS, SceneError, available_scenes, load_scene, register_effect, scene_from_dict,
+from reelbench.benchmark.cli.main import main
+from reelbench.models import (EFFECTS, SceneError, available_scenes, load_scene, register_effect, scene_from_dict,
                     unregister_effect)
-from models import io as model_io
-from models.effects import Effect, Key
-from models.io import UnsafePath, inside
-from models.schema import MIN_ELEMENT_LENGTH
-from models.scene import MAX_SCENE_BYTES, SCENE_DIR
+from reelbench.models import io as model_io
+from reelbench.models.effects import Effect, Key
+from reelbench.models.io import UnsafePath, inside
+from reelbench.models.schema import MIN_ELEMENT_LENGTH
+from reelbench.models.scene import MAX_SCENE_BYTES, SCENE_DIR
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -146,9 +146,9 @@ def test_the_writers_themselves_keep_a_name_inside_their_directory(tmp_path):
     object never validated is refused by the writer that would put it into a file name."""
     import pandas as pd
 
-    from benchmark.figures import plots
-    from benchmark.core.reference import reference_path
-    from benchmark.runs import table
+    from reelbench.benchmark.figures import plots
+    from reelbench.benchmark.core.reference import reference_path
+    from reelbench.benchmark.runs import table
 
     out = tmp_path / "out"
     out.mkdir()

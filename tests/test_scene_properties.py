@@ -13,9 +13,9 @@ import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from integrators import Status, get_integrator
-from models import SceneError, load_scene, scene_from_dict
-from models.diagnostics import evaluate
+from reelbench.integrators import Status, get_integrator
+from reelbench.models import SceneError, load_scene, scene_from_dict
+from reelbench.models.diagnostics import evaluate
 
 BASE = load_scene("retrieval").to_dict()
 NAMED = {s.value for s in Status} - {"ok"}

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from benchmark.answer.search import RESOLUTION, search
+from reelbench.benchmark.answer.search import RESOLUTION, search
 
 
 def fixed_step(C=1e3, order=4, cliff=math.inf, calls=None):
@@ -166,9 +166,9 @@ def test_a_real_method_and_scene():
     """lie_rk4 on a two-element fixed_length over 0.2 s, energy error <= 1e-7: the answer meets
     the target, the bracket's coarser end (within 10 % in steps) does not, with the flop-free
     cost of steps."""
-    from benchmark.runs.metrics import run_metrics
-    from integrators import get_integrator
-    from models import load_scene
+    from reelbench.benchmark.runs.metrics import run_metrics
+    from reelbench.integrators import get_integrator
+    from reelbench.models import load_scene
 
     scene = load_scene("fixed_length", elements=2)
     integ = get_integrator("lie_rk4")

@@ -14,7 +14,7 @@ import logging
 import numpy as np
 import pytest
 
-from integrators import get_integrator
+from reelbench.integrators import get_integrator
 
 T_END = 0.2
 DT = 0.002
@@ -42,8 +42,8 @@ RTOL = 1e-12
 
 def _clear_compiled() -> None:
     """Forget every compiled program of this process (the project's caches and JAX's)."""
-    from integrators import diffrax_ode, fixed_step, lgvi, lifecycle, rhs
-    from models._jax import jax
+    from reelbench.integrators import diffrax_ode, fixed_step, lgvi, lifecycle, rhs
+    from reelbench.models._jax import jax
 
     for cache in (fixed_step._LOOPS, diffrax_ode._SOLVES, lgvi._MOMENTUM, lgvi._VELOCITY):
         cache.clear()
@@ -54,7 +54,7 @@ def _clear_compiled() -> None:
 
 
 def _cache_sizes() -> tuple:
-    from integrators import diffrax_ode, fixed_step, lgvi, lifecycle, rhs
+    from reelbench.integrators import diffrax_ode, fixed_step, lgvi, lifecycle, rhs
 
     return (len(fixed_step._LOOPS), len(diffrax_ode._SOLVES), len(lgvi._MOMENTUM), len(lgvi._VELOCITY),
             rhs._rhs_program.cache_info().currsize, rhs._jacobian_program.cache_info().currsize,
@@ -75,7 +75,7 @@ class _Compiles(logging.Handler):
 
 
 def _counting_compiles(fn):
-    from models._jax import jax
+    from reelbench.models._jax import jax
 
     handler, logger = _Compiles(), logging.getLogger("jax")
     logger.addHandler(handler)
@@ -124,7 +124,7 @@ def max_relative_difference(a, b) -> float:
 
 
 def test_deployment_and_retrieval_differ_in_values_only():
-    from models import build_model, load_scene
+    from reelbench.models import build_model, load_scene
 
     dep, ret = (build_model(load_scene(n)) for n in ("deployment", "retrieval"))
     assert dep.structure_key() == ret.structure_key()
@@ -151,8 +151,8 @@ def test_two_scenes_share_one_program_and_its_results(name, settings, monkeypatc
     sizes = _cache_sizes()
     # the host's per-model setup (initial state and energy, the guards' bound) runs eager JAX
     # operations once per model: done first, so that what is counted is the solve's programs
-    from integrators import lifecycle
-    from models import build_model, load_scene
+    from reelbench.integrators import lifecycle
+    from reelbench.models import build_model, load_scene
 
     ret_model = build_model(load_scene("retrieval"))
     ret_model.initial_state(), ret_model.initial_ode_state(), lifecycle.Guards.for_model(ret_model)
@@ -181,8 +181,8 @@ def test_two_scenes_share_one_program_and_its_results(name, settings, monkeypatc
 def test_the_right_hand_side_programs_lower_to_the_same_text():
     """The jitted right-hand side, its Jacobian (scipy's methods) and the energy guard: traced
     on either scene, the same program."""
-    from integrators import lifecycle, rhs
-    from models import build_model, load_scene
+    from reelbench.integrators import lifecycle, rhs
+    from reelbench.models import build_model, load_scene
 
     models = [build_model(load_scene(n)) for n in ("deployment", "retrieval")]
     y0 = np.asarray(models[0].initial_ode_state())
@@ -198,8 +198,8 @@ def test_the_host_right_hand_side_folds_its_model_numbers_into_the_shared_progra
     """scipy's right-hand side and Jacobian: the structure's program with one model's numbers as
     constants (a call from the host is cheaper folded), equal to the shared program with those
     numbers as arguments, and one per model."""
-    from integrators import rhs
-    from models import build_model, load_scene
+    from reelbench.integrators import rhs
+    from reelbench.models import build_model, load_scene
 
     models = [build_model(load_scene(n)) for n in ("deployment", "retrieval")]
     y0 = np.asarray(models[0].initial_ode_state())

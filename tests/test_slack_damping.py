@@ -9,14 +9,14 @@ multiplied by the new effects). Scenes are small (N = 4) and each compiled model
 import numpy as np
 import pytest
 
-from integrators import get_integrator
-from integrators._lgvi_core import DiscreteLagrangian, cayley
-from integrators.lgvi import LGVI
-from models import EFFECTS, build_model, load_scene, scene_from_dict
-from models._jax import jax, jnp
-from models.closed_form import ClosedFormEOM
-from models.diagnostics import evaluate, summary
-from models.model import hat
+from reelbench.integrators import get_integrator
+from reelbench.integrators._lgvi_core import DiscreteLagrangian, cayley
+from reelbench.integrators.lgvi import LGVI
+from reelbench.models import EFFECTS, build_model, load_scene, scene_from_dict
+from reelbench.models._jax import jax, jnp
+from reelbench.models.closed_form import ClosedFormEOM
+from reelbench.models.diagnostics import evaluate, summary
+from reelbench.models.model import hat
 
 from _helpers import random_state, reference_solution, scene_with_effects
 from test_closed_form import _check

@@ -10,8 +10,8 @@ import pytest
 
 pytest.importorskip("moordyn")
 
-from benchmark.studies import xval  # noqa: E402
-from models import load_scene  # noqa: E402
+from reelbench.benchmark.studies import xval  # noqa: E402
+from reelbench.models import load_scene  # noqa: E402
 
 
 def _case(N: int):

@@ -4,10 +4,10 @@ skips, failure rows, and the generated reading. The map itself is results/stabil
 import numpy as np
 import pytest
 
-from benchmark.runs import runner
-from benchmark.studies import stability
-from benchmark.studies import stability_report
-from models import load_scene
+from reelbench.benchmark.runs import runner
+from reelbench.benchmark.studies import stability
+from reelbench.benchmark.studies import stability_report
+from reelbench.models import load_scene
 
 
 def test_every_case_is_a_shipped_hard_scene_and_jobs_validate_names():
@@ -104,7 +104,7 @@ def test_a_length_limit_reached_too_soon_is_not_bounded():
     """On a length-limit scene a run counts as bounded only when it reaches its limit no earlier
     than the physics allows: an unstable step can throw the string to its limit in a few steps
     (crouch_grossman3 at 10 ms was seen at 0.05 s, against 1.10 s for every adaptive method)."""
-    from benchmark.studies.stability import CASES, is_bounded
+    from reelbench.benchmark.studies.stability import CASES, is_bounded
 
     case = next(c for c in CASES if c.scene == "retrieval_to_limit")
     assert is_bounded(case, {"status": "length_limit", "t_reached": 1.146})

@@ -18,9 +18,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from integrators import ENTRY_POINT_GROUP, Capability, FixedStepMethod, Guards, get_integrator, registry
-from integrators.base import energy_error_ode
-from models import build_model, load_scene
+from reelbench.integrators import ENTRY_POINT_GROUP, Capability, FixedStepMethod, Guards, get_integrator, registry
+from reelbench.integrators.base import energy_error_ode
+from reelbench.models import build_model, load_scene
 
 ROOT = Path(__file__).resolve().parent.parent
 README = ROOT / "integrators" / "README.md"
@@ -132,7 +132,7 @@ def test_it_runs_in_the_benchmark_into_tables_and_the_work_precision_plot(site, 
     assert 1.5 < ratio < 2.7, ratio
     assert NAME in (out / "runs.md").read_text()
     # whose rows these are: the plugin's package and version, and the code digest its resume key covers
-    from benchmark.core.store import code_version
+    from reelbench.benchmark.core.store import code_version
 
     assert set(runs["package"]) == {"my-stepper"} and set(runs["package_version"].astype(str)) == {"0.1"}
     [digest] = set(runs["code_digest"])
@@ -140,9 +140,9 @@ def test_it_runs_in_the_benchmark_into_tables_and_the_work_precision_plot(site, 
     assert (out / "work_precision_fixed_length.png").stat().st_size > 0
 
     # the work-precision figure has its curve on both cost axes (run time and work count)
-    from benchmark.figures import plots
+    from reelbench.benchmark.figures import plots
 
-    from benchmark.figures.styles import style
+    from reelbench.benchmark.figures.styles import style
 
     seen = []
     monkeypatch.setattr(plots, "save_figure", lambda fig, path: seen.append(

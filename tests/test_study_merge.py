@@ -14,7 +14,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from benchmark.cli.main import main
+from reelbench.benchmark.cli.main import main
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -54,7 +54,7 @@ def _kept(before: pd.DataFrame, after: pd.DataFrame, key: list[str], mine) -> No
 # stability
 # ------------------------------------------------------------------------------------------
 def _fake_stability_row(job):
-    from benchmark.studies import stability
+    from reelbench.benchmark.studies import stability
 
     return {**stability._base_row(job.case, job.integrator, job.kind), "status": "ok", "bounded": True,
             "largest_stable_dt": 0.01 if job.kind == "fixed" else np.nan, "steps": 123.0, "t_reached": job.case.horizon,
@@ -63,7 +63,7 @@ def _fake_stability_row(job):
 
 @pytest.mark.parametrize("stop", [0, 1, None])
 def test_a_stability_map_stopped_at_any_job_keeps_every_committed_row(tmp_path, monkeypatch, capsys, stop):
-    from benchmark.studies import stability
+    from reelbench.benchmark.studies import stability
 
     out = tmp_path / "stability"
     shutil.copytree(ROOT / "results" / "stability", out)
@@ -98,7 +98,7 @@ def test_a_stability_map_stopped_at_any_job_keeps_every_committed_row(tmp_path, 
 
 
 def test_an_unreadable_stability_table_is_refused_before_any_work(tmp_path, monkeypatch, capsys):
-    from benchmark.studies import stability
+    from reelbench.benchmark.studies import stability
 
     out = tmp_path / "stability"
     out.mkdir()
@@ -114,7 +114,7 @@ def test_an_unreadable_stability_table_is_refused_before_any_work(tmp_path, monk
 # speed
 # ------------------------------------------------------------------------------------------
 def _fake_speed(job):
-    from benchmark.studies import lgvi_speed
+    from reelbench.benchmark.studies import lgvi_speed
 
     if isinstance(job, lgvi_speed.StepJob):
         return {"kind": "step", "rhs": "", "method": job.method, "scene": job.scene, "N": job.N, "dt": 0.001,
@@ -126,7 +126,7 @@ def _fake_speed(job):
 
 @pytest.mark.parametrize("stop", [0, 1, None])
 def test_speed_stopped_at_any_measurement_keeps_every_committed_row(tmp_path, monkeypatch, capsys, stop):
-    from benchmark.studies import lgvi_speed
+    from reelbench.benchmark.studies import lgvi_speed
 
     for f in ("lgvi_speed.md", "lgvi_speed.csv"):
         shutil.copy(ROOT / "results" / f, tmp_path / f)
@@ -154,7 +154,7 @@ def test_speed_stopped_at_any_measurement_keeps_every_committed_row(tmp_path, mo
 
 
 def test_speed_of_one_n_says_why_there_is_no_ratio_instead_of_nan(tmp_path, monkeypatch, capsys):
-    from benchmark.studies import lgvi_speed
+    from reelbench.benchmark.studies import lgvi_speed
 
     monkeypatch.setattr(lgvi_speed, "run_job", _fake_speed)
     assert main(["speed", "--integrators", "lgvi", "--rhs", "", "--out", str(tmp_path / "s.md")]) == 0
@@ -165,7 +165,7 @@ def test_speed_of_one_n_says_why_there_is_no_ratio_instead_of_nan(tmp_path, monk
 
 
 def test_speed_will_not_overwrite_a_file_whose_rows_it_cannot_keep(tmp_path, monkeypatch, capsys):
-    from benchmark.studies import lgvi_speed
+    from reelbench.benchmark.studies import lgvi_speed
 
     (tmp_path / "s.md").write_text("# Speed\n")
     monkeypatch.setattr(lgvi_speed, "run_job", lambda job: pytest.fail("started work"))
@@ -178,7 +178,7 @@ def test_speed_will_not_overwrite_a_file_whose_rows_it_cannot_keep(tmp_path, mon
 # ------------------------------------------------------------------------------------------
 def _synthetic_study(scene, elements, t_end, cases=None):
     """Known tips x_N(t) = X(t) + c_code/N² for every code of every case (tests/test_xval.py)."""
-    from benchmark.studies import xval
+    from reelbench.benchmark.studies import xval
 
     times = np.linspace(0.0, t_end, round(t_end / xval.OUTPUT_INTERVAL) + 1)
     X = np.stack([np.sin(times), np.cos(times), times], axis=1)
@@ -193,7 +193,7 @@ def _synthetic_study(scene, elements, t_end, cases=None):
 
 
 def _xval(monkeypatch, out, elements, stop=False):
-    from benchmark.studies import xval
+    from reelbench.benchmark.studies import xval
 
     def study(scene, elements, t_end, cases=None, log=None):
         if stop:
@@ -237,7 +237,7 @@ def test_an_xval_that_cannot_keep_the_earlier_runs_is_refused_before_any_work(tm
     whole study is not."""
     import json
 
-    from benchmark.studies import xval
+    from reelbench.benchmark.studies import xval
 
     out = tmp_path / "xval"
     shutil.copytree(ROOT / "results" / "xval", out)
@@ -260,9 +260,9 @@ def test_an_xval_that_cannot_keep_the_earlier_runs_is_refused_before_any_work(tm
 def _narrow_rerun(tmp_path, monkeypatch, capsys):
     """`run --scenes fixed_length --integrators lgvi` into a copy of results/grid/ (its runs the
     committed rows, as a resumed run keeps them): (README before, README after, committed rows)."""
-    from benchmark.runs import runner
-    from benchmark.core import store
-    from benchmark.runs import table
+    from reelbench.benchmark.runs import runner
+    from reelbench.benchmark.core import store
+    from reelbench.benchmark.runs import table
 
     out = tmp_path / "grid"
     committed = table.read_runs(out / "runs.csv").rows
@@ -329,7 +329,7 @@ def test_a_comparison_whose_table_is_gone_is_kept_as_it_was_and_says_so(tmp_path
 
 
 def test_a_quick_sweep_into_the_committed_table_is_refused_as_the_readme_says(tmp_path, monkeypatch, capsys):
-    from benchmark.runs import runner
+    from reelbench.benchmark.runs import runner
 
     shutil.copytree(ROOT / "results" / "grid", tmp_path / "grid", ignore=shutil.ignore_patterns("cache", "*.png"))
     before = (tmp_path / "grid" / "runs.csv").read_bytes()

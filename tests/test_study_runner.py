@@ -11,8 +11,8 @@ import os
 import pandas as pd
 import pytest
 
-from benchmark.core import store
-from benchmark.core.study import KEY_COLUMN, Study, run
+from reelbench.benchmark.core import store
+from reelbench.benchmark.core.study import KEY_COLUMN, Study, run
 
 #: The jobs run in this process, in order (cleared by each test).
 CALLS: list[str] = []
@@ -201,7 +201,7 @@ def _stopping(real, stop: int | None, ran: list):
 
 
 def _fake_ladder(job) -> dict:
-    from benchmark.studies import orders
+    from reelbench.benchmark.studies import orders
 
     ladder = [{"scene": job.scene, "integrator": job.integrator, "situation": "fixed_length", "declared_order": 2,
                "elements": job.elements, "t_end": job.t_end, "setting": f"dt={h:g}", "dt": h, "status": "ok",
@@ -211,8 +211,8 @@ def _fake_ladder(job) -> dict:
 
 
 def test_orders_stopped_keeps_each_finished_ladder_and_a_rerun_runs_the_rest(tmp_path, monkeypatch, capsys):
-    from benchmark.cli.main import main
-    from benchmark.studies import orders
+    from reelbench.benchmark.cli.main import main
+    from reelbench.benchmark.studies import orders
 
     out, ran = tmp_path / "o", []
     args = ["orders", "--scenes", "fixed_length", "--integrators", "lgvi,lgvi_sym,tsit5", "--jobs", "0", "--out", str(out)]
@@ -236,8 +236,8 @@ def test_orders_stopped_keeps_each_finished_ladder_and_a_rerun_runs_the_rest(tmp
 
 
 def _fake_reel(job) -> dict:
-    from benchmark.studies import reel_reversal
-    from models import load_scene
+    from reelbench.benchmark.studies import reel_reversal
+    from reelbench.models import load_scene
 
     scene = load_scene(job.scene_name, elements=job.elements)
     return {**reel_reversal._base_row(job, scene), "status": "ok", "reason": "", "reversals": "0.05",
@@ -245,8 +245,8 @@ def _fake_reel(job) -> dict:
 
 
 def test_reel_reversal_stopped_keeps_its_finished_rows_and_a_rerun_runs_the_rest(tmp_path, monkeypatch, capsys):
-    from benchmark.cli.main import main
-    from benchmark.studies import reel_reversal
+    from reelbench.benchmark.cli.main import main
+    from reelbench.benchmark.studies import reel_reversal
 
     out, ran = tmp_path / "rr", []
     args = ["reel-reversal", "--integrators", "lgvi,lgvi_sym", "--elements", "2", "--t-end", "0.16", "--jobs", "0",

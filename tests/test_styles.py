@@ -1,4 +1,4 @@
-"""benchmark.figures.styles: one look per method, from its name only; legends outside the data; a method
+"""reelbench.benchmark.figures.styles: one look per method, from its name only; legends outside the data; a method
 a panel cannot draw is listed with the reason."""
 
 import os
@@ -13,20 +13,20 @@ import pytest  # noqa: E402
 from hypothesis import given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
-from benchmark.figures.styles import (PLUGIN_COLOURS, SHIPPED, clashes, legend_entries, legend_outside, style,  # noqa: E402
+from reelbench.benchmark.figures.styles import (PLUGIN_COLOURS, SHIPPED, clashes, legend_entries, legend_outside, style,  # noqa: E402
                               styles)
 
 NAMES = st.text("abcdefghijklmnopqrstuvwxyz0123456789_", min_size=1, max_size=20)
 
 
 def test_every_shipped_and_registered_method_has_its_own_colour_and_marker():
-    from integrators import available
+    from reelbench.integrators import available
 
-    from integrators import get_integrator
+    from reelbench.integrators import get_integrator
 
     registered = [n for n in available() if not n.startswith("test_")]
     assert set(SHIPPED) <= set(registered), "a shipped style for a method that is no longer registered"
-    ours = [n for n in registered if type(get_integrator(n)).__module__.startswith("integrators.")]
+    ours = [n for n in registered if type(get_integrator(n)).__module__.startswith("reelbench.integrators.")]
     assert set(ours) <= set(SHIPPED), "a method of this repository drawn in a plugin's hashed look"
     assert clashes([*SHIPPED, *registered]) == []
     # among the shipped ones colour and marker each tell the methods apart alone
@@ -45,7 +45,7 @@ def test_a_style_does_not_change_when_another_method_is_added(names, new):
 def test_a_plugin_style_is_the_same_in_another_process():
     # a hash of the name, not Python's per-process hash(): worker processes draw the same figure
     names = ["my_method", "splitting2", "rk4_fixed"]
-    code = ("from benchmark.figures.styles import style; "
+    code = ("from reelbench.benchmark.figures.styles import style; "
             f"print([tuple(style(n).__dict__.values()) for n in {names!r}])")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          env={**os.environ, "PYTHONHASHSEED": "12345"}).stdout.strip()
@@ -98,8 +98,8 @@ def test_registered_plugins_never_share_a_look():
     """Two plugins whose names hash to the same colour and marker, both registered: the later
     one by name takes the next free look, so a figure of every registered method tells them
     apart (the unregistered names keep their hashed look)."""
-    from integrators import registry
-    from integrators.base import Integrator
+    from reelbench.integrators import registry
+    from reelbench.integrators.base import Integrator
 
     a = "my_method"
     twin = next(f"m{k}" for k in range(10_000) if (style(f"m{k}").color, style(f"m{k}").marker)

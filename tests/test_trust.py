@@ -8,12 +8,12 @@ import math
 import numpy as np
 import pytest
 
-from benchmark.core import engine
-from benchmark.runs import runner
-from benchmark.core import store
-from benchmark.runs import table
-from benchmark.core.report import shorten
-from benchmark.runs.sweep import MAX_REPEATS, TIMING_BUDGET
+from reelbench.benchmark.core import engine
+from reelbench.benchmark.runs import runner
+from reelbench.benchmark.core import store
+from reelbench.benchmark.runs import table
+from reelbench.benchmark.core.report import shorten
+from reelbench.benchmark.runs.sweep import MAX_REPEATS, TIMING_BUDGET
 
 
 # ---- timing -------------------------------------------------------------------------------
@@ -232,8 +232,8 @@ def test_setup_calls_each_say_when_they_are_done():
 # ---- the plugin workflow ------------------------------------------------------------------
 def test_the_stability_map_runs_a_registered_plugin_when_named_not_by_default():
     """A plugin is a guest: the committed map holds the project's methods unless one is named."""
-    from benchmark.studies import stability
-    from integrators import FixedStepMethod, register, registry
+    from reelbench.benchmark.studies import stability
+    from reelbench.integrators import FixedStepMethod, register, registry
 
     @register
     class Plugin(FixedStepMethod):

@@ -8,11 +8,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from benchmark.cli.main import main
+from reelbench.benchmark.cli.main import main
 
 
 def test_progress_never_says_nan_seconds_left(monkeypatch):
-    from benchmark.core import engine
+    from reelbench.benchmark.core import engine
 
     clock = [0.0]
     monkeypatch.setattr(engine.time, "perf_counter", lambda: clock[0])
@@ -31,15 +31,15 @@ def test_a_misspelt_dotted_override_gets_the_nearest_name(capsys):
 
 
 def test_list_aligns_every_name_and_marks_the_extended_sweep(capsys):
-    from integrators import available
+    from reelbench.integrators import available
 
     assert main(["list"]) == 0
     out = capsys.readouterr().out.splitlines()
     rows = {line.split()[0]: line for line in out if line.startswith("  ") and " order " in line}
     assert set(rows) == set(available())
     assert len({line.index(" order ") for line in rows.values()}) == 1  # one column, long names included
-    from benchmark.runs.sweep import EXTENDED_METHODS
-    from integrators import origin
+    from reelbench.benchmark.runs.sweep import EXTENDED_METHODS
+    from reelbench.integrators import origin
 
     for name, line in rows.items():
         own = origin(name).own
@@ -49,9 +49,9 @@ def test_list_aligns_every_name_and_marks_the_extended_sweep(capsys):
 
 
 def test_pi3_is_reported_only_where_the_physics_conserves_it(monkeypatch):
-    from benchmark.runs import metrics
-    from models import layout, load_scene
-    from models.effects import Effect, get_effect
+    from reelbench.benchmark.runs import metrics
+    from reelbench.models import layout, load_scene
+    from reelbench.models.effects import Effect, get_effect
 
     assert layout.StateLayout.from_scene(load_scene("retrieval")).conserves_pi3  # every shipped effect keeps it
 
@@ -69,10 +69,10 @@ def test_pi3_is_reported_only_where_the_physics_conserves_it(monkeypatch):
 def test_panel_d_drops_pi3_where_it_is_not_conserved(monkeypatch, tmp_path):
     import matplotlib.pyplot as plt
 
-    from benchmark.figures import plots
-    from integrators import get_integrator
-    from models import build_model, load_scene
-    from models.diagnostics import evaluate
+    from reelbench.benchmark.figures import plots
+    from reelbench.integrators import get_integrator
+    from reelbench.models import build_model, load_scene
+    from reelbench.models.diagnostics import evaluate
 
     scene = load_scene("fixed_length", elements=2, t_end=0.1)
     traj = get_integrator("lgvi").solve(scene, dt=0.01)

@@ -17,11 +17,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from benchmark.contract.verify import ContractError, check_effect, check_integrator
-from integrators import Capability, Integrator, Trajectory, registry
-from models import EFFECTS
-from models.effects import ENTRY_POINT_GROUP as EFFECT_GROUP
-from models.effects import Effect, PotentialTerm
+from reelbench.benchmark.contract.verify import ContractError, check_effect, check_integrator
+from reelbench.integrators import Capability, Integrator, Trajectory, registry
+from reelbench.models import EFFECTS
+from reelbench.models.effects import ENTRY_POINT_GROUP as EFFECT_GROUP
+from reelbench.models.effects import Effect, PotentialTerm
 
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -40,8 +40,8 @@ class UnguardedEuler(Integrator):
     description = "forward Euler without guards (test only)"
 
     def solve(self, scene, t_end=None, *, dt=None, save_every=None, **options):
-        from integrators.rhs import rhs_jit
-        from models import build_model
+        from reelbench.integrators.rhs import rhs_jit
+        from reelbench.models import build_model
 
         if dt is None or dt <= 0:
             raise ValueError("dt is required")
@@ -87,7 +87,7 @@ class WrongSpring(Effect):
             return 0.5 * 3.0 * (model.nodes(x)[-1] @ model.nodes(x)[-1])
 
         def dV(x, R):
-            from models._jax import jnp
+            from reelbench.models._jax import jnp
 
             return model.over_w(dq=jnp.zeros((model.N, 3)).at[-1].set(2 * 3.0 * model.nodes(x)[-1]))
 
@@ -160,8 +160,8 @@ def test_the_fluid_effects_pass_on_an_off_centre_body(name):
 def test_an_effect_another_needs_is_removed_with_it_when_its_keys_are_checked():
     """buoyancy's keys given without it must be refused naming the key, in a scene where drag
     (which needs buoyancy) is listed too: the check removes drag and its keys as well."""
-    from benchmark.contract.verify import _scene_keys
-    from models import load_scene
+    from reelbench.benchmark.contract.verify import _scene_keys
+    from reelbench.models import load_scene
 
     check = _scene_keys("buoyancy", load_scene("towed"))
     assert check.ok, check.figure
@@ -258,7 +258,7 @@ def test_the_documented_effect_plugin_passes_verify(tmp_path):
 
 
 def test_verify_refuses_unknown_names_and_misplaced_options():
-    from benchmark.cli.main import main
+    from reelbench.benchmark.cli.main import main
 
     assert main(["verify", "no_such_method"]) == 2
     assert main(["verify", "lgvi", "--scenes", "fixed_length"]) == 2

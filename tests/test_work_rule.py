@@ -7,8 +7,8 @@ import math
 import pandas as pd
 import pytest
 
-from benchmark.cli.main import main
-from benchmark.work import work_rule
+from reelbench.benchmark.cli.main import main
+from reelbench.benchmark.work import work_rule
 
 
 @pytest.mark.parametrize("argv, message", [
@@ -67,7 +67,7 @@ def test_the_table_counts_the_pairs_within_the_tolerance():
 def test_explicit_euler_on_a_linear_system_counts_what_a_hand_count_gives():
     """y <- y + h (A y) with a 2 x 2 A: per step 4 multiplications and 2 additions for A y, then 2
     multiplications (h ×) and 2 additions: 10 flops; 3 steps: 30, of which 18 multiplications."""
-    from benchmark.work.opcount import Counted, OpCounter, counted_array
+    from reelbench.benchmark.work.opcount import Counted, OpCounter, counted_array
 
     A = counted_array([[0.0, 1.0], [-1.0, 0.0]])
     y, h = counted_array([1.0, 0.0]), Counted(0.1)
@@ -82,7 +82,7 @@ def test_explicit_euler_on_a_linear_system_counts_what_a_hand_count_gives():
 def test_a_numba_kernel_runs_as_plain_python_with_its_square_roots_and_allocations_counted(tmp_path):
     """A kernel written for numba (njit, np.zeros, math.sqrt, np.sqrt) is counted as written: its
     compile-time decoration is a no-op, its fresh arrays hold counting scalars, its roots count."""
-    from benchmark.work.opcount import OpCounter, counted_array, load_plain
+    from reelbench.benchmark.work.opcount import OpCounter, counted_array, load_plain
 
     (tmp_path / "kern.py").write_text(
         "import math\nimport numpy as np\nfrom numba import njit\n\n"
@@ -104,7 +104,7 @@ def test_a_numba_kernel_runs_as_plain_python_with_its_square_roots_and_allocatio
 
 
 def test_operations_outside_a_counter_are_not_counted():
-    from benchmark.work.opcount import Counted, OpCounter
+    from reelbench.benchmark.work.opcount import Counted, OpCounter
 
     x = Counted(2.0)
     y = x * x

@@ -7,11 +7,11 @@ import mujoco
 import numpy as np
 import pytest
 
-from benchmark.studies import xval
-from benchmark.studies import xval_report
-from benchmark.core.report import Provenance
-from benchmark.cli.main import main as cli_main
-from models import build_model, load_scene
+from reelbench.benchmark.studies import xval
+from reelbench.benchmark.studies import xval_report
+from reelbench.benchmark.core.report import Provenance
+from reelbench.benchmark.cli.main import main as cli_main
+from reelbench.models import build_model, load_scene
 
 TIMES = np.linspace(0.0, 0.5, 11)
 DT = 1e-4  # RK4 at N = 5 (ω_max = 63 rad/s): time error far below 1e-8 m over 0.5 s

@@ -34,15 +34,15 @@ from typing import Callable
 
 import numpy as np
 
-from benchmark.core import engine
-from benchmark.answer import paired as _paired
-from benchmark.answer import search as _search
-from benchmark.core.policy import (BEST_VERDICTS, CHEAPEST_FILE, IDENTICAL, LOWER_BOUND, NO_FLOPS_COUNT, NOT_REACHED,
+from reelbench.benchmark.core import engine
+from reelbench.benchmark.answer import paired as _paired
+from reelbench.benchmark.answer import search as _search
+from reelbench.benchmark.core.policy import (BEST_VERDICTS, CHEAPEST_FILE, IDENTICAL, LOWER_BOUND, NO_FLOPS_COUNT, NOT_REACHED,
                                    PAIRED_BUDGET, RANKED_VERDICTS, RESULTS, SAVE_EVERY, SEARCH_TIME_LIMIT, SLOWER, TIE,
                                    Setting)
-from benchmark.core.store import code_version, frame, key_of
-from benchmark.runs.table import kept_rows
-from benchmark.runs.sweep import DEFAULT_EXECUTOR
+from reelbench.benchmark.core.store import code_version, frame, key_of
+from reelbench.benchmark.runs.table import kept_rows
+from reelbench.benchmark.runs.sweep import DEFAULT_EXECUTOR
 
 #: The default targets: (metric, target, label); ``--targets`` asks for others, on any metric
 #: of `benchmark.runs.metrics.METRICS`.
@@ -58,7 +58,7 @@ MAIN_JOB_EXTRA = ("dopri8",)
 def default_methods(extended: bool = False) -> tuple[str, ...]:
     """The methods the answer searches unless named: the project's own default-sweep methods and
     `MAIN_JOB_EXTRA`, or every own method (``extended``)."""
-    from benchmark.runs.sweep import EXTENDED_METHODS, default_names
+    from reelbench.benchmark.runs.sweep import EXTENDED_METHODS, default_names
 
     return tuple(n for n in default_names() if extended or n not in EXTENDED_METHODS or n in MAIN_JOB_EXTRA)
 
@@ -112,7 +112,7 @@ class TimingJob:
 
 
 def _scene(name: str, elements: int, t_end: float | None):
-    from models import load_scene
+    from reelbench.models import load_scene
 
     return load_scene(name, elements=int(elements), **({"t_end": t_end} if t_end is not None else {}))
 
@@ -135,12 +135,12 @@ def _solve_once(job: SearchJob, setting: float, cache_dir: str) -> tuple[str, di
     key = (job.scene, job.elements, job.t_end, job.integrator, job.sweep, float(setting))
     if key in _SOLVED:
         return _SOLVED[key]
-    from benchmark.work.flops import run_flops
-    from benchmark.runs.metrics import INACCURATE, inaccurate_reason, run_metrics
-    from benchmark.core.reference import get_reference
-    from integrators import get_integrator
-    from integrators.base import Status, is_finished
-    from models import build_model
+    from reelbench.benchmark.work.flops import run_flops
+    from reelbench.benchmark.runs.metrics import INACCURATE, inaccurate_reason, run_metrics
+    from reelbench.benchmark.core.reference import get_reference
+    from reelbench.integrators import get_integrator
+    from reelbench.integrators.base import Status, is_finished
+    from reelbench.models import build_model
 
     scene = _scene(job.scene, job.elements, job.t_end)
     t_end = scene.t_end
@@ -174,7 +174,7 @@ def _solve_once(job: SearchJob, setting: float, cache_dir: str) -> tuple[str, di
 
 def run_search(job: SearchJob, cache_dir: str) -> dict:
     """One search job's row (`SEARCH_COLUMNS`); a failure inside is a row with bound "error"."""
-    from benchmark.runs.runner import implementation
+    from reelbench.benchmark.runs.runner import implementation
 
     row = {**asdict(job), "implementation": implementation(job.integrator)}
     row.pop("max_runs"), row.pop("t_end")
@@ -199,7 +199,7 @@ def run_search(job: SearchJob, cache_dir: str) -> dict:
                    cost_column="flops" if columns == {"flops"} else "+".join(sorted(columns)),
                    note=_search_note(job.sweep, found), points=json.dumps(points, default=float))
     except Exception as exc:  # a bug in one search must not lose the others
-        from integrators.base import ERROR  # here: the command line's start loads no integrator
+        from reelbench.integrators.base import ERROR  # here: the command line's start loads no integrator
 
         row.update(bound=ERROR, note=f"{type(exc).__name__}: {exc}"[:300])
     row["job_time"] = time.perf_counter() - started  # the progress line's ETA learns from it
@@ -220,9 +220,9 @@ def _search_note(sweep: str, found) -> str:
 
 def run_timing(job: TimingJob, log: Callable[[str], None] = engine.log_stderr) -> dict:
     """One timing job's row: the paired ratios (`benchmark.answer.paired`) as JSON in ``ratios``."""
-    from benchmark.runs.ranking import entry_name
-    from benchmark.core.report import one_minute_load
-    from integrators import get_integrator
+    from reelbench.benchmark.runs.ranking import entry_name
+    from reelbench.benchmark.core.report import one_minute_load
+    from reelbench.integrators import get_integrator
 
     row = {k: v for k, v in asdict(job).items() if k not in ("candidates", "t_end", "budget")}
     scene = _scene(job.scene, job.elements, job.t_end)
@@ -254,7 +254,7 @@ def _wall_time(integ, scene, kw) -> float:
 # ------------------------------------------------------------------------------------------
 def search_jobs(scenes, integrators, targets, elements=ELEMENTS, t_end=None, max_runs=_search.MAX_RUNS):
     """Every scene × N × method × axis its capabilities allow × target."""
-    from integrators import Capability, get_integrator
+    from reelbench.integrators import Capability, get_integrator
 
     jobs = []
     for scene in scenes:
@@ -280,7 +280,7 @@ def twins(g: pd.DataFrame) -> dict[tuple[str, str], str]:
     `benchmark.runs.sweep.PRESENTATION_ORDER` is ranked; a search that reached nothing is never a twin."""
     import pandas as pd
 
-    from benchmark.runs.ranking import presentation_rank
+    from reelbench.benchmark.runs.ranking import presentation_rank
 
     out = {}
     found = g[pd.to_numeric(g["setting"], errors="coerce").notna()]
@@ -327,7 +327,7 @@ def _describe_timing(row: dict) -> str:
 
 def _code(*files: str) -> str:
     """The code a row of this study depends on: the runs' (`benchmark.core.store.code_version`) and ``files``."""
-    from benchmark.core.store import source_hash
+    from reelbench.benchmark.core.store import source_hash
 
     return key_of(code_version(), source_hash((), files))
 
@@ -346,7 +346,7 @@ SOLVE_SECONDS = 0.05
 def search_costs(jobs: list[SearchJob]) -> list[float]:
     """Predicted seconds of each search: the method's declared compile time on the first search of
     its (scene, N, method) group, then its solves, scaled by N (scipy's by its interpreter factor)."""
-    from benchmark.runs.runner import method_cost
+    from reelbench.benchmark.runs.runner import method_cost
 
     seen, out = set(), []
     for j in jobs:
@@ -365,9 +365,9 @@ def run_search_stage(jobs: list[SearchJob], *, workers: int, cache_dir: str, pre
     kept = kept_rows(keys, previous)
     if kept:
         log(f"resuming: {len(kept)} of {len(jobs)} searches already done (kept)")
-    from benchmark.core.reference import ReferenceProblem, prepare_reference
+    from reelbench.benchmark.core.reference import ReferenceProblem, prepare_reference
 
-    from integrators.base import CRASHED  # here: the command line's start loads no integrator
+    from reelbench.integrators.base import CRASHED  # here: the command line's start loads no integrator
 
     todo = [j for i, j in enumerate(jobs) if i not in kept]
     # each reference once, before the searches read it (two workers never compute the same one)
@@ -409,7 +409,7 @@ def answer_table(searched: pd.DataFrame, timed: pd.DataFrame) -> pd.DataFrame:
     one axis, that reached the target, by its searched cost in flops: winner when its cost, with
     the bracket's 10 % below it, stays below every other's, else tie) and the wall rows (the
     paired timing's ratios, intervals, pairs and verdicts)."""
-    from benchmark.runs.ranking import entry_name, presentation_rank, work_verdicts
+    from reelbench.benchmark.runs.ranking import entry_name, presentation_rank, work_verdicts
 
     rows = []
     for (scene, n, metric, target), g in searched.groupby(["scene", "elements", "metric", "target"], sort=True):
@@ -478,7 +478,7 @@ LOWER_BOUND_NOTE = ("its flops count right-hand sides, Jacobians and LU factoris
 
 
 def _counts_whole_step(integrator: str) -> bool:
-    from benchmark.work.flops import WHOLE_STEP_RULES, counting_rule
+    from reelbench.benchmark.work.flops import WHOLE_STEP_RULES, counting_rule
 
     try:
         return counting_rule(integrator) in WHOLE_STEP_RULES
@@ -557,7 +557,7 @@ def answer_lines(table: pd.DataFrame, labels: dict | None = None) -> list[str]:
 def answer_block(table: pd.DataFrame, labels: dict | None = None, command: str = "python -m benchmark answer",
                  table_file: str = str(CHEAPEST_FILE)) -> str:
     """The project README's answer block: one table per N, one sentence per scene, how it was made."""
-    from benchmark.answer import answer_report
+    from reelbench.benchmark.answer import answer_report
 
     bounded = sorted(table.loc[table["note"].fillna("").eq(LOWER_BOUND_NOTE), "integrator"].unique())
     return "\n".join(answer_report.tables(table, labels) + answer_report.how_made(
@@ -569,7 +569,7 @@ COMMITTED_ANSWER = RESULTS
 
 
 def is_committed_answer(out: Path) -> bool:
-    from benchmark.core.store import ROOT
+    from reelbench.benchmark.core.store import ROOT
 
     try:
         return Path(out).resolve() == (ROOT / COMMITTED_ANSWER).resolve()
@@ -587,7 +587,7 @@ _NOT_DIGESTED = ("run_key", "row_digest", "job_time")
 def _digest(row: dict) -> str:
     """A row's digest over every column it has a value in (so that it survives a round trip
     through CSV, where a missing value and an empty one read back alike)."""
-    from benchmark.core.store import canonical
+    from reelbench.benchmark.core.store import canonical
 
     return key_of(sorted((str(k), canonical(v)) for k, v in row.items()
                          if k not in _NOT_DIGESTED and canonical(v) != ""))
@@ -606,7 +606,7 @@ def read_rows(path: Path, log=engine.log_stderr, identity: tuple | None = None) 
     a table of this study (no ``identity`` column; by default its file name's), is refused before
     any work, as every study's earlier table is (`benchmark.core.study_store.read_rows`): this
     run would overwrite it."""
-    from benchmark.core.study_store import read_rows as read_table
+    from reelbench.benchmark.core.study_store import read_rows as read_table
 
     rows = read_table(Path(path), IDENTITY[Path(path).name] if identity is None else identity)
     good = [r for r in rows if isinstance(r.get("row_digest"), str) and r["row_digest"] == _digest(r)]
@@ -647,7 +647,7 @@ class AnswerRequest:
 
 def _shown(path: Path) -> str:
     """``path`` relative to the repository where it lies inside it, else as given."""
-    from benchmark.core.store import ROOT
+    from reelbench.benchmark.core.store import ROOT
 
     try:
         return str(Path(path).resolve().relative_to(ROOT.resolve()))
@@ -657,7 +657,7 @@ def _shown(path: Path) -> str:
 
 def labels_of(targets) -> dict:
     """metric -> its words: the default targets' labels, else the metric's own description."""
-    from benchmark.runs.metrics import METRICS
+    from reelbench.benchmark.runs.metrics import METRICS
 
     words = {m: label for m, _, label in TARGETS}
     described = {m.name: m.description or m.name for m in METRICS}
@@ -672,12 +672,12 @@ def run_answer(request: AnswerRequest, log: Callable[[str], None] = engine.log_s
 
     import pandas as pd
 
-    from benchmark.answer import answer_report
-    from benchmark.core.study import exclusive
-    from benchmark.core.reference import CACHE_DIR
-    from benchmark.core.report import Provenance
-    from benchmark.core.store import TableWriter, write_table
-    from models.io import atomic_write_text
+    from reelbench.benchmark.answer import answer_report
+    from reelbench.benchmark.core.study import exclusive
+    from reelbench.benchmark.core.reference import CACHE_DIR
+    from reelbench.benchmark.core.report import Provenance
+    from reelbench.benchmark.core.store import TableWriter, write_table
+    from reelbench.models.io import atomic_write_text
 
     out = Path(request.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -727,8 +727,8 @@ def run_answer(request: AnswerRequest, log: Callable[[str], None] = engine.log_s
                                                                       provenance.header() + "\n\n" + spent, compared))
             log(f"{out}/README.md and {len(made)} work–precision figure(s) written")
             if is_committed_answer(out):
-                from benchmark.answer.answer_report import write_answer
-                from benchmark.core.store import ROOT
+                from reelbench.benchmark.answer.answer_report import write_answer
+                from reelbench.benchmark.core.store import ROOT
 
                 log(write_answer(ROOT / "README.md", block))
     except KeyboardInterrupt as exc:

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from benchmark.core.policy import BEST_VERDICTS, RANKED_VERDICTS, SLOWER, TIE
+from reelbench.benchmark.core.policy import BEST_VERDICTS, RANKED_VERDICTS, SLOWER, TIE
 
 #: The markers of the project README's generated answer block.
 ANSWER_START, ANSWER_END = "<!-- answer:start -->", "<!-- answer:end -->"
@@ -28,7 +28,7 @@ LIMITED_BY = {"target": "accuracy", "stability": "stability", "largest setting":
 
 def family(integrator: str) -> str:
     """The family a method belongs to, from what it declares (a plugin gets one too)."""
-    from integrators import Capability, get_integrator
+    from reelbench.integrators import Capability, get_integrator
 
     try:
         integ = get_integrator(integrator)
@@ -121,7 +121,7 @@ def sentences(h: pd.DataFrame, labels: dict) -> list[str]:
 def how_made(command: str, bounded: list[str], equivalence: float, confirm: int, table_file: str) -> list[str]:
     bounds = (f" {', '.join(f'`{b}`' for b in bounded)} by work: its flops leave out its Newton solves, a lower bound (`≥`), "
               "never a winner." if bounded else "")
-    from benchmark.answer.search import RESOLUTION
+    from reelbench.benchmark.answer.search import RESOLUTION
 
     return [f"Each setting is the cheapest found by search (to {RESOLUTION * 100:g} % in cost) that stands: the {confirm} "
             "settings just "
@@ -154,7 +154,7 @@ def points(searched: pd.DataFrame) -> pd.DataFrame:
 
 def figures(searched: pd.DataFrame, out: Path) -> list[str]:
     """work_precision_SCENE.png (the smallest N of each scene) from every setting searched."""
-    from benchmark.figures import plots
+    from reelbench.benchmark.figures import plots
 
     pts = points(searched)
     made = []
@@ -269,7 +269,7 @@ def write_answer(readme: Path, block: str) -> str:
     new = text[: start + len(ANSWER_START)] + "\n" + block + text[end:]
     if new == text:
         return f"{readme}: the answer block is unchanged"
-    from models.io import atomic_write_text
+    from reelbench.models.io import atomic_write_text
 
     atomic_write_text(readme, new)
     return f"{readme}: the answer block between {ANSWER_START} and {ANSWER_END} was rewritten"

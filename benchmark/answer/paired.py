@@ -37,7 +37,7 @@ from typing import Callable
 
 import numpy as np
 
-from benchmark.core.policy import PAIRED_BUDGET, RESOLUTION, SLOWER, TIE, TIE_MARGIN, WINNER
+from reelbench.benchmark.core.policy import PAIRED_BUDGET, RESOLUTION, SLOWER, TIE, TIE_MARGIN, WINNER
 
 #: Seconds of timing per target (all methods' solves together, the setup excluded).
 BUDGET = PAIRED_BUDGET

@@ -38,7 +38,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Callable
 
-from benchmark.core.policy import NOT_REACHED, RESOLUTION  # two settings this close in cost are close enough (the issue's 10 %)
+from reelbench.benchmark.core.policy import NOT_REACHED, RESOLUTION  # two settings this close in cost are close enough (the issue's 10 %)
 
 #: The most runs of one search (bracket, bisection and confirmation together).
 MAX_RUNS = 24
@@ -59,7 +59,7 @@ class Point:
 
     @property
     def finished(self) -> bool:
-        from integrators.base import is_finished  # here: the command line imports this module at start
+        from reelbench.integrators.base import is_finished  # here: the command line imports this module at start
 
         return is_finished(self.status) and math.isfinite(self.error)
 
@@ -104,7 +104,7 @@ class Found:
 
 
 def _costed(p: Point) -> bool:
-    from integrators.base import is_finished
+    from reelbench.integrators.base import is_finished
 
     return is_finished(p.status) and math.isfinite(p.cost) and p.cost > 0
 
@@ -112,7 +112,7 @@ def _costed(p: Point) -> bool:
 def _stopped_by_budget(status: str) -> bool:
     """A run stopped by its own budget (`integrators.base.BUDGET_STATUSES`: steps, seconds): a finer
     setting costs more, so the search goes no finer after one (its bound is then ``budget``)."""
-    from integrators.base import BUDGET_STATUSES  # here: the command line imports this module at start
+    from reelbench.integrators.base import BUDGET_STATUSES  # here: the command line imports this module at start
 
     return status in BUDGET_STATUSES
 

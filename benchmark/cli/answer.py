@@ -5,19 +5,19 @@ sizes and targets checked, then `benchmark.answer.answer.run_answer`.
 from __future__ import annotations
 
 
-from benchmark.cli import common
-from benchmark.core import options as opt
-from benchmark.core import policy
-from benchmark.core.engine import log_stderr as _log  # the engine's: its lines go above a progress bar
-from benchmark.core.options import UsageError
+from reelbench.benchmark.cli import common
+from reelbench.benchmark.core import options as opt
+from reelbench.benchmark.core import policy
+from reelbench.benchmark.core.engine import log_stderr as _log  # the engine's: its lines go above a progress bar
+from reelbench.benchmark.core.options import UsageError
 
 
 def cmd_answer(args) -> int:
     """The main job: the cheapest setting of every method at every target by search, and paired timing."""
-    from benchmark.answer import answer
-    from benchmark.runs import sweep
-    from benchmark.answer.answer import AnswerRequest
-    from models import load_scene
+    from reelbench.benchmark.answer import answer
+    from reelbench.benchmark.runs import sweep
+    from reelbench.benchmark.answer.answer import AnswerRequest
+    from reelbench.models import load_scene
 
     targets = args.targets or tuple((m, t) for m, t, _ in answer.TARGETS)  # parsed: `_targets`
     scenes = tuple(args.scenes or (sweep.EXTENDED_SCENES if args.extended else sweep.PAPER_SCENES))
@@ -37,7 +37,7 @@ def cmd_answer(args) -> int:
 def _targets(text: str) -> tuple:
     """``metric=target,...`` -> ((metric, target), ...): each metric one of the runs table's
     accuracy metrics, each target a positive number."""
-    from benchmark.runs.metrics import ACCURACY
+    from reelbench.benchmark.runs.metrics import ACCURACY
 
     out = []
     for part in text.split(","):
@@ -58,8 +58,8 @@ def _targets(text: str) -> tuple:
 
 
 def add_answer(sub) -> None:
-    from benchmark.answer import answer
-    from benchmark.answer import search  # constants only (no JAX)
+    from reelbench.benchmark.answer import answer
+    from reelbench.benchmark.answer import search  # constants only (no JAX)
 
     an = sub("answer", "the main job: each method's cheapest setting at each target by search, wall-time verdicts "
                        "by paired timing -> --out/cheapest.csv, README.md, figures (and the README's answer block)",

@@ -7,15 +7,15 @@ from __future__ import annotations
 import shlex
 from pathlib import Path
 
-from benchmark.cli import common
-from benchmark.core import options as opt
-from benchmark.core import policy
-from benchmark.core.engine import log_stderr as _log  # the engine's: its lines go above a progress bar
-from benchmark.core.options import UsageError
+from reelbench.benchmark.cli import common
+from reelbench.benchmark.core import options as opt
+from reelbench.benchmark.core import policy
+from reelbench.benchmark.core.engine import log_stderr as _log  # the engine's: its lines go above a progress bar
+from reelbench.benchmark.core.options import UsageError
 
 
 def cmd_check(args) -> int:
-    from benchmark.studies import check
+    from reelbench.benchmark.studies import check
 
     if not args.update and args.baseline is None and not Path(check.BASELINE).exists():
         raise UsageError(f"the committed baseline {check.BASELINE} is not in {Path.cwd()}: run `check` from the "

@@ -29,9 +29,9 @@ import shlex
 import sys
 from typing import Callable
 
-from benchmark.core import options as opt
-from benchmark.core import policy
-from benchmark.core.options import UsageError
+from reelbench.benchmark.core import options as opt
+from reelbench.benchmark.core import policy
+from reelbench.benchmark.core.options import UsageError
 
 
 def command(args) -> str:
@@ -101,7 +101,7 @@ def one_of(parse: Callable, what: str) -> Callable:
 
 
 def _registered(names: list[str]) -> None:
-    from integrators import get_integrator  # the registry: names and capabilities, no JAX
+    from reelbench.integrators import get_integrator  # the registry: names and capabilities, no JAX
 
     for name in names:
         get_integrator(name)  # an unknown name: ValueError naming it, with the close match and the list
@@ -214,7 +214,7 @@ def add_budget(p, what: str) -> None:
 
 def budget(args):
     """The budget of each solve (--max-steps, --time-limit) as the runner takes it."""
-    from benchmark.runs.runner import SolveBudget
+    from reelbench.benchmark.runs.runner import SolveBudget
 
     return SolveBudget(max_steps=args.max_steps, time_limit=args.time_limit)
 
@@ -228,7 +228,7 @@ def _check_executor(args) -> None:
 
 def add_executor(p, what: str) -> None:
     """--executor and --scheduler, the same on every command that runs jobs on the engine."""
-    from benchmark.runs import sweep  # constants only (no JAX)
+    from reelbench.benchmark.runs import sweep  # constants only (no JAX)
 
     p.add_argument("--executor", default=sweep.DEFAULT_EXECUTOR, choices=list(sweep.EXECUTORS),
                    help=f"where {what} execute: worker processes, this process, or a Dask cluster")

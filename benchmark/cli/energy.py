@@ -5,16 +5,16 @@ one study runner (`benchmark.core.study.run`).
 from __future__ import annotations
 
 
-from benchmark.cli import common
-from benchmark.core import options as opt
-from benchmark.core import policy
-from benchmark.core.engine import log_stderr as _log  # the engine's: its lines go above a progress bar
+from reelbench.benchmark.cli import common
+from reelbench.benchmark.core import options as opt
+from reelbench.benchmark.core import policy
+from reelbench.benchmark.core.engine import log_stderr as _log  # the engine's: its lines go above a progress bar
 
 
 def cmd_energy(args) -> int:
-    from benchmark.core import study
-    from benchmark.studies import horizon
-    from models import load_scene
+    from reelbench.benchmark.core import study
+    from reelbench.benchmark.studies import horizon
+    from reelbench.models import load_scene
 
     for sc in args.scenes or ():
         load_scene(sc)
@@ -35,7 +35,7 @@ def cmd_energy(args) -> int:
 
 
 def add_energy(sub) -> None:
-    from benchmark.studies import horizon  # constants only (no JAX)
+    from reelbench.benchmark.studies import horizon  # constants only (no JAX)
 
     e = sub("energy", "the long-horizon energy study: energy error vs time beside the axial vibration and "
                       "the least tension, the modified-energy offset told apart from drift -> "

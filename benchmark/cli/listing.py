@@ -5,9 +5,9 @@ from __future__ import annotations
 
 
 def cmd_list(args) -> int:
-    from benchmark.runs.sweep import EXTENDED_METHODS
-    from integrators import available, get_integrator, origin, plugin_errors
-    from models import available_scenes
+    from reelbench.benchmark.runs.sweep import EXTENDED_METHODS
+    from reelbench.integrators import available, get_integrator, origin, plugin_errors
+    from reelbench.models import available_scenes
 
     print("scenes:", ", ".join(available_scenes()))
     names, failed_methods = available(), plugin_errors()
@@ -24,8 +24,8 @@ def cmd_list(args) -> int:
         print(f"  {name:{width}s}  FAILED TO LOAD: {err}")
     print("  (default: in the default sweep; extended: only in the extended sweep, or when --integrators names it; "
           "plugins: a plugin, swept with --with-plugins or when --integrators names it)")
-    from models import EFFECTS
-    from models.effects import effect_origin, plugin_errors as effect_plugin_errors
+    from reelbench.models import EFFECTS
+    from reelbench.models.effects import effect_origin, plugin_errors as effect_plugin_errors
 
     failed = effect_plugin_errors()  # loads the reelbench.effects plugins first
     print("effects:", ", ".join(n if effect_origin(n).own else f"{n} ({effect_origin(n).label()})" for n in EFFECTS))

@@ -30,10 +30,10 @@ import os
 import sys
 import threading
 
-from benchmark.cli import (answer, check, common, energy, listing, orders, reel_reversal, run, simulate, speed,
+from reelbench.benchmark.cli import (answer, check, common, energy, listing, orders, reel_reversal, run, simulate, speed,
                            stability, verify, work_rule, xval)
-from benchmark.core.engine import log_stderr as _log  # the engine's: its lines go above a progress bar
-from models.io import printable
+from reelbench.benchmark.core.engine import log_stderr as _log  # the engine's: its lines go above a progress bar
+from reelbench.models.io import printable
 
 #: The commands, in the order `--help` lists them.
 BUILDERS = (run.add_run, check.add_check, simulate.add_simulate, simulate.add_figures, speed.add_speed,
@@ -72,7 +72,7 @@ def main(argv=None) -> int:
         args.argv = argv
         common.run_checks(args)  # the checks that need a second option (`common.add_check`)
         if threading.current_thread() is threading.main_thread():
-            from benchmark.core.engine import install_stop_handlers
+            from reelbench.benchmark.core.engine import install_stop_handlers
 
             install_stop_handlers()  # SIGTERM stops every command like Ctrl-C: one line, exit 143
         return args.func(args)
@@ -87,7 +87,7 @@ def main(argv=None) -> int:
         _log(f"error: {printable(exc)}")
         return 1
     except KeyboardInterrupt as exc:  # a command without its own stop message
-        from benchmark.core.engine import stop_cause, stop_status
+        from reelbench.benchmark.core.engine import stop_cause, stop_status
 
         _log(f"stopped by {stop_cause(exc)}: no result was written (this command writes its results when it ends)")
         return stop_status(exc)

@@ -5,28 +5,28 @@ on the one study runner (`benchmark.core.study.run`).
 from __future__ import annotations
 
 
-from benchmark.cli import common
-from benchmark.core import options as opt
-from benchmark.core import policy
-from benchmark.core.engine import log_stderr as _log  # the engine's: its lines go above a progress bar
+from reelbench.benchmark.cli import common
+from reelbench.benchmark.core import options as opt
+from reelbench.benchmark.core import policy
+from reelbench.benchmark.core.engine import log_stderr as _log  # the engine's: its lines go above a progress bar
 
 
 def cmd_orders(args) -> int:
-    from benchmark.studies import orders
-    from models import load_scene
+    from reelbench.benchmark.studies import orders
+    from reelbench.models import load_scene
 
     for sc in args.scenes or ():
         load_scene(sc)  # an unknown scene is refused before any work
     the_study = orders.study(args.scenes, args.integrators, workers=args.jobs)  # an adaptive-only method likewise
     out = opt.writable_dir(args.out)
     opt.no_directory_at(out, ("orders_errors.csv", "orders.csv"))
-    from benchmark.core import study
+    from reelbench.benchmark.core import study
 
     return study.run(the_study, out, command=common.command(args), fresh=args.fresh, log=_log)
 
 
 def add_orders(sub) -> None:
-    from benchmark.studies import orders  # constants only (no JAX)
+    from reelbench.benchmark.studies import orders  # constants only (no JAX)
 
     o = sub("orders", "observed orders of the fixed-step methods on a short horizon, against a reference "
                       "100x more accurate -> OUT/orders.csv",

@@ -5,15 +5,15 @@
 from __future__ import annotations
 
 
-from benchmark.cli import common
-from benchmark.core import options as opt
-from benchmark.core.engine import log_stderr as _log  # the engine's: its lines go above a progress bar
-from benchmark.core.options import UsageError
+from reelbench.benchmark.cli import common
+from reelbench.benchmark.core import options as opt
+from reelbench.benchmark.core.engine import log_stderr as _log  # the engine's: its lines go above a progress bar
+from reelbench.benchmark.core.options import UsageError
 
 
 def cmd_reel_reversal(args) -> int:
-    from benchmark.studies import reel_reversal
-    from models import load_scene
+    from reelbench.benchmark.studies import reel_reversal
+    from reelbench.models import load_scene
 
     reel_reversal.check_methods(args.integrators or ())
     reel_reversal.check_horizon(args.t_end)
@@ -22,8 +22,8 @@ def cmd_reel_reversal(args) -> int:
         raise UsageError(f"--scenes {scene.name!r} has no reel (effects: {', '.join(scene.effects)}): the reel-reversal "
                          "study follows the reel rate through its change of sign; give a scene with the reel effect, "
                          "e.g. --scenes reel_reversal")
-    from benchmark.core import study
-    from benchmark.core.reference import CACHE_DIR
+    from reelbench.benchmark.core import study
+    from reelbench.benchmark.core.reference import CACHE_DIR
 
     cache = opt.writable_dir(args.cache_dir or CACHE_DIR, option="--cache-dir")
     out = opt.writable_dir(args.out)
@@ -34,7 +34,7 @@ def cmd_reel_reversal(args) -> int:
 
 
 def add_reel_reversal(sub) -> None:
-    from benchmark.studies import reel_reversal  # constants only (no JAX)
+    from reelbench.benchmark.studies import reel_reversal  # constants only (no JAX)
 
     rr = sub("reel-reversal", "orders of the fixed-step methods across a reel reversal (ṡ_p changes sign), errors "
                               "against the reference -> --out/reel_reversal.csv, reel_reversal.md (also printed)")

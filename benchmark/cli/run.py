@@ -7,16 +7,16 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from benchmark.cli import common
-from benchmark.core import options as opt
-from benchmark.core import policy
-from benchmark.core.engine import log_stderr as _log  # the engine's: its lines go above a progress bar
-from benchmark.core.options import UsageError
+from reelbench.benchmark.cli import common
+from reelbench.benchmark.core import options as opt
+from reelbench.benchmark.core import policy
+from reelbench.benchmark.core.engine import log_stderr as _log  # the engine's: its lines go above a progress bar
+from reelbench.benchmark.core.options import UsageError
 
 
 def cmd_run(args) -> int:
-    from benchmark.runs import sweep  # no JAX until the pipeline builds the tasks
-    from models import load_scene
+    from reelbench.benchmark.runs import sweep  # no JAX until the pipeline builds the tasks
+    from reelbench.models import load_scene
 
     if args.with_plugins:
         if args.integrators:
@@ -46,7 +46,7 @@ def cmd_run(args) -> int:
     opt.no_directory_at(out, ("runs.csv", "runs.md", "orders.csv", "README.md", "figures.json"))
     _check_horizon_size(args, ov)  # the energy study's plan and settings (no JAX)
 
-    from benchmark.studies import grid
+    from reelbench.benchmark.studies import grid
 
     return grid.run_sweep(grid.SweepRequest(
         out=out, scenes=tuple(scene_names), integrators=tuple(args.integrators) if args.integrators else None,
@@ -61,8 +61,8 @@ def _check_horizon_size(args, overrides: dict) -> None:
     """The energy study `run` makes when --horizon asks for one fits, as any run must
     (`options.check_size`): e.g. --horizon 1e9 would take 2e11 steps at dt = 0.005 s (it crashed
     its worker). Without --horizon (or with 0) there is no study to check."""
-    from benchmark.studies import horizon
-    from models import load_scene
+    from reelbench.benchmark.studies import horizon
+    from reelbench.models import load_scene
 
     t_end = args.horizon
     if args.no_figures or not t_end:
@@ -87,7 +87,7 @@ _SWEEP_OPTIONS = (("scenes", "--scenes"), ("integrators", "--integrators"), ("qu
 def _run_out(args) -> str:
     """`run`'s output directory: the committed results/grid/ only for the default sweep or when
     named (`--out results/grid`); any other sweep must say where its results go."""
-    from benchmark.runs.sweep import plugin_names
+    from reelbench.benchmark.runs.sweep import plugin_names
 
     guests = plugin_names(args.integrators or ())
     if args.out is not None:
@@ -108,13 +108,13 @@ def _run_out(args) -> str:
 
 def _describe(names) -> str:
     """"a (package p 0.1), b (...)": plugins with their provenance, for messages."""
-    from integrators import origin
+    from reelbench.integrators import origin
 
     return ", ".join(f"{n} ({origin(n).label().removeprefix('plugin, ')})" for n in names)
 
 
 def add_run(sub) -> None:
-    from benchmark.runs import sweep  # constants only (no JAX): the defaults shown in --help are the real ones
+    from reelbench.benchmark.runs import sweep  # constants only (no JAX): the defaults shown in --help are the real ones
 
     r = sub("run", "sweep scenes × integrators × settings; tables, plots and a README into --out",
             "Sweep scenes × integrators × settings. Rows are written to OUT/runs.csv as they finish and join "

@@ -10,13 +10,13 @@ import contextlib
 from pathlib import Path
 from typing import Callable
 
-from benchmark.cli import common
-from benchmark.core import engine
-from benchmark.core import options as opt
-from benchmark.core import policy
-from benchmark.core.engine import log_stderr as _log  # the engine's: its lines go above a progress bar
-from benchmark.core.options import UsageError
-from models.io import inside
+from reelbench.benchmark.cli import common
+from reelbench.benchmark.core import engine
+from reelbench.benchmark.core import options as opt
+from reelbench.benchmark.core import policy
+from reelbench.benchmark.core.engine import log_stderr as _log  # the engine's: its lines go above a progress bar
+from reelbench.benchmark.core.options import UsageError
+from reelbench.models.io import inside
 
 
 def _any_finite(values) -> bool:
@@ -31,14 +31,14 @@ def _any_finite(values) -> bool:
 def _check_integrator(name: str):
     """The integrator ``name``, or UsageError for an unknown one (the registry lists names and
     capabilities without importing JAX)."""
-    from integrators import get_integrator
+    from reelbench.integrators import get_integrator
 
     return get_integrator(name)
 
 
 def _check_setting(integ, dt, rtol, t_end: float) -> None:
     """simulate's --dt / --rtol as the method takes them (from its declared capabilities)."""
-    from integrators import Capability
+    from reelbench.integrators import Capability
 
     fixed, adaptive = integ.has(Capability.FIXED_STEP), integ.has(Capability.ADAPTIVE)
     takes = " or ".join(o for o, ok in (("--dt (a fixed step)", fixed), ("--rtol (a tolerance)", adaptive)) if ok)
@@ -53,7 +53,7 @@ def _check_setting(integ, dt, rtol, t_end: float) -> None:
 
 
 def cmd_simulate(args) -> int:
-    from models import load_scene
+    from reelbench.models import load_scene
 
     scene = load_scene(args.scene, **common.overrides(args.set))  # --integrators: a registered name (parsed)
     if args.t_end is not None:
@@ -78,9 +78,9 @@ def cmd_simulate(args) -> int:
 
 
 def cmd_figures(args) -> int:
-    from benchmark.core.store import UnreadableFile, read_trajectory
-    from models import load_scene
-    from models.layout import StateLayout
+    from reelbench.benchmark.core.store import UnreadableFile, read_trajectory
+    from reelbench.models import load_scene
+    from reelbench.models.layout import StateLayout
 
     src = Path(args.trajectory)
     if not src.exists():
@@ -100,8 +100,8 @@ def cmd_figures(args) -> int:
         raise UsageError(f"{src}: the trajectory has no finite point (status {getattr(traj, 'status', '?')}): "
                          "nothing to draw; give a trajectory of a run that computed something")
     _check_trajectory(src, traj)
-    from models.schema import is_safe_name
-    from models.scene import scene_from_dict
+    from reelbench.models.schema import is_safe_name
+    from reelbench.models.scene import scene_from_dict
 
     recorded = getattr(traj, "scene", None)
     if not args.scene and isinstance(recorded, dict) and recorded:  # the scene the trajectory was computed with
@@ -130,7 +130,7 @@ def _check_trajectory(src: Path, traj) -> None:
     by `simulate`)."""
     import numpy as np
 
-    from benchmark.runs.table import statuses
+    from reelbench.benchmark.runs.table import statuses
 
     status = getattr(traj, "status", None)
     if not isinstance(status, str) or status not in statuses():
@@ -195,7 +195,7 @@ def _finish_on_stop(log: Callable[[str], None]):
     import signal
     import threading
 
-    from integrators import lifecycle
+    from reelbench.integrators import lifecycle
 
     caught: list[str] = []
     if threading.current_thread() is not threading.main_thread():
@@ -230,9 +230,9 @@ def simulate(scene, integrator: str, settings: dict, out: Path, *, estimate: flo
 
     import numpy as np
 
-    from integrators import get_integrator
-    from models.diagnostics import evaluate
-    from models.io import atomic_write_text
+    from reelbench.integrators import get_integrator
+    from reelbench.models.diagnostics import evaluate
+    from reelbench.models.io import atomic_write_text
 
     integ = get_integrator(integrator)
     try:
@@ -262,8 +262,8 @@ def simulate(scene, integrator: str, settings: dict, out: Path, *, estimate: flo
 
 def draw_figures(scene, traj, out: Path, log: Callable[[str], None] = _log) -> int:
     """The paper's panels (a)-(d) of a saved trajectory."""
-    from benchmark.figures import plots
-    from models.diagnostics import evaluate
+    from reelbench.benchmark.figures import plots
+    from reelbench.models.diagnostics import evaluate
 
     plots.paper_panels(scene, traj, evaluate(scene, traj), out)
     log(f"wrote {out}")

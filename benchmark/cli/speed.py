@@ -5,17 +5,17 @@
 from __future__ import annotations
 
 
-from benchmark.cli import common
-from benchmark.core import options as opt
-from benchmark.core import policy
-from benchmark.core.engine import log_stderr as _log  # the engine's: its lines go above a progress bar
-from benchmark.core.options import UsageError
+from reelbench.benchmark.cli import common
+from reelbench.benchmark.core import options as opt
+from reelbench.benchmark.core import policy
+from reelbench.benchmark.core.engine import log_stderr as _log  # the engine's: its lines go above a progress bar
+from reelbench.benchmark.core.options import UsageError
 
 
 def cmd_speed(args) -> int:
-    from models import load_scene
+    from reelbench.models import load_scene
 
-    from benchmark.studies.lgvi_speed import SpeedRequest  # JAX-free until a measurement runs
+    from reelbench.benchmark.studies.lgvi_speed import SpeedRequest  # JAX-free until a measurement runs
 
     default = SpeedRequest()
     elements, scenes = tuple(args.elements or default.elements), tuple(args.scenes or default.scenes)
@@ -32,15 +32,15 @@ def cmd_speed(args) -> int:
     if args.out.strip() == "-":  # each measurement is saved as it finishes: the tables always go to a file
         raise UsageError("--out -: the speed tables are saved (and printed): give a Markdown file, e.g. speed.md")
     out = opt.writable_file(args.out)
-    from benchmark.core import study
-    from benchmark.studies import lgvi_speed
+    from reelbench.benchmark.core import study
+    from reelbench.benchmark.studies import lgvi_speed
 
     if out.is_file() and not lgvi_speed.rows_file(out).exists():
         raise UsageError(f"--out {out}: the file exists without its rows table {lgvi_speed.rows_file(out)}, "
                          "so its rows could not be kept; this run would overwrite them: give another --out, or move "
                          "it away")
     opt.no_directory_at(out.parent, (out.name, lgvi_speed.rows_file(out).name))
-    from integrators.rhs import check_rhs
+    from reelbench.integrators.rhs import check_rhs
 
     rhs = tuple(v.strip() for v in args.rhs.split(",") if v.strip())
     for r in rhs:
@@ -53,7 +53,7 @@ def cmd_speed(args) -> int:
 
 
 def add_speed(sub) -> None:
-    from benchmark.studies.lgvi_speed import SpeedRequest  # JAX-free: the defaults shown in --help are the real ones
+    from reelbench.benchmark.studies.lgvi_speed import SpeedRequest  # JAX-free: the defaults shown in --help are the real ones
 
     default = SpeedRequest()
     sp = sub("speed", "time per step of every fixed-step method and per-call cost of each right-hand side vs N, "

@@ -5,15 +5,15 @@
 from __future__ import annotations
 
 
-from benchmark.cli import common
-from benchmark.core import options as opt
-from benchmark.core import policy
-from benchmark.core.engine import log_stderr as _log  # the engine's: its lines go above a progress bar
+from reelbench.benchmark.cli import common
+from reelbench.benchmark.core import options as opt
+from reelbench.benchmark.core import policy
+from reelbench.benchmark.core.engine import log_stderr as _log  # the engine's: its lines go above a progress bar
 
 
 def cmd_stability(args) -> int:
-    from benchmark.core import study
-    from benchmark.studies import stability
+    from reelbench.benchmark.core import study
+    from reelbench.benchmark.studies import stability
 
     # the study checks its scene and integrator names
     the_study = stability.study(args.scenes, args.integrators, workers=args.jobs, budget=common.budget(args))

@@ -5,13 +5,13 @@
 from __future__ import annotations
 
 
-from benchmark.cli import common
-from benchmark.core.options import UsageError
+from reelbench.benchmark.cli import common
+from reelbench.benchmark.core.options import UsageError
 
 
 def cmd_verify(args) -> int:
     """The plugin contract (benchmark/contract/verify.py): exit 0 when every check holds, 1 otherwise."""
-    from benchmark.contract import verify
+    from reelbench.benchmark.contract import verify
 
     ov = common.overrides(args.set)
     for name in args.names:  # an unknown name, a scene without the effect or a bad one: exit 2 before any work

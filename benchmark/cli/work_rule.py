@@ -5,18 +5,18 @@
 from __future__ import annotations
 
 
-from benchmark.cli import common
-from benchmark.core import options as opt
-from benchmark.core import policy
-from benchmark.core.engine import log_stderr as _log  # the engine's: its lines go above a progress bar
+from reelbench.benchmark.cli import common
+from reelbench.benchmark.core import options as opt
+from reelbench.benchmark.core import policy
+from reelbench.benchmark.core.engine import log_stderr as _log  # the engine's: its lines go above a progress bar
 
 
 def cmd_work_rule(args) -> int:
     """The flop rule against compiled floors (`benchmark.work.work_rule`); --floor, --elements and
     --steps are checked by their parse functions."""
     out = None if args.out == "-" else opt.writable_file(args.out)  # --out -: print only
-    from benchmark.work import work_rule
-    from models.io import atomic_write_text
+    from reelbench.benchmark.work import work_rule
+    from reelbench.models.io import atomic_write_text
 
     text = work_rule.report(args.floor, args.elements, args.steps, args.repeats, command=common.command(args))
     if out is None:
@@ -28,7 +28,7 @@ def cmd_work_rule(args) -> int:
 
 
 def add_work_rule(sub) -> None:
-    from benchmark.work import work_rule  # constants only (no JAX)
+    from reelbench.benchmark.work import work_rule  # constants only (no JAX)
 
     w = sub("work-rule", "the flop rule against compiled floors: does the work column charge methods in the "
                          "proportion their compiled steps take time? -> --out (results/work_rule.md)",

@@ -5,11 +5,11 @@
 from __future__ import annotations
 
 
-from benchmark.cli import common
-from benchmark.core import options as opt
-from benchmark.core import policy
-from benchmark.core.engine import log_stderr as _log  # the engine's: its lines go above a progress bar
-from benchmark.core.options import UsageError
+from reelbench.benchmark.cli import common
+from reelbench.benchmark.core import options as opt
+from reelbench.benchmark.core import policy
+from reelbench.benchmark.core.engine import log_stderr as _log  # the engine's: its lines go above a progress bar
+from reelbench.benchmark.core.options import UsageError
 
 
 def cmd_xval(args) -> int:
@@ -17,8 +17,8 @@ def cmd_xval(args) -> int:
     import importlib.util
 
     ints = args.elements or None  # two or more N >= 2 (parsed)
-    from benchmark.studies import xval
-    from models import load_scene
+    from reelbench.benchmark.studies import xval
+    from reelbench.models import load_scene
 
     scene = load_scene(args.scene, **({"t_end": args.t_end} if args.t_end else {}))  # plausible horizon
     unknown = [c for c in args.cases or () if c not in xval.CASES]

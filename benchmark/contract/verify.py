@@ -5,7 +5,7 @@ test suite) runs one function on an integrator or an effect and gets one `Check`
 the contract (integrators/README.md, "The plugin contract"; models/README.md, "Adding an
 effect"), each with the figure it was judged by::
 
-    from benchmark.contract.verify import check_integrator, check_effect
+    from reelbench.benchmark.contract.verify import check_integrator, check_effect
     check_integrator("my_method")          # raises ContractError naming every failed check
     check_effect("tip_spring", scene="my_scene.toml")
 
@@ -54,8 +54,8 @@ from typing import Callable
 
 import numpy as np
 
-from benchmark.core.order import fitted_order, last_order
-from benchmark.core.policy import VERIFY_BALANCE_REFERENCE, VERIFY_REFERENCE, atol_for
+from reelbench.benchmark.core.order import fitted_order, last_order
+from reelbench.benchmark.core.policy import VERIFY_BALANCE_REFERENCE, VERIFY_REFERENCE, atol_for
 
 #: the two situations an order is declared for, as small scenes (effects of the retrieval scene)
 ORDER_SCENES = {
@@ -139,7 +139,7 @@ def _run_checks(steps: list[tuple[str, Callable]], log) -> list[Check]:
 def small_scene(effects, elements: int = ELEMENTS, **overrides):
     """The retrieval scene reduced to ``effects`` (values adjusted to stay valid): a short,
     small scene that moves every coordinate."""
-    from models import load_scene
+    from reelbench.models import load_scene
 
     kw = dict(effects=list(effects), elements=elements, tip_velocity=[0.3, 1.0, -0.2], reel_rate=0.0,
               angular_velocity=[0.4, -0.3, 0.8] if "rigid_body" in effects else [0.0, 0.0, 0.0])
@@ -156,9 +156,9 @@ def _reference(effects: tuple, t_end: float = T_END):
     """A tight DOP853 solution (scipy on the model's closed-form equations) at the save points."""
     from scipy.integrate import solve_ivp
 
-    from integrators import Trajectory
-    from integrators.rhs import rhs_jit
-    from models import build_model
+    from reelbench.integrators import Trajectory
+    from reelbench.integrators.rhs import rhs_jit
+    from reelbench.models import build_model
 
     scene = small_scene(effects)
     model = build_model(scene)
@@ -176,7 +176,7 @@ def _reference(effects: tuple, t_end: float = T_END):
 
 def _method(integrator):
     """(instance, a context that keeps it registered for the checks) of a name, class or instance."""
-    from integrators import Integrator, get_integrator, registry
+    from reelbench.integrators import Integrator, get_integrator, registry
 
     if isinstance(integrator, str):
         return get_integrator(integrator), None
@@ -194,7 +194,7 @@ def check_integrator(integrator, *, log: Callable[[str], None] | None = None, ra
     """Check an integrator (a registered name, an `Integrator` subclass or instance) against
     the contract; returns the checks, and raises `ContractError` if one fails (unless
     ``raise_on_failure`` is False). ``log`` gets each check's line as it is made."""
-    from integrators import registry
+    from reelbench.integrators import registry
 
     integ, temporary = _method(integrator)
     try:
@@ -225,7 +225,7 @@ def _integrator_checks(integ) -> list[tuple[str, Callable]]:
 
 def _setting(integ, k: int = 1) -> dict:
     """The k-th setting of the order ladder (a fixed step if the method takes one, else a tolerance)."""
-    from integrators import Capability
+    from reelbench.integrators import Capability
 
     if integ.has(Capability.FIXED_STEP):
         return {"dt": STEPS[k]}
@@ -233,8 +233,8 @@ def _setting(integ, k: int = 1) -> dict:
 
 
 def _declarations(integ) -> Check:
-    from integrators import Capability
-    from integrators.base import SITUATIONS
+    from reelbench.integrators import Capability
+    from reelbench.integrators.base import SITUATIONS
 
     problems = []
     if not isinstance(integ.name, str) or not integ.name:
@@ -262,7 +262,7 @@ def _error(traj, ref) -> float:
 
 
 def _order(integ, key: str, runs: dict) -> Check:
-    from integrators import Capability
+    from reelbench.integrators import Capability
 
     fixed = integ.has(Capability.FIXED_STEP)
     t_end = T_END if fixed else ADAPTIVE_T_END
@@ -305,7 +305,7 @@ def _words(setting: dict) -> str:
 
 
 def _arguments(integ) -> Check:
-    from integrators import Capability
+    from reelbench.integrators import Capability
 
     scene = small_scene(ORDER_SCENES["fixed_length"])
     bad = []
@@ -333,7 +333,7 @@ def _finite(traj) -> bool:
 
 
 def _budget(integ) -> Check:
-    from integrators import Status
+    from reelbench.integrators import Status
 
     scene = small_scene(ORDER_SCENES["fixed_length"])
     tr = integ.solve(scene, t_end=T_END, save_every=SAVE_EVERY, max_steps=3, **_setting(integ, 2))
@@ -344,8 +344,8 @@ def _budget(integ) -> Check:
 
 def _length_limit(integ) -> Check:
     """A string paid out from near its end runs out within 0.3 s: every correct method stops there."""
-    from integrators import Status
-    from models import build_model
+    from reelbench.integrators import Status
+    from reelbench.models import build_model
 
     scene = small_scene(ORDER_SCENES["reel"], deployed_length=38.8, reel_rate=-1.5, control_moment=0.0)
     model = build_model(scene)
@@ -362,9 +362,9 @@ def _length_limit(integ) -> Check:
 def _energy_guard(integ) -> Check:
     """At a coarse setting the kept points must be finite and within the energy bound, and a
     run that leaves it must not be ok."""
-    from integrators import Capability, Guards
-    from models import build_model, load_scene
-    from models.diagnostics import evaluate
+    from reelbench.integrators import Capability, Guards
+    from reelbench.models import build_model, load_scene
+    from reelbench.models.diagnostics import evaluate
 
     scene = load_scene("fixed_length", elements=10)
     model = build_model(scene)
@@ -383,8 +383,8 @@ def _energy_guard(integ) -> Check:
 
 
 def _capability(integ, cap, runs: dict) -> Check:
-    from integrators import Capability
-    from models.diagnostics import evaluate
+    from reelbench.integrators import Capability
+    from reelbench.models.diagnostics import evaluate
 
     name = f"capability {cap.value}"
     scene, settings, trajs = runs.get("fixed_length") or (None, None, None)
@@ -455,8 +455,8 @@ def _counted(integ, scene, setting: dict, traj):
 
 
 def _flops(integ, runs: dict) -> Check:
-    from benchmark.work.flops import run_flops
-    from models import build_model
+    from reelbench.benchmark.work.flops import run_flops
+    from reelbench.models import build_model
 
     scene, settings, trajs = runs.get("fixed_length") or (None, None, None)
     if trajs is None:
@@ -477,8 +477,8 @@ def effect_scene(name: str, scene=None, overrides: dict | None = None):
     """The scene an effect is checked in: ``scene`` (a name, path or `Scene`, which must list
     it), else the small retrieval scene with the effect, what it needs, gravity and the rigid
     body; ValueError when the effect has required keys and no scene is given."""
-    from models import EFFECTS, load_scene
-    from models.effects import get_effect
+    from reelbench.models import EFFECTS, load_scene
+    from reelbench.models.effects import get_effect
 
     effect = get_effect(name)
     if scene is not None:
@@ -511,7 +511,7 @@ def check_effect(effect, *, scene=None, overrides: dict | None = None, log: Call
     """Check an effect (a registered name, or an `Effect` instance, registered for the checks
     if it is not) against the contract, in ``scene`` (`effect_scene`); returns the checks and
     raises `ContractError` if one fails (unless ``raise_on_failure`` is False)."""
-    from models.effects import EFFECTS, Effect, register_effect, unregister_effect
+    from reelbench.models.effects import EFFECTS, Effect, register_effect, unregister_effect
 
     temporary = None
     if isinstance(effect, Effect):
@@ -535,7 +535,7 @@ def check_effect(effect, *, scene=None, overrides: dict | None = None, log: Call
 
 
 def _effect_checks(name: str, scene, rng) -> list[tuple[str, Callable]]:
-    from models import build_model
+    from reelbench.models import build_model
 
     model = build_model(scene)
     steps = [("declarations", lambda: _effect_declarations(name, model))]
@@ -559,7 +559,7 @@ def _body_loads_of(name: str, model):
 
 
 def _effect_declarations(name: str, model) -> Check:
-    from models import EFFECTS
+    from reelbench.models import EFFECTS
 
     effect = EFFECTS[name]
     reel, string = _forces_of(name, model)
@@ -577,8 +577,8 @@ def _effect_declarations(name: str, model) -> Check:
 
 def _random_state(model, rng, scale: float = 0.2):
     """A random (x, R, w) near the initial state, with a random attitude."""
-    from models._jax import jnp
-    from models.model import quat_to_rot
+    from reelbench.models._jax import jnp
+    from reelbench.models.model import quat_to_rot
 
     x, R, w = model.initial_state()
     x = x + scale * rng.standard_normal(np.shape(x))
@@ -589,8 +589,8 @@ def _random_state(model, rng, scale: float = 0.2):
 
 
 def _gradient(model, term: str, rng, n: int = 3) -> Check:
-    from models._jax import jax, jnp
-    from models.model import hat
+    from reelbench.models._jax import jax, jnp
+    from reelbench.models.model import hat
 
     V, dV = model.potential_terms[term], model.potential_gradients[term]
     worst = 0.0
@@ -610,7 +610,7 @@ def _gradient(model, term: str, rng, n: int = 3) -> Check:
 
 
 def _power(name: str, model, rng, n: int = 3) -> Check:
-    from models import EFFECTS
+    from reelbench.models import EFFECTS
 
     effect = EFFECTS[name]
     reel, string = _forces_of(name, model)
@@ -675,9 +675,9 @@ def _energy_balance(name: str, scene, model, t_end: float = 0.5) -> Check:
     reads): E − W must hold still, which it does only if gradient, force and work agree."""
     from scipy.integrate import solve_ivp
 
-    from integrators import Trajectory
-    from integrators.rhs import rhs_jit
-    from models.diagnostics import evaluate, summary
+    from reelbench.integrators import Trajectory
+    from reelbench.integrators.rhs import rhs_jit
+    from reelbench.models.diagnostics import evaluate, summary
 
     lay, f = model.layout, rhs_jit(model)
     t_end = min(t_end, scene.t_end)
@@ -714,7 +714,7 @@ _OTHER = {"float": 0.5, "int": 2, "vec3": [0.1, 0.2, 0.3], "mat3": [[2.0, 0.0, 0
 
 def _scene_keys(name: str, scene) -> Check:
     """Each key the effect owns, broken three ways, must be refused by a SceneError naming it."""
-    from models import EFFECTS, SceneError, scene_from_dict
+    from reelbench.models import EFFECTS, SceneError, scene_from_dict
 
     effect = EFFECTS[name]
     base = scene.to_dict()
@@ -784,8 +784,8 @@ def _scene_keys(name: str, scene) -> Check:
 # ------------------------------------------------------------------------------------------
 def kind_of(name: str) -> str:
     """"integrator" or "effect" for a registered name; ValueError naming both registries otherwise."""
-    from integrators import available
-    from models.effects import EFFECTS, ensure_known
+    from reelbench.integrators import available
+    from reelbench.models.effects import EFFECTS, ensure_known
 
     if name in available():
         return "integrator"

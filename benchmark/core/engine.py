@@ -49,7 +49,7 @@ def log_stderr(msg: str) -> None:
 def worker_env() -> None:
     """One XLA thread per worker: the workers are the parallelism, and timings stay per-core.
     Appended: XLA_FLAGS already holds reelbench's own options (models._jax) and maybe a user's."""
-    from models._jax import append_xla_flags  # imports JAX: only where jobs run
+    from reelbench.models._jax import append_xla_flags  # imports JAX: only where jobs run
 
     append_xla_flags(("--xla_cpu_multi_thread_eigen=false", "intra_op_parallelism_threads=1"))
     os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -189,7 +189,7 @@ def stopped(exc: KeyboardInterrupt, what: str, log: Callable[[str], None] = log_
 
 def crash_reason(exc: BaseException) -> str:
     """The `reason` of a row whose worker died (status "crashed")."""
-    from benchmark.core.report import shorten
+    from reelbench.benchmark.core.report import shorten
 
     return shorten(f"{type(exc).__name__}: {exc}", 300)
 

@@ -14,7 +14,7 @@ import os
 import tempfile
 from pathlib import Path
 
-from benchmark.core.policy import ROW_IDENTITY, SOLVE_MAX_STEPS, SOLVE_TIME_LIMIT  # noqa: F401 (the budget defaults)
+from reelbench.benchmark.core.policy import ROW_IDENTITY, SOLVE_MAX_STEPS, SOLVE_TIME_LIMIT  # noqa: F401 (the budget defaults)
 
 
 class UsageError(ValueError):
@@ -71,7 +71,7 @@ def nonnegative_float(text: str) -> float:
 
 
 def tolerance(text: str) -> float:
-    from integrators.lifecycle import MIN_RTOL, rtol_allowed  # the API's rule (imported only when one is given)
+    from reelbench.integrators.lifecycle import MIN_RTOL, rtol_allowed  # the API's rule (imported only when one is given)
 
     v = _number(text)
     if not rtol_allowed(v):
@@ -235,7 +235,7 @@ STEP_COST_10 = 2e-6
 def run_size(scene, t_end: float, save_every: float, dt: float | None = None) -> dict:
     """Saved points, bytes of the saved trajectory and (fixed step) the steps and an estimated
     wall time of one run of ``scene``; no JAX needed."""
-    from models.layout import StateLayout  # JAX-free: the sizes the listed effects give
+    from reelbench.models.layout import StateLayout  # JAX-free: the sizes the listed effects give
 
     # The integrators' own rules, restated: importing them would import the integrators package
     # (its registry) on every refusal. tests/test_policy.py pins both to them.

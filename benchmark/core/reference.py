@@ -25,12 +25,12 @@ from typing import NamedTuple
 
 import numpy as np
 
-from benchmark.core.engine import log_stderr
-from benchmark.core.policy import REFERENCE_METHOD  # noqa: F401 (its settings: the one rule)
-from benchmark.core.store import (PHYSICS_DIRS, UnreadableFile, read_npz, source_hash, trajectory_from, trajectory_parts,
+from reelbench.benchmark.core.engine import log_stderr
+from reelbench.benchmark.core.policy import REFERENCE_METHOD  # noqa: F401 (its settings: the one rule)
+from reelbench.benchmark.core.store import (PHYSICS_DIRS, UnreadableFile, read_npz, source_hash, trajectory_from, trajectory_parts,
                              write_npz)
-from integrators import get_integrator
-from models.io import inside, user_cache_dir
+from reelbench.integrators import get_integrator
+from reelbench.models.io import inside, user_cache_dir
 
 #: References are shared by every study and output directory: one file per scene, horizon, save
 #: interval and physics code (`reference_path`).
@@ -136,8 +136,8 @@ def reference_at(scene, ref, times):
     components it keeps (`DenseSolution`), every other one NaN (only the body's position and
     attitude are compared with it); the trajectory ``ref`` itself where it has none (then only
     the saved times both share compare)."""
-    from integrators.lifecycle import ode_trajectory
-    from models import build_model
+    from reelbench.integrators.lifecycle import ode_trajectory
+    from reelbench.models import build_model
 
     if ref.dense is None:
         return ref
@@ -199,7 +199,7 @@ def load_reference(path: Path, ident: dict):
 def get_reference(scene, t_end: float, save_every: float, cache_dir: Path = CACHE_DIR, log=log_stderr):
     """The cached reference for (scene, t_end, save_every), computing it on first use, or when
     the cached file cannot be trusted (reported through ``log`` by file name)."""
-    from models import build_model
+    from reelbench.models import build_model
 
     path = reference_path(scene, t_end, save_every, cache_dir)
     ident = identity(scene, t_end, save_every)
@@ -242,7 +242,7 @@ class ReferenceProblem(NamedTuple):
 def prepare_reference(problem: ReferenceProblem, cache_dir: str | Path = CACHE_DIR) -> None:
     """Compute (or check) the cached reference of ``problem`` before the jobs read it, so that
     two workers never compute the same one."""
-    from models import load_scene
+    from reelbench.models import load_scene
 
     scene = load_scene(problem.scene, **dict(problem.overrides))
     get_reference(scene, problem.t_end if problem.t_end is not None else scene.t_end, problem.save_every,

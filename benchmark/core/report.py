@@ -61,7 +61,7 @@ def versions(packages=PACKAGES) -> str:
 
 def environment(extra_packages=(), load_at_start: float = float("nan")) -> str:
     """The machine, the load, the package versions and the XLA options, in one paragraph."""
-    from models._jax import xla_flags
+    from reelbench.models._jax import xla_flags
 
     cpu = platform.processor() or platform.machine()
     return (f"Python {platform.python_version()} on {platform.system()} {platform.machine()} ({cpu}, "

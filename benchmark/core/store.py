@@ -31,8 +31,8 @@ from typing import Callable, Iterable
 
 import numpy as np
 
-from benchmark.core.policy import ROW_IDENTITY
-from models.io import atomic_path, atomic_write_text
+from reelbench.benchmark.core.policy import ROW_IDENTITY
+from reelbench.models.io import atomic_path, atomic_write_text
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -236,7 +236,7 @@ class OutputLock:
     def acquire(self) -> "OutputLock":
         import filelock
 
-        from models.io import WriteFailed
+        from reelbench.models.io import WriteFailed
 
         me = json.dumps({"pid": os.getpid(), "host": socket.gethostname(), "command": " ".join(sys.argv)}).encode()
 
@@ -337,7 +337,7 @@ def _unreadable(exc: Exception) -> UnreadableFile:
 
 
 def _require_archive(path: Path) -> None:
-    from models.io import FileRefused, require_regular
+    from reelbench.models.io import FileRefused, require_regular
 
     try:
         require_regular(path)  # a FIFO would block the zip reader, a device feed it forever
@@ -372,7 +372,7 @@ def read_npz(path: str | os.PathLike) -> dict:
 def read_trajectory(path: str | os.PathLike):
     """A trajectory written by `integrators.Trajectory.save` (``simulate``); `UnreadableFile`
     saying why when the file is not one."""
-    from integrators import Trajectory
+    from reelbench.integrators import Trajectory
 
     _require_archive(Path(path))
     try:
@@ -394,7 +394,7 @@ def trajectory_parts(traj) -> tuple[dict, dict]:
 
 def trajectory_from(arrays: dict, meta: dict):
     """The trajectory of `trajectory_parts` (a missing array is None)."""
-    from integrators import Trajectory
+    from reelbench.integrators import Trajectory
 
     return Trajectory(**{k: arrays.get(k) for k in TRAJECTORY_ARRAYS}, **meta)
 

@@ -28,11 +28,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Hashable
 
-from benchmark.core import engine, store
-from benchmark.core.engine import log_stderr
-from benchmark.core.report import Provenance
-from integrators.base import is_finished
-from models.io import printable
+from reelbench.benchmark.core import engine, store
+from reelbench.benchmark.core.engine import log_stderr
+from reelbench.benchmark.core.report import Provenance
+from reelbench.integrators.base import is_finished
+from reelbench.models.io import printable
 
 #: The column where a row keeps the key it was made from (`Study.key`), for resume.
 KEY_COLUMN = "job_key"
@@ -169,7 +169,7 @@ class _Session:
         self.table, self.rows, self.kept = None, [], {}
 
     def run(self, fresh: bool, failed: list | None) -> int:
-        from benchmark.core.study_store import MergedTable
+        from reelbench.benchmark.core.study_store import MergedTable
 
         study, out, log = self.study, self.out, self.log
         self.table = MergedTable(out / study.table, study.identity, study.frame, text_columns=study.text_columns,

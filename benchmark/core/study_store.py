@@ -21,8 +21,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Callable
 
-from benchmark.core import store
-from benchmark.core.report import Provenance, earlier_runs
+from reelbench.benchmark.core import store
+from reelbench.benchmark.core.report import Provenance, earlier_runs
 
 
 def read_rows(path: Path, identity: tuple, text_columns: tuple = (), read: Callable | None = None) -> list[dict]:
@@ -32,7 +32,7 @@ def read_rows(path: Path, identity: tuple, text_columns: tuple = (), read: Calla
     ``read(df)``: the study's reading of the table as read (`Study.read_earlier`), applied first."""
     import pandas as pd
 
-    from models.io import FileRefused, require_regular
+    from reelbench.models.io import FileRefused, require_regular
 
     path = Path(path)
     if not path.exists():

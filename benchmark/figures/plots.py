@@ -14,12 +14,12 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from benchmark.figures import styles  # noqa: E402
-from benchmark.runs.metrics import FLOPS_DEFINITION, WORK_DEFINITION, pi3_deviation  # noqa: E402
-from models import build_model  # noqa: E402
-from models.diagnostics import effect_energy_columns, energy_deviation  # noqa: E402
-from models.io import atomic_path, inside  # noqa: E402
-from integrators.base import FINISHED_STATUSES  # noqa: E402
+from reelbench.benchmark.figures import styles  # noqa: E402
+from reelbench.benchmark.runs.metrics import FLOPS_DEFINITION, WORK_DEFINITION, pi3_deviation  # noqa: E402
+from reelbench.models import build_model  # noqa: E402
+from reelbench.models.diagnostics import effect_energy_columns, energy_deviation  # noqa: E402
+from reelbench.models.io import atomic_path, inside  # noqa: E402
+from reelbench.integrators.base import FINISHED_STATUSES  # noqa: E402
 
 ERROR_LABELS = {
     "energy_error": "energy error  max|ΔE (−W)| / max T",

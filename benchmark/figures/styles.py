@@ -102,7 +102,7 @@ def _registered_looks() -> dict[str, Style]:
     colour, marker and line style none has)."""
     global _scanned
     try:
-        from integrators import registry
+        from reelbench.integrators import registry
 
         if not _scanned:  # the installed plugins, once (a scan of the entry points costs ~30 ms)
             registry.available()
@@ -157,7 +157,7 @@ def clashes(names: Iterable[str]) -> list[tuple[str, str]]:
     return out
 
 
-from benchmark.runs.sweep import SWEEP_WORDS  # noqa: E402  (one wording for labels and tables)
+from reelbench.benchmark.runs.sweep import SWEEP_WORDS  # noqa: E402  (one wording for labels and tables)
 
 
 def legend_entries(drawn: Iterable[tuple[str, str]], absent: Mapping[str, str] | None = None

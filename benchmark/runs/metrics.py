@@ -8,16 +8,16 @@ from typing import Callable
 import numpy as np
 import pandas as pd
 
-from benchmark.core.order import successive_orders
-from models._lazy import lazy_function
-from integrators.base import FINISHED_STATUSES
-from integrators.base import INACCURATE as _INACCURATE
+from reelbench.benchmark.core.order import successive_orders
+from reelbench.models._lazy import lazy_function
+from reelbench.integrators.base import FINISHED_STATUSES
+from reelbench.integrators.base import INACCURATE as _INACCURATE
 
 # JAX-backed: imported on first use, so that the command line can list the metrics without JAX
-build_model = lazy_function("models.model", "build_model")
-energy_deviation = lazy_function("models.diagnostics", "energy_deviation")
-evaluate = lazy_function("models.diagnostics", "evaluate")
-quat_to_rot_many = lazy_function("models.model", "quat_to_rot_many")
+build_model = lazy_function("reelbench.models.model", "build_model")
+energy_deviation = lazy_function("reelbench.models.diagnostics", "energy_deviation")
+evaluate = lazy_function("reelbench.models.diagnostics", "evaluate")
+quat_to_rot_many = lazy_function("reelbench.models.model", "quat_to_rot_many")
 
 #: The sum of a run's counts (column ``work_evals``; rankings and figures use ``flops``, see
 #: `FLOPS_DEFINITION`, and this sum is kept to compare with tables from before it), in
@@ -204,7 +204,7 @@ def _distances(scene, traj, ref, save_every: float):
     """(dpos, datt) at every saved time of ``traj``, the reference read there by its dense output
     (`benchmark.core.reference.reference_at`); a reference without one is compared at the saved times
     both share; (None, None) if none."""
-    from benchmark.core.reference import reference_at
+    from reelbench.benchmark.core.reference import reference_at
 
     model = build_model(scene)
     if ref.dense is not None:

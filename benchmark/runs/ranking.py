@@ -23,9 +23,9 @@ from typing import Sequence
 import numpy as np
 import pandas as pd
 
-from benchmark.core.policy import ROW_IDENTITY, SLOWER, TIE, WINNER
-from benchmark.runs.sweep import PRESENTATION_ORDER, SWEEP_WORDS
-from integrators.base import BUDGET_STATUSES, ERROR, FINISHED_STATUSES, INACCURATE  # a budget ends a run, not a failure of the method
+from reelbench.benchmark.core.policy import ROW_IDENTITY, SLOWER, TIE, WINNER
+from reelbench.benchmark.runs.sweep import PRESENTATION_ORDER, SWEEP_WORDS
+from reelbench.integrators.base import BUDGET_STATUSES, ERROR, FINISHED_STATUSES, INACCURATE  # a budget ends a run, not a failure of the method
 
 #: The columns `failure_causes` reads from a runs table.
 _KEY_COLUMNS = (*ROW_IDENTITY, "dt", "rtol", "status")

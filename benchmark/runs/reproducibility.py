@@ -47,9 +47,9 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from benchmark.runs.metrics import ACCURACY, FLOORS
-from benchmark.core.policy import ROW_IDENTITY, axis_of
-from integrators.base import FINISHED_STATUSES, is_finished
+from reelbench.benchmark.runs.metrics import ACCURACY, FLOORS
+from reelbench.benchmark.core.policy import ROW_IDENTITY, axis_of
+from reelbench.integrators.base import FINISHED_STATUSES, is_finished
 
 KEY = list(ROW_IDENTITY)
 _REQUIRED = (*KEY, "dt", "rtol", "status", "steps")

@@ -38,16 +38,16 @@ from typing import Callable, Hashable, Iterable
 import numpy as np
 import pandas as pd
 
-from benchmark.core import engine
-from benchmark.work.flops import run_flops
-from benchmark.core.policy import SOLVE_MAX_STEPS, SOLVE_TIME_LIMIT
-from benchmark.runs.metrics import ACCURACY, COLUMNS, INACCURATE, inaccurate_reason, run_metrics, work_evals
-from benchmark.core.reference import CACHE_DIR, ReferenceProblem, get_reference, prepare_reference
-from benchmark.core.report import one_minute_load, shorten
-from benchmark.core.store import code_version, frame, key_of
-from benchmark.runs.table import kept_rows, row_digest, run_key
-from benchmark.runs.sweep import DEFAULT_EXECUTOR, EXECUTORS, MAX_REPEATS, MIN_REPEATS, TIMING_BUDGET, Task
-from integrators.base import CRASHED, ERROR, FINISHED_STATUSES, is_finished
+from reelbench.benchmark.core import engine
+from reelbench.benchmark.work.flops import run_flops
+from reelbench.benchmark.core.policy import SOLVE_MAX_STEPS, SOLVE_TIME_LIMIT
+from reelbench.benchmark.runs.metrics import ACCURACY, COLUMNS, INACCURATE, inaccurate_reason, run_metrics, work_evals
+from reelbench.benchmark.core.reference import CACHE_DIR, ReferenceProblem, get_reference, prepare_reference
+from reelbench.benchmark.core.report import one_minute_load, shorten
+from reelbench.benchmark.core.store import code_version, frame, key_of
+from reelbench.benchmark.runs.table import kept_rows, row_digest, run_key
+from reelbench.benchmark.runs.sweep import DEFAULT_EXECUTOR, EXECUTORS, MAX_REPEATS, MIN_REPEATS, TIMING_BUDGET, Task
+from reelbench.integrators.base import CRASHED, ERROR, FINISHED_STATUSES, is_finished
 
 #: Step statistics some integrators report (`Trajectory.stats`), copied into the row when present.
 STEP_STATS = ("rejected_steps", "min_step", "median_step", "max_step", "max_newton_iterations")
@@ -75,7 +75,7 @@ class SolveBudget:
 
 
 def _scene(task: Task):
-    from models import load_scene
+    from reelbench.models import load_scene
 
     return load_scene(task.scene, **dict(task.overrides))
 
@@ -93,7 +93,7 @@ def _empty_row(task: Task, scene=None) -> dict:
 def implementation(name: str) -> str:
     """The integrator's declared implementation ("jax-compiled", "scipy-python"), "" when it
     declares none (or is not registered)."""
-    from integrators import get_integrator
+    from reelbench.integrators import get_integrator
 
     try:
         return str(getattr(get_integrator(name), "implementation", "") or "")
@@ -180,8 +180,8 @@ def run_task(task: Task, cache_dir: str = str(CACHE_DIR), repeats: int = MIN_REP
 
 def _solved_row(task: Task, cache_dir: str, repeats: int, reference: bool, finished, loaded: list,
                 budget: SolveBudget) -> dict:
-    from integrators import get_integrator
-    from models import build_model
+    from reelbench.integrators import get_integrator
+    from reelbench.models import build_model
 
     scene = _scene(task)
     loaded.append(scene)
@@ -242,7 +242,7 @@ def method_cost(integrator: str) -> tuple[float, float]:
     """(seconds to compile, cost of a step relative to one of `STEP_SECONDS`) the method declares
     (`Integrator.cost_hint`; scipy's interpreted steps × `PYTHON_STEP_FACTOR`); an unknown or
     undeclared method is guessed dear (30 s, 1)."""
-    from integrators import get_integrator
+    from reelbench.integrators import get_integrator
 
     try:
         integ = get_integrator(integrator)
@@ -276,8 +276,8 @@ def provenance(name: str, code: str) -> dict:
     the project's code version (`benchmark.core.store.code_version`, given as ``code``) and, for a
     plugin, that of the source file defining it too (`models.origin.source_digest`): a changed
     plugin's rows are recomputed on resume, like the project's."""
-    from integrators import origin, registry
-    from models.origin import source_digest
+    from reelbench.integrators import origin, registry
+    from reelbench.models.origin import source_digest
 
     try:
         where = origin(name)

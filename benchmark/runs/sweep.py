@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
-from benchmark.core.policy import ATOL_FACTOR, ROW_IDENTITY, SAVE_EVERY, Setting  # noqa: F401 (the sweep's names)
+from reelbench.benchmark.core.policy import ATOL_FACTOR, ROW_IDENTITY, SAVE_EVERY, Setting  # noqa: F401 (the sweep's names)
 
 PAPER_SCENES = ("fixed_length", "deployment", "retrieval")
 #: A string in water (buoyancy and Morison drag): `run --extended` sweeps them after the paper's
@@ -127,7 +127,7 @@ def check_settings(dts=(), rtols=()) -> None:
         if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
             raise ValueError(f"--dts: dt = {v!r} is invalid (allowed: a finite number > 0)")
     if rtols:
-        from integrators.lifecycle import RTOL_RULE, rtol_allowed
+        from reelbench.integrators.lifecycle import RTOL_RULE, rtol_allowed
 
         for v in rtols:
             if not rtol_allowed(v):
@@ -149,7 +149,7 @@ def default_names(plugins: bool = False) -> list[str]:
     methods (`integrators.registry.own`) among `PRESENTATION_ORDER` in that order, then its
     others; with ``plugins`` (`run --with-plugins`) every installed plugin after them (test-only
     ``test_*`` excepted). A plugin is a guest: it joins a default only when asked."""
-    from integrators import available, registry
+    from reelbench.integrators import available, registry
 
     names = available() if plugins else registry.own()
     return [n for n in PRESENTATION_ORDER if n in names] + [
@@ -167,7 +167,7 @@ def plugin_names(names) -> list[str]:
     names = list(names)
     if not names:  # nothing to look up: no import of the registry (a refusal stays JAX-free)
         return []
-    from integrators import origin
+    from reelbench.integrators import origin
 
     return [n for n in names if not origin(n).own]
 
@@ -213,7 +213,7 @@ def build_tasks(
 ) -> list[Task]:
     """The sweep as tasks. ``integrators=None`` means the project's methods of the default
     sweep (`default_sweep_names`); unknown names raise ValueError before anything runs."""
-    from integrators import Capability, get_integrator  # JAX: only once the input is known good
+    from reelbench.integrators import Capability, get_integrator  # JAX: only once the input is known good
 
     names = list(integrators) if integrators else default_sweep_names()
     dts = sweep_dts(dts, quick)

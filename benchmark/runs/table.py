@@ -32,9 +32,9 @@ from typing import Callable, Iterable
 
 import numpy as np
 
-from benchmark.core.policy import ROW_IDENTITY
-from benchmark.core.store import canonical, code_version, identity_of, is_missing
-from models.io import atomic_path
+from reelbench.benchmark.core.policy import ROW_IDENTITY
+from reelbench.benchmark.core.store import canonical, code_version, identity_of, is_missing
+from reelbench.models.io import atomic_path
 
 
 # ------------------------------------------------------------------------------------------
@@ -43,7 +43,7 @@ from models.io import atomic_path
 def run_key(task, code: str | None = None) -> str:
     """Identity of a task's row (a `benchmark.runs.sweep.Task`): the scene's physics hash (not its
     name), the integrator, the setting, horizon and save interval, and the code version."""
-    from models import load_scene
+    from reelbench.models import load_scene
 
     scene = load_scene(task.scene, **dict(task.overrides))
     what = {"scene": scene.key(), "integrator": task.integrator, "dt": task.dt, "rtol": task.rtol,
@@ -83,7 +83,7 @@ SETTING_COLUMNS = ("dt", "rtol", "atol", "t_end")
 def error_columns() -> tuple[str, ...]:
     """The accuracy metrics' columns, read from their registry (`benchmark.runs.metrics.METRICS`), so that
     a new `Metric` is range-checked on read-back too."""
-    from benchmark.runs.metrics import ACCURACY  # here: it imports pandas, which the command line's start does not
+    from reelbench.benchmark.runs.metrics import ACCURACY  # here: it imports pandas, which the command line's start does not
 
     return tuple(ACCURACY)
 
@@ -111,7 +111,7 @@ def legacy_digest(row: dict) -> str:
 
 def statuses() -> tuple[str, ...]:
     """Every status a row of the runs table may have."""
-    from integrators.base import TABLE_ONLY_STATUSES, Status
+    from reelbench.integrators.base import TABLE_ONLY_STATUSES, Status
 
     return tuple(s.value for s in Status) + TABLE_ONLY_STATUSES
 
@@ -135,13 +135,13 @@ def check_row(row: dict, known_statuses=None) -> str | None:
     ordered (low <= median <= high), accuracy values for a finished run and none for another,
     and its digest (`row_digest`) the one written with it (a row without a digest, from an
     older table, is checked by the other rules alone)."""
-    from integrators.base import is_finished  # here: the command line imports this module at start
+    from reelbench.integrators.base import is_finished  # here: the command line imports this module at start
 
     errors = error_columns()
     for c in (*ROW_IDENTITY, "status"):
         if is_missing(row.get(c)) or not isinstance(row.get(c), str):
             return f"no {c}"
-    from models.schema import is_safe_name  # the names become parts of file names (figures)
+    from reelbench.models.schema import is_safe_name  # the names become parts of file names (figures)
 
     for c in ("scene", "integrator"):
         if not is_safe_name(row[c]):
@@ -209,7 +209,7 @@ class StoredRuns:
     def resumable(self) -> list[dict]:
         """The trusted rows a run may keep instead of computing (transient failures retried, rows
         that predate full digests recomputed unless accepted)."""
-        from integrators.base import RETRY_STATUSES
+        from reelbench.integrators.base import RETRY_STATUSES
 
         legacy = {id(r) for r in self.legacy}
         return [r for r in self.rows if r.get("status") not in RETRY_STATUSES and r.get("run_key")
@@ -347,7 +347,7 @@ def read_runs(path: str | os.PathLike, log: Callable[[str], None] | None = None)
     and its readable rows are salvaged one by one; one line says how many were kept and where
     the rest are. A row without a digest in a table whose other rows have one is not trusted
     (its digest was removed); a table without any digest is from older code (`legacy`)."""
-    from models.io import FileRefused, read_regular_file
+    from reelbench.models.io import FileRefused, read_regular_file
 
     path = Path(path)
     if not path.exists():  # (a dangling link too: the table is written fresh in its place)

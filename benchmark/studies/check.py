@@ -53,19 +53,19 @@ from typing import Callable, NamedTuple
 import numpy as np
 import pandas as pd
 
-from benchmark.core import engine
-from benchmark.core.engine import log_stderr
-from benchmark.runs import runner
-from benchmark.runs import sweep
-from benchmark.runs.metrics import ACCURACY, DIRECTIONS, observed_orders
-from benchmark.core.options import check_tolerance_rules
-from benchmark.core.policy import BASELINE_FILE, CHECK_FACTOR, CHECK_ORDER_MARGIN, ROW_IDENTITY, axis_of
-from benchmark.runs.metrics import FLOORS as METRIC_FLOORS
-from benchmark.core.reference import CACHE_DIR, REFERENCE_METHOD
-from benchmark.core.report import Provenance, fmt, markdown_table
-from integrators import Capability, available, get_integrator, plugin_errors
-from models.io import atomic_write_text
-from integrators.base import is_finished
+from reelbench.benchmark.core import engine
+from reelbench.benchmark.core.engine import log_stderr
+from reelbench.benchmark.runs import runner
+from reelbench.benchmark.runs import sweep
+from reelbench.benchmark.runs.metrics import ACCURACY, DIRECTIONS, observed_orders
+from reelbench.benchmark.core.options import check_tolerance_rules
+from reelbench.benchmark.core.policy import BASELINE_FILE, CHECK_FACTOR, CHECK_ORDER_MARGIN, ROW_IDENTITY, axis_of
+from reelbench.benchmark.runs.metrics import FLOORS as METRIC_FLOORS
+from reelbench.benchmark.core.reference import CACHE_DIR, REFERENCE_METHOD
+from reelbench.benchmark.core.report import Provenance, fmt, markdown_table
+from reelbench.integrators import Capability, available, get_integrator, plugin_errors
+from reelbench.models.io import atomic_write_text
+from reelbench.integrators.base import is_finished
 
 BASELINE = BASELINE_FILE
 UPDATE_COMMAND = "python -m benchmark check --update"
@@ -226,7 +226,7 @@ def _refuse(path, what: str) -> ValueError:
 
 
 def _baseline_text(path: Path) -> str:
-    from models.io import FileRefused, read_regular_file
+    from reelbench.models.io import FileRefused, read_regular_file
 
     try:
         data = read_regular_file(path, MAX_BASELINE_BYTES)
@@ -303,7 +303,7 @@ def order_floor(integrator: str, scene: str, axis: str) -> float:
     if axis != "dt":
         return 0.5
     try:
-        from models import load_scene
+        from reelbench.models import load_scene
 
         declared = get_integrator(integrator).order_for(load_scene(scene))
     except (ValueError, TypeError, AttributeError):  # an unregistered method or a scene by file
@@ -317,7 +317,7 @@ def row_problems(df: pd.DataFrame) -> list[tuple[int, str]]:
     improvement), a finished run whose metrics are not finite numbers in [0, `SANITY_BOUND`],
     an order row without a finite order in its method's plausible range (`order_floor`,
     `ORDER_CEILING`), and a missing order row where two runs of the sweep give one."""
-    from benchmark.runs.table import statuses
+    from reelbench.benchmark.runs.table import statuses
 
     known = statuses()
     out: list[tuple[int, str]] = []
@@ -374,7 +374,7 @@ def row_problems(df: pd.DataFrame) -> list[tuple[int, str]]:
 def shipped(name: str) -> bool:
     """Whether ``name`` is one of reelbench's own integrators (`integrators.registry.own`), not
     a plugin installed from another package."""
-    from integrators import registry
+    from reelbench.integrators import registry
 
     return name in registry.own()
 
@@ -382,7 +382,7 @@ def shipped(name: str) -> bool:
 def guests_not_gated(baseline: pd.DataFrame) -> list[str]:
     """Installed plugins the baseline does not know (a default check does not run plugins:
     they are reported, with the command that adds them)."""
-    from integrators import registry
+    from reelbench.integrators import registry
 
     own, based = set(registry.own()), set(baseline["integrator"])
     return [n for n in available() if n not in own and n not in based and not n.startswith("test_")]

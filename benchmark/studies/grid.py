@@ -17,15 +17,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-from benchmark.core import engine
-from benchmark.core import store
-from benchmark.runs import sweep
-from benchmark.runs import table as runs_table
-from benchmark.core.policy import GRID_DIR, SAVE_EVERY
-from benchmark.core.engine import log_stderr
-from benchmark.core.study import exclusive
-from benchmark.core.report import Provenance
-from models.io import inside, printable
+from reelbench.benchmark.core import engine
+from reelbench.benchmark.core import store
+from reelbench.benchmark.runs import sweep
+from reelbench.benchmark.runs import table as runs_table
+from reelbench.benchmark.core.policy import GRID_DIR, SAVE_EVERY
+from reelbench.benchmark.core.engine import log_stderr
+from reelbench.benchmark.core.study import exclusive
+from reelbench.benchmark.core.report import Provenance
+from reelbench.models.io import inside, printable
 
 
 @dataclass(frozen=True)
@@ -63,7 +63,7 @@ class SweepRequest:
 
     def scene(self, name: str):
         """A scene of the sweep as its runs see it (overrides and --t-end applied)."""
-        from models import load_scene
+        from reelbench.models import load_scene
 
         return load_scene(name, **dict(self.overrides), **({"t_end": self.t_end} if self.t_end is not None else {}))
 
@@ -75,7 +75,7 @@ def run_sweep(request: SweepRequest, log: Callable[[str], None] = log_stderr) ->
     answer is `benchmark.answer.answer`'s. The run's rows join the table already
     in ``out`` (`benchmark.core.store.merge_rows`): rows of other scenes, methods or settings are kept,
     and every file is written from the merged table. A stopped sweep keeps its finished rows."""
-    from benchmark.runs import runner
+    from reelbench.benchmark.runs import runner
 
     runs_csv = store.TableWriter(request.out / "runs.csv", runner.runs_frame, drop=("traceback",))
     try:
@@ -117,7 +117,7 @@ def is_committed_results(out: Path) -> bool:
 
 def _this_run(request: SweepRequest, tasks) -> tuple[dict, dict]:
     """({task scene: scene name}, {scene name: (horizon, physics hash)}) of a sweep's tasks."""
-    from models import load_scene
+    from reelbench.models import load_scene
 
     names, scenes = {}, {}
     for given in dict.fromkeys(t.scene for t in tasks):
@@ -167,11 +167,11 @@ def _merge_plan(request: SweepRequest, tasks, stored: runs_table.StoredRuns, pat
 
 
 def _sweep(request: SweepRequest, runs_csv: store.TableWriter, log) -> int:
-    from benchmark.runs import runner
-    from benchmark.studies import runs_report
-    from benchmark.core.reference import CACHE_DIR
-    from benchmark.core.report import markdown_table
-    from models.io import atomic_write_text
+    from reelbench.benchmark.runs import runner
+    from reelbench.benchmark.studies import runs_report
+    from reelbench.benchmark.core.reference import CACHE_DIR
+    from reelbench.benchmark.core.report import markdown_table
+    from reelbench.models.io import atomic_write_text
 
     out = request.out
     cache = CACHE_DIR  # the references every study shares (`benchmark.core.reference.user_cache_dir`)
@@ -253,9 +253,9 @@ def _sweep_figures(request: SweepRequest, merged, log, failed: list | None = Non
     (`benchmark.core.store.OutputKeys`) is kept, not redrawn."""
     import time
 
-    from benchmark.figures import plots
-    from integrators import get_integrator
-    from models.diagnostics import evaluate
+    from reelbench.benchmark.figures import plots
+    from reelbench.integrators import get_integrator
+    from reelbench.models.diagnostics import evaluate
 
     out = request.out
     keys = store.OutputKeys(out / "figures.json")
@@ -289,8 +289,8 @@ def _sweep_figures(request: SweepRequest, merged, log, failed: list | None = Non
         if scene not in run_scenes and (out / name).is_file():
             figures.append((name, "drawn by an earlier run (this run did not include the scene)"))
     if request.energy_horizon > 0:
-        from benchmark.core import study
-        from benchmark.studies import horizon_report
+        from reelbench.benchmark.core import study
+        from reelbench.benchmark.studies import horizon_report
 
         if energy is not None:  # in this run's lock: a stop is the sweep's
             study.run(energy, out, command=request.command, fresh=request.fresh, log=log, held=True, failed=failed)
@@ -304,8 +304,8 @@ def _sweep_readme(request: SweepRequest, runs, orders, figures, provenance: Prov
     keeps what it did not recompute: the header names the run that made the table and those that
     merged into it since, and without --compare-with of its own the earlier README's comparisons
     are made again, against the merged table (`_earlier_comparisons`)."""
-    from benchmark.studies import runs_report
-    from benchmark.core.report import earlier_runs
+    from reelbench.benchmark.studies import runs_report
+    from reelbench.benchmark.core.report import earlier_runs
 
     import pandas as pd
 
@@ -333,7 +333,7 @@ def _earlier_comparisons(history, readme: Path, runs) -> str:
 
     import pandas as pd
 
-    from benchmark.studies import runs_report
+    from reelbench.benchmark.studies import runs_report
 
     given = []
     for command, _ in history:
@@ -369,8 +369,8 @@ def _energy_study(request: SweepRequest, log):
     """The energy study `run --horizon` makes in its output (`benchmark.studies.horizon`), or None
     when it makes none; its earlier table is checked here, before any work (`study.run` refuses one
     it cannot keep)."""
-    from benchmark.core.study_store import read_rows
-    from benchmark.studies import horizon
+    from reelbench.benchmark.core.study_store import read_rows
+    from reelbench.benchmark.studies import horizon
 
     scenes = horizon.energy_scenes(request.scenes, request.overrides, log)
     if not scenes:

@@ -33,10 +33,10 @@ from typing import Callable, NamedTuple
 
 import numpy as np
 
-from benchmark.core import store
-from benchmark.core.engine import log_stderr
-from benchmark.core.policy import SOLVE_MAX_STEPS
-from benchmark.runs.sweep import MethodSettings
+from reelbench.benchmark.core import store
+from reelbench.benchmark.core.engine import log_stderr
+from reelbench.benchmark.core.policy import SOLVE_MAX_STEPS
+from reelbench.benchmark.runs.sweep import MethodSettings
 
 DEFAULT_SCENE = "fixed_length"
 SAVE_EVERY = 0.1
@@ -118,7 +118,7 @@ def declared(name: str) -> MethodSettings | None:
 def methods(selected=None) -> list[MethodSettings]:
     """The study's methods (those of `PLAN`) among ``selected`` (None: all); ValueError for a
     selected name that is unknown (the registry's message)."""
-    from integrators import get_integrator
+    from reelbench.integrators import get_integrator
 
     for name in selected or ():
         get_integrator(name)
@@ -195,7 +195,7 @@ def axial_measures(scene, traj) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.
     import jax
     import jax.numpy as jnp
 
-    from models.model import build_model, quat_to_rot
+    from reelbench.models.model import build_model, quat_to_rot
 
     model = build_model(scene)
     slack = scene.has("slack")
@@ -239,10 +239,10 @@ def run_job(job: Job) -> dict:
     tension (N; < 0: compression), in blocks of `BLOCK_S` (`blocks`)."""
     import time
 
-    from benchmark.runs.metrics import energy_history
-    from integrators import get_integrator
-    from models import load_scene
-    from models.diagnostics import evaluate
+    from reelbench.benchmark.runs.metrics import energy_history
+    from reelbench.integrators import get_integrator
+    from reelbench.models import load_scene
+    from reelbench.models.diagnostics import evaluate
 
     started = time.perf_counter()
     scene = load_scene(job.scene, **dict(job.overrides), elements=job.elements)
@@ -280,8 +280,8 @@ def blocks(history, width: float = BLOCK_S):
 
 
 def crash_row(job: Job, exc: BaseException) -> dict:
-    from benchmark.core.engine import crash_reason
-    from integrators.base import CRASHED
+    from reelbench.benchmark.core.engine import crash_reason
+    from reelbench.integrators.base import CRASHED
 
     return {**_run_columns(job), "label": f"{label(job.scene, job.elements, job.method)} [crashed]",
             "status": CRASHED, "reason": crash_reason(exc), "history": None}
@@ -298,8 +298,8 @@ def describe(row: dict) -> str:
 def energy_scenes(scenes, overrides: tuple = (), log: Callable[[str], None] = log_stderr) -> list[str]:
     """The scenes of ``scenes`` (names or paths) the energy study can run on over a long
     horizon: those of fixed length (a reel ends at its limit); says which it leaves out."""
-    from integrators.base import situation
-    from models import load_scene
+    from reelbench.integrators.base import situation
+    from reelbench.models import load_scene
 
     ov = {k: v for k, v in overrides if k != "elements"}
     kept = [s for s in scenes if situation(load_scene(s, **ov)) == "fixed_length"]
@@ -313,7 +313,7 @@ def energy_scenes(scenes, overrides: tuple = (), log: Callable[[str], None] = lo
 def jobs_for(t_end: float, scenes=None, overrides: tuple = (), selected=None, variants=("",)) -> list[Job]:
     """The runs of `PLAN` (`runs`) on ``scenes`` (default `DEFAULT_SCENE`), each with its
     ``variants``, to ``t_end``. ``overrides`` of the scenes: elements=N runs that N only."""
-    from models import load_scene
+    from reelbench.models import load_scene
 
     ov = dict(overrides)
     sizes = (int(ov.pop("elements")),) if "elements" in ov else None  # --set elements=N: that N only
@@ -354,7 +354,7 @@ def read_earlier(df):
     method or setting) are left out."""
     import pandas as pd
 
-    from benchmark.studies.horizon_report import method_of
+    from reelbench.benchmark.studies.horizon_report import method_of
 
     for c in ("t", "energy_error"):
         if c in df:
@@ -382,8 +382,8 @@ def failure(row: dict) -> str | None:
 
 
 def _cost(job: Job) -> float:
-    from benchmark.runs import runner
-    from benchmark.runs.sweep import Task
+    from reelbench.benchmark.runs import runner
+    from reelbench.benchmark.runs.sweep import Task
 
     m = job.method
     return runner.task_costs([Task(job.scene, m.name, dt=m.settings.get("dt"), rtol=m.settings.get("rtol"),
@@ -399,7 +399,7 @@ def with_slack_orders(selected=None, variants=("",)) -> bool:
 def measure_slack_orders(out: Path, log: Callable[[str], None]) -> None:
     """The observed orders with and without `slack` (`benchmark.studies.slack_orders`), kept when
     its code did not change: a step of the `energy` command after its runs."""
-    from benchmark.studies import slack_orders
+    from reelbench.benchmark.studies import slack_orders
 
     if slack_orders.fresh(out):
         log(f"energy: {out}/{slack_orders.TABLE} kept (same code)")
@@ -420,8 +420,8 @@ def study(t_end: float, scenes=None, *, overrides: tuple = (), selected=None, va
     (`measure_slack_orders`) when the slack variant and every method run."""
     import os
 
-    from benchmark.core.study import Study
-    from benchmark.studies import horizon_report
+    from reelbench.benchmark.core.study import Study
+    from reelbench.benchmark.studies import horizon_report
 
     jobs = jobs_for(t_end, scenes, overrides, selected, variants)
     drawn = tuple(dict.fromkeys(j.tabled_as for j in jobs))

@@ -11,12 +11,12 @@ import numpy as np
 import pandas as pd
 from matplotlib.lines import Line2D
 
-from benchmark.figures import styles
-from benchmark.studies.horizon import REFERENCE
-from benchmark.figures.plots import plt, save_figure, style_axes
-from benchmark.core.policy import setting_value
-from benchmark.studies.properties import WINDOW_S, correction_of, is_symplectic, window_means
-from models.io import inside
+from reelbench.benchmark.figures import styles
+from reelbench.benchmark.studies.horizon import REFERENCE
+from reelbench.benchmark.figures.plots import plt, save_figure, style_axes
+from reelbench.benchmark.core.policy import setting_value
+from reelbench.benchmark.studies.properties import WINDOW_S, correction_of, is_symplectic, window_means
+from reelbench.models.io import inside
 
 
 def write(out: Path, rows: list[dict], scenes, text: bool = False) -> str:
@@ -24,7 +24,7 @@ def write(out: Path, rows: list[dict], scenes, text: bool = False) -> str:
     of each of this run's ``scenes`` that has rows (the others' figures are kept as they are),
     and with ``text`` the energy section of ``out``/README.md, or energy_horizon.md without one.
     Returns a line saying what it wrote."""
-    from benchmark.studies import horizon, properties
+    from reelbench.benchmark.studies import horizon, properties
 
     out = Path(out)
     table = horizon.to_frame(rows)
@@ -41,7 +41,7 @@ def write(out: Path, rows: list[dict], scenes, text: bool = False) -> str:
 def listed(out: Path, scenes) -> list[tuple[str, str]]:
     """(file name, note) of the energy study's figures in ``out``, one per scene of its table:
     "" for this run's ``scenes``, "from an earlier run" for the others."""
-    from benchmark.studies import horizon
+    from reelbench.benchmark.studies import horizon
 
     path = Path(out) / horizon.TABLE
     try:

@@ -39,7 +39,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from benchmark.core.report import Provenance
+from reelbench.benchmark.core.report import Provenance
 
 #: step at N = 10 per scene, scaled by 10/N: the LGVI is explicit in the elastic forces, so it
 #: needs h ω_max < 2 with ω_max ∝ N (fixed_length N = 10: h < ~9 ms; deployment: h < ~2.7 ms).
@@ -52,15 +52,15 @@ RATIO_MAX_N = 160
 
 def fixed_step_methods() -> list[str]:
     """Every default method (`benchmark.runs.sweep.default_names`) that takes a constant step."""
-    from benchmark.runs.sweep import default_names
-    from integrators import Capability, get_integrator
+    from reelbench.benchmark.runs.sweep import default_names
+    from reelbench.integrators import Capability, get_integrator
 
     return [n for n in default_names() if get_integrator(n).has(Capability.FIXED_STEP)]
 
 
 def check_methods(methods) -> None:
     """ValueError naming a method that is not a fixed-step one."""
-    from integrators import Capability, get_integrator
+    from reelbench.integrators import Capability, get_integrator
 
     for m in methods:
         if not get_integrator(m).has(Capability.FIXED_STEP):
@@ -84,9 +84,9 @@ class SpeedRequest:
 
 def measure(scene_name: str, n: int, steps: int, repeats: int, dt: float | None = None, method: str = "lgvi") -> dict:
     """Time per step of ``method`` at a constant step on ``scene_name`` with N = n."""
-    from benchmark.work.flops import run_flops
-    from integrators import get_integrator  # JAX: only once the options are known good
-    from models import build_model, load_scene
+    from reelbench.benchmark.work.flops import run_flops
+    from reelbench.integrators import get_integrator  # JAX: only once the options are known good
+    from reelbench.models import build_model, load_scene
 
     scene = load_scene(scene_name, elements=n)
     h = dt or DEFAULT_DT10.get(scene_name, 0.002) * 10.0 / n
@@ -117,8 +117,8 @@ def measure(scene_name: str, n: int, steps: int, repeats: int, dt: float | None 
 
 def measure_rhs(scene_name: str, n: int, rhs: str, calls: int = 200, budget_s: float = 2.0) -> dict:
     """Median µs per call of the jitted right-hand side ``rhs`` from numpy (as scipy calls it)."""
-    from integrators.rhs import rhs_jit
-    from models import build_model, load_scene
+    from reelbench.integrators.rhs import rhs_jit
+    from reelbench.models import build_model, load_scene
 
     model = build_model(load_scene(scene_name, elements=n))
     y = np.asarray(model.initial_ode_state())
@@ -173,7 +173,7 @@ TEXT_COLUMNS = ("kind", "method", "rhs", "scene", "skipped", "flops_note", "stat
 
 
 def run_job(job) -> dict:
-    from integrators.base import Status
+    from reelbench.integrators.base import Status
 
     if isinstance(job, StepJob):
         return {"kind": "step", "rhs": "", **measure(job.scene, job.N, job.steps, job.repeats, job.dt, job.method)}
@@ -195,7 +195,7 @@ def key(job) -> str:
     import os
     import platform
 
-    from benchmark.core.study import job_key
+    from reelbench.benchmark.core.study import job_key
 
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     return job_key({"job": [type(job).__name__, *job], "host": platform.node(), "machine": platform.machine(),
@@ -211,12 +211,12 @@ def study(request: SpeedRequest, out, *, echo=print):
     """The speed tables as a study of `benchmark.core.study.run` into ``out``'s directory: one
     measurement after another in this process; the rows table beside ``out`` (`rows_file`), and
     ``out`` (Markdown) written from the whole table and echoed."""
-    from benchmark.core.study import Study
+    from reelbench.benchmark.core.study import Study
 
     out = Path(out)
 
     def report(directory, rows: list[dict], provenance: Provenance) -> str:
-        from models.io import atomic_write_text
+        from reelbench.models.io import atomic_write_text
 
         text = document(rows, provenance)
         atomic_write_text(out, text)
@@ -230,7 +230,7 @@ def study(request: SpeedRequest, out, *, echo=print):
 
 def to_frame(rows: list[dict]):
     """The rows table written beside the Markdown file (`benchmark.core.study_store`)."""
-    from benchmark.core.store import frame
+    from reelbench.benchmark.core.store import frame
 
     return frame(rows, list(IDENTITY))
 

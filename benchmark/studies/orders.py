@@ -41,8 +41,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from benchmark.core.order import successive_orders
-from benchmark.core.policy import ORDERS_CHECK_METHOD, ORDERS_REFERENCE_DT, ORDERS_REFERENCE_METHOD, Setting
+from reelbench.benchmark.core.order import successive_orders
+from reelbench.benchmark.core.policy import ORDERS_CHECK_METHOD, ORDERS_REFERENCE_DT, ORDERS_REFERENCE_METHOD, Setting
 
 #: One scene per situation (`integrators.base.SITUATIONS`): fixed length, and the reel retrieving.
 #: Deployment is left out by default: it starts with 3 m deployed, two 1.5 m elements with an
@@ -87,8 +87,8 @@ def steps(order: int) -> tuple[float, ...]:
 def fixed_step_methods(selected=None) -> list[str]:
     """The registered fixed-step methods (test-only ``test_*`` plugins excepted), or those of
     ``selected`` (an unknown or adaptive-only name raises ValueError before any work)."""
-    from benchmark.runs.sweep import default_names
-    from integrators import Capability, available, get_integrator
+    from reelbench.benchmark.runs.sweep import default_names
+    from reelbench.integrators import Capability, available, get_integrator
 
     if selected:
         for name in selected:
@@ -101,7 +101,7 @@ def fixed_step_methods(selected=None) -> list[str]:
 
 
 def load(scene_name: str, elements: int = ELEMENTS):
-    from models import load_scene
+    from reelbench.models import load_scene
 
     return load_scene(scene_name, elements=elements)
 
@@ -115,7 +115,7 @@ class Reference(NamedTuple):
 
 def reference(scene_name: str, elements: int = ELEMENTS, t_end: float = T_END) -> Reference:
     """The reference of one scene (see the module's docstring); ValueError when it fails."""
-    from integrators import get_integrator
+    from reelbench.integrators import get_integrator
 
     scene = load(scene_name, elements)
     ref = get_integrator(REFERENCE_METHOD)
@@ -152,8 +152,8 @@ LADDER_COLUMNS = ("scene", "integrator", "situation", "declared_order", "element
 
 def run_job(job: Job) -> dict:
     """One method's ladder on one scene: a row per step (status, error) in ``ladder``."""
-    from integrators import get_integrator
-    from integrators.base import Status, situation
+    from reelbench.integrators import get_integrator
+    from reelbench.integrators.base import Status, situation
 
     ref = job.reference or _reference(job.scene, job.elements, job.t_end)
     scene = load(job.scene, job.elements)
@@ -172,8 +172,8 @@ def run_job(job: Job) -> dict:
 
 
 def crash_row(job: Job, exc: BaseException) -> dict:
-    from benchmark.core.engine import crash_reason
-    from integrators.base import CRASHED
+    from reelbench.benchmark.core.engine import crash_reason
+    from reelbench.integrators.base import CRASHED
 
     return {"scene": job.scene, "integrator": job.integrator, "status": CRASHED, "reason": crash_reason(exc),
             "elements": job.elements, "t_end": job.t_end, "ladder": []}
@@ -187,7 +187,7 @@ def ladder_rows(row: dict) -> list[dict]:
 
 def to_frame(rows: list[dict]) -> pd.DataFrame:
     """orders_errors.csv: the ladder rows, in order (`in_order`)."""
-    from benchmark.core.store import frame
+    from reelbench.benchmark.core.store import frame
 
     table = frame(rows, list(LADDER_COLUMNS))
     return in_order(table) if len(table) else table
@@ -195,7 +195,7 @@ def to_frame(rows: list[dict]) -> pd.DataFrame:
 
 def key(job: Job) -> str:
     """What determines a ladder: the scene's physics, the method, N and the horizon, the code."""
-    from benchmark.core.study import job_key
+    from reelbench.benchmark.core.study import job_key
 
     return job_key({"scene": load(job.scene, job.elements).key(), "integrator": job.integrator,
                     "elements": job.elements, "t_end": job.t_end}, "benchmark/studies/orders.py")
@@ -209,13 +209,13 @@ def study(scenes=None, integrators=None, *, workers: int | None = None, echo=pri
     import os
     from pathlib import Path
 
-    from benchmark.core.study import Study
+    from reelbench.benchmark.core.study import Study
 
     methods = fixed_step_methods(integrators)
     jobs = [Job(s, m) for s in (scenes or SCENES) for m in methods]
 
     def report(out, rows: list[dict], provenance) -> str:
-        from benchmark.core.store import write_table
+        from reelbench.benchmark.core.store import write_table
 
         summary = summarise(to_frame(rows))
         write_table(Path(out) / "orders.csv", summary)
@@ -249,7 +249,7 @@ def summarise(ladder: pd.DataFrame) -> pd.DataFrame:
     the reference's floor, the one before it, and the flags (see the module's docstring)."""
     import pandas as pd  # not at import: the command line reads this module's constants without it
 
-    from integrators.base import FINISHED_STATUSES  # here too: the command line imports this module at start
+    from reelbench.integrators.base import FINISHED_STATUSES  # here too: the command line imports this module at start
     rows = []
     for (scene, name), g in ladder.groupby(list(LADDER_KEY), sort=False):
         g = g.sort_values("dt", ascending=False)
@@ -295,7 +295,7 @@ def summarise(ladder: pd.DataFrame) -> pd.DataFrame:
 
 def section(summary: pd.DataFrame | None) -> str:
     """The "Observed convergence orders" section of results/README.md from orders.csv."""
-    from benchmark.core.report import markdown_table
+    from reelbench.benchmark.core.report import markdown_table
 
     head = "## Observed convergence orders\n\n"
     if summary is None or summary.empty:

@@ -43,8 +43,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from benchmark.core.policy import axis_of, setting_value
-from integrators.base import FINISHED_STATUSES, Status, is_finished
+from reelbench.benchmark.core.policy import axis_of, setting_value
+from reelbench.integrators.base import FINISHED_STATUSES, Status, is_finished
 
 #: Equal windows of the horizon whose largest energy error the classification fits, and the
 #: fraction of the horizon after which they are fitted.
@@ -117,7 +117,7 @@ def correction_of(name: str, setting: str) -> tuple[int, float, float] | None:
     """(order p, c_p, step h) of a run's modified-energy correction −c_p h^p ⟨P_p⟩ (P_2 = U''(v, v)
     of the string, P_4 = P4: the module's docstring), or None for a
     method with none (not symplectic, or adaptive: no fixed h)."""
-    from integrators import get_integrator
+    from reelbench.integrators import get_integrator
 
     if not is_symplectic(name) or axis_of(setting) != "dt":
         return None
@@ -197,7 +197,7 @@ def is_symplectic(name: str) -> bool:
 
 
 def _kind(name: str) -> tuple[bool, bool]:
-    from integrators import Capability, get_integrator
+    from reelbench.integrators import Capability, get_integrator
 
     try:
         caps = get_integrator(name).capabilities
@@ -355,7 +355,7 @@ def _scaling(study: pd.DataFrame) -> list[str]:
 def _reference(g: pd.DataFrame):
     """The accurate reference among runs ``g`` (`benchmark.studies.horizon.REFERENCE`, else the smallest
     energy error)."""
-    from benchmark.studies.horizon import REFERENCE
+    from reelbench.benchmark.studies.horizon import REFERENCE
 
     ref = g[g["integrator"] == REFERENCE]
     return (ref if len(ref) else g).sort_values("energy_error_max").iloc[0]
@@ -461,7 +461,7 @@ def _energy_sentence(study: pd.DataFrame) -> str:
 
 def _slack_orders_sentence(path: Path) -> str:
     """The observed orders with and without `slack` (`benchmark.studies.slack_orders`), from ``path``."""
-    from benchmark.studies import slack_orders
+    from reelbench.benchmark.studies import slack_orders
 
     try:
         table = pd.read_csv(path)
@@ -546,7 +546,7 @@ def _orthogonality_sentence(t: pd.DataFrame) -> str:
 
 def properties_text(runs: pd.DataFrame, horizon_csv: Path | None) -> str:
     """The "Which property pays off where" section of results/README.md."""
-    from benchmark.core.report import markdown_table
+    from reelbench.benchmark.core.report import markdown_table
 
     horizon = pd.read_csv(horizon_csv) if horizon_csv is not None and Path(horizon_csv).is_file() else None
     t = property_table(runs, horizon)
@@ -571,7 +571,7 @@ def write_energy_section(out: Path) -> Path | None:
     orthogonality, when there is one): ``out``/energy_horizon.md, and the section `SECTION` of
     ``out``/README.md replaced by it where the README has one. Returns the file written (None:
     no energy study in ``out``)."""
-    from models.io import atomic_path
+    from reelbench.models.io import atomic_path
 
     out = Path(out)
     if not (out / "energy_horizon.csv").is_file():

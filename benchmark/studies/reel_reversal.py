@@ -25,8 +25,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from benchmark.core.order import last_order
-from benchmark.core.policy import RESULTS, Setting
+from reelbench.benchmark.core.order import last_order
+from reelbench.benchmark.core.policy import RESULTS, Setting
 
 #: Where the study writes by default.
 OUT_DIR = RESULTS / "reel_reversal"
@@ -61,7 +61,7 @@ class Reference(NamedTuple):
 
 
 def reference(scene, t_end: float, cache_dir: str | Path) -> Reference:
-    from benchmark.core.reference import get_reference
+    from reelbench.benchmark.core.reference import get_reference
 
     traj = get_reference(scene, t_end, FLIP_RESOLUTION, Path(cache_dir))
     t, rate = np.asarray(traj.t), np.asarray(traj.velocity)[:, 0]
@@ -81,7 +81,7 @@ class Errors(NamedTuple):
 def errors(scene, tr, ref, e0: float) -> Errors:
     """The errors of the run ``tr`` against the reference trajectory ``ref`` at the run's saved
     times (which the reference's include); ``e0``: E − W of the reference at t = 0."""
-    from models.diagnostics import evaluate
+    from reelbench.models.diagnostics import evaluate
 
     ref_t = np.asarray(ref.t)
     j = np.searchsorted(ref_t, np.asarray(tr.t) - 1e-9)
@@ -109,9 +109,9 @@ def case(scene, t_end: float) -> str:
 
 def run_job(job: Job) -> dict:
     """One method at one step: its status and its errors against the (cached) reference."""
-    from integrators import get_integrator
-    from models import load_scene
-    from models.diagnostics import evaluate
+    from reelbench.integrators import get_integrator
+    from reelbench.models import load_scene
+    from reelbench.models.diagnostics import evaluate
 
     scene = load_scene(job.scene_name, elements=job.elements)
     ref = reference(scene, job.t_end, job.cache_dir)
@@ -138,9 +138,9 @@ COLUMNS = (*IDENTITY, "scene", "elements", "t_end", "h", "status", "reason", "er
 
 def crash_row(job: Job, exc: BaseException) -> dict:
     """The row of a job whose worker died."""
-    from benchmark.core.engine import crash_reason
-    from integrators.base import CRASHED
-    from models import load_scene
+    from reelbench.benchmark.core.engine import crash_reason
+    from reelbench.integrators.base import CRASHED
+    from reelbench.models import load_scene
 
     return {**_base_row(job, load_scene(job.scene_name, elements=job.elements)), "status": CRASHED,
             "reason": crash_reason(exc)}
@@ -148,7 +148,7 @@ def crash_row(job: Job, exc: BaseException) -> dict:
 
 def _errors(row: dict) -> Errors | None:
     """The row's errors, None when its run did not finish."""
-    from integrators.base import is_finished
+    from reelbench.integrators.base import is_finished
 
     if not is_finished(row.get("status")):
         return None
@@ -162,7 +162,7 @@ def describe(row: dict) -> str:
 
 
 def to_frame(rows: list[dict]):
-    from benchmark.core.store import frame
+    from reelbench.benchmark.core.store import frame
 
     return frame(rows, list(COLUMNS))
 
@@ -208,15 +208,15 @@ def tables(rows: list[dict]) -> str:
 
 def warm_reference(scene_name: str, elements: int, t_end: float, cache_dir: str) -> None:
     """The reference of the case, computed into its cache (a setup call of the study)."""
-    from models import load_scene
+    from reelbench.models import load_scene
 
     reference(load_scene(scene_name, elements=elements), t_end, cache_dir)
 
 
 def key(job: Job) -> str:
     """What determines a row: the scene's physics, N, horizon, method and step, the code."""
-    from benchmark.core.study import job_key
-    from models import load_scene
+    from reelbench.benchmark.core.study import job_key
+    from reelbench.models import load_scene
 
     return job_key({"scene": load_scene(job.scene_name, elements=job.elements).key(), "elements": job.elements,
                     "t_end": job.t_end, "method": job.method, "h": job.h}, "benchmark/studies/reel_reversal.py")
@@ -229,9 +229,9 @@ def study(scene_name: str = "reel_reversal", elements: int = 5, t_end: float = 0
     import functools
     import os
 
-    from benchmark.core.reference import CACHE_DIR
-    from benchmark.core.study import Study
-    from models import load_scene
+    from reelbench.benchmark.core.reference import CACHE_DIR
+    from reelbench.benchmark.core.study import Study
+    from reelbench.models import load_scene
 
     cache_dir = str(cache_dir or CACHE_DIR)
     scene = load_scene(scene_name, elements=elements)
@@ -241,7 +241,7 @@ def study(scene_name: str = "reel_reversal", elements: int = 5, t_end: float = 0
     ids = {j: (case(scene, t_end), j.method, Setting.fixed(j.h).label()) for j in jobs}
 
     def report(out, rows: list[dict], provenance) -> str:
-        from models.io import atomic_write_text
+        from reelbench.models.io import atomic_write_text
 
         text = tables(rows)
         atomic_write_text(Path(out) / "reel_reversal.md", "# Orders across a reel reversal\n\n"

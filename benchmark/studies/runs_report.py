@@ -16,14 +16,14 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from benchmark.runs.metrics import ACCURACY, WORK_DEFINITION
-from benchmark.core.policy import ROW_IDENTITY
-from benchmark.runs.ranking import failure_summary
-from benchmark.core.reference import REFERENCE_METHOD
-from benchmark.runs.sweep import MAX_REPEATS, MIN_REPEATS, TIMING_BUDGET
-from benchmark.core.report import Provenance, code_list, markdown_table
-from models.io import atomic_write_text
-from integrators.base import FINISHED_STATUSES
+from reelbench.benchmark.runs.metrics import ACCURACY, WORK_DEFINITION
+from reelbench.benchmark.core.policy import ROW_IDENTITY
+from reelbench.benchmark.runs.ranking import failure_summary
+from reelbench.benchmark.core.reference import REFERENCE_METHOD
+from reelbench.benchmark.runs.sweep import MAX_REPEATS, MIN_REPEATS, TIMING_BUDGET
+from reelbench.benchmark.core.report import Provenance, code_list, markdown_table
+from reelbench.models.io import atomic_write_text
+from reelbench.integrators.base import FINISHED_STATUSES
 
 def horizons_text(horizons: dict | None) -> str:
     """One sentence on the horizons a result covers, e.g. {"sweep": 1.0, "energy study": 10.0};
@@ -95,7 +95,7 @@ def timing_text(runs: pd.DataFrame) -> str:
 def reproducibility(before: pd.DataFrame, runs: pd.DataFrame, label: str) -> str:
     """The reproducibility statement (`benchmark.runs.reproducibility.statement`) over the runs both
     tables have; the rows only one has are counted, not compared."""
-    from benchmark.runs import reproducibility as repro
+    from reelbench.benchmark.runs import reproducibility as repro
 
     missing = [c for c in ("scene", "integrator", "setting", "dt", "rtol", "status", "steps") if c not in before]
     if missing:
@@ -176,8 +176,8 @@ def write_readme(out_dir: Path, runs: pd.DataFrame, orders: pd.DataFrame | None,
     status = runs.groupby(["integrator", "status"]).size().unstack(fill_value=0).reset_index()
     ref = REFERENCE_METHOD
     per_eval = evaluation_costs(runs)
-    from benchmark.studies.orders import section as orders_section
-    from benchmark.studies.properties import properties_text
+    from reelbench.benchmark.studies.orders import section as orders_section
+    from reelbench.benchmark.studies.properties import properties_text
 
     text = f"""# Grid sweep results
 

@@ -18,7 +18,7 @@ from typing import Callable
 import numpy as np
 import pandas as pd
 
-from benchmark.core.order import successive_orders
+from reelbench.benchmark.core.order import successive_orders
 
 ELEMENTS = 10
 T_END = 10.0
@@ -32,8 +32,8 @@ TABLE = "energy_slack_orders.csv"
 
 
 def _scene(variant: str, scene: str, elements: int):
-    from benchmark.studies.horizon import variant_overrides
-    from models import load_scene
+    from reelbench.benchmark.studies.horizon import variant_overrides
+    from reelbench.models import load_scene
 
     base = load_scene(scene, elements=elements)
     return load_scene(scene, elements=elements, **dict(variant_overrides(base, variant)))
@@ -43,10 +43,10 @@ def study(out: Path, scene: str = "fixed_length", log: Callable[[str], None] = p
           elements: int = ELEMENTS) -> Path:
     """Run the measurement and write ``out``/`TABLE` (one row per variant, method and step; the
     position error and energy error are NaN for a run that did not finish)."""
-    from benchmark.runs.metrics import body_positions, energy_history
-    from integrators import get_integrator
-    from models import build_model
-    from models.diagnostics import evaluate
+    from reelbench.benchmark.runs.metrics import body_positions, energy_history
+    from reelbench.integrators import get_integrator
+    from reelbench.models import build_model
+    from reelbench.models.diagnostics import evaluate
 
     rows = []
     for variant in ("", "slack"):
@@ -76,7 +76,7 @@ def study(out: Path, scene: str = "fixed_length", log: Callable[[str], None] = p
 
 def code_key() -> str:
     """The code the table depends on: the models, integrators and this module."""
-    from benchmark.core import store
+    from reelbench.benchmark.core import store
 
     return store.key_of(store.code_version(), store.source_hash((), ("benchmark/studies/slack_orders.py",)))
 

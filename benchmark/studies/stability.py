@@ -32,11 +32,11 @@ from typing import Callable, NamedTuple
 import numpy as np
 import pandas as pd
 
-from benchmark.core import engine
-from benchmark.runs.metrics import CONSERVATION
-from benchmark.core.store import frame
-from benchmark.runs.sweep import Task
-from integrators.base import CRASHED, ERROR, FINISHED_STATUSES, Status
+from reelbench.benchmark.core import engine
+from reelbench.benchmark.runs.metrics import CONSERVATION
+from reelbench.benchmark.core.store import frame
+from reelbench.benchmark.runs.sweep import Task
+from reelbench.integrators.base import CRASHED, ERROR, FINISHED_STATUSES, Status
 
 #: Largest step of the fixed-step ladder (s) and the number of halvings tried below it.
 DT_MAX = 0.04
@@ -50,7 +50,7 @@ SAVED_POINTS = 100  # per run: the energy guard is checked at these (LGVI, scipy
 def implicit_baseline(integ) -> bool:
     """An implicit *baseline* (declares IMPLICIT, not VARIATIONAL): its Jacobian or Newton compiles
     through the ODE model per scene. The LGVIs are implicit too, but structured."""
-    from integrators import Capability
+    from reelbench.integrators import Capability
 
     return integ.has(Capability.IMPLICIT) and not integ.has(Capability.VARIATIONAL)
 
@@ -59,22 +59,22 @@ def default_integrators() -> list[str]:
     """The map's default methods: those of the default sweep (`benchmark.runs.sweep.default_names`:
     the project's own registered methods; a plugin joins when named), implicit baselines last
     (their jobs are the longest)."""
-    from benchmark.runs.sweep import default_names
-    from integrators import get_integrator
+    from reelbench.benchmark.runs.sweep import default_names
+    from reelbench.integrators import get_integrator
 
     return sorted(default_names(), key=lambda n: implicit_baseline(get_integrator(n)))
 
 
 def adaptive_only(integ) -> bool:
     """An adaptive method that cannot take a constant step (declares ADAPTIVE, not FIXED_STEP)."""
-    from integrators import Capability
+    from reelbench.integrators import Capability
 
     return integ.has(Capability.ADAPTIVE) and not integ.has(Capability.FIXED_STEP)
 
 
 def also_fixed_step(integ) -> bool:
     """An adaptive method that also takes a constant step (Tsit5): the map runs it both ways."""
-    from integrators import Capability
+    from reelbench.integrators import Capability
 
     return integ.has(Capability.ADAPTIVE) and integ.has(Capability.FIXED_STEP)
 
@@ -82,7 +82,7 @@ def also_fixed_step(integ) -> bool:
 def kinds(name: str) -> list[str]:
     """The map's kinds of ``name`` from its declared capabilities: "fixed" (a dt ladder) for
     FIXED_STEP, "adaptive" (one tolerance) for ADAPTIVE; Tsit5 has both."""
-    from integrators import Capability, get_integrator
+    from reelbench.integrators import Capability, get_integrator
 
     integ = get_integrator(name)
     return [k for k, cap in (("fixed", Capability.FIXED_STEP), ("adaptive", Capability.ADAPTIVE)) if integ.has(cap)]
@@ -160,7 +160,7 @@ def _horizon(case: Case, integrator: str, kind: str = "adaptive") -> tuple[float
     """(horizon, why it is shorter than the case's): the first `Case.short` selector (or
     (selector, kind)) that applies to the integrator's declared capabilities."""
     if case.short:
-        from integrators import get_integrator
+        from reelbench.integrators import get_integrator
 
         integ = get_integrator(integrator)
         for key, value in case.short.items():
@@ -176,7 +176,7 @@ def skip_reason(case: Case, integrator: str, default_run: bool = True) -> str | 
     selectors = case.skip + (case.default_skip if default_run else ())
     if not selectors:
         return None
-    from integrators import get_integrator
+    from reelbench.integrators import get_integrator
 
     integ = get_integrator(integrator)
     return next((r for r in (sel(integ) for sel in selectors) if r), None)
@@ -222,7 +222,7 @@ def is_bounded(case: Case, r: dict) -> bool:
 
 
 def _budget(job: Job):
-    from benchmark.runs import runner
+    from reelbench.benchmark.runs import runner
 
     return job.budget or runner.SolveBudget()
 
@@ -231,7 +231,7 @@ def _climb(case: Case, integrator: str, budget) -> tuple[dict, dict]:
     """Walk the ladder down to the first bounded rung: (the row's ladder columns, the run shown:
     that rung, or the last one tried when none stays bounded)."""
     tried, stable, above = 0, None, None
-    from benchmark.runs import runner  # JAX: only when a job runs
+    from reelbench.benchmark.runs import runner  # JAX: only when a job runs
 
     for task in ladder(case, integrator):
         r = runner.run_task(task, repeats=0, reference=False, finished=case.bounded, budget=budget)
@@ -260,7 +260,7 @@ def run_job(job: Job) -> dict:
             cols, r = _climb(case, integrator, _budget(job))
             row.update(cols)
         else:
-            from benchmark.runs import runner  # JAX: only when a job runs
+            from reelbench.benchmark.runs import runner  # JAX: only when a job runs
 
             r = runner.run_task(adaptive_task(case, integrator), repeats=0, reference=False, finished=case.bounded,
                                 budget=_budget(job))
@@ -289,7 +289,7 @@ def to_frame(rows: list[dict]) -> pd.DataFrame:
 
 
 def jobs_for(scenes=None, integrators=None) -> list[Job]:
-    from integrators import get_integrator
+    from reelbench.integrators import get_integrator
 
     names = list(integrators) if integrators else default_integrators()
     for n in names:
@@ -340,7 +340,7 @@ def study(scenes=None, integrators=None, *, workers: int = 2, budget=None):
     """The stability map as a study of `benchmark.core.study.run`: stability.csv (merged with the
     map already in the output, written after every job), stability.md, stability.png and README.md
     from the whole map. Unknown names are refused here, before any work."""
-    from benchmark.core.study import Study
+    from reelbench.benchmark.core.study import Study
 
     jobs = [j._replace(budget=budget) for j in jobs_for(scenes, integrators)]
     return Study(name="stability map", table="stability.csv", identity=IDENTITY, jobs=jobs, run_job=run_job,
@@ -352,9 +352,9 @@ def write_outputs(out, rows: list[dict], provenance) -> str:
     """stability.md, stability.png and README.md of the whole map (``rows``)."""
     from pathlib import Path
 
-    from benchmark.core.report import markdown_table
-    from benchmark.studies import stability_report
-    from models.io import atomic_write_text
+    from reelbench.benchmark.core.report import markdown_table
+    from reelbench.benchmark.studies import stability_report
+    from reelbench.models.io import atomic_write_text
 
     out = Path(out)
     merged = to_frame(rows)
@@ -371,7 +371,7 @@ def _group(job: Job) -> tuple:
 
 def _cost_hint(job: Job) -> float:
     """Rough job cost, to start the longest jobs first (compilation dominates the short ones)."""
-    from integrators import get_integrator
+    from reelbench.integrators import get_integrator
 
     case, integrator, kind, default_run = job[:4]
     if skip_reason(case, integrator, default_run):

@@ -14,12 +14,12 @@ import pandas as pd
 
 from matplotlib.lines import Line2D
 
-from benchmark.figures import styles
-from benchmark.figures.plots import plt, save_figure, style_axes
-from benchmark.core.report import Provenance, code_list, fmt, markdown_table
-from benchmark.studies.stability import ADAPTIVE_ATOL, ADAPTIVE_RTOL, CASES, DT_MAX, LADDER_RUNGS, SKIPPED
-from models.io import atomic_write_text
-from integrators.base import FINISHED_STATUSES, Status
+from reelbench.benchmark.figures import styles
+from reelbench.benchmark.figures.plots import plt, save_figure, style_axes
+from reelbench.benchmark.core.report import Provenance, code_list, fmt, markdown_table
+from reelbench.benchmark.studies.stability import ADAPTIVE_ATOL, ADAPTIVE_RTOL, CASES, DT_MAX, LADDER_RUNGS, SKIPPED
+from reelbench.models.io import atomic_write_text
+from reelbench.integrators.base import FINISHED_STATUSES, Status
 
 #: The scenes whose largest stable steps the summary compares with the adaptive methods' steps.
 STIFF_SCENES = ("stiff_string", "many_elements")
@@ -107,7 +107,7 @@ def _per_second(r) -> float:
 
 def _variational(name: str) -> bool:
     """Whether ``name`` declares VARIATIONAL (False for a name no longer registered)."""
-    from integrators import Capability, get_integrator
+    from reelbench.integrators import Capability, get_integrator
 
     try:
         return get_integrator(name).has(Capability.VARIATIONAL)

@@ -58,12 +58,12 @@ from typing import Callable, NamedTuple
 
 import numpy as np
 
-from benchmark.core import engine
-from benchmark.core.engine import log_stderr
-from benchmark.core.report import Provenance
-from benchmark.runs.metrics import body_positions
-from benchmark.core.reference import CACHE_DIR, get_reference
-from models.scene import Scene
+from reelbench.benchmark.core import engine
+from reelbench.benchmark.core.engine import log_stderr
+from reelbench.benchmark.core.report import Provenance
+from reelbench.benchmark.runs.metrics import body_positions
+from reelbench.benchmark.core.reference import CACHE_DIR, get_reference
+from reelbench.models.scene import Scene
 
 #: Effects the translation understands (everything else is refused); the fluid's only MoorDyn's.
 SUPPORTED_EFFECTS = ("gravity", "elasticity", "rigid_body", "buoyancy", "drag")
@@ -144,7 +144,7 @@ class InitialNodes(NamedTuple):
 
 
 def _initial_nodes(scene: Scene) -> InitialNodes:
-    from models import build_model
+    from reelbench.models import build_model
 
     model = build_model(scene)
     x, R, w = model.initial_state()
@@ -383,7 +383,7 @@ def mujoco_xml(scene: Scene, dt: float) -> str:
     for a in range(2, N + 2):
         last = a == N + 1
         if last and scene.has("rigid_body"):
-            from models.model import rot_to_quat
+            from reelbench.models.model import rot_to_quat
 
             M, com, J = _combined_inertia(scene.body.mass, scene.inertia, np.array(scene.body.attachment_to_com), mu_l / 2)
             full = [J[0, 0], J[1, 1], J[2, 2], J[0, 1], J[0, 2], J[1, 2]]
@@ -458,7 +458,7 @@ def run_ours(scene: Scene, times, cache_dir: str | Path = CACHE_DIR) -> CodeRun:
     """Tip positions of our model (the scene's own mass model) at ``times`` (evenly spaced from
     0): the benchmark's reference solution (`benchmark.core.reference.get_reference`, cached in
     ``cache_dir``). Its cost is per right-hand side (DOP853 takes 12 per step)."""
-    from models import build_model
+    from reelbench.models import build_model
 
     times = np.asarray(times, float)
     ref = get_reference(scene, float(times[-1]), float(times[1] - times[0]), Path(cache_dir))
@@ -476,8 +476,8 @@ def run_ours_lgvi(scene: Scene, times, dt: float) -> CodeRun:
     The study's own runs: second order, so at the outside codes' CFL-limited dt divided by
     `OURS_REFINE` its time error is far below the spatial differences (the lumped-vs-MoorDyn
     and lumped-vs-MuJoCo rows of the tables measure it: same discrete model)."""
-    from integrators.lgvi import LGVI
-    from models import build_model
+    from reelbench.integrators.lgvi import LGVI
+    from reelbench.models import build_model
 
     times = np.asarray(times, float)
     _steps_per_interval(times, dt)
@@ -624,7 +624,7 @@ def earlier_xval(out: Path, scene, t_end: float, this_run: set) -> tuple[dict, d
     import numpy as np
     import pandas as pd
 
-    from benchmark.core.store import UnreadableFile, read_npz
+    from reelbench.benchmark.core.store import UnreadableFile, read_npz
 
     out = Path(out)
     files = [out / n for n in ("settings.json", "cost.csv", "tips.npz")]
@@ -679,9 +679,9 @@ def run_xval(scene_name: str, elements, t_end: float, out: Path, *, command: str
     file is written from the merged study (`earlier_xval`, which refuses,
     before any work, earlier runs that cannot be kept). The study writes when it ends: a stopped
     one leaves ``out`` as it was."""
-    from benchmark.studies import xval_report
-    from benchmark.core.report import earlier_runs
-    from models import load_scene
+    from reelbench.benchmark.studies import xval_report
+    from reelbench.benchmark.core.report import earlier_runs
+    from reelbench.models import load_scene
 
     out = Path(out)
     provenance = Provenance(command)

@@ -19,15 +19,15 @@ from typing import NamedTuple
 import numpy as np
 import pandas as pd
 
-from benchmark.figures import styles
-from benchmark.figures.plots import log_ticks, plt, save_figure, style_axes
-from benchmark.core.reference import REFERENCE_METHOD
-from benchmark.core.report import Provenance, fmt
-from benchmark.core.store import write_npz, write_table
-from benchmark.studies.xval import (CFL, DT_MAX, HALF_DT, MODEL_TOLERANCE, OURS_REFINE, OUTPUT_INTERVAL, REFERENCE_CODE, WATER,
+from reelbench.benchmark.figures import styles
+from reelbench.benchmark.figures.plots import log_ticks, plt, save_figure, style_axes
+from reelbench.benchmark.core.reference import REFERENCE_METHOD
+from reelbench.benchmark.core.report import Provenance, fmt
+from reelbench.benchmark.core.store import write_npz, write_table
+from reelbench.benchmark.studies.xval import (CFL, DT_MAX, HALF_DT, MODEL_TOLERANCE, OURS_REFINE, OUTPUT_INTERVAL, REFERENCE_CODE, WATER,
                             Study, case_scene, moordyn_input, mujoco_xml)
-from models.io import atomic_write_text
-from models.scene import Scene
+from reelbench.models.io import atomic_write_text
+from reelbench.models.scene import Scene
 
 REF = REFERENCE_CODE
 OUTSIDE = ("moordyn", "mujoco")

@@ -89,16 +89,16 @@ def _count_path(fn_name: str, args: tuple):
     """Where a count is kept on disk (None: not kept), beside JAX's compiled programs
     (`models._jax.compile_cache_dir`, off with it): one JSON file per count, named by what
     determines it, so that every worker process and every later run reads a count once traced."""
-    from models._jax import compile_cache_dir, jax, xla_flags
-    from models.io import inside, user_cache_dir
-    from benchmark.core.store import source_hash
+    from reelbench.models._jax import compile_cache_dir, jax, xla_flags
+    from reelbench.models.io import inside, user_cache_dir
+    from reelbench.benchmark.core.store import source_hash
 
     if compile_cache_dir() is None:
         return None
     if isinstance(args[0], str):  # a method's step: kept only when its code is in COUNT_CODE (not a plugin's)
-        from integrators import get_integrator
+        from reelbench.integrators import get_integrator
 
-        if not type(get_integrator(args[0])).__module__.startswith(COUNT_CODE[0]):
+        if not type(get_integrator(args[0])).__module__.startswith(tuple(f"reelbench.{d}." for d in COUNT_CODE[0])):
             return None
     what = [a.scene.key() if hasattr(a, "scene") else a for a in args]
     key = json.dumps({"count": fn_name, "args": what, "program": PROGRAM_COUNT, "jax": jax.__version__,
@@ -117,7 +117,7 @@ def _kept_on_disk(count):
     and written. Tracing a step and asking XLA for its cost takes 0.3-6 s a method and scene; a
     count is a pure function of the code, the physics and JAX, so it is kept like a compiled
     program. A file that cannot be read or written costs a recount, never the row."""
-    from models.io import WriteFailed, atomic_write_text
+    from reelbench.models.io import WriteFailed, atomic_write_text
 
     @functools.wraps(count)
     def kept(*args):
@@ -145,7 +145,7 @@ def _counted(lowered):
 def xla_flops(fn, *args) -> float:
     """Flops of ``fn(*args)`` by XLA's cost model of the function's program (`PROGRAM_COUNT`;
     loops counted once)."""
-    from models._jax import jax
+    from reelbench.models._jax import jax
 
     return compiled_flops(_counted(jax.jit(fn).lower(*args)))
 
@@ -163,7 +163,7 @@ def rhs_flops(model, rhs: str, jacobian: bool = False) -> float:
     """Flops of one evaluation of the right-hand side ``rhs`` (``jacobian``: of one forward-mode
     Jacobian of it). Through the jitted functions the scipy methods call (`integrators.rhs`),
     so that after such a run the executable is already compiled (a cache hit, not a compile)."""
-    from integrators.rhs import jacobian_jit, rhs_jit
+    from reelbench.integrators.rhs import jacobian_jit, rhs_jit
 
     f = (jacobian_jit if jacobian else rhs_jit)(model, rhs)
     return compiled_flops(_counted(f.lower(0.0, np.asarray(model.initial_ode_state(), dtype=float))))
@@ -187,7 +187,7 @@ def _sub_jaxprs(eqn):
 def _body_flops(closed) -> float:
     from jax.extend import core
 
-    from models._jax import jax
+    from reelbench.models._jax import jax
 
     args = [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in closed.in_avals]
     return xla_flops(core.jaxpr_as_fun(closed), *args)
@@ -245,18 +245,18 @@ def step_cost(name: str, model, rhs: str | None = None) -> tuple[float, tuple, b
     """(XLA's one-pass flops of one step, its loop terms, whether it has an uneven cond
     (`has_uneven_cond`)) of the fixed-step method ``name`` (``rhs``: the right-hand side its
     ``ode.f`` is, for a method that uses one)."""
-    from models._jax import jax
-    from integrators import get_integrator
-    from integrators.lifecycle import ODEProblem
+    from reelbench.models._jax import jax
+    from reelbench.integrators import get_integrator
+    from reelbench.integrators.lifecycle import ODEProblem
 
-    from integrators.rhs import DEFAULT_RHS, ode_rhs
+    from reelbench.integrators.rhs import DEFAULT_RHS, ode_rhs
 
     integ = get_integrator(name)
     f = ode_rhs(model, rhs or DEFAULT_RHS) if getattr(integ, "uses_rhs", False) else None
     params = integ.run_parameters(integ.check_options({}))
     # what ``init`` starts from: the ODE state by default (`FixedStepMethod.initial_state`);
     # the LGVI family overrides it with (x, R, p), p shaped like w
-    from integrators.fixed_step import FixedStepMethod
+    from reelbench.integrators.fixed_step import FixedStepMethod
 
     if type(integ).initial_state is FixedStepMethod.initial_state:
         y0 = np.asarray(model.initial_ode_state(), dtype=float)
@@ -279,9 +279,9 @@ def _has_while(terms) -> bool:
 
 
 def _ode_term_and_state(model, rhs: str):
-    from models._jax import jnp
+    from reelbench.models._jax import jnp
 
-    from integrators.rhs import ode_rhs
+    from reelbench.integrators.rhs import ode_rhs
 
     return ode_rhs(model, rhs), jnp.asarray(model.initial_ode_state(), dtype=float)
 
@@ -294,8 +294,8 @@ def diffrax_step_cost(name: str, model, rhs: str, adaptive: bool) -> float:
     when ``adaptive``, the PID controller's ``adapt_step_size`` (error norm, factor)."""
     import diffrax as dfx
 
-    from models._jax import jax
-    from integrators import get_integrator
+    from reelbench.models._jax import jax
+    from reelbench.integrators import get_integrator
 
     integ = get_integrator(name)
     f, y0 = _ode_term_and_state(model, rhs)
@@ -328,9 +328,9 @@ def scipy_twin_step(name: str, model, rhs: str) -> float:
     as its compiled twin: scipy's ``rk_step`` (stages from the tableau ``A``, ``B``, ``C``,
     FSAL), the error norm (``E``; DOP853: ``E3`` and ``E5``) and the step factor, in JAX with
     scipy's own arrays and the same right-hand side."""
-    from models._jax import jnp
+    from reelbench.models._jax import jnp
 
-    from integrators import get_integrator
+    from reelbench.integrators import get_integrator
 
     cls = get_integrator(name).solver_class
     A, B, C, n = np.asarray(cls.A), np.asarray(cls.B), np.asarray(cls.C), int(cls.n_stages)
@@ -379,7 +379,7 @@ def counting_rule(integrator) -> str:
     explicit step): the whole-step rule; or "evaluations" (`FROM_RHS`: right-hand sides, Jacobians
     and LU factorisations, which leaves out the step's own arithmetic, e.g. Radau's Newton solves:
     a lower bound of its work)."""
-    from integrators import get_integrator
+    from reelbench.integrators import get_integrator
 
     integ = get_integrator(integrator) if isinstance(integrator, str) else integrator
     if hasattr(integ, "step") and hasattr(integ, "init"):
@@ -408,7 +408,7 @@ def run_flops(integrator: str, model, stats: dict, rhs: str | None, adaptive: bo
     try:
         if stats.get("counts_unavailable"):
             return np.nan, f"no flops: {stats['counts_unavailable']}"
-        from integrators import get_integrator
+        from reelbench.integrators import get_integrator
 
         integ = get_integrator(integrator)
         rule = counting_rule(integ)

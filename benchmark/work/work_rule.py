@@ -84,10 +84,10 @@ def rule_flops(n: int, h: float, steps: int = 200) -> dict[str, dict[str, float]
     """method -> {"flops": per step by the rule, "old_flops": by evaluations × one right-hand side,
     "newton": mean Newton iterations per step (LGVI, over ``steps`` steps: as many as its floor
     takes, whose iterations per step drift with the motion)}."""
-    from benchmark.work import flops
-    from integrators import get_integrator
-    from integrators.rhs import DEFAULT_RHS
-    from models import build_model, load_scene
+    from reelbench.benchmark.work import flops
+    from reelbench.integrators import get_integrator
+    from reelbench.integrators.rhs import DEFAULT_RHS
+    from reelbench.models import build_model, load_scene
 
     scene = load_scene(SCENE, elements=n)
     model = build_model(scene)
@@ -127,8 +127,8 @@ def floor_times(floor: Path, n: int, h: float, steps: int, repeats: int) -> dict
     "newton": the LGVI floor's Newton iterations per step}."""
     lgvi_nb, lgvi_nb2, rhs_nb = (_import_from(floor, name) for name in ("lgvi_nb", "lgvi_nb2", "rhs_nb"))
 
-    from models import build_model, load_scene
-    from models.closed_form import ClosedFormEOM
+    from reelbench.models import build_model, load_scene
+    from reelbench.models.closed_form import ClosedFormEOM
 
     model = build_model(load_scene(SCENE, elements=n))
     x0, R0, w0 = (np.asarray(v, float) for v in model.initial_state())
@@ -178,9 +178,9 @@ def floor_flops(floor: Path, n: int, h: float, newton: float) -> dict[str, dict[
     evaluation left out), the LGVI floor's step as its Newton-free part + ``newton`` (its measured
     mean iterations per step) × one Newton iteration. Each counted run must end where the compiled
     kernel ends from the same start (to 1e-12), else it did not execute the same operations."""
-    from benchmark.work.opcount import Counted, OpCounter, counted, counted_array, load_plain
-    from models import build_model, load_scene
-    from models.closed_form import ClosedFormEOM
+    from reelbench.benchmark.work.opcount import Counted, OpCounter, counted, counted_array, load_plain
+    from reelbench.models import build_model, load_scene
+    from reelbench.models.closed_form import ClosedFormEOM
 
     plain = load_plain(floor, ("lgvi_nb", "lgvi_nb2", "rhs_nb"))
     rhs_nb, lgvi_nb, lgvi_nb2 = plain["rhs_nb"], plain["lgvi_nb"], plain["lgvi_nb2"]
@@ -279,7 +279,7 @@ def measure(floor: Path, elements=(10, 160), steps: int = STEPS, repeats: int = 
     earlier rule's and the floors' own, against the floors' times."""
     import pandas as pd
 
-    from benchmark.work import flops
+    from reelbench.benchmark.work import flops
 
     rows, pairs = [], []
     used = flops.PROGRAM_COUNT
@@ -321,8 +321,8 @@ def measure(floor: Path, elements=(10, 160), steps: int = STEPS, repeats: int = 
 
 
 def markdown(methods: pd.DataFrame, pairs: pd.DataFrame, *, load: str, command: str) -> str:
-    from benchmark.work import flops
-    from benchmark.core.report import markdown_table
+    from reelbench.benchmark.work import flops
+    from reelbench.benchmark.core.report import markdown_table
 
     labels = [c[len("within_"):] for c in pairs if c.startswith("within_")]
     passed = {c: int(pairs[f"within_{c}"].sum()) for c in labels}
