@@ -12,8 +12,14 @@ def _send_again(unraisable):
     # A stop raised where Python drops exceptions (an import lock's callback, a finalizer) is
     # printed as "Exception ignored" and lost: send it again, to land in a frame that raises it.
     if isinstance(unraisable.exc_value, KeyboardInterrupt):
-        term = "SIGTERM" in str(unraisable.exc_value)
-        signal.raise_signal(signal.SIGTERM if term else signal.SIGINT)
+        import os
+        import threading
+
+        signum = signal.SIGTERM if "SIGTERM" in str(unraisable.exc_value) else signal.SIGINT
+        # later, from a thread: raised here, inside the hook, it would be dropped again
+        timer = threading.Timer(0.05, os.kill, (os.getpid(), signum))
+        timer.daemon = True
+        timer.start()
     else:
         sys.__unraisablehook__(unraisable)
 
