@@ -39,8 +39,9 @@ def log_stderr(msg: str) -> None:
     above the progress bar while one is drawn (`Progress`)."""
     if _bar is not None:
         _bar.write(msg, file=sys.stderr)
-    else:
-        print(msg, file=sys.stderr, flush=True)
+    else:  # one write with its newline: a worker's line and this process's never interleave mid-line
+        sys.stderr.write(f"{msg}\n")
+        sys.stderr.flush()
 
 
 # ------------------------------------------------------------------------------------------
