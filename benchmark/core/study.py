@@ -109,11 +109,7 @@ def job_key(settings: dict, *files: str) -> str:
     """A `Study.key`: a short hash of what determines a job's row, its ``settings`` (JSON), the
     code version (`benchmark.core.store.code_version`) and the study's own source ``files``
     (paths from the repository root)."""
-    import hashlib
-    import json
-
-    what = {"settings": settings, "code": store.code_version(), "study": store.source_hash((), files)}
-    return hashlib.sha256(json.dumps(what, sort_keys=True, default=str).encode()).hexdigest()[:16]
+    return store.key_of({"settings": settings, "code": store.code_version(), "study": store.source_hash((), files)})
 
 
 def _kept(study: Study, earlier: list[dict]) -> dict[int, dict]:
