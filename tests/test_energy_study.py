@@ -102,15 +102,6 @@ def test_run_makes_the_energy_study_only_when_given_a_horizon(tmp_path, monkeypa
     assert len(seen) == 3
 
 
-def test_merge_study_table_replaces_a_run_as_a_whole_and_keeps_the_others():
-    from reelbench.benchmark.core.store import merge_study_table
-
-    old = pd.DataFrame({"run": ["a", "a", "b"], "v": [1, 2, 3]})
-    new = pd.DataFrame({"run": ["a"], "v": [9]})
-    assert merge_study_table(old, new, ["run"]).to_dict("list") == {"run": ["b", "a"], "v": [3, 9]}
-    assert merge_study_table(None, new, ["run"]).equals(new) and merge_study_table(old, None, ["run"]).equals(old)
-
-
 def test_the_energy_command_rewrites_only_its_section_of_the_readme(tmp_path):
     from reelbench.benchmark.studies.properties import SECTION, write_energy_section
 

@@ -8,7 +8,7 @@
   a round trip through CSV: `canonical`), of source code (`source_hash`, `code_version`); what each
   derived file was made from (`OutputKeys`).
 * Merging: a run's rows replace the rows of the same identity in the table already there, and
-  the others are kept (`merge_rows`; `merge_study_table` for a study's DataFrame).
+  the others are kept (`merge_rows`).
 * Trajectory files: `.npz` archives written atomically (`write_npz`), and read back only when
   they are readable archives (`read_npz`, `read_trajectory`, else `UnreadableFile` saying why).
 
@@ -397,23 +397,3 @@ def trajectory_from(arrays: dict, meta: dict):
     from reelbench.integrators import Trajectory
 
     return Trajectory(**{k: arrays.get(k) for k in TRAJECTORY_ARRAYS}, **meta)
-
-
-def merge_study_table(earlier, new, key: Iterable[str]):
-    """A study's table (a DataFrame) with the rows of ``new`` in place of every row of
-    ``earlier`` that has the same values in the columns ``key`` (a run's rows replace that run's
-    rows as a whole), and ``earlier``'s other rows kept as they were, first: a study that
-    recomputes a few of its runs never drops the others. ``earlier`` may be None."""
-    import pandas as pd
-
-    key = list(key)
-    if earlier is None or earlier.empty:  # (None when neither has rows: every run of a study crashed)
-        return new.reset_index(drop=True) if new is not None else None
-    if new is None or new.empty:
-        return earlier.reset_index(drop=True)
-    missing = [c for c in key if c not in earlier or c not in new]
-    if missing:
-        raise ValueError(f"merge_study_table: key column(s) {missing} missing")
-    replaced = pd.MultiIndex.from_frame(new[key].astype(str).drop_duplicates())
-    keep = ~pd.MultiIndex.from_frame(earlier[key].astype(str)).isin(replaced)
-    return pd.concat([earlier[keep], new], ignore_index=True)
