@@ -269,3 +269,22 @@ def test_reel_reversal_stopped_keeps_its_finished_rows_and_a_rerun_runs_the_rest
     assert printed.startswith("scene reel_reversal, N = 2, t_end = 0.16 s; s_p-dot changes sign at t = 0.050 s")
     assert len([line for line in printed.splitlines() if line.startswith(("| lgvi |", "| lgvi_sym |"))]) == 8
     assert printed.strip() in (out / "reel_reversal.md").read_text()  # the file holds what is printed
+
+
+def test_a_study_with_a_digest_writes_it_and_recomputes_a_row_whose_digest_fails(tmp_path):
+    """`Study.digest`: every row is written with its digest (`store.row_digest`); a rerun keeps
+    a row whose digest holds, and names, drops and recomputes one changed by hand."""
+    digested = dict(digest=("pid",), key_column="row_key")
+    assert go(toy([("a", 1), ("b", 2)], **digested), tmp_path) == 0
+    t = table(tmp_path)
+    assert t["row_key"].tolist() == ["value=1", "value=2"] and KEY_COLUMN not in t
+    assert [store.row_digest(r, ("pid",)) for r in t.to_dict("records")] == t[store.DIGEST_COLUMN].tolist()
+    t.loc[t["name"] == "b", "value"] = 3  # a hand edit the digest does not cover
+    t.loc[t["name"] == "a", "pid"] = -1  # a column the digest leaves out
+    t.to_csv(tmp_path / "toy.csv", index=False)
+    CALLS.clear()
+    lines = []
+    assert go(toy([("a", 1), ("b", 2)], **digested), tmp_path, log=lines.append) == 0
+    assert CALLS == ["b"]  # a's digest holds (pid is left out); b's fails
+    assert any("1 row(s) fail their digest" in line for line in lines)
+    assert table(tmp_path).set_index("name")["value"].to_dict() == {"a": 1, "b": 2}

@@ -7,6 +7,8 @@
   a study's table names its own); a key of anything (`key_of`), of rows (`rows_key`, the same after
   a round trip through CSV: `canonical`), of source code (`source_hash`, `code_version`); what each
   derived file was made from (`OutputKeys`).
+* Trust: a row's digest (`row_digest`), written with it and checked when it is read back; the
+  one digest of every table that has one.
 * Merging: a run's rows replace the rows of the same identity in the table already there, and
   the others are kept (`merge_rows`).
 * Trajectory files: `.npz` archives written atomically (`write_npz`), and read back only when
@@ -97,6 +99,20 @@ def canonical(v) -> str:
 # ------------------------------------------------------------------------------------------
 # Merging a run into the table already in its output directory
 # ------------------------------------------------------------------------------------------
+#: The column where a row keeps its digest (`row_digest`).
+DIGEST_COLUMN = "row_digest"
+
+
+def row_digest(row: dict, leave_out: Iterable[str] = ()) -> str:
+    """SHA-256 (16 hex digits) of every value a row has, but those of ``leave_out`` and the digest
+    itself. An empty value is left out, so a column added to a table later changes no digest, and
+    values are written as `canonical`, so the digest survives a round trip through CSV."""
+    skip = {DIGEST_COLUMN, *leave_out}
+    text = "\x1f".join(f"{c}={canonical(row[c])}" for c in sorted(map(str, row))
+                       if c not in skip and not is_missing(row[c]))
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
 def identity_of(row: dict, identity: tuple = ROW_IDENTITY) -> tuple:
     """A row's place in its table (by default `benchmark.core.policy.ROW_IDENTITY`)."""
     return tuple(row.get(c) for c in identity)

@@ -13,6 +13,8 @@ job makes, its table's columns and its report. `run` owns the rest, the same for
   atomically after every finished row, so a stop keeps every finished row;
 - a rerun resumes: a job whose finished row is in the table, made from the same key
   (`Study.key`: the code and settings that determine it), is not run again, unless ``fresh``;
+- a study whose rows carry a digest (`Study.digest`) has every row written with it, and an
+  earlier row whose digest fails is named and dropped (recomputed when this run has its job);
 - the report is written from the whole merged table, also when the study is stopped;
 - a stop is one line saying what was saved (exit 130 / 143); a failing disk one line and exit 1;
   a job that failed (`Study.failure`) one error line at the end, and exit 1.
@@ -62,6 +64,9 @@ class Study:
     - ``header``: the file in the output directory whose header names the earlier runs (the
       provenance of a merged table);
     - ``key(job)``: what determines the job's row (code and settings); None: not resumable;
+      ``key_column``: where a row keeps it;
+    - ``digest``: the columns a row's digest (`benchmark.core.store.row_digest`) leaves out,
+      besides itself; None: the rows carry no digest;
     - ``crash_row(job, exc)``: the row of a job whose worker died (None: the death is raised);
     - ``group(job)`` / ``cost(job)``: jobs that share a compile run in one worker; the longest
       start first and weigh the ETA;
@@ -98,6 +103,8 @@ class Study:
     failure: Callable[[dict], str | None] | None = None
     after_jobs: Callable[[Path, Callable[[str], None]], None] | None = None
     unit: str = "jobs"
+    key_column: str = KEY_COLUMN
+    digest: tuple[str, ...] | None = None
     text_columns: tuple[str, ...] = ()
     workers: int = 0
     scheduler: str | None = None
@@ -118,11 +125,12 @@ def _kept(study: Study, earlier: list[dict]) -> dict[int, dict]:
     if study.key is None:
         return {}
     reusable = study.reusable or (lambda r: is_finished(str(r.get("status", ""))))
-    finished = {store.identity_of(r, study.identity): r for r in earlier if reusable(r) and r.get(KEY_COLUMN)}
+    column = study.key_column
+    finished = {store.identity_of(r, study.identity): r for r in earlier if reusable(r) and r.get(column)}
     kept = {}
     for i, job in enumerate(study.jobs):
         row = finished.get(tuple(study.identity_of(job)))
-        if row is not None and str(row[KEY_COLUMN]) == study.key(job):
+        if row is not None and str(row[column]) == study.key(job):
             kept[i] = row
     return kept
 
@@ -169,7 +177,8 @@ class _Session:
 
         study, out, log = self.study, self.out, self.log
         self.table = MergedTable(out / study.table, study.identity, study.frame, text_columns=study.text_columns,
-                                 expand=self._expand if study.expand else None, read=study.read_earlier)
+                                 expand=self._expand if study.expand else None, read=study.read_earlier,
+                                 digest=study.digest, log=log)
         self.kept = kept = {} if fresh else _kept(study, self.table.base)
         n = len(study.jobs)
         log(f"{study.name}: {n} {study.unit} on {study.workers or 'this process'}"
@@ -199,10 +208,11 @@ class _Session:
 
     def _keyed(self, i: int, row: dict) -> None:
         if self.study.key is not None:
-            row[KEY_COLUMN] = self.study.key(self.study.jobs[i])
+            row[self.study.key_column] = self.study.key(self.study.jobs[i])
 
     def _expand(self, row: dict) -> list[dict]:  # every table row a job makes carries the job's key
-        return [{**x, KEY_COLUMN: row[KEY_COLUMN]} if KEY_COLUMN in row else x for x in self.study.expand(row)]
+        column = self.study.key_column
+        return [{**x, column: row[column]} if column in row else x for x in self.study.expand(row)]
 
     def _on_rows(self, done: list[dict]) -> None:
         self.rows[:] = [r for r in done if not any(r is k for k in self.kept.values())]  # kept rows are in the table

@@ -25,11 +25,14 @@ from reelbench.benchmark.core import store
 from reelbench.benchmark.core.report import Provenance, earlier_runs
 
 
-def read_rows(path: Path, identity: tuple, text_columns: tuple = (), read: Callable | None = None) -> list[dict]:
+def read_rows(path: Path, identity: tuple, text_columns: tuple = (), read: Callable | None = None,
+              digest: tuple | None = None, log: Callable[[str], None] | None = None) -> list[dict]:
     """The rows of a study's earlier table ``path`` ([] when there is none); ValueError (before
     any work) when it cannot be read or lacks an identity column. ``text_columns``: columns
     that hold names ("" where a row has none, so identities compare equal after a round trip).
-    ``read(df)``: the study's reading of the table as read (`Study.read_earlier`), applied first."""
+    ``read(df)``: the study's reading of the table as read (`Study.read_earlier`), applied first.
+    ``digest``: the rows carry a digest leaving out these columns (`store.row_digest`); a row
+    whose digest fails is left out, and ``log`` names how many."""
     import pandas as pd
 
     from reelbench.models.io import FileRefused, require_regular
@@ -53,24 +56,40 @@ def read_rows(path: Path, identity: tuple, text_columns: tuple = (), read: Calla
     for c in text_columns:
         if c in df:
             df[c] = df[c].astype(object).where(df[c].notna(), "").astype(str)
-    return [{k: v for k, v in r.items()} for r in df.to_dict("records")]
+    rows = [{k: v for k, v in r.items()} for r in df.to_dict("records")]
+    if digest is None:
+        return rows
+    good = [r for r in rows if _digest_holds(r, digest)]
+    if len(good) < len(rows) and log is not None:
+        log(f"warning: {path}: {len(rows) - len(good)} row(s) fail their digest; they are recomputed")
+    return good
+
+
+def _digest_holds(row: dict, leave_out: tuple) -> bool:
+    written = row.get(store.DIGEST_COLUMN)
+    return isinstance(written, str) and written == store.row_digest(row, leave_out)
 
 
 class MergedTable(store.TableWriter):
     """A study's `store.TableWriter` whose table is the earlier rows of ``path`` with this run's
     in their place (``identity``): every write, the first finished row's included, keeps the rows
     this run does not recompute. ``earlier``: how many rows the file held; ``kept(rows)``: how
-    many of them the merged table keeps as they were."""
+    many of them the merged table keeps as they were. ``digest``: every row is written with its
+    digest, leaving out these columns (`read_rows`)."""
 
     def __init__(self, path, identity: tuple, to_frame: Callable, text_columns: tuple = (),
-                 expand: Callable[[dict], list[dict]] | None = None, read: Callable | None = None):
-        self.identity, self.expand = tuple(identity), expand
-        self.base = read_rows(path, self.identity, text_columns, read)
+                 expand: Callable[[dict], list[dict]] | None = None, read: Callable | None = None,
+                 digest: tuple | None = None, log: Callable[[str], None] | None = None):
+        self.identity, self.expand, self.digest = tuple(identity), expand, digest
+        self.base = read_rows(path, self.identity, text_columns, read, digest, log)
         super().__init__(path, lambda rows: to_frame(self.merged(rows)))
         self.earlier = len(self.base)
 
     def merged(self, rows: list[dict]) -> list[dict]:
-        return store.merge_rows(self.base, rows, identity=self.identity, expand=self.expand)
+        out = store.merge_rows(self.base, rows, identity=self.identity, expand=self.expand)
+        if self.digest is None:
+            return out
+        return [{**r, store.DIGEST_COLUMN: store.row_digest(r, self.digest)} for r in out]
 
     def kept(self, rows: list[dict]) -> int:
         mine = {store.identity_of(r, self.identity) for r in rows}

@@ -32,6 +32,7 @@ from typing import Callable, Iterable
 
 import numpy as np
 
+from reelbench.benchmark.core import store
 from reelbench.benchmark.core.policy import ROW_IDENTITY
 from reelbench.benchmark.core.store import canonical, code_version, identity_of, is_missing
 from reelbench.models.io import atomic_path
@@ -95,12 +96,10 @@ def _canonical_legacy(v) -> str:
 
 
 def row_digest(row: dict) -> str:
-    """SHA-256 (16 hex digits) of every value a row has (`DIGEST_EXCLUDED` apart; an empty value
-    is left out, so a column added to the table later changes no digest), written with the row
-    and checked when it is read back (`check_row`)."""
-    text = "\x1f".join(f"{c}={canonical(row[c])}" for c in sorted(map(str, row))
-                       if c not in DIGEST_EXCLUDED and not is_missing(row[c]))
-    return hashlib.sha256(text.encode()).hexdigest()[:16]
+    """The runs table's digest of a row (`benchmark.core.store.row_digest`, the one digest), over
+    every column but `DIGEST_EXCLUDED`; written with the row and checked when it is read back
+    (`check_row`)."""
+    return store.row_digest(row, DIGEST_EXCLUDED)
 
 
 def legacy_digest(row: dict) -> str:
