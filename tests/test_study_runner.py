@@ -288,3 +288,29 @@ def test_a_study_with_a_digest_writes_it_and_recomputes_a_row_whose_digest_fails
     assert CALLS == ["b"]  # a's digest holds (pid is left out); b's fails
     assert any("1 row(s) fail their digest" in line for line in lines)
     assert table(tmp_path).set_index("name")["value"].to_dict() == {"a": 1, "b": 2}
+
+
+def test_a_setup_of_the_jobs_runs_for_those_not_kept_and_a_held_caller_reads_what_was_saved(tmp_path):
+    """`Study.setup` as ``setup(jobs)``: its (label, call) pairs are made from the jobs this run
+    runs (a kept job needs no setup), and run before them; ``tables`` gives a caller that holds
+    the lock the merged table (what it read, what a stop leaves)."""
+    from reelbench.benchmark.core.study import exclusive
+
+    made, ready = [], []
+
+    def setup(jobs):
+        made.append([j[0] for j in jobs])
+        return [(f"ready {j[0]}", lambda name=j[0]: ready.append(name)) for j in jobs]
+
+    assert go(toy([("a", 1)], setup=setup), tmp_path) == 0
+    assert made == [["a"]] and ready == ["a"] and CALLS == ["a"]
+    CALLS.clear()
+    STOP_AT[0] = 2  # b runs, c is stopped
+    tables = []
+    with pytest.raises(KeyboardInterrupt), exclusive(tmp_path, lambda m: None):
+        run(toy([("a", 1), ("b", 2), ("c", 3)], setup=setup), tmp_path, command="python -m toy", log=lambda m: None,
+            held=True, tables=tables)
+    assert made[-1] == ["b", "c"] and ready == ["a", "b", "c"] and CALLS == ["b"]  # a was kept: no setup of its own
+    [merged] = tables
+    assert [r["name"] for r in merged.base] == ["a"] and merged.saved == 1
+    assert list(table(tmp_path)["name"]) == ["a", "b"]

@@ -70,6 +70,9 @@ class Study:
     - ``crash_row(job, exc)``: the row of a job whose worker died (None: the death is raised);
     - ``group(job)`` / ``cost(job)``: jobs that share a compile run in one worker; the longest
       start first and weigh the ETA;
+    - ``setup``: calls that run before the jobs, spread over the workers (e.g. the reference
+      solution the jobs read from a cache): a tuple of calls, or ``setup(jobs)``, the (label,
+      call) pairs that the jobs this run runs need (those kept on resume need none);
     - ``expand(row)``: the table rows of a job's row (a run's history), which replace that job's
       earlier rows as a whole; none: the job's earlier rows go;
     - ``read_earlier(df)``: the study's reading of its earlier table as read (a DataFrame): the
@@ -108,7 +111,7 @@ class Study:
     text_columns: tuple[str, ...] = ()
     workers: int = 0
     scheduler: str | None = None
-    setup: tuple = field(default=())
+    setup: tuple | Callable[[list], list[tuple[str, Callable]]] = field(default=())
     header: str = "README.md"
 
 
@@ -136,12 +139,16 @@ def _kept(study: Study, earlier: list[dict]) -> dict[int, dict]:
 
 
 def run(study: Study, out: Path, *, command: str, fresh: bool = False,
-        log: Callable[[str], None] = log_stderr, held: bool = False, failed: list | None = None) -> int:
+        log: Callable[[str], None] = log_stderr, held: bool = False, failed: list | None = None,
+        tables: list | None = None) -> int:
     """Run ``study`` into ``out`` (see the module's docstring); returns the exit status.
     ``held``: the caller holds ``out``'s lock and handles a stop or a failing disk (raised to it,
-    the finished rows saved). ``failed``: gets what failed of each failed job (`Study.failure`)."""
+    the finished rows saved). ``failed``: gets what failed of each failed job (`Study.failure`).
+    ``tables``: gets the study's merged table (`study_store.MergedTable`) once it is read, for a
+    caller that holds the lock: what a stop leaves (its ``saved`` rows, `stop_note`) and the rows
+    it read from earlier runs (its ``base``)."""
     out = Path(out)
-    session = _Session(study, out, Provenance(command, workers=study.workers or 1), log)
+    session = _Session(study, out, Provenance(command, workers=study.workers or 1), log, tables)
     if held:
         return session.run(fresh, failed)
     try:
@@ -165,11 +172,20 @@ def run(study: Study, out: Path, *, command: str, fresh: bool = False,
         return 1
 
 
+def _setup(study: Study, todo: list) -> tuple[list, list | None]:
+    """(the setup calls, their labels or None) of the jobs ``todo`` (`Study.setup`)."""
+    if not callable(study.setup):
+        return list(study.setup), None
+    pairs = list(study.setup(todo))
+    return [call for _, call in pairs], [label for label, _ in pairs]
+
+
 class _Session:
     """One run of a study: its merged table (once the lock is held) and this run's rows."""
 
-    def __init__(self, study: Study, out: Path, provenance: Provenance, log: Callable[[str], None]):
-        self.study, self.out, self.provenance, self.log = study, out, provenance, log
+    def __init__(self, study: Study, out: Path, provenance: Provenance, log: Callable[[str], None],
+                 tables: list | None = None):
+        self.study, self.out, self.provenance, self.log, self.tables = study, out, provenance, log, tables
         self.table, self.rows, self.kept = None, [], {}
 
     def run(self, fresh: bool, failed: list | None) -> int:
@@ -179,6 +195,8 @@ class _Session:
         self.table = MergedTable(out / study.table, study.identity, study.frame, text_columns=study.text_columns,
                                  expand=self._expand if study.expand else None, read=study.read_earlier,
                                  digest=study.digest, log=log)
+        if self.tables is not None:
+            self.tables.append(self.table)
         self.kept = kept = {} if fresh else _kept(study, self.table.base)
         n = len(study.jobs)
         log(f"{study.name}: {n} {study.unit} on {study.workers or 'this process'}"
@@ -186,12 +204,13 @@ class _Session:
             + (f" (merged with its {self.table.earlier} earlier row(s))" if self.table.earlier else ""))
         if kept:
             log(f"{study.name}: kept {len(kept)} of {n} {study.unit} (same code and settings; --fresh recomputes them)")
+        setup, labels = _setup(study, [job for i, job in enumerate(study.jobs) if i not in kept])
         done = engine.run_jobs(
             study.run_job, study.jobs, workers=study.workers, scheduler=study.scheduler, done=kept, finish=self._keyed,
             crash_row=(lambda i, exc: study.crash_row(study.jobs[i], exc)) if study.crash_row else None,
             group=(lambda i: study.group(study.jobs[i])) if study.group else None,
             cost=(lambda i: study.cost(study.jobs[i])) if study.cost else None,
-            setup=study.setup, describe=study.describe, on_row=self._on_rows, log=log)
+            setup=setup, setup_labels=labels, describe=study.describe, on_row=self._on_rows, log=log)
         self._on_rows(done)
         if study.after_jobs is not None:
             study.after_jobs(out, log)
