@@ -33,7 +33,6 @@ from typing import Any, Callable, Hashable
 from reelbench.benchmark.core import engine, store
 from reelbench.benchmark.core.engine import log_stderr
 from reelbench.benchmark.core.report import Provenance
-from reelbench.integrators.base import is_finished
 from reelbench.models.io import printable
 
 #: The column where a row keeps the key it was made from (`Study.key`), for resume.
@@ -127,6 +126,8 @@ def _kept(study: Study, earlier: list[dict]) -> dict[int, dict]:
     already holds (their rows stay in the table as they are)."""
     if study.key is None:
         return {}
+    from reelbench.integrators.base import is_finished  # here: a command line's start loads no integrator
+
     reusable = study.reusable or (lambda r: is_finished(str(r.get("status", ""))))
     column = study.key_column
     finished = {store.identity_of(r, study.identity): r for r in earlier if reusable(r) and r.get(column)}
