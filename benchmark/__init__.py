@@ -16,8 +16,9 @@ One subpackage per layer; a package imports only from those listed before it:
   what a row may hold and what of an earlier table a run keeps (`table`), and what is read from
   the table (`ranking`, `reproducibility`);
 - `figures`: plots and one look per method;
-- `answer`: the main job: each method's cheapest setting that stands at each target
-  (`search`), the contenders timed in pairs (`paired`), the answer written (`answer_report`);
+- `answer`: the main job, two studies on `core.study` (`answer`): each method's cheapest
+  setting that stands at each target (`search`), the contenders timed in pairs (`paired`), each
+  job's run (`jobs`), cheapest.csv (`table`), the answer written (`answer_report`);
 - `studies`: the other studies and their writers: the drift check, stability, the energy
   horizon, observed orders, reel reversal, cross-validation against MoorDyn and MuJoCo, speed,
   the grid sweep (`grid`) and its report;

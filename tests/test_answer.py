@@ -8,6 +8,10 @@ import pandas as pd
 import pytest
 
 from reelbench.benchmark.answer import answer
+from reelbench.benchmark.answer.answer_report import answer_block, answer_lines, use_line
+from reelbench.benchmark.answer.jobs import timing_jobs
+from reelbench.benchmark.answer.table import COLUMNS, answer_table
+from reelbench.benchmark.core.policy import LOWER_BOUND
 
 
 def _search_row(integ, n, metric, target, setting, cost, bound="target", spread=0.08, impl="jax-compiled"):
@@ -45,8 +49,8 @@ def tables():
 
 
 def test_cheapest_csv_has_the_bracket_the_bound_and_the_paired_ratios(tables):
-    table = answer.answer_table(*tables)
-    assert list(table.columns) == answer.COLUMNS
+    table = answer_table(*tables)
+    assert list(table.columns) == COLUMNS
     work10 = table[(table["elements"] == 10) & (table["cost_kind"] == "work")].set_index("integrator")
     assert work10.loc["lgvi", "verdict"] == "winner" and work10.loc["lie_rk4", "verdict"] == "slower"
     assert work10.loc["rk45", "verdict"] == "not reached"
@@ -68,12 +72,12 @@ def test_a_cost_that_is_not_in_flops_is_never_ranked_by_work(tables):
     steps = searched.iloc[0].to_dict() | {"integrator": "kvaerno5", "cost": 607.0, "cost_column": "steps",
                                           "sweep": "rtol", "setting": 1e-4}
     searched = pd.concat([searched, pd.DataFrame([steps])], ignore_index=True)
-    table = answer.answer_table(searched, timed)
+    table = answer_table(searched, timed)
     work10 = table[(table["elements"] == 10) & (table["cost_kind"] == "work")].set_index("integrator")
     assert work10.loc["kvaerno5", "verdict"] == "no flops count" and np.isnan(work10.loc["kvaerno5", "cost"])
     assert "607 steps, not flops" in work10.loc["kvaerno5", "note"]
     assert work10.loc["lgvi", "verdict"] == "winner"
-    assert "kvaerno5" in {c[0] for c in answer.timing_jobs(searched)[0].candidates}
+    assert "kvaerno5" in {c[0] for c in timing_jobs(searched)[0].candidates}
 
 
 def test_a_count_of_evaluations_alone_is_a_lower_bound_and_never_wins(tables):
@@ -87,19 +91,19 @@ def test_a_count_of_evaluations_alone_is_a_lower_bound_and_never_wins(tables):
     searched, timed = tables
     cheap = searched.iloc[0].to_dict() | {"integrator": "radau", "sweep": "rtol", "setting": 1e-3, "cost": 2e5}
     dear = searched.iloc[3].to_dict() | {"integrator": "radau", "sweep": "rtol", "setting": 1e-3, "cost": 3e7}
-    table = answer.answer_table(pd.concat([searched, pd.DataFrame([cheap, dear])], ignore_index=True), timed)
+    table = answer_table(pd.concat([searched, pd.DataFrame([cheap, dear])], ignore_index=True), timed)
     work = table[table["cost_kind"] == "work"].set_index(["elements", "integrator"])
-    assert work.loc[(10, "radau"), "verdict"] == answer.LOWER_BOUND and work.loc[(10, "lgvi"), "verdict"] == "winner"
+    assert work.loc[(10, "radau"), "verdict"] == LOWER_BOUND and work.loc[(10, "lgvi"), "verdict"] == "winner"
     assert "a lower bound of its work" in work.loc[(10, "radau"), "note"]
     assert work.loc[(40, "radau"), "verdict"] == "slower" and np.isinf(work.loc[(40, "radau"), "ratio_high"])
     assert work.loc[(40, "radau"), "ratio_low"] == pytest.approx(3e7 / 1.08 / 9e6)
-    lines = answer.answer_lines(table)
+    lines = answer_lines(table)
     assert "by work: use `lgvi`" in lines[0] and "radau" not in lines[0]
-    block = answer.answer_block(table)
+    block = answer_block(table)
     assert "`radau` by work: its flops leave out its Newton solves, a lower bound (`≥`), never a winner" in block
     # the lower bound shown as such when it is the next method
     only = table[~((table["cost_kind"] == "work") & (table["integrator"] == "lie_rk4"))]
-    assert "`radau` at ≥ 3.09× (a lower bound)." in answer.answer_lines(only)[1]
+    assert "`radau` at ≥ 3.09× (a lower bound)." in answer_lines(only)[1]
 
 
 def test_bit_identical_searches_are_ranked_and_timed_once(tables):
@@ -109,9 +113,9 @@ def test_bit_identical_searches_are_ranked_and_timed_once(tables):
     sym = searched.iloc[0].to_dict() | {"integrator": "lgvi_sym"}
     near = searched.iloc[0].to_dict() | {"integrator": "rattle", "error": searched.iloc[0]["error"] * (1 + 1e-15)}
     searched = pd.concat([searched, pd.DataFrame([sym, near])], ignore_index=True)
-    [job10, _] = answer.timing_jobs(searched)
+    [job10, _] = timing_jobs(searched)
     assert {c[0] for c in job10.candidates} == {"lgvi", "lie_rk4", "rattle"}
-    table = answer.answer_table(searched, timed)
+    table = answer_table(searched, timed)
     work10 = table[(table["elements"] == 10) & (table["cost_kind"] == "work")].set_index("integrator")
     assert work10.loc["lgvi", "entry"] == "lgvi = lgvi_sym" and work10.loc["lgvi_sym", "verdict"] == "identical"
     assert "bit-identical to lgvi's" in work10.loc["lgvi_sym", "note"]
@@ -121,7 +125,7 @@ def test_bit_identical_searches_are_ranked_and_timed_once(tables):
 
 
 def test_the_answer_block_says_one_thing_per_scene_and_target(tables):
-    lines = answer.answer_lines(answer.answer_table(*tables), {"energy_error": "energy error"})
+    lines = answer_lines(answer_table(*tables), {"energy_error": "energy error"})
     assert lines[0].startswith("- **fixed_length**, N = 10, energy error ≤ 0.0001: by wall time: use `lgvi` "
                                "(dt=0.0088, 6 ms, 40 pairs); next `lie_rk4` at 1.66× [1.50–1.80]")
     assert "by wall time: tie: `lie_rk4`" in lines[1] and "`lgvi` at 1.02× [0.97–1.08]" in lines[1]
@@ -131,35 +135,41 @@ def test_the_answer_block_says_one_thing_per_scene_and_target(tables):
 def test_after_a_tie_the_next_method_is_named_as_outside_it():
     """Tie membership goes by the interval, the order by the ratio: after a tie whose wide member
     lies at 1.33x, a narrow 1.18x is "first outside the tie", never "next"."""
-    from reelbench.benchmark.answer.answer import _use_line
-
     def wall(entry, ratio, low, high, verdict):
         return dict(entry=entry, ratio=ratio, ratio_low=low, ratio_high=high, verdict=verdict, cost=ratio * 1e-3,
                     cost_kind="wall", setting="dt=0.01", pairs=8)
 
     g = pd.DataFrame([wall("a", 1.0, 1.0, 1.0, "tie"), wall("b", 1.33, 1.05, 1.40, "tie"),
                       wall("c", 1.18, 1.18, 1.22, "slower")])
-    line = _use_line(g)
+    line = use_line(g)
     assert line.startswith("tie: `a`") and "`b` at 1.33× [1.05–1.40]" in line
     assert line.endswith("; first outside the tie `c` at 1.18× [1.18–1.22]") and "next" not in line
-    won = _use_line(g.assign(verdict=["winner", "slower", "slower"]))
+    won = use_line(g.assign(verdict=["winner", "slower", "slower"]))
     assert won.startswith("use `a`") and won.endswith("; next `c` at 1.18× [1.18–1.22]")
 
 
 def test_timing_jobs_take_the_compiled_methods_that_met_the_target(tables):
-    jobs = answer.timing_jobs(tables[0])
+    jobs = timing_jobs(tables[0])
     assert [j.elements for j in jobs] == [10, 40]
     assert jobs[0].candidates == (("lgvi", "dt", 0.0088), ("lie_rk4", "dt", 0.0102))
 
 
 def test_a_row_digest_survives_the_csv_and_a_changed_row_is_recomputed(tmp_path):
-    row = answer._finish(_search_row("lgvi", 10, "energy_error", 1e-4, 0.0088, 1e6), "k1")
+    from reelbench.benchmark.core.store import row_digest
+    from reelbench.benchmark.core.study_store import read_rows
+
+    row = _search_row("lgvi", 10, "energy_error", 1e-4, 0.0088, 1e6) | {"job_key": "k1"}
+    row["row_digest"] = row_digest(row, answer.NOT_DIGESTED)
     path = tmp_path / "search.csv"
     pd.DataFrame([row]).to_csv(path, index=False)
-    assert len(answer.read_rows(path, log=lambda m: None)) == 1
+
+    def read(log):
+        return read_rows(path, answer.SEARCH_IDENTITY, digest=answer.NOT_DIGESTED, log=log)
+
+    assert len(read(lambda m: None)) == 1
     pd.DataFrame([dict(row, cost=1.0)]).to_csv(path, index=False)
     said = []
-    assert answer.read_rows(path, log=said.append) == [] and "fail their digest" in said[0]
+    assert read(said.append) == [] and "fail their digest" in said[0]
 
 
 @pytest.mark.slow
@@ -175,7 +185,7 @@ def test_the_study_end_to_end_resumes_without_losing_a_row(tmp_path, capsys):
     first = pd.read_csv(tmp_path / "search.csv")
     capsys.readouterr()
     assert main(args) == 0
-    assert "resuming: 4 of 4 searches already done" in capsys.readouterr().err
+    assert "kept 4 of 4 searches" in capsys.readouterr().err
     pd.testing.assert_frame_equal(first, pd.read_csv(tmp_path / "search.csv"))
 
 
@@ -183,16 +193,18 @@ def test_a_method_on_two_axes_is_two_entries(tables):
     searched = tables[0]
     both = pd.DataFrame([dict(_search_row("tsit5", 10, "energy_error", 1e-4, 0.01, 2e6), sweep="dt"),
                          dict(_search_row("tsit5", 10, "energy_error", 1e-4, 1e-6, 3e6), sweep="rtol")])
-    table = answer.answer_table(pd.concat([searched, both]), tables[1].iloc[:0])
+    table = answer_table(pd.concat([searched, both]), tables[1].iloc[:0])
     entries = set(table.loc[table["integrator"] == "tsit5", "entry"])
     assert entries == {"tsit5 (fixed dt)", "tsit5 (adaptive)"}
-    assert len(answer.timing_jobs(pd.concat([searched, both]))[0].candidates) == 4
+    assert len(timing_jobs(pd.concat([searched, both]))[0].candidates) == 4
 
 
 def test_a_run_keeps_the_rows_of_other_sizes_and_replaces_its_own():
     base = [_search_row("lgvi", 10, "energy_error", 1e-4, 0.0088, 1e6), _search_row("lgvi", 40, "energy_error", 1e-4, 0.002, 9e6)]
     new = [_search_row("lgvi", 40, "energy_error", 1e-4, 0.0021, 8e6), _search_row("rattle", 40, "energy_error", 1e-4, 0.003, 7e6)]
-    out = answer.merged(base, new, answer.SEARCH_IDENTITY)
+    from reelbench.benchmark.core.store import merge_rows
+
+    out = merge_rows(base, new, identity=answer.SEARCH_IDENTITY)
     assert [(r["integrator"], r["elements"], r["cost"]) for r in out] == [("lgvi", 10, 1e6), ("lgvi", 40, 8e6),
                                                                           ("rattle", 40, 7e6)]
 
@@ -243,7 +255,7 @@ def test_bad_answer_options_are_refused_before_any_work(tmp_path, capsys, args, 
 def test_two_answers_agree_on_a_winner_or_on_ties_that_contain_each_others_best(tables):
     from reelbench.benchmark.answer import answer_report
 
-    table = answer.answer_table(*tables)
+    table = answer_table(*tables)
     same = answer_report.agreement(table, table)
     assert len(same) and same["agree"].all()
     other = table.copy()
@@ -301,9 +313,68 @@ def test_the_time_accounting_counts_only_the_rows_this_run_made():
 def test_an_unreadable_earlier_search_table_is_refused_before_any_work_and_left_as_it_was(tmp_path, monkeypatch,
                                                                                            content):
     (tmp_path / "search.csv").write_bytes(content)
-    monkeypatch.setattr(answer, "search_jobs", lambda *a, **k: pytest.fail("work began"))
+    from reelbench.benchmark.core import engine
+
+    monkeypatch.setattr(engine, "run_jobs", lambda *a, **k: pytest.fail("work began"))
     request = answer.AnswerRequest(out=tmp_path, scenes=("fixed_length",), integrators=("lgvi",))
     with pytest.raises(ValueError, match="search.csv.*move it away, or give another --out"):
         answer.run_answer(request, log=lambda m: None)
     assert (tmp_path / "search.csv").read_bytes() == content
     assert sorted(p.name for p in tmp_path.iterdir()) == ["search.csv"]
+
+
+def _fake_search(job, cache_dir):
+    """A search's row without solving (the runner's stop and resume are under test, not the search)."""
+    return dict(_search_row(job.integrator, job.elements, job.metric, job.target, 0.01, 1e6), scene=job.scene,
+                sweep=job.sweep, confirmed=True, points="[]", job_time=0.0)
+
+
+def _fake_timing(job):
+    ratios = [_ratio(c[0], 0.01, 1.0, 1.0, 1.0, "tie") for c in job.candidates]
+    return dict(scene=job.scene, elements=job.elements, metric=job.metric, target=job.target, ratios=json.dumps(ratios),
+                rounds=40, seconds=0.0, note="")
+
+
+def _stopping(real, stop_at, calls):
+    def job(*args, **kwargs):
+        if len(calls) == stop_at:
+            raise KeyboardInterrupt("signal SIGINT")
+        calls.append(args[0])
+        return real(*args, **kwargs)
+    return job
+
+
+@pytest.mark.parametrize("stage", ["search", "timing"])
+def test_an_answer_stopped_after_its_first_finished_job_keeps_it_and_resumes_from_it(tmp_path, monkeypatch, capsys,
+                                                                                      stage):
+    """Through the one runner: a stop (KeyboardInterrupt, as the stop handlers raise it) after the
+    first finished search, or the first finished timing, keeps every finished row of both tables
+    and says so in one line; the same command then keeps them (not run again) and runs the rest."""
+    from reelbench.benchmark.answer import jobs
+    from reelbench.benchmark.cli.main import main
+
+    searches, timings = [], []
+    monkeypatch.setattr(jobs, "references", lambda todo, cache_dir: [])
+    monkeypatch.setattr(jobs, "run_search", _stopping(_fake_search, 1 if stage == "search" else None, searches))
+    monkeypatch.setattr(jobs, "run_timing", _stopping(_fake_timing, 1 if stage == "timing" else None, timings))
+    args = ["answer", "--scenes", "fixed_length", "--integrators", "lgvi,lie_rk4", "--elements", "2", "--targets",
+            "energy_error=1e-4,position_error_final=1e-6", "--executor", "serial", "--out", str(tmp_path)]
+    assert main(args) == 130
+    err = capsys.readouterr().err
+    saved = "1 search row(s) and 0 timing row(s)" if stage == "search" else "4 search row(s) and 1 timing row(s)"
+    assert f"stopped by Ctrl-C: {saved} are saved in {tmp_path}; run the same command again to resume" in err, err
+    first = pd.read_csv(tmp_path / "search.csv")
+    assert len(first) == len(searches) and not (tmp_path / "cheapest.csv").exists()
+    assert len(pd.read_csv(tmp_path / "timing.csv")) if stage == "timing" else not (tmp_path / "timing.csv").exists()
+
+    done = len(searches), len(timings)
+    monkeypatch.setattr(jobs, "run_search", _stopping(_fake_search, None, searches))
+    monkeypatch.setattr(jobs, "run_timing", _stopping(_fake_timing, None, timings))
+    assert main(args) == 0
+    err = capsys.readouterr().err
+    assert f"kept {done[0]} of 4 searches" in err and len(searches) == 4, err
+    assert (f"kept {done[1]} of 2 paired timings" in err) == (stage == "timing") and len(timings) == 2
+    after = pd.read_csv(tmp_path / "search.csv")
+    pd.testing.assert_frame_equal(first, after.iloc[:len(first)])  # the kept rows, as they were
+    assert len(after) == 4 and len(pd.read_csv(tmp_path / "timing.csv")) == 2
+    assert set(pd.read_csv(tmp_path / "cheapest.csv")["cost_kind"]) == {"work", "wall"}

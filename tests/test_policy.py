@@ -26,19 +26,19 @@ def test_a_setting_carries_its_label_its_solve_arguments_and_parses_back():
 
 
 def test_the_sweep_and_the_answer_solve_a_setting_alike():
-    from reelbench.benchmark.answer import answer
+    from reelbench.benchmark.answer import jobs
     from reelbench.benchmark.runs.sweep import Task, build_tasks
 
     for axis, value in (("dt", 0.005), ("rtol", 1e-6)):
         task = Task("fixed_length", "tsit5", **vars(Setting.on_axis(axis, value)), t_end=1.0)
-        assert task.solve_kwargs() == answer.solve_kwargs(axis, value, 1.0)
+        assert task.solve_kwargs() == jobs.solve_kwargs(axis, value, 1.0)
         assert task.setting == Setting.on_axis(axis, value).label()
     adaptive = [t for t in build_tasks(["fixed_length"], ["rk45"], quick=True)]
     assert adaptive and all(t.atol == policy.atol_for(t.rtol) and t.save_every == policy.SAVE_EVERY for t in adaptive)
 
 
 def test_the_budgets_and_the_resolution_are_read_from_the_policy():
-    from reelbench.benchmark.answer import answer
+    from reelbench.benchmark.answer import jobs
     from reelbench.benchmark.studies import horizon
     from reelbench.benchmark.core import options
     from reelbench.benchmark.answer import paired
@@ -48,7 +48,7 @@ def test_the_budgets_and_the_resolution_are_read_from_the_policy():
     assert runner.SolveBudget() == runner.SolveBudget(policy.SOLVE_MAX_STEPS, policy.SOLVE_TIME_LIMIT)
     assert (options.SOLVE_MAX_STEPS, options.SOLVE_TIME_LIMIT) == (policy.SOLVE_MAX_STEPS, policy.SOLVE_TIME_LIMIT)
     assert horizon.MAX_STEPS == policy.SOLVE_MAX_STEPS
-    assert paired.BUDGET == answer.TimingJob("s", 1, "m", 1.0, ()).budget == policy.PAIRED_BUDGET
+    assert paired.BUDGET == jobs.TimingJob("s", 1, "m", 1.0, ()).budget == policy.PAIRED_BUDGET
     assert search.RESOLUTION == paired.PRECISION == policy.RESOLUTION
     assert paired.EQUIVALENCE == policy.TIE_MARGIN and paired.RACE_MARGIN == 2 * policy.TIE_MARGIN
 

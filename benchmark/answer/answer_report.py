@@ -1,10 +1,13 @@
 """The answer for a reader: one table per string size (scene × target → the fastest method by
 paired wall time and the one doing the least work, each with its runner-up and ratio), one
 sentence per scene on which family to use and what limits it, the work–precision figures drawn
-from every setting the searches ran, and results/README.md around them.
+from every setting the searches ran, and results/README.md around them. The ranking of one
+target's rows is read once (`_ranking`), for the table's cells (`best_and_next`) and the
+bullets (`use_line`).
 
-Reads `benchmark.answer.answer`'s tables (cheapest.csv's rows, search.csv's points); writes nothing but
-the files it is asked for, the project README's answer block among them (`write_answer`).
+Reads the answer's tables (cheapest.csv's rows, `benchmark.answer.table`; search.csv's points);
+writes nothing but the files it is asked for, the project README's answer block among them
+(`answer_block`, `write_answer`).
 """
 
 from __future__ import annotations
@@ -16,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from reelbench.benchmark.core.policy import BEST_VERDICTS, RANKED_VERDICTS, SLOWER, TIE
+from reelbench.benchmark.core.policy import BEST_VERDICTS, CHEAPEST_FILE, RANKED_VERDICTS, SLOWER, TIE
 
 #: The markers of the project README's generated answer block.
 ANSWER_START, ANSWER_END = "<!-- answer:start -->", "<!-- answer:end -->"
@@ -56,21 +59,73 @@ def _amount(r, kind: str) -> str:
     return f"{r['cost'] * 1e3:.3g} ms" if kind == "wall" else f"{r['cost']:.3g} flops"
 
 
+def _ranking(g: pd.DataFrame):
+    """(the ranked rows in order, the best, the other members of its tie, the slower ones) of one
+    cost kind's rows of one target; None when no method reached it."""
+    ranked = g[g["verdict"].isin(RANKED_VERDICTS)].sort_values(["ratio", "entry"])
+    if ranked.empty:
+        return None
+    return ranked, ranked.iloc[0], ranked[ranked["verdict"] == TIE].iloc[1:], ranked[ranked["verdict"] == SLOWER]
+
+
 def best_and_next(g: pd.DataFrame) -> tuple[str, str, pd.Series | None]:
     """(the best cell, the runner-up cell, the best row) of one cost kind's rows of one target: a
     tie names its members with their ratios, the runner-up is then the first method outside it."""
-    ranked = g[g["verdict"].isin(RANKED_VERDICTS)].sort_values(["ratio", "entry"])
-    if ranked.empty:
+    ranking = _ranking(g)
+    if ranking is None:
         return "no method reached it", "", None
-    kind = g["cost_kind"].iloc[0]
-    best = ranked.iloc[0]
-    head = f"`{best['entry']}` ({best['setting']}, {_amount(best, kind)})"
-    ties = ranked[ranked["verdict"] == TIE].iloc[1:]
+    _, best, ties, rest = ranking
+    head = f"`{best['entry']}` ({best['setting']}, {_amount(best, g['cost_kind'].iloc[0])})"
     if best["verdict"] == TIE:
         head = "tie: " + ", ".join([head] + [f"`{r['entry']}` {_ratio(r)}" for _, r in ties.iterrows()])
-    rest = ranked[ranked["verdict"] == SLOWER]
     nxt = "—" if rest.empty else f"`{rest.iloc[0]['entry']}` {_ratio(rest.iloc[0])}"
     return head, nxt, best
+
+
+def use_line(g: pd.DataFrame) -> str:
+    """"use X (setting, cost, interval); next Y at r× [lo–hi]" for one cost kind's rows; a tie
+    (only where the intervals overlap) names its members with their ratios, then the first
+    method outside it."""
+    ranking = _ranking(g)
+    if ranking is None:
+        return "no method reached it"
+    ranked, best, ties, rest = ranking
+    kind = g["cost_kind"].iloc[0]
+    own = (f"{best['setting']}, {_amount(best, kind)}, {int(best['pairs'])} pairs" if kind == "wall"
+           else f"{best['setting']}, {_amount(best, kind)} [{best['cost_low']:.3g}–{best['cost_high']:.3g}]")
+    if best["verdict"] == TIE:
+        head = f"tie: `{best['entry']}` ({own}), " + ", ".join(f"`{r['entry']}` at {_ratio(r)}"
+                                                                    for _, r in ties.iterrows())
+    else:
+        head = f"use `{best['entry']}` ({own})"
+    if rest.empty:
+        return head + ("" if len(ranked) > 1 else "; no other method reached it")
+    nxt = rest.iloc[0]
+    # a tie goes by the intervals, the order by the ratios: a wide interval can keep a member at
+    # 1.33x in the tie while a narrow one puts 1.18x outside it, so "next" would misread
+    after = "first outside the tie" if best["verdict"] == TIE else "next"
+    return head + f"; {after} `{nxt['entry']}` at {_ratio(nxt)}"
+
+
+def answer_lines(table: pd.DataFrame, labels: dict | None = None) -> list[str]:
+    """The answer in bullets: one per scene × N × target (by wall time, paired, and by work), then
+    per scene × target one line on how the wall-time answer changes from the smallest N to the
+    largest."""
+    labels = labels or {}
+    lines = []
+    for (scene, metric, target), g in table.groupby(["scene", "metric", "target"], sort=True):
+        sizes = sorted(g["elements"].unique())
+        for n in sizes:
+            h = g[g["elements"] == n]
+            parts = [f"{'by wall time' if k == 'wall' else 'by work'}: {use_line(h[h['cost_kind'] == k])}"
+                     for k in ("wall", "work") if (h["cost_kind"] == k).any()]
+            lines.append(f"- **{scene}**, N = {n}, {labels.get(metric, metric)} ≤ {target:g}: " + "; ".join(parts) + ".")
+        if len(sizes) > 1:
+            first, last = (g[(g["elements"] == n) & (g["cost_kind"] == "wall")] for n in (sizes[0], sizes[-1]))
+            win = [(x.sort_values(["ratio", "entry"])["entry"].iloc[0] if len(x) else "none") for x in (first, last)]
+            lines.append(f"  - from N = {sizes[0]} to N = {sizes[-1]}: fastest `{win[0]}` → `{win[1]}`"
+                         + (" (unchanged)" if win[0] == win[1] else ""))
+    return lines
 
 
 def _target_text(metric: str, target: float, labels: dict) -> str:
@@ -116,6 +171,17 @@ def sentences(h: pd.DataFrame, labels: dict) -> list[str]:
                          f"(`{best['entry']}`{tie}{held})")
         lines.append(f"**{scene}**: " + "; ".join(parts) + ".")
     return lines
+
+
+def answer_block(table: pd.DataFrame, labels: dict | None = None, command: str = "python -m benchmark answer",
+                 table_file: str = str(CHEAPEST_FILE)) -> str:
+    """The project README's answer block: one table per N, one sentence per scene, how it was made."""
+    from reelbench.benchmark.answer import paired, search
+    from reelbench.benchmark.answer.table import LOWER_BOUND_NOTE
+
+    bounded = sorted(table.loc[table["note"].fillna("").eq(LOWER_BOUND_NOTE), "integrator"].unique())
+    return "\n".join(tables(table, labels) + how_made(command, bounded, paired.EQUIVALENCE, search.CONFIRM,
+                                                      table_file)) + "\n"
 
 
 def how_made(command: str, bounded: list[str], equivalence: float, confirm: int, table_file: str) -> list[str]:

@@ -1,5 +1,5 @@
 """`python -m benchmark answer`: the main job (`benchmark.answer.answer`), its scenes, methods,
-sizes and targets checked, then `benchmark.answer.answer.run_answer`.
+sizes and targets checked, then `benchmark.answer.answer.run_answer` (its two studies on the one runner).
 """
 
 from __future__ import annotations

@@ -7,8 +7,8 @@ other studies do the same with their own tables and row identities:
 * `speed`: the rows table beside its Markdown file (``lgvi_speed.csv`` beside
   ``lgvi_speed.md``), one row per (kind, method, right-hand side, scene, N);
 * `xval`: its study, rebuilt from ``tips.npz`` and ``cost.csv`` (`benchmark.studies.xval.earlier_xval`);
-* `answer`: ``search.csv`` and ``timing.csv``, each row checked by its digest
-  (`benchmark.answer.answer.read_rows`).
+* `answer`: ``search.csv`` and ``timing.csv``, one row per search and per paired timing, each
+  row checked by its digest (`benchmark.answer.answer`).
 
 A study's table, figure and README are then written from the whole merged table, and an
 interrupted study has already merged each finished row: it never drops a row it did not
