@@ -62,7 +62,8 @@ EXTENDED_ELEMENTS = (10, 40)
 SEARCH_TABLE, TIMING_TABLE = "search.csv", "timing.csv"
 SEARCH_COLUMNS = ["scene", "elements", "integrator", "sweep", "metric", "target", "setting", "cost", "cost_column",
                   "error", "setting_low", "setting_high", "setting_finer", "high_status", "bound", "runs", "spread",
-                  "confirmed", "erratic_above", "implementation", "note", "points", "job_time", KEY_COLUMN, "row_digest"]
+                  "confirmed", "erratic_above", "implementation", "note", "points", "job_time", KEY_COLUMN,
+                  "row_digest"]
 TIMING_COLUMNS = ["scene", "elements", "metric", "target", "ratios", "rounds", "seconds", "core", "load_avg",
                   "note", KEY_COLUMN, "row_digest"]
 SEARCH_IDENTITY = ("scene", "elements", "integrator", "sweep", "metric", "target")
@@ -127,7 +128,6 @@ def labels_of(targets) -> dict:
     return {m: words.get(m, described.get(m, m)) for m, _ in targets}
 
 
-
 # ------------------------------------------------------------------------------------------
 # The two studies, and the run
 # ------------------------------------------------------------------------------------------
@@ -153,14 +153,14 @@ def _reusable_search(row: dict) -> bool:
     return str(row.get("bound", "")) not in RETRY_STATUSES
 
 
-def search_study(request: AnswerRequest, cache_dir: str) -> Study:
-    """The searches of ``request`` as a study (its jobs made, its names checked)."""
+def search_study(request: AnswerRequest, cache_dir: str, merged: _Merged) -> Study:
+    """The searches of ``request`` as a study (its jobs made, its names checked); ``merged`` gets
+    the whole merged search table."""
     import os
 
     jobs = _jobs.search_jobs(request.scenes, request.integrators, list(request.targets), request.elements,
                              request.t_end, request.max_runs)
     costs = dict(zip(jobs, _jobs.search_costs(jobs)))
-    merged = _Merged(SEARCH_COLUMNS)
     return Study(name="answer search", table=SEARCH_TABLE, identity=SEARCH_IDENTITY, jobs=jobs,
                  run_job=functools.partial(_jobs.run_search, cache_dir=cache_dir),
                  identity_of=lambda j: tuple(getattr(j, c) for c in SEARCH_IDENTITY), frame=merged.frame,
@@ -172,10 +172,10 @@ def search_study(request: AnswerRequest, cache_dir: str) -> Study:
                  scheduler=request.scheduler if request.executor == "dask" else None)
 
 
-def timing_study(request: AnswerRequest, searched) -> Study:
+def timing_study(request: AnswerRequest, searched, merged: _Merged) -> Study:
     """The paired timings of the searches ``searched`` (the whole merged search table), in this
-    process one after another (one pinned core, never two at once)."""
-    merged = _Merged(TIMING_COLUMNS)
+    process one after another (one pinned core, never two at once); ``merged`` gets the whole
+    merged timing table."""
     return Study(name="answer timing", table=TIMING_TABLE, identity=TIMING_IDENTITY,
                  jobs=_jobs.timing_jobs(searched, request.t_end, request.timing_budget), run_job=_jobs.run_timing,
                  identity_of=lambda j: tuple(getattr(j, c) for c in TIMING_IDENTITY), frame=merged.frame,
@@ -197,7 +197,8 @@ def run_answer(request: AnswerRequest, log: Callable[[str], None] = engine.log_s
 
     out, provenance = Path(request.out), Provenance(request.command)
     others = [(p, pd.read_csv(p)) for p in request.compare_with]  # read now: one may be this run's own output
-    search = search_study(request, str(CACHE_DIR))  # its input checked before the lock and any work
+    searched, timed = _Merged(SEARCH_COLUMNS), _Merged(TIMING_COLUMNS)
+    search = search_study(request, str(CACHE_DIR), searched)  # its input checked before the lock and any work
     tables: list = []  # the merged tables of the two stages, as the runner reads them
     run = functools.partial(study.run, out=out, command=request.command, fresh=request.fresh, log=log, held=True,
                             tables=tables)
@@ -208,12 +209,12 @@ def run_answer(request: AnswerRequest, log: Callable[[str], None] = engine.log_s
                 f"{', '.join(map(str, request.elements))} × {len(request.integrators)} method(s) × "
                 f"{len(request.targets)} target(s); results -> {out}/")
             run(search)
-            searched = search.report.frame()
-            timing = timing_study(request, searched)
+            search_table = searched.frame()  # the whole merged table, earlier runs' rows included
+            timing = timing_study(request, search_table, timed)
             log(f"{len(timing.jobs)} paired timings (at most {request.timing_budget:g} s each, on one pinned core)")
             run(timing)
             kept = {r.get("row_digest") for t in tables for r in t.base}  # rows of earlier runs
-            _report(request, out, searched, timing.report.frame(), others, provenance, search.workers, kept, log)
+            _report(request, out, search_table, timed.frame(), others, provenance, search.workers, kept, log)
     except KeyboardInterrupt as exc:
         search_rows, timing_rows = ([t.saved for t in tables] + [0, 0])[:2]
         return engine.stopped(exc, f"{search_rows} search row(s) and {timing_rows} timing row(s) are saved in {out}; "

@@ -203,7 +203,6 @@ def _wall_time(integ, scene, kw) -> float:
     return float(integ.solve(scene, **kw).stats["wall_time"])
 
 
-
 def setting_text(sweep: str, v: float) -> str:
     """A setting's label (`Setting.label`, four digits); "" for none."""
     return Setting.on_axis(sweep, v).label(digits=4) if np.isfinite(v) else ""
@@ -265,7 +264,6 @@ def timing_jobs(searched: pd.DataFrame, t_end=None, budget=PAIRED_BUDGET) -> lis
     return out
 
 
-
 def search_crash_row(job: SearchJob, exc: BaseException) -> dict:
     """The row of a search whose worker died."""
     from reelbench.integrators.base import CRASHED  # here: the command line's start loads no integrator
@@ -285,8 +283,8 @@ def references(jobs: list[SearchJob], cache_dir: str) -> list[tuple[str, Callabl
 
     problems = sorted({ReferenceProblem(j.scene, (("elements", j.elements),) + ((("t_end", j.t_end),) if j.t_end else ()),
                                         j.t_end, SAVE_EVERY) for j in jobs}, key=str)
-    return [(f"reference {p.scene} N={dict(p.overrides)['elements']}", functools.partial(prepare_reference, p, cache_dir))
-            for p in problems]
+    return [(f"reference {p.scene} N={dict(p.overrides)['elements']}",
+             functools.partial(prepare_reference, p, cache_dir)) for p in problems]
 
 
 def describe_search(row: dict) -> str:
@@ -301,7 +299,6 @@ def describe_timing(row: dict) -> str:
     best = f"{ratios[0]['method']} {ratios[0]['verdict']}" if ratios else "nothing timed"
     return f"timing {row['scene']} N={row['elements']} {row['metric']} <= {row['target']:g}: {best} " \
            f"({row.get('rounds', 0)} rounds)"
-
 
 
 #: Predicted solves of one search, and seconds of one at N = 10 per unit of a method's declared

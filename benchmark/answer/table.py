@@ -58,9 +58,10 @@ def _work_rows(g: pd.DataFrame, place: dict) -> tuple[list[dict], list[dict]]:
     for (integ, sweep), h in g.groupby(["integrator", "sweep"], sort=True):
         r = h.iloc[0]
         if (integ, sweep) in same:
-            rows.append(dict(**place, cost_kind="work", integrator=integ, entry=entry_name(integ, sweep, axes[integ] > 1),
-                             sweep=sweep, setting=setting_text(sweep, r["setting"]), verdict=IDENTICAL,
-                             cost_column=r["cost_column"], error=r["error"], runs=r["runs"],
+            rows.append(dict(**place, cost_kind="work", integrator=integ,
+                             entry=entry_name(integ, sweep, axes[integ] > 1), sweep=sweep,
+                             setting=setting_text(sweep, r["setting"]), verdict=IDENTICAL, cost_column=r["cost_column"],
+                             error=r["error"], runs=r["runs"],
                              note=f"its search is bit-identical to {same[(integ, sweep)]}'s "
                                   f"({', '.join(TWIN_COLUMNS)}): ranked as one entry"))
             continue
