@@ -20,7 +20,8 @@ job makes, its table's columns and its report. `run` owns the rest, the same for
   a job that failed (`Study.failure`) one error line at the end, and exit 1.
 
 A study may run inside another that holds the same directory (``held``: `run --horizon` makes the
-energy study in its own output): the caller then owns the lock and the stop.
+energy study in its own output; the answer runs its searches, then its timings, in one lock): the
+caller then owns the lock and the stop, and reads what each study saved (``tables``).
 """
 
 from __future__ import annotations
