@@ -182,6 +182,8 @@ def add_integrators(p, help: str, *, one: bool = False, default=None, registered
 
 #: What --jobs means on every command that has it.
 JOBS = "worker processes, 0 = in this process, one job after another"
+#: The default of --jobs on every study command (`engine.default_workers`), said of its unit of work.
+DEFAULT_JOBS = "one per {unit}, at most the CPU count"
 
 
 def add_jobs(p, default_help: str, *, default=None, workers_only: str | None = None) -> None:
