@@ -72,8 +72,8 @@ def add_speed(sub) -> None:
     sp.add_argument("--rhs", default=common.csv_of(default.rhs), help="right-hand sides to time per call ('' = none)")
     sp.add_argument("--autodiff-max-n", type=opt.positive_int, default=default.autodiff_max_n,
                     help="largest N for the O(N^3) autodiff right-hand side")
-    common.add_budget(sp, "the measurement ends with that status (not timed; such a row is measured again on "
-                          "resume); it bounds the first solve (compile and warm-up), the timed ones are the same work")
+    common.add_budget(sp, "its measurement with it (not timed; measured again on resume): it bounds the first "
+                          "solve of each measurement (compile and warm-up), the timed ones are the same work")
     common.add_fresh(sp, "the rows table beside --out")
     common.add_out(sp, "the tables (Markdown, with the command and machine; also printed): this run's rows join "
                        "those of the rows table beside it (.csv; rows of other methods, scenes and N are kept) and "
