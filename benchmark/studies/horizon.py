@@ -1,7 +1,7 @@
 """The long-horizon energy study (`python -m benchmark energy`): energy error vs time, with the
 physics that drives it, one engine job per run of `PLAN`. Its table is energy_horizon.csv (one
 history per run; a rerun replaces its own runs' histories and keeps the others), analysed by
-`benchmark.studies.properties.energy_table`.
+`benchmark.studies.energy_drift.energy_table`.
 
 Each saved time records, beside the signed energy error (E − E0)/max T, what the state says
 about it (`axial_measures`, relative to max T): the energy in the string's axial vibration, P =
@@ -9,7 +9,7 @@ about it (`axial_measures`, relative to max T): the energy in the string's axial
 (U''(v, v) = P + G), the fourth-order companion P4 = Σ_a EA l (d²ε_a/dt²)² (1/s⁴), the body's
 spin S = |Ω|² T_rot and the least element tension. A symplectic method conserves a modified
 energy Ẽ = E + h^p H_p + …; averaged over the string's fast modes ⟨H_p⟩ = c_p ⟨P_p⟩
-(`benchmark.studies.properties`), so its energy error carries an offset −c_p h^p ⟨P_p⟩ that grows
+(`benchmark.studies.energy_drift`), so its energy error carries an offset −c_p h^p ⟨P_p⟩ that grows
 whenever energy flows into those modes, without any drift of Ẽ. With `slack` only taut elements
 count (a slack one stores no energy and has no stiffness).
 
