@@ -13,7 +13,7 @@ from __future__ import annotations
 
 def of(budget):
     """``budget``, or the default one for None."""
-    from reelbench.benchmark.runs.runner import SolveBudget  # not at import: the command line reads the studies without JAX
+    from reelbench.benchmark.runs.runner import SolveBudget  # here: the command line reads the studies without it
 
     return budget if budget is not None else SolveBudget()
 
