@@ -3,9 +3,9 @@
 
 A job's ``budget`` is None for the defaults (`benchmark.core.policy.SOLVE_MAX_STEPS` and
 `SOLVE_TIME_LIMIT`). A budgeted solve is the unbudgeted one, bit for bit, until the budget runs
-out (`integrators.lifecycle.run_in_chunks`), so the defaults add nothing to a key: the rows made
-before the budgets were options keep theirs, and a row made under another budget is recomputed
-when the defaults are asked for again.
+out (`integrators.lifecycle.run_in_chunks`), so the defaults add nothing to a key (a row's key is
+what it was before the budgets were options, for the same study code), and a row made under
+another budget is recomputed when the defaults are asked for again.
 """
 
 from __future__ import annotations
