@@ -144,3 +144,71 @@ def test_the_studies_take_their_budget_from_the_command_line(monkeypatch, tmp_pa
     assert main(["check", "--integrators", "lgvi", "--time-limit", "7200"]) == 0
     assert seen == {"run": SolveBudget(1000, 30.0), "stability": SolveBudget(),
                     "check": SolveBudget(opt.SOLVE_MAX_STEPS, 7200.0)}
+
+
+# ------------------------------------------------------------------------------------------
+# The budgets of orders, energy, speed and reel-reversal
+# ------------------------------------------------------------------------------------------
+#: Each study command with a small out of its own (the budget options are the same builder's).
+STUDIES = {"orders": ["--scenes", "fixed_length", "--integrators", "lgvi"],
+           "energy": ["--integrators", "lgvi", "--variants", "plain"],
+           "speed": ["--integrators", "lgvi", "--rhs", ""],
+           "reel-reversal": ["--integrators", "lgvi"]}
+
+
+def _out(command: str, tmp_path) -> list[str]:
+    return ["--out", str(tmp_path / ("o.md" if command == "speed" else "o"))]
+
+
+@pytest.mark.parametrize("command", STUDIES)
+@pytest.mark.parametrize("bad, allowed", [(["--max-steps", "0"], "is invalid (allowed: an integer >= 1)"),
+                                          (["--time-limit", "0"], "is invalid (allowed: a finite number > 0)"),
+                                          (["--time-limit", "nan"], "is not a finite number")])
+def test_a_study_refuses_a_budget_out_of_range_before_any_work(command, bad, allowed, tmp_path, capsys):
+    assert main([command, *STUDIES[command], *_out(command, tmp_path), *bad]) == 2
+    err = _err(capsys)
+    assert f"error: argument {bad[0]}: '{bad[1]}' {allowed}" in err, err
+    assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("command", STUDIES)
+def test_a_study_s_jobs_carry_the_budget_of_its_options(command, monkeypatch, tmp_path):
+    """Every job of the study gets the budget the options give (the defaults without them)."""
+    from reelbench.benchmark.core import study
+    from reelbench.benchmark.runs.runner import SolveBudget
+
+    seen = []
+    monkeypatch.setattr(study, "run", lambda s, *a, **k: seen.append({j.budget for j in s.jobs}) or 0)
+    assert main([command, *STUDIES[command], *_out(command, tmp_path)]) == 0
+    assert main([command, *STUDIES[command], *_out(command, tmp_path), "--max-steps", "7", "--time-limit", "3"]) == 0
+    assert seen == [{SolveBudget()}, {SolveBudget(7, 3.0)}]
+
+
+def test_the_default_budget_keeps_a_job_s_key_and_another_one_changes_it():
+    """Rows made before the budgets were options keep their resume key; a row made under another
+    budget is made again when the defaults are asked for."""
+    from reelbench.benchmark.runs.runner import SolveBudget
+    from reelbench.benchmark.studies import horizon, lgvi_speed, orders, reel_reversal
+    from reelbench.benchmark.runs.sweep import MethodSettings
+
+    jobs = {orders.key: orders.Job("fixed_length", "lgvi"),
+            reel_reversal.key: reel_reversal.Job("lgvi", 0.004, "reel_reversal", 5, 0.96, "/tmp"),
+            horizon.key: horizon.Job("fixed_length", 4, MethodSettings("lgvi", {"dt": 0.005}), 10.0, ()),
+            lgvi_speed.key: lgvi_speed.StepJob("lgvi", "fixed_length", 10, 2000, 3, None)}
+    for key, job in jobs.items():
+        plain = key(job)
+        assert key(job._replace(budget=SolveBudget())) == plain
+        assert key(job._replace(budget=SolveBudget(max_steps=7))) != plain
+
+
+def test_a_ladder_run_and_a_speed_measurement_past_their_budget_say_so():
+    """The budget reaches the solves: every run of a ladder past 3 steps ends with status
+    max_steps (the ladder goes on), and so does a speed measurement (not timed)."""
+    from reelbench.benchmark.runs.runner import SolveBudget
+    from reelbench.benchmark.studies import lgvi_speed, orders
+
+    ref = orders.Reference("fixed_length", np.zeros((17, 3)), 1e-14, 1e-14)
+    row = orders.run_job(orders.Job("fixed_length", "lgvi", ref, budget=SolveBudget(max_steps=3)))
+    assert [r["status"] for r in row["ladder"]] == ["max_steps"] * (orders.HALVINGS + 1), row
+    m = lgvi_speed.measure("fixed_length", 2, 50, 1, method="lgvi", budget=SolveBudget(max_steps=3))
+    assert m["status"] == "max_steps" and np.isnan(m["us_per_step"]), m

@@ -216,7 +216,7 @@ def test_every_study_takes_the_observed_order_from_one_place(monkeypatch):
     # lgvi_speed fits how the cost grows with N (an exponent, not an order of convergence)
     assert found == [f for f in found if f.startswith("studies/lgvi_speed.py")], found
     callers = {"runs/metrics.py", "studies/orders.py", "studies/reel_reversal.py", "studies/slack_orders.py",
-               "contract/verify.py"}
+               "contract/integrator.py"}
     for name in callers:
         assert "from reelbench.benchmark.core.order import" in (root / name).read_text(encoding="utf-8"), name
 

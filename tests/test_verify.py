@@ -160,7 +160,7 @@ def test_the_fluid_effects_pass_on_an_off_centre_body(name):
 def test_an_effect_another_needs_is_removed_with_it_when_its_keys_are_checked():
     """buoyancy's keys given without it must be refused naming the key, in a scene where drag
     (which needs buoyancy) is listed too: the check removes drag and its keys as well."""
-    from reelbench.benchmark.contract.verify import _scene_keys
+    from reelbench.benchmark.contract.effect import _scene_keys
     from reelbench.models import load_scene
 
     check = _scene_keys("buoyancy", load_scene("towed"))

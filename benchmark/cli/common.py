@@ -182,6 +182,8 @@ def add_integrators(p, help: str, *, one: bool = False, default=None, registered
 
 #: What --jobs means on every command that has it.
 JOBS = "worker processes, 0 = in this process, one job after another"
+#: The default of --jobs on every study command (`engine.default_workers`), said of its unit of work.
+DEFAULT_JOBS = "one per {unit}, at most the CPU count"
 
 
 def add_jobs(p, default_help: str, *, default=None, workers_only: str | None = None) -> None:
@@ -201,13 +203,16 @@ def add_fresh(p, table: str) -> None:
                                                         f"already in {table} (default: keep the finished ones)")
 
 
-def add_budget(p, what: str) -> None:
+def add_budget(p, what: str, *, max_steps: int | None = policy.SOLVE_MAX_STEPS,
+               time_limit: float = policy.SOLVE_TIME_LIMIT) -> None:
     """--max-steps and --time-limit, the budget of each solve (`runner.SolveBudget`, defaults
-    `policy.SOLVE_MAX_STEPS` and `policy.SOLVE_TIME_LIMIT`); ``what`` says what a solve past it
-    leaves (a row, a saved trajectory)."""
-    p.add_argument("--max-steps", type=opt.positive_int, default=policy.SOLVE_MAX_STEPS,
-                   help=f"step budget of each solve: a solve past it ends with status max_steps and {what}")
-    p.add_argument("--time-limit", type=opt.positive_float, default=policy.SOLVE_TIME_LIMIT,
+    `policy.SOLVE_MAX_STEPS` and `policy.SOLVE_TIME_LIMIT` unless a command's policy says others,
+    ``max_steps`` None for no step cap); ``what`` says what a solve past it leaves (a row, a saved
+    trajectory)."""
+    cap = "" if max_steps is not None else " (default: no step cap)"
+    p.add_argument("--max-steps", type=opt.positive_int, default=max_steps,
+                   help=f"step budget of each solve{cap}: a solve past it ends with status max_steps and {what}")
+    p.add_argument("--time-limit", type=opt.positive_float, default=time_limit,
                    help=f"wall-clock budget of each solve in s (after compilation): a solve past it ends with status "
                         f"time_limit and {what}")
 

@@ -25,7 +25,7 @@ def cmd_energy(args) -> int:
         raise ValueError(f"unknown string variant(s) {', '.join(unknown)}: choose from plain, "
                          + ", ".join(v for v in horizon.VARIANTS if v))
     the_study = horizon.study(args.horizon, args.scenes, selected=args.integrators, workers=args.jobs, text=True,
-                              variants=tuple("" if v == "plain" else v for v in variants))
+                              variants=tuple("" if v == "plain" else v for v in variants), budget=common.budget(args))
     out = opt.writable_dir(args.out)
     opt.no_directory_at(out, (horizon.TABLE, "energy_horizon.md", "README.md"))
     if not the_study.jobs:
@@ -49,7 +49,8 @@ def add_energy(sub) -> None:
     e.add_argument("--horizon", type=opt.positive_float, default=horizon.HORIZON, help="length in s")
     e.add_argument("--variants", type=opt.names, help="comma-separated string laws: plain (the scene as it is), "
                                                       "slack (tension-only) (default: both)")
-    common.add_jobs(e, "one per run, at most the CPU count")
+    common.add_jobs(e, common.DEFAULT_JOBS.format(unit="run"))
+    common.add_budget(e, "its history up to there is tabled with that status")
     common.add_fresh(e, "OUT/energy_horizon.csv")
     common.add_out(e, "output directory (created if missing)", default=str(policy.RESULTS))
     e.set_defaults(func=cmd_energy)

@@ -17,7 +17,8 @@ def cmd_orders(args) -> int:
 
     for sc in args.scenes or ():
         load_scene(sc)  # an unknown scene is refused before any work
-    the_study = orders.study(args.scenes, args.integrators, workers=args.jobs)  # an adaptive-only method likewise
+    the_study = orders.study(args.scenes, args.integrators, workers=args.jobs,  # an adaptive-only method likewise
+                             budget=common.budget(args))
     out = opt.writable_dir(args.out)
     opt.no_directory_at(out, ("orders_errors.csv", "orders.csv"))
     from reelbench.benchmark.core import study
@@ -36,7 +37,8 @@ def add_orders(sub) -> None:
             "benchmark/studies/orders.py). Rows of other scenes and methods in OUT/orders.csv are kept.")
     common.add_scenes(o, f"(default: {common.csv_of(orders.SCENES)}, one per situation)")
     common.add_integrators(o, "fixed-step methods only (default: every registered one)", registered=False)
-    common.add_jobs(o, "one per method, at most the CPU count")
+    common.add_jobs(o, common.DEFAULT_JOBS.format(unit="method"))
+    common.add_budget(o, "the ladder goes on (its row says so)")
     common.add_fresh(o, "OUT/orders_errors.csv")
     common.add_out(o, "output directory (created if missing)", default=str(policy.RESULTS))
     o.set_defaults(func=cmd_orders)

@@ -29,7 +29,7 @@ def cmd_reel_reversal(args) -> int:
     out = opt.writable_dir(args.out)
     opt.no_directory_at(out, ("reel_reversal.csv", "reel_reversal.md"))
     the_study = reel_reversal.study(args.scene, args.elements, args.t_end, args.integrators, workers=args.jobs,
-                                    cache_dir=str(cache))
+                                    cache_dir=str(cache), budget=common.budget(args))
     return study.run(the_study, out, command=common.command(args), fresh=args.fresh, log=_log)
 
 
@@ -43,7 +43,8 @@ def add_reel_reversal(sub) -> None:
     common.add_t_end(rr, f"a multiple of the compared interval {reel_reversal.COMPARE_EVERY:g} s", default=0.96)
     common.add_integrators(rr, f"fixed-step methods with a step list (default: {common.csv_of(reel_reversal.DEFAULT_HS)})",
                            registered=False)
-    common.add_jobs(rr, "one per method, at most the CPU count")
+    common.add_jobs(rr, common.DEFAULT_JOBS.format(unit="method"))
+    common.add_budget(rr, "the study goes on (such a row is recomputed on resume)")
     rr.add_argument("--cache-dir", help="where the reference is cached (default: the user's cache, shared by every "
                                         "study; created if missing)")
     common.add_fresh(rr, "OUT/reel_reversal.csv")

@@ -48,7 +48,8 @@ def cmd_speed(args) -> int:
     if args.integrators:
         lgvi_speed.check_methods(args.integrators)
     request = SpeedRequest(elements=elements, scenes=scenes, methods=tuple(args.integrators) if args.integrators else None,
-                           steps=args.steps, repeats=args.repeats, dt=args.dt, rhs=rhs, autodiff_max_n=args.autodiff_max_n)
+                           steps=args.steps, repeats=args.repeats, dt=args.dt, rhs=rhs, autodiff_max_n=args.autodiff_max_n,
+                           budget=common.budget(args))
     return study.run(lgvi_speed.study(request, out), out.parent, command=common.command(args), fresh=args.fresh, log=_log)
 
 
@@ -71,6 +72,8 @@ def add_speed(sub) -> None:
     sp.add_argument("--rhs", default=common.csv_of(default.rhs), help="right-hand sides to time per call ('' = none)")
     sp.add_argument("--autodiff-max-n", type=opt.positive_int, default=default.autodiff_max_n,
                     help="largest N for the O(N^3) autodiff right-hand side")
+    common.add_budget(sp, "its measurement with it (not timed; measured again on resume): it bounds the first "
+                          "solve of each measurement (compile and warm-up), the timed ones are the same work")
     common.add_fresh(sp, "the rows table beside --out")
     common.add_out(sp, "the tables (Markdown, with the command and machine; also printed): this run's rows join "
                        "those of the rows table beside it (.csv; rows of other methods, scenes and N are kept) and "

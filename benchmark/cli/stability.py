@@ -28,7 +28,7 @@ def add_stability(sub) -> None:
     common.add_scenes(st, "the hard scenes of the map (default: all eight)")
     common.add_integrators(st, "(default: the project's own methods, implicit baselines last; a plugin runs when "
                                "named)", registered=False)  # the study checks its own names
-    common.add_jobs(st, "", default=2)
+    common.add_jobs(st, common.DEFAULT_JOBS.format(unit="scene and method"))
     common.add_budget(st, "the map goes on (such a row is recomputed on resume)")
     common.add_fresh(st, "OUT/stability.csv")
     common.add_out(st, "output directory (created if missing)", default=str(policy.STABILITY_DIR))

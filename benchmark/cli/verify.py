@@ -10,7 +10,7 @@ from reelbench.benchmark.core.options import UsageError
 
 
 def cmd_verify(args) -> int:
-    """The plugin contract (benchmark/contract/verify.py): exit 0 when every check holds, 1 otherwise."""
+    """The plugin contract (`benchmark.contract.verify`): exit 0 when every check holds, 1 otherwise."""
     from reelbench.benchmark.contract import verify
 
     ov = common.overrides(args.set)
@@ -27,11 +27,11 @@ def cmd_verify(args) -> int:
 def add_verify(sub) -> None:
     v = sub("verify", "check an integrator or an effect (a plugin's, or one of the project's) against the plugin "
                       "contract: one line per check with its figure; exit 1 on a failure",
-            "Check an integrator or an effect against the plugin contract (benchmark/contract/verify.py): for an "
-            "integrator its declared order on a fixed-length and a reeling scene, its statuses and guards, its "
-            "capabilities, determinism and its flop count; for an effect its gradients against autodiff, its power, "
-            "the energy balance with a reference method and the validation of its scene keys. Small scenes: seconds "
-            "to tens of seconds, mostly compilation.")
+            "Check an integrator or an effect against the plugin contract (benchmark/contract/integrator.py and "
+            "effect.py): for an integrator its declared order on a fixed-length and a reeling scene, its statuses and "
+            "guards, its capabilities, determinism and its flop count; for an effect its gradients against autodiff, "
+            "its power, the energy balance with a reference method and the validation of its scene keys. Small "
+            "scenes: seconds to tens of seconds, mostly compilation.")
     v.add_argument("names", nargs="+", metavar="NAME", help="registered integrators or effects (see `list`)")
     common.add_scenes(v, "for an effect: a scene that lists it (default: a small scene with the effect and what it "
                          "needs; required when its keys have no default)", one=True)

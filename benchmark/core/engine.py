@@ -100,6 +100,12 @@ class _Pool(cf.ProcessPoolExecutor):
                 p.join(1.0)
 
 
+def default_workers(units: int) -> int:
+    """Every study's --jobs default: one worker per unit of work that compiles once (a method, a
+    run, a scene and method), at most the CPU count, and at least one."""
+    return max(1, min(units, os.cpu_count() or 1))
+
+
 def worker_pool(workers: int) -> cf.ProcessPoolExecutor:
     """A pool of spawned workers with one XLA thread each (`worker_env`), which ignore Ctrl-C,
     exit when the parent dies, and are terminated when the ``with`` block is left by an exception."""

@@ -1,7 +1,7 @@
 """The long-horizon energy study (`python -m benchmark energy`): energy error vs time, with the
 physics that drives it, one engine job per run of `PLAN`. Its table is energy_horizon.csv (one
 history per run; a rerun replaces its own runs' histories and keeps the others), analysed by
-`benchmark.studies.properties.energy_table`.
+`benchmark.studies.energy_drift.energy_table`.
 
 Each saved time records, beside the signed energy error (E − E0)/max T, what the state says
 about it (`axial_measures`, relative to max T): the energy in the string's axial vibration, P =
@@ -9,7 +9,7 @@ about it (`axial_measures`, relative to max T): the energy in the string's axial
 (U''(v, v) = P + G), the fourth-order companion P4 = Σ_a EA l (d²ε_a/dt²)² (1/s⁴), the body's
 spin S = |Ω|² T_rot and the least element tension. A symplectic method conserves a modified
 energy Ẽ = E + h^p H_p + …; averaged over the string's fast modes ⟨H_p⟩ = c_p ⟨P_p⟩
-(`benchmark.studies.properties`), so its energy error carries an offset −c_p h^p ⟨P_p⟩ that grows
+(`benchmark.studies.energy_drift`), so its energy error carries an offset −c_p h^p ⟨P_p⟩ that grows
 whenever energy flows into those modes, without any drift of Ẽ. With `slack` only taut elements
 count (a slack one stores no energy and has no stiffness).
 
@@ -37,6 +37,7 @@ from reelbench.benchmark.core import store
 from reelbench.benchmark.core.engine import log_stderr
 from reelbench.benchmark.core.policy import SOLVE_MAX_STEPS
 from reelbench.benchmark.runs.sweep import MethodSettings
+from reelbench.benchmark.studies import budget as _budget
 
 DEFAULT_SCENE = "fixed_length"
 SAVE_EVERY = 0.1
@@ -90,8 +91,9 @@ PLAN = (
 )
 #: The second setting of a fixed-step method: its step / FINER (an adaptive one: its tolerances / TIGHTER).
 FINER, TIGHTER = 2.0, 100.0
-#: The step budget of each run: every solve's (`benchmark.core.policy.SOLVE_MAX_STEPS`), not a
-#: library's default (diffrax's 100,000 stopped Tsit5 at rtol 1e-8 short of 100 s at N = 10).
+#: The step budget of each run by default: every solve's (`benchmark.core.policy.SOLVE_MAX_STEPS`),
+#: not a library's default (diffrax's 100,000 stopped Tsit5 at rtol 1e-8 short of 100 s at N = 10);
+#: --max-steps and --time-limit give a job another budget (`Job.budget`).
 MAX_STEPS = SOLVE_MAX_STEPS
 #: Identity of one run in energy_horizon.csv (a rerun replaces the rows of the same run).
 RUN_KEY = ("scene", "elements", "integrator", "setting")
@@ -173,6 +175,7 @@ class Job(NamedTuple):
     t_end: float
     overrides: tuple  # ((key, value), ...) of the scene (the variant's effects included)
     tabled: str = ""  # the scene's name in the table; "": ``scene``
+    budget: object = None  # of the solve (`runner.SolveBudget`); None: the defaults (`MAX_STEPS`)
 
     @property
     def tabled_as(self) -> str:
@@ -246,8 +249,8 @@ def run_job(job: Job) -> dict:
 
     started = time.perf_counter()
     scene = load_scene(job.scene, **dict(job.overrides), elements=job.elements)
-    traj = get_integrator(job.method.name).solve(scene, t_end=job.t_end, save_every=SAVE_EVERY, max_steps=MAX_STEPS,
-                                                 **job.method.settings)
+    traj = get_integrator(job.method.name).solve(scene, t_end=job.t_end, save_every=SAVE_EVERY,
+                                                 **_budget.solve_kwargs(job.budget), **job.method.settings)
     name = label(job.scene, job.elements, job.method) + ("" if traj.ok else f" [{traj.status}]")
     diag = evaluate(scene, traj)
     tmax = float(diag["kinetic"].max()) if len(diag) else np.nan
@@ -328,10 +331,12 @@ def jobs_for(t_end: float, scenes=None, overrides: tuple = (), selected=None, va
 
 
 def key(job: Job) -> str:
-    """What determines a run's history: the run, its horizon and overrides, and the code."""
+    """What determines a run's history: the run, its horizon, overrides and budget
+    (`budget.key_settings`: nothing more at the defaults), and the code."""
+    other = _budget.key_settings(job.budget)
     return store.key_of(job.tabled_as, job.elements, job.method.name, job.method.settings, float(job.t_end),
                         list(job.overrides), store.code_version(), MAX_STEPS,
-                        store.source_hash((), ("benchmark/studies/horizon.py",)))
+                        store.source_hash((), ("benchmark/studies/horizon.py",)), *([other] if other else []))
 
 
 def expand(row: dict) -> list[dict]:
@@ -409,21 +414,20 @@ def measure_slack_orders(out: Path, log: Callable[[str], None]) -> None:
 
 
 def study(t_end: float, scenes=None, *, overrides: tuple = (), selected=None, variants=("",),
-          workers: int | None = None, text: bool = False):
+          workers: int | None = None, text: bool = False, budget=None):
     """The energy study as a study of `benchmark.core.study.run`: the runs of `PLAN` among the
     ``selected`` methods (None: all) on ``scenes`` (default `DEFAULT_SCENE`) and their string
     ``variants`` ("" the scene as it is, "slack" the tension-only string; None: all of
     `VARIANTS`), to ``t_end``, one job per run on ``workers`` (0: this process; None: one per
-    run, at most the CPU count). Its report draws energy_horizon_SCENE.png of each of its scenes
-    from the whole table; ``text`` (the `energy` command): also the energy section
+    run, `engine.default_workers`), each solve within ``budget`` (None: the defaults). Its report
+    draws energy_horizon_SCENE.png of each of its scenes from the whole table; ``text`` (the `energy` command): also the energy section
     (`benchmark.studies.horizon_report.write`), after the observed orders with and without `slack`
     (`measure_slack_orders`) when the slack variant and every method run."""
-    import os
-
+    from reelbench.benchmark.core.engine import default_workers
     from reelbench.benchmark.core.study import Study
     from reelbench.benchmark.studies import horizon_report
 
-    jobs = jobs_for(t_end, scenes, overrides, selected, variants)
+    jobs = [j._replace(budget=budget) for j in jobs_for(t_end, scenes, overrides, selected, variants)]
     drawn = tuple(dict.fromkeys(j.tabled_as for j in jobs))
     return Study(name="horizon", table=TABLE, identity=RUN_KEY, jobs=jobs, run_job=run_job,
                  identity_of=Job.identity, frame=to_frame, key=key, expand=expand, read_earlier=read_earlier,
@@ -432,4 +436,4 @@ def study(t_end: float, scenes=None, *, overrides: tuple = (), selected=None, va
                  report=lambda out, rows, provenance: horizon_report.write(out, rows, drawn, text=text),
                  after_jobs=measure_slack_orders if text and with_slack_orders(selected, variants) else None,
                  text_columns=("scene", "integrator", "setting"),
-                 workers=workers if workers is not None else min(len(jobs), os.cpu_count() or 1))
+                 workers=workers if workers is not None else default_workers(len(jobs)))

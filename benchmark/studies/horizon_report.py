@@ -15,7 +15,7 @@ from reelbench.benchmark.figures import styles
 from reelbench.benchmark.studies.horizon import REFERENCE
 from reelbench.benchmark.figures.plots import plt, save_figure, style_axes
 from reelbench.benchmark.core.policy import setting_value
-from reelbench.benchmark.studies.properties import WINDOW_S, correction_of, is_symplectic, window_means
+from reelbench.benchmark.studies.energy_drift import WINDOW_S, correction_of, is_symplectic, window_means
 from reelbench.models.io import inside
 
 
@@ -62,9 +62,9 @@ def method_of(label: str) -> str:
 
 def energy_horizon(table: pd.DataFrame, scene: str, out_dir: Path) -> Path:
     """The energy study of one scene: one column per size N of the string, four rows against t,
-    each a mean over windows of `benchmark.studies.properties.WINDOW_S` s: (1) the change of E − E0 since
-    the first window; (2) what is left of it after the derived modified-energy offset
-    −c_p h^p⟨P_p⟩ (`benchmark.studies.properties`: P_2 = U''(v, v) of the string, P_4 = P4;
+    each a mean over windows of `benchmark.studies.energy_drift.WINDOW_S` s: (1) the change of E − E0
+    since the first window; (2) what is left of it after the derived modified-energy offset
+    −c_p h^p⟨P_p⟩ (`benchmark.studies.energy_drift`: P_2 = U''(v, v) of the string, P_4 = P4;
     `correction_of`; unchanged for a method without one);
     (3) the axial measure P/max T; (4) the least element tension (window minimum). One colour per
     method (`benchmark.figures.styles`), solid: its setting in the plan, dotted: the finer one; the accurate

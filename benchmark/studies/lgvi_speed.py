@@ -27,6 +27,11 @@ Per method and scene: the ratio of time per step at the largest N ≤ 160 to N =
 N would be 16) and the log-log slope over all N. Every measurement is one engine job, run in
 this process one after another (they are timings: they never share the cores). Pin to one
 core for the one-core figure: ``taskset -c 0 python -m benchmark speed``.
+
+The first solve of each step measurement (compile and warm-up) is bounded by the budget
+(--max-steps, --time-limit: `benchmark.studies.budget`). A first solve past it ends the
+measurement with its status (max_steps / time_limit: not timed, not retried at a smaller step);
+the timed solves are the same work without a budget.
 """
 
 from __future__ import annotations
@@ -40,6 +45,7 @@ from typing import NamedTuple
 import numpy as np
 
 from reelbench.benchmark.core.report import Provenance
+from reelbench.benchmark.studies import budget as _budget
 
 #: step at N = 10 per scene, scaled by 10/N: the LGVI is explicit in the elastic forces, so it
 #: needs h ω_max < 2 with ω_max ∝ N (fixed_length N = 10: h < ~9 ms; deployment: h < ~2.7 ms).
@@ -80,12 +86,16 @@ class SpeedRequest:
     dt: float | None = None  # None: the scene's stable step at N = 10, times 10/N
     rhs: tuple = ("closed_form", "autodiff")
     autodiff_max_n: int = 160
+    budget: object = None  # of the first solve of each step measurement (`runner.SolveBudget`); None: the defaults
 
 
-def measure(scene_name: str, n: int, steps: int, repeats: int, dt: float | None = None, method: str = "lgvi") -> dict:
-    """Time per step of ``method`` at a constant step on ``scene_name`` with N = n."""
+def measure(scene_name: str, n: int, steps: int, repeats: int, dt: float | None = None, method: str = "lgvi",
+            budget=None) -> dict:
+    """Time per step of ``method`` at a constant step on ``scene_name`` with N = n; its first
+    solve within ``budget`` (None: the defaults)."""
     from reelbench.benchmark.work.flops import run_flops
     from reelbench.integrators import get_integrator  # JAX: only once the options are known good
+    from reelbench.integrators.base import BUDGET_STATUSES
     from reelbench.models import build_model, load_scene
 
     scene = load_scene(scene_name, elements=n)
@@ -93,8 +103,8 @@ def measure(scene_name: str, n: int, steps: int, repeats: int, dt: float | None 
     integ = get_integrator(method)
     for _ in range(MAX_HALVINGS + 1):
         kw = dict(t_end=steps * h, dt=h, save_every=steps * h / 10)
-        first = integ.solve(scene, **kw)  # compiles (and warms up)
-        if first.ok:
+        first = integ.solve(scene, **kw, **_budget.solve_kwargs(budget))  # compiles (and warms up)
+        if first.ok or first.status in BUDGET_STATUSES:  # out of budget: a smaller step would cost more
             break
         h /= 2
     times = []
@@ -147,6 +157,7 @@ class StepJob(NamedTuple):
     steps: int
     repeats: int
     dt: float | None
+    budget: object = None  # of the first solve (`runner.SolveBudget`); None: the defaults
 
 
 class RhsJob(NamedTuple):
@@ -158,7 +169,7 @@ class RhsJob(NamedTuple):
 
 def jobs_for(request: SpeedRequest) -> list:
     methods = request.methods or fixed_step_methods()
-    steps = [StepJob(m, sc, n, request.steps, request.repeats, request.dt)
+    steps = [StepJob(m, sc, n, request.steps, request.repeats, request.dt, request.budget)
              for m in methods for sc in request.scenes for n in request.elements]
     rhs = [RhsJob(sc, n, r, f"O(N³), N > --autodiff-max-n {request.autodiff_max_n}"
                   if r == "autodiff" and n > request.autodiff_max_n else "")
@@ -176,7 +187,8 @@ def run_job(job) -> dict:
     from reelbench.integrators.base import Status
 
     if isinstance(job, StepJob):
-        return {"kind": "step", "rhs": "", **measure(job.scene, job.N, job.steps, job.repeats, job.dt, job.method)}
+        return {"kind": "step", "rhs": "", **measure(job.scene, job.N, job.steps, job.repeats, job.dt, job.method,
+                                                     job.budget)}
     if job.skip:
         return {"kind": "rhs", "method": "", "scene": job.scene, "N": job.N, "rhs": job.rhs, "skipped": job.skip}
     return {"kind": "rhs", "method": "", "skipped": "", **measure_rhs(job.scene, job.N, job.rhs), "status": Status.OK.value}
@@ -190,16 +202,19 @@ def identity_of(job) -> tuple:
 
 
 def key(job) -> str:
-    """What determines a measurement: the job's settings, the code and the machine (its name,
-    architecture and the cores this process may use)."""
+    """What determines a measurement: the job's settings (its budget: `budget.key_settings`), the
+    code and the machine (its name, architecture and the cores this process may use)."""
     import os
     import platform
 
     from reelbench.benchmark.core.study import job_key
 
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    return job_key({"job": [type(job).__name__, *job], "host": platform.node(), "machine": platform.machine(),
-                    "cores": cores}, "benchmark/studies/lgvi_speed.py", "benchmark/work/flops.py")
+    budget = job.budget if isinstance(job, StepJob) else None
+    settings = job[:-1] if isinstance(job, StepJob) else job
+    return job_key({"job": [type(job).__name__, *settings], "host": platform.node(), "machine": platform.machine(),
+                    "cores": cores, **_budget.key_settings(budget)}, "benchmark/studies/lgvi_speed.py",
+                   "benchmark/work/flops.py")
 
 
 def rows_file(out) -> Path:

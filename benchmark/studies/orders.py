@@ -1,6 +1,6 @@
 """The observed orders of convergence, measured where they are defined: `orders.csv`.
 
-    python -m benchmark orders [--scenes fixed_length,...] [--integrators lgvi,...] [--out results]
+    python -m benchmark orders [--scenes fixed_length,...] [--integrators lgvi,...] [--max-steps N] [--out results]
 
 Each fixed-step method (`Capability.FIXED_STEP`: the LGVI family, RATTLE, the Lie group
 Runge–Kutta methods and the compiled baselines at constant step) runs a short horizon
@@ -28,7 +28,10 @@ reference once). Its runs go to ``orders_errors.csv`` as the job finishes, in pl
 ladder's earlier runs (the other ladders are kept); ``orders.csv`` (`summarise`) and the echoed
 section (`section`) are written from the whole table, also when stopped. A rerun computes only
 the ladders the table lacks from the same code and settings (`key`); ``--fresh`` all of them.
-A ladder whose worker died is one row with its status ("crashed") and reason.
+A ladder whose worker died is one row with its status ("crashed") and reason. Each run of a
+ladder is bounded by the job's budget (`benchmark.studies.budget`: --max-steps, --time-limit); a
+run past it is a ladder row with status max_steps / time_limit, and the ladder's key holds a
+budget other than the defaults.
 
 Methods that only adapt their step (scipy's RK45, DOP853, Radau; Kvaerno5) have no order in h
 and no constant-step mode: they are not in the table (their declared order is their tableau's).
@@ -43,6 +46,7 @@ import numpy as np
 
 from reelbench.benchmark.core.order import successive_orders
 from reelbench.benchmark.core.policy import ORDERS_CHECK_METHOD, ORDERS_REFERENCE_DT, ORDERS_REFERENCE_METHOD, Setting
+from reelbench.benchmark.studies import budget as _budget
 
 #: One scene per situation (`integrators.base.SITUATIONS`): fixed length, and the reel retrieving.
 #: Deployment is left out by default: it starts with 3 m deployed, two 1.5 m elements with an
@@ -143,6 +147,7 @@ class Job(NamedTuple):
     reference: Reference | None = None  # None: computed by the job (once per process)
     elements: int = ELEMENTS
     t_end: float = T_END
+    budget: object = None  # of each run of the ladder (`runner.SolveBudget`); None: the defaults
 
 
 #: The columns of a ladder row (orders_errors.csv), in order.
@@ -161,7 +166,7 @@ def run_job(job: Job) -> dict:
     declared = integ.order_for(scene)
     ladder = []
     for h in steps(declared or 1):
-        tr = integ.solve(scene, t_end=job.t_end, dt=h, save_every=SAVE_EVERY)
+        tr = integ.solve(scene, t_end=job.t_end, dt=h, save_every=SAVE_EVERY, **_budget.solve_kwargs(job.budget))
         same = tr.ok and np.shape(tr.x) == np.shape(ref.x)
         ladder.append({"scene": job.scene, "integrator": job.integrator, "situation": situation(scene),
                        "declared_order": declared, "elements": job.elements, "t_end": job.t_end,
@@ -194,25 +199,27 @@ def to_frame(rows: list[dict]) -> pd.DataFrame:
 
 
 def key(job: Job) -> str:
-    """What determines a ladder: the scene's physics, the method, N and the horizon, the code."""
+    """What determines a ladder: the scene's physics, the method, N and the horizon, the budget
+    (`budget.key_settings`), the code."""
     from reelbench.benchmark.core.study import job_key
 
     return job_key({"scene": load(job.scene, job.elements).key(), "integrator": job.integrator,
-                    "elements": job.elements, "t_end": job.t_end}, "benchmark/studies/orders.py")
+                    "elements": job.elements, "t_end": job.t_end, **_budget.key_settings(job.budget)},
+                   "benchmark/studies/orders.py")
 
 
-def study(scenes=None, integrators=None, *, workers: int | None = None, echo=print):
+def study(scenes=None, integrators=None, *, workers: int | None = None, budget=None, echo=print):
     """The observed orders as a study of `benchmark.core.study.run` (see the module's docstring):
     orders_errors.csv, merged ladder by ladder, then orders.csv and the echoed section. An
     adaptive-only method is refused here, before any work. ``workers``: None, one per method
-    (at most the CPU count)."""
-    import os
+    (`engine.default_workers`); ``budget``: of each run (None: the defaults)."""
     from pathlib import Path
 
+    from reelbench.benchmark.core.engine import default_workers
     from reelbench.benchmark.core.study import Study
 
     methods = fixed_step_methods(integrators)
-    jobs = [Job(s, m) for s in (scenes or SCENES) for m in methods]
+    jobs = [Job(s, m, budget=budget) for s in (scenes or SCENES) for m in methods]
 
     def report(out, rows: list[dict], provenance) -> str:
         from reelbench.benchmark.core.store import write_table
@@ -226,7 +233,7 @@ def study(scenes=None, integrators=None, *, workers: int | None = None, echo=pri
                  identity_of=lambda j: (j.scene, j.integrator), frame=to_frame, report=report, describe=describe,
                  key=key, crash_row=crash_row, group=lambda j: j.integrator, expand=ladder_rows,
                  text_columns=("scene", "integrator", "situation", "setting", "status", "reason"),
-                 workers=workers if workers is not None else min(len(methods), os.cpu_count() or 1))
+                 workers=workers if workers is not None else default_workers(len(methods)))
 
 
 def describe(row: dict) -> str:

@@ -1,6 +1,6 @@
 """Orders of the fixed-step methods across a reel reversal (s_p-dot changes sign).
 
-    python -m benchmark reel-reversal [--elements 5] [--t-end 0.96] [--integrators lgvi,lgvi_sym,...] [--out DIR]
+    python -m benchmark reel-reversal [--elements 5] [--t-end 0.96] [--integrators lgvi,lgvi_sym,...] [--max-steps N] [--out DIR]
 
 Runs the hard scene ``reel_reversal`` (the Carnot force's ṡ|ṡ| is only C¹ where ṡ_p = 0) with
 each method at halving step sizes and writes a markdown table of the errors against the
@@ -15,7 +15,9 @@ cache. Into ``--out`` (default `OUT_DIR`): ``reel_reversal.csv``, a row per case
 horizon), method and step, saved as each job finishes (rows of other cases, methods and steps
 are kept), and ``reel_reversal.md``, the tables of the whole table under the report header,
 also printed. A rerun computes only the rows the table lacks from the same code and settings
-(`key`); ``--fresh`` all of them.
+(`key`); ``--fresh`` all of them. Each run is bounded by the job's budget
+(`benchmark.studies.budget`: --max-steps, --time-limit): a run past it is a row with status
+max_steps / time_limit, recomputed on resume.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ import numpy as np
 
 from reelbench.benchmark.core.order import last_order
 from reelbench.benchmark.core.policy import RESULTS, Setting
+from reelbench.benchmark.studies import budget as _budget
 
 #: Where the study writes by default.
 OUT_DIR = RESULTS / "reel_reversal"
@@ -100,6 +103,7 @@ class Job(NamedTuple):
     elements: int
     t_end: float
     cache_dir: str
+    budget: object = None  # of the run (`runner.SolveBudget`); None: the defaults
 
 
 def case(scene, t_end: float) -> str:
@@ -115,7 +119,8 @@ def run_job(job: Job) -> dict:
 
     scene = load_scene(job.scene_name, elements=job.elements)
     ref = reference(scene, job.t_end, job.cache_dir)
-    tr = get_integrator(job.method).solve(scene, t_end=job.t_end, dt=job.h, save_every=COMPARE_EVERY)
+    tr = get_integrator(job.method).solve(scene, t_end=job.t_end, dt=job.h, save_every=COMPARE_EVERY,
+                                          **_budget.solve_kwargs(job.budget))
     row = {**_base_row(job, scene), "status": tr.status, "reason": tr.reason,
            "reversals": " ".join(f"{t:.6g}" for t in ref.flips)}
     if tr.ok:
@@ -214,21 +219,24 @@ def warm_reference(scene_name: str, elements: int, t_end: float, cache_dir: str)
 
 
 def key(job: Job) -> str:
-    """What determines a row: the scene's physics, N, horizon, method and step, the code."""
+    """What determines a row: the scene's physics, N, horizon, method and step, the budget
+    (`budget.key_settings`), the code."""
     from reelbench.benchmark.core.study import job_key
     from reelbench.models import load_scene
 
     return job_key({"scene": load_scene(job.scene_name, elements=job.elements).key(), "elements": job.elements,
-                    "t_end": job.t_end, "method": job.method, "h": job.h}, "benchmark/studies/reel_reversal.py")
+                    "t_end": job.t_end, "method": job.method, "h": job.h, **_budget.key_settings(job.budget)},
+                   "benchmark/studies/reel_reversal.py")
 
 
 def study(scene_name: str = "reel_reversal", elements: int = 5, t_end: float = 0.96, methods=None, *,
-          workers: int | None = None, cache_dir: str | None = None, echo=print):
+          workers: int | None = None, cache_dir: str | None = None, budget=None, echo=print):
     """The reel-reversal orders as a study of `benchmark.core.study.run` (see the module's
-    docstring). ``workers``: None, one per method (at most the CPU count)."""
+    docstring). ``workers``: None, one per method (`engine.default_workers`); ``budget``: of each
+    run (None: the defaults)."""
     import functools
-    import os
 
+    from reelbench.benchmark.core.engine import default_workers
     from reelbench.benchmark.core.reference import CACHE_DIR
     from reelbench.benchmark.core.study import Study
     from reelbench.models import load_scene
@@ -237,7 +245,7 @@ def study(scene_name: str = "reel_reversal", elements: int = 5, t_end: float = 0
     scene = load_scene(scene_name, elements=elements)
     methods = list(methods or DEFAULT_HS)
     check_methods(methods)
-    jobs = [Job(m, h, scene_name, elements, t_end, cache_dir) for m in methods for h in DEFAULT_HS[m]]
+    jobs = [Job(m, h, scene_name, elements, t_end, cache_dir, budget) for m in methods for h in DEFAULT_HS[m]]
     ids = {j: (case(scene, t_end), j.method, Setting.fixed(j.h).label()) for j in jobs}
 
     def report(out, rows: list[dict], provenance) -> str:
@@ -252,6 +260,6 @@ def study(scene_name: str = "reel_reversal", elements: int = 5, t_end: float = 0
     return Study(name="reel-reversal", table="reel_reversal.csv", identity=IDENTITY, jobs=jobs, run_job=run_job,
                  identity_of=ids.__getitem__, frame=to_frame, report=report, describe=describe, key=key,
                  crash_row=crash_row, group=lambda j: j.method, text_columns=TEXT_COLUMNS,
-                 workers=workers if workers is not None else min(len(methods), os.cpu_count() or 1),
+                 workers=workers if workers is not None else default_workers(len(methods)),
                  setup=(functools.partial(warm_reference, scene_name, elements, t_end, cache_dir),),
                  header="reel_reversal.md")

@@ -36,6 +36,7 @@ from reelbench.benchmark.core import engine
 from reelbench.benchmark.runs.metrics import CONSERVATION
 from reelbench.benchmark.core.store import frame
 from reelbench.benchmark.runs.sweep import Task
+from reelbench.benchmark.studies import budget as _budget
 from reelbench.integrators.base import CRASHED, ERROR, FINISHED_STATUSES, Status
 
 #: Largest step of the fixed-step ladder (s) and the number of halvings tried below it.
@@ -221,12 +222,6 @@ def is_bounded(case: Case, r: dict) -> bool:
     return r["status"] in case.bounded and not (r.get("t_reached", np.inf) < case.earliest_end)
 
 
-def _budget(job: Job):
-    from reelbench.benchmark.runs import runner
-
-    return job.budget or runner.SolveBudget()
-
-
 def _climb(case: Case, integrator: str, budget) -> tuple[dict, dict]:
     """Walk the ladder down to the first bounded rung: (the row's ladder columns, the run shown:
     that rung, or the last one tried when none stays bounded)."""
@@ -257,13 +252,13 @@ def run_job(job: Job) -> dict:
         return row
     try:
         if kind == "fixed":
-            cols, r = _climb(case, integrator, _budget(job))
+            cols, r = _climb(case, integrator, _budget.of(job.budget))
             row.update(cols)
         else:
             from reelbench.benchmark.runs import runner  # JAX: only when a job runs
 
             r = runner.run_task(adaptive_task(case, integrator), repeats=0, reference=False, finished=case.bounded,
-                                budget=_budget(job))
+                                budget=_budget.of(job.budget))
         row.update({k: r.get(k, np.nan) for k in (
             "setting", "status", "reason", "steps", "rejected_steps", "min_step", "median_step", "newton_iterations",
             "run_time", "compile_time", *CONSERVATION, "t_reached")})
@@ -321,11 +316,14 @@ def crash_row(job: Job, exc: BaseException) -> dict:
             "bounded": False}
 
 
-def execute(jobs: list[Job], *, workers: int = 2, on_rows: Callable | None = None,
+def execute(jobs: list[Job], *, workers: int | None = None, on_rows: Callable | None = None,
             log: Callable[[str], None] = engine.log_stderr) -> pd.DataFrame:
     """Run the jobs on the engine (``workers`` = 0: in this process); rows in job order. The
     jobs of one (scene, integrator) run in one worker, so it compiles that method on that scene
-    once (Tsit5's ladder and adaptive run share it); the longest groups start first (`_cost_hint`)."""
+    once (Tsit5's ladder and adaptive run share it); the longest groups start first (`_cost_hint`).
+    ``workers`` None: one per group (`engine.default_workers`)."""
+    if workers is None:
+        workers = engine.default_workers(len({_group(j) for j in jobs}))
     rows = engine.run_jobs(run_job, jobs, workers=workers, crash_row=lambda i, exc: crash_row(jobs[i], exc),
                            group=lambda i: _group(jobs[i]), cost=lambda i: _cost_hint(jobs[i]),
                            describe=describe, on_row=on_rows, log=log)
@@ -336,13 +334,16 @@ def execute(jobs: list[Job], *, workers: int = 2, on_rows: Callable | None = Non
 IDENTITY = ("scene", "integrator", "kind")
 
 
-def study(scenes=None, integrators=None, *, workers: int = 2, budget=None):
+def study(scenes=None, integrators=None, *, workers: int | None = None, budget=None):
     """The stability map as a study of `benchmark.core.study.run`: stability.csv (merged with the
     map already in the output, written after every job), stability.md, stability.png and README.md
-    from the whole map. Unknown names are refused here, before any work."""
+    from the whole map. Unknown names are refused here, before any work. ``workers``: None, one
+    per scene and method (`engine.default_workers`); ``budget``: of each solve (None: the defaults)."""
     from reelbench.benchmark.core.study import Study
 
     jobs = [j._replace(budget=budget) for j in jobs_for(scenes, integrators)]
+    if workers is None:
+        workers = engine.default_workers(len({_group(j) for j in jobs}))
     return Study(name="stability map", table="stability.csv", identity=IDENTITY, jobs=jobs, run_job=run_job,
                  identity_of=lambda j: (j.case.scene, j.integrator, j.kind), frame=to_frame, report=write_outputs,
                  describe=describe, crash_row=crash_row, group=_group, cost=_cost_hint, workers=workers)
