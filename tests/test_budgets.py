@@ -40,11 +40,12 @@ def test_simulate_runs_within_default_budgets_that_options_raise(monkeypatch, tm
 
 
 def test_a_run_out_of_its_time_budget_ends_with_its_trajectory_saved(tmp_path, capsys):
+    """3 s: on a loaded machine the first chunk of steps alone can take over 1 s."""
     out = tmp_path / "t.npz"
     rc = main(["simulate", "fixed_length", "--set", "elements=1", "--dt", "0.001", "--t-end", "20000",
-               "--time-limit", "1", "--save-every", "0.1", "--out", str(out)])
+               "--time-limit", "3", "--save-every", "0.1", "--out", str(out)])
     err = _err(capsys)
-    assert rc == 1 and "status time_limit stopped by time_limit = 1 s" in err, err
+    assert rc == 1 and "status time_limit stopped by time_limit = 3 s" in err, err
     from reelbench.benchmark.core.store import read_trajectory
 
     traj = read_trajectory(out)
@@ -212,3 +213,22 @@ def test_a_ladder_run_and_a_speed_measurement_past_their_budget_say_so():
     assert [r["status"] for r in row["ladder"]] == ["max_steps"] * (orders.HALVINGS + 1), row
     m = lgvi_speed.measure("fixed_length", 2, 50, 1, method="lgvi", budget=SolveBudget(max_steps=3))
     assert m["status"] == "max_steps" and np.isnan(m["us_per_step"]), m
+
+
+def test_the_answer_s_searches_take_their_budget_from_the_command_line(monkeypatch, tmp_path, capsys):
+    """`answer --max-steps/--time-limit` reach every search job (the defaults: no step cap and the
+    search's own time limit), and out-of-range values are refused before any work."""
+    from reelbench.benchmark.answer import answer
+    from reelbench.benchmark.core.policy import SEARCH_TIME_LIMIT
+
+    seen = []
+    monkeypatch.setattr(answer, "run_answer", lambda request, log=None: seen.append(request) or 0)
+    args = ["answer", "--scenes", "fixed_length", "--integrators", "lgvi", "--out", str(tmp_path / "o")]
+    assert main(args) == 0 and main([*args, "--max-steps", "7", "--time-limit", "3"]) == 0
+    budgets = [{(j.max_steps, j.time_limit) for j in answer.search_study(r, "/tmp", answer._Merged(answer.SEARCH_COLUMNS)).jobs}
+               for r in seen]
+    assert budgets == [{(None, SEARCH_TIME_LIMIT)}, {(7, 3.0)}]
+    for bad, allowed in ((["--max-steps", "0"], "is invalid (allowed: an integer >= 1)"),
+                         (["--time-limit", "nan"], "is not a finite number")):
+        assert main([*args, *bad]) == 2
+        assert f"error: argument {bad[0]}: '{bad[1]}' {allowed}" in _err(capsys)

@@ -30,7 +30,7 @@ from typing import Callable
 from reelbench.benchmark.answer import jobs as _jobs
 from reelbench.benchmark.answer import search as _search
 from reelbench.benchmark.core import engine
-from reelbench.benchmark.core.policy import PAIRED_BUDGET, RESULTS
+from reelbench.benchmark.core.policy import PAIRED_BUDGET, RESULTS, SEARCH_TIME_LIMIT
 from reelbench.benchmark.core.store import frame
 from reelbench.benchmark.core.study import KEY_COLUMN, Study, job_key
 from reelbench.benchmark.runs.sweep import DEFAULT_EXECUTOR
@@ -100,6 +100,8 @@ class AnswerRequest:
     targets: tuple = tuple((m, t) for m, t, _ in TARGETS)
     t_end: float | None = None
     max_runs: int = _search.MAX_RUNS
+    max_steps: int | None = None  # each search solve's budget (None: no step cap)
+    time_limit: float = SEARCH_TIME_LIMIT
     timing_budget: float = PAIRED_BUDGET
     jobs: int | None = None
     fresh: bool = False
@@ -156,10 +158,9 @@ def _reusable_search(row: dict) -> bool:
 def search_study(request: AnswerRequest, cache_dir: str, merged: _Merged) -> Study:
     """The searches of ``request`` as a study (its jobs made, its names checked); ``merged`` gets
     the whole merged search table."""
-    import os
 
     jobs = _jobs.search_jobs(request.scenes, request.integrators, list(request.targets), request.elements,
-                             request.t_end, request.max_runs)
+                             request.t_end, request.max_runs, request.max_steps, request.time_limit)
     costs = dict(zip(jobs, _jobs.search_costs(jobs)))
     return Study(name="answer search", table=SEARCH_TABLE, identity=SEARCH_IDENTITY, jobs=jobs,
                  run_job=functools.partial(_jobs.run_search, cache_dir=cache_dir),
@@ -168,7 +169,7 @@ def search_study(request: AnswerRequest, cache_dir: str, merged: _Merged) -> Stu
                  key=lambda j: job_key({"search": asdict(j)}, *SEARCH_CODE), crash_row=_jobs.search_crash_row,
                  group=_jobs.search_group, cost=costs.__getitem__, reusable=_reusable_search, digest=NOT_DIGESTED,
                  setup=lambda todo: _jobs.references(todo, cache_dir), unit="searches",
-                 workers=0 if request.executor == "serial" else (request.jobs or min(len(jobs), os.cpu_count() or 1)),
+                 workers=0 if request.executor == "serial" else (request.jobs or engine.default_workers(len(jobs))),
                  scheduler=request.scheduler if request.executor == "dask" else None)
 
 

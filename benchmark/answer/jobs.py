@@ -52,6 +52,8 @@ class SearchJob:
     target: float
     t_end: float | None = None
     max_runs: int = _search.MAX_RUNS
+    max_steps: int | None = None  # each solve's budget (`answer --max-steps`, `--time-limit`): a
+    time_limit: float = SEARCH_TIME_LIMIT  # setting past it is not finished (finer settings cost more)
 
 
 @dataclass(frozen=True)
@@ -86,7 +88,7 @@ _REFERENCES: dict = {}
 def _solve_once(job: SearchJob, setting: float, cache_dir: str) -> tuple[str, dict, float, str, dict]:
     """(status, every accuracy metric, flops, the cost column, its seconds: the solve's run and
     compile time and the rest, metrics and flops) of one setting, solved once per worker."""
-    key = (job.scene, job.elements, job.t_end, job.integrator, job.sweep, float(setting))
+    key = (job.scene, job.elements, job.t_end, job.integrator, job.sweep, float(setting), job.max_steps, job.time_limit)
     if key in _SOLVED:
         return _SOLVED[key]
     from reelbench.benchmark.work.flops import run_flops
@@ -104,7 +106,7 @@ def _solve_once(job: SearchJob, setting: float, cache_dir: str) -> tuple[str, di
     ref = _REFERENCES[ref_key]
     started = time.perf_counter()
     try:
-        traj = get_integrator(job.integrator).solve(scene, time_limit=SEARCH_TIME_LIMIT,
+        traj = get_integrator(job.integrator).solve(scene, max_steps=job.max_steps, time_limit=job.time_limit,
                                                     **solve_kwargs(job.sweep, setting, t_end))
     except ValueError:  # a setting the method refuses (e.g. dt beyond t_end): not finished
         out = (Status.FAILED.value, {}, math.nan, "flops", {})
@@ -211,8 +213,10 @@ def setting_text(sweep: str, v: float) -> str:
 # ------------------------------------------------------------------------------------------
 # The jobs of a run
 # ------------------------------------------------------------------------------------------
-def search_jobs(scenes, integrators, targets, elements, t_end=None, max_runs=_search.MAX_RUNS):
-    """Every scene × N × method × axis its capabilities allow × target."""
+def search_jobs(scenes, integrators, targets, elements, t_end=None, max_runs=_search.MAX_RUNS,
+                max_steps: int | None = None, time_limit: float = SEARCH_TIME_LIMIT):
+    """Every scene × N × method × axis its capabilities allow × target; each solve within
+    ``max_steps`` (None: no cap) and ``time_limit`` s."""
     from reelbench.integrators import Capability, get_integrator
 
     jobs = []
@@ -223,7 +227,8 @@ def search_jobs(scenes, integrators, targets, elements, t_end=None, max_runs=_se
                 axes = [a for a, cap in (("dt", Capability.FIXED_STEP), ("rtol", Capability.ADAPTIVE)) if integ.has(cap)]
                 for axis in axes:
                     for metric, target in targets:
-                        jobs.append(SearchJob(scene, int(n), name, axis, metric, float(target), t_end, max_runs))
+                        jobs.append(SearchJob(scene, int(n), name, axis, metric, float(target), t_end, max_runs,
+                                              max_steps, float(time_limit)))
     return jobs
 
 

@@ -29,6 +29,7 @@ def cmd_answer(args) -> int:
     names = tuple(args.integrators) if args.integrators else answer.default_methods(args.extended)
     return answer.run_answer(AnswerRequest(out=out, scenes=scenes, integrators=names, elements=elements,
                                            targets=targets, t_end=args.t_end, max_runs=args.max_runs,
+                                           max_steps=args.max_steps, time_limit=args.time_limit,
                                            timing_budget=args.timing_budget, jobs=args.jobs, fresh=args.fresh,
                                            command=common.command(args), compare_with=tuple(args.compare_with or ()),
                                            executor=args.executor, scheduler=args.scheduler), log=_log)
@@ -79,6 +80,8 @@ def add_answer(sub) -> None:
                          f"{','.join(f'{m}={t:g}' for m, t, _ in answer.TARGETS)})")
     common.add_t_end(an, "(default: each scene's t_end)")
     an.add_argument("--max-runs", type=opt.positive_int, default=search.MAX_RUNS, help="runs per search at most")
+    common.add_budget(an, "the search counts that setting as not finished (a finer one costs more)", max_steps=None,
+                      time_limit=policy.SEARCH_TIME_LIMIT)
     an.add_argument("--timing-budget", type=opt.positive_float, default=policy.PAIRED_BUDGET,
                     help="seconds of paired timing per scene x N x target at most")
     common.add_jobs(an, "one per CPU", workers_only="answer searches in worker processes; --executor serial "
