@@ -119,11 +119,6 @@ def structure_of(model):
     return model.structure_key() if model.shares_programs else ("model", model)
 
 
-def template_of(model):
-    """The model whose structure the compiled programs of ``model``'s structure were traced on."""
-    return _TEMPLATES.setdefault(structure_of(model), model)
-
-
 def rhs_jit(model, rhs: str = DEFAULT_RHS):
     """Jitted f(t, y) of ``model``, called from the host (scipy's methods, the work count):
     the structure's program (`_rhs_program`) with this model's numbers as constants of a small

@@ -292,14 +292,6 @@ class StringPendulum:
         instead of dozens (a call from numpy pays for each argument: scipy's right-hand side)."""
         return np.concatenate([np.ravel(v) for v in self._values.values()])
 
-    def unpack_values(self, vector) -> dict:
-        """`values` from `value_vector` (the shapes are structure: this model's)."""
-        out, start = {}, 0
-        for k, v in self._values.items():
-            out[k] = vector[start:start + v.size].reshape(v.shape)
-            start += v.size
-        return out
-
     def bind(self, values) -> "StringPendulum":
         """A copy of this model whose numbers are ``values`` (`values`, or packed as
         `value_vector`; traced, inside a compiled program) and whose terms are composed again on

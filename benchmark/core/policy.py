@@ -125,8 +125,8 @@ ROW_IDENTITY = ("scene", "integrator", "setting")
 # ------------------------------------------------------------------------------------------
 # What one solve may spend
 # ------------------------------------------------------------------------------------------
-#: Every study solve's default budgets (raised by --max-steps / --time-limit on `simulate`, `run`,
-#: `stability` and `check`): a request that would run for hours (a tolerance near round-off over a
+#: Every study solve's default budgets (raised by --max-steps / --time-limit on every command that
+#: solves; the answer's searches have their own, below): a request that would run for hours (a tolerance near round-off over a
 #: long horizon) ends with status max_steps / time_limit (`simulate` saves its trajectory), and a
 #: sweep goes on with its other runs.
 SOLVE_MAX_STEPS = 10_000_000
@@ -167,7 +167,7 @@ WINNER, TIE, SLOWER = "winner", "tie", "slower"
 RANKED_VERDICTS = (WINNER, TIE, SLOWER)
 #: The ranked verdicts of the methods the answer recommends.
 BEST_VERDICTS = (WINNER, TIE)
-#: The work verdicts of a method the answer does not rank (`benchmark.answer.answer.answer_table`):
+#: The work verdicts of a method the answer does not rank (`benchmark.answer.table.answer_table`):
 #: its search is bit-identical to another method's (ranked as one entry); its cost is not in
 #: flops; its flops are only a lower bound, below the winner's; it reached no setting at the
 #: target (also the search's ``bound``, `benchmark.answer.search`).
