@@ -263,3 +263,18 @@ def test_verify_refuses_unknown_names_and_misplaced_options():
     assert main(["verify", "no_such_method"]) == 2
     assert main(["verify", "lgvi", "--scenes", "fixed_length"]) == 2
     assert main(["verify", "carnot", "--scenes", "fixed_length"]) == 2  # the scene does not list it
+
+
+def test_a_method_that_still_declares_a_study_setting_fails_its_declarations_and_is_told_where_it_went():
+    """`sweep_rtols`, `horizon_settings`, … moved from the integrator into the studies: a plugin that
+    still declares one would be silently ignored, so the contract refuses it and names the study's table."""
+    from reelbench.benchmark.contract import integrator as contract
+    from reelbench.integrators import get_integrator
+
+    lie_rk4 = type(get_integrator("lie_rk4"))
+    assert contract._declarations(lie_rk4()).ok
+    stale = type("StaleLieRK4", (lie_rk4,), {"sweep_rtols": (1e-4,), "horizon_settings": {"dt": 0.01}})()
+    check = contract._declarations(stale)
+    assert not check.ok
+    assert "declares sweep_rtols" in check.figure and "benchmark.runs.sweep.SWEEP_RTOLS" in check.figure
+    assert "declares horizon_settings" in check.figure and "benchmark.studies.horizon.SETTINGS" in check.figure

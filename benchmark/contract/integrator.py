@@ -6,7 +6,8 @@ fixed length and one reeling, against a tight DOP853 solution of the model's own
 (scipy, not a plugin of this project):
 
 * ``declarations``: name, capabilities, implementation, order (per situation where it declares
-  ``orders``) and description are what the registry and the sweep read;
+  ``orders``) and description are what the registry and the sweep read; a study setting that
+  integrators once declared (`STUDY_SETTINGS`) is refused, since no study reads it any more;
 * ``order <situation>``: the observed order of its last two step sizes (or, for an
   adaptive-only method, the slope of its error against its step count over five tolerances and
   1.28 s) is within `ORDER_TOLERANCE` of the declared one, with errors above round-off;
@@ -67,6 +68,19 @@ ROUND_OFF = 1e-12
 #: an attitude kept on SO(3) to round-off, and π3 kept by a variational method to its solver's
 #: tolerance (measured relative drifts: the LGVIs 5e-15, RATTLE 9.1e-10 from its Newton tolerance)
 GROUP_TOLERANCE, PI3_TOLERANCE = 1e-11, 1e-8
+
+
+#: What an integrator class once declared about the studies that run it, and where each study
+#: now keeps that choice (keyed by method name): a plugin that still declares one would be
+#: silently ignored.
+STUDY_SETTINGS = {
+    "default_sweep": "benchmark.runs.sweep.EXTENDED_METHODS (a plugin joins the sweep by --integrators or "
+                     "--with-plugins)",
+    "sweep_rtols": "benchmark.runs.sweep.SWEEP_RTOLS",
+    "paper_settings": "benchmark.runs.sweep.PAPER_METHOD",
+    "horizon_settings": "benchmark.studies.horizon.SETTINGS",
+    "expensive": "benchmark.studies.stability.EXPENSIVE",
+}
 
 
 @functools.lru_cache(maxsize=8)
@@ -170,6 +184,10 @@ def _declarations(integ) -> Check:
         problems.append("no implementation (e.g. 'jax-compiled')")
     if not integ.description:
         problems.append("no description (shown by `list`)")
+    for name, where in STUDY_SETTINGS.items():
+        if hasattr(integ, name):
+            problems.append(f"declares {name}, which no study reads: each study chooses its settings by method "
+                            f"name ({where}); remove it")
     orders = ", ".join(f"{k} {integ.order_for(small_scene(e))}" for k, e in ORDER_SCENES.items())
     return Check("declarations", not problems, "; ".join(problems) if problems else
                  f"order {orders}; capabilities {', '.join(sorted(c.value for c in caps))}; {integ.implementation}")
