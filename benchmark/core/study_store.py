@@ -74,14 +74,20 @@ class MergedTable(store.TableWriter):
     """A study's `store.TableWriter` whose table is the earlier rows of ``path`` with this run's
     in their place (``identity``): every write, the first finished row's included, keeps the rows
     this run does not recompute. ``earlier``: how many rows the file held; ``kept(rows)``: how
-    many of them the merged table keeps as they were. ``digest``: every row is written with its
-    digest, leaving out these columns (`read_rows`)."""
+    many of them the merged table keeps as they were. The earlier rows are read by `read_rows`
+    (``read_earlier``: `Study.read_earlier`), or by the study's own reading policy ``read(path,
+    log)`` (`Study.read`: the runs table's). ``digest``: this run's rows are written with their
+    digest, leaving out these columns (the earlier rows keep theirs, checked when they were read)."""
 
     def __init__(self, path, identity: tuple, to_frame: Callable, text_columns: tuple = (),
-                 expand: Callable[[dict], list[dict]] | None = None, read: Callable | None = None,
-                 digest: tuple | None = None, log: Callable[[str], None] | None = None):
+                 expand: Callable[[dict], list[dict]] | None = None, read_earlier: Callable | None = None,
+                 read: Callable | None = None, digest: tuple | None = None,
+                 log: Callable[[str], None] | None = None):
         self.identity, self.expand, self.digest = tuple(identity), expand, digest
-        self.base = read_rows(path, self.identity, text_columns, read, digest, log)
+        if read is not None:
+            self.base = read(Path(path), log)
+        else:
+            self.base = read_rows(path, self.identity, text_columns, read_earlier, digest, log)
         super().__init__(path, lambda rows: to_frame(self.merged(rows)))
         self.earlier = len(self.base)
 
@@ -89,7 +95,8 @@ class MergedTable(store.TableWriter):
         out = store.merge_rows(self.base, rows, identity=self.identity, expand=self.expand)
         if self.digest is None:
             return out
-        return [{**r, store.DIGEST_COLUMN: store.row_digest(r, self.digest)} for r in out]
+        earlier = {id(r) for r in self.base}
+        return [r if id(r) in earlier else {**r, store.DIGEST_COLUMN: store.row_digest(r, self.digest)} for r in out]
 
     def kept(self, rows: list[dict]) -> int:
         mine = {store.identity_of(r, self.identity) for r in rows}
@@ -100,10 +107,10 @@ class MergedTable(store.TableWriter):
         merged table keeps rows of theirs."""
         return provenance.merged_into(earlier_runs(header_of)) if self.kept(rows) else provenance
 
-    def stop_note(self) -> str:
-        """What an interrupted study saved, for its one line."""
+    def stop_note(self, wording) -> str:
+        """What an interrupted study saved, for its one line, in its words (`study.Wording`)."""
         if not self.saved:
-            return (f"no row had finished; {self.path} is as it was ({self.earlier} row(s))" if self.earlier
-                    else "no row had finished, nothing saved")
-        return (f"{self.saved} finished row(s) are merged into {self.path}"
-                + (f" (its earlier rows that this run did not recompute are kept)" if self.earlier else ""))
+            return (f"no {wording.row} had finished; {self.path} is as it was ({self.earlier} row(s))" if self.earlier
+                    else f"no {wording.row} had finished, nothing saved")
+        return (f"{self.saved} finished {wording.row}(s) {wording.saved} {self.path}"
+                + (" (its earlier rows that this run did not recompute are kept)" if self.earlier else ""))

@@ -3,9 +3,11 @@ may keep. Its columns are written by `benchmark.runs.runner`; the generic store 
 atomic tables, the merge by row identity) is `benchmark.core.store`.
 
 * Identity: every row carries a `run_key` (scene physics, integrator, setting, horizon, save
-  interval, code version); `kept_rows` keeps the rows of an earlier table (`read_runs`) with
-  the same key, so only the rest is computed. Rows whose status may have been transient
-  (`integrators.base.RETRY_STATUSES`) are never kept.
+  interval, code version); a run keeps the rows of an earlier table (`read_runs`) with the same
+  key, so only the rest is computed (the grid sweep through the study runner,
+  `benchmark.core.study`; `kept_rows` for the runs made by `benchmark.runs.runner.execute`).
+  Rows whose status may have been transient (`integrators.base.RETRY_STATUSES`) are never kept
+  (`StoredRuns.reusable`).
 * Trust: a row read back is used only when it passes `check_row` -- its types, ranges and
   status vocabulary (`statuses`, the one list of them), finite non-negative costs, and the
   digest of every column recorded when it was written (`row_digest`; a row without one in a
@@ -204,15 +206,20 @@ class StoredRuns:
     def unverified(self) -> int:
         return len(self.legacy)
 
-    @property
-    def resumable(self) -> list[dict]:
-        """The trusted rows a run may keep instead of computing (transient failures retried, rows
-        that predate full digests recomputed unless accepted)."""
+    def reusable(self, row: dict) -> bool:
+        """Whether a run may keep ``row``, one of `rows`, instead of computing it again (given the
+        same `run_key`): not a status that may have been transient (`RETRY_STATUSES`: retried),
+        and not a row that predates full digests (recomputed unless accepted). The grid sweep's
+        `benchmark.core.study.Study.reusable`."""
         from reelbench.integrators.base import RETRY_STATUSES
 
-        legacy = {id(r) for r in self.legacy}
-        return [r for r in self.rows if r.get("status") not in RETRY_STATUSES and r.get("run_key")
-                and id(r) not in legacy]
+        return (row.get("status") not in RETRY_STATUSES and bool(row.get("run_key"))
+                and not any(row is r for r in self.legacy))
+
+    @property
+    def resumable(self) -> list[dict]:
+        """The trusted rows a run may keep instead of computing (`reusable`)."""
+        return [r for r in self.rows if self.reusable(r)]
 
     def accept_legacy(self) -> None:
         """Keep the rows that predate full digests (checked by range) and give them digests, so
