@@ -14,8 +14,9 @@ job makes, its table's columns and its report. `run` owns the rest, the same for
   atomically after every finished row, so a stop keeps every finished row;
 - a rerun resumes: a job whose finished row is in the table, made from the same key
   (`Study.key`: the code and settings that determine it), is not run again, unless ``fresh``;
-- a study whose rows carry a digest (`Study.digest`) has every row written with it, and an
-  earlier row whose digest fails is named and dropped (recomputed when this run has its job);
+- a study whose rows carry a digest (`Study.digest`, `benchmark.core.store.row_digest`) has
+  each row it makes written with it, and an earlier row whose digest fails is named and dropped
+  (recomputed when this run has its job); the earlier rows it keeps keep their digests;
 - the report is written from the whole merged table, also when the study is stopped (unless
   the report is itself work a stop must not start: `Study.report_on_stop`);
 - a stop is one line saying what was saved and how to resume (exit 130 / 143), in the study's

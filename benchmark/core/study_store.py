@@ -1,8 +1,11 @@
 """What a study keeps of the output it writes into: its earlier rows, merged with this run's.
 
-`run` merges its rows into the runs table of its --out (`benchmark.core.store.merge_rows`); the
-other studies do the same with their own tables and row identities:
+Each study merges its rows into its table with the one merge (`benchmark.core.store.merge_rows`;
+on the runner, `benchmark.core.study.run`: `MergedTable`), each table with its own row identity:
 
+* `run`: ``runs.csv``, one row per (scene, integrator, setting), read by the runs table's own
+  policy (`benchmark.runs.table.read_runs`: untrusted rows named and recomputed, a table that
+  cannot be read whole salvaged rather than refused; `Study.read`);
 * `stability`: ``stability.csv``, one row per (scene, integrator, kind);
 * `speed`: the rows table beside its Markdown file (``lgvi_speed.csv`` beside
   ``lgvi_speed.md``), one row per (kind, method, right-hand side, scene, N);
@@ -13,7 +16,8 @@ other studies do the same with their own tables and row identities:
 A study's table, figure and README are then written from the whole merged table, and an
 interrupted study has already merged each finished row: it never drops a row it did not
 recompute. An earlier table that cannot be read is refused before any work (overwriting it
-would lose it), naming the file and what to do.
+would lose it), naming the file and what to do (the runs table's is copied aside and its
+readable rows kept: its rows are hours of measurement).
 """
 
 from __future__ import annotations

@@ -143,7 +143,6 @@ class GridSweep:
     def __init__(self, request: SweepRequest, log: Callable[[str], None]):
         from reelbench.benchmark.runs import runner
 
-        _check_executor(request)
         self.request, self.log = request, log
         tasks = sweep.build_tasks(request.scenes, request.integrators, quick=request.quick,
                                 dts=request.dts, rtols=request.rtols, t_end=request.t_end,
@@ -217,15 +216,6 @@ class GridSweep:
                       merged_note=_merged_note(len(self.jobs), merged))
         return (f"{len(self.jobs)} runs in this run, {len(merged)} in {out}/runs.csv; {failures} "
                 f"See {out}/README.md")
-
-
-def _check_executor(request: SweepRequest) -> None:
-    if request.executor not in sweep.EXECUTORS:
-        raise ValueError(f"executor = {request.executor!r} is invalid (allowed: {', '.join(sweep.EXECUTORS)})")
-    if request.jobs is not None and request.jobs < 1:
-        raise ValueError(f"jobs = {request.jobs!r} is invalid (allowed: >= 1)")
-    if request.executor == "dask" and not request.scheduler:
-        raise ValueError("executor 'dask' needs --scheduler ADDRESS (e.g. tcp://host:8786)")
 
 
 #: The committed grid sweep's directory (`python -m benchmark run`'s default --out).
@@ -338,15 +328,12 @@ def _paper_key(request: SweepRequest, scene, paper) -> str:
 def _sweep_figures(request: SweepRequest, merged, log, failed: list | None = None,
                    energy=None) -> list[tuple[str, str]]:
     """Work–precision per scene of the merged table, the paper's panels of this run's scenes
-    (from the method that declares the paper's settings, the LGVI at its step size), and the
-    ``energy`` study (`_energy_study`: its runs that failed go to ``failed``): (file name, note)
-    each. A figure whose inputs did not change since it was drawn
+    (`_paper_figures`), and the ``energy`` study (`_energy_study`: its runs that failed go to
+    ``failed``): (file name, note) each. A figure whose inputs did not change since it was drawn
     (`benchmark.core.store.OutputKeys`) is kept, not redrawn."""
     import time
 
     from reelbench.benchmark.figures import plots
-    from reelbench.integrators import get_integrator
-    from reelbench.models.diagnostics import evaluate
 
     out = request.out
     keys = store.OutputKeys(out / "figures.json")
@@ -360,7 +347,27 @@ def _sweep_figures(request: SweepRequest, merged, log, failed: list | None = Non
             keys.record(name, key)
             log(f"figure: {name} ({time.perf_counter() - t0:.0f} s)")
         figures.append((name, ""))
-    paper = sweep.paper_method()
+    figures += _paper_figures(request, merged, keys, log)
+    if request.energy_horizon > 0:
+        from reelbench.benchmark.core import study
+        from reelbench.benchmark.studies import horizon_report
+
+        if energy is not None:  # in this run's lock: a stop is the sweep's
+            study.run(energy, out, command=request.command, fresh=request.fresh, log=log, held=True, failed=failed)
+        figures += horizon_report.listed(out, dict.fromkeys(j.tabled_as for j in energy.jobs) if energy else ())
+    return figures
+
+
+def _paper_figures(request: SweepRequest, merged, keys, log) -> list[tuple[str, str]]:
+    """The paper's panels of this run's scenes, from the method that declares the paper's settings
+    (the LGVI at its step size), and those an earlier run drew of the table's other scenes."""
+    import time
+
+    from reelbench.benchmark.figures import plots
+    from reelbench.integrators import get_integrator
+    from reelbench.models.diagnostics import evaluate
+
+    out, paper, figures = request.out, sweep.paper_method(), []
     for s in request.scenes:
         scene = request.scene(s)
         name, key, t0 = f"paper_{scene.name}.png", _paper_key(request, scene, paper), time.perf_counter()
@@ -379,13 +386,6 @@ def _sweep_figures(request: SweepRequest, merged, log, failed: list | None = Non
         name = f"paper_{scene}.png"
         if scene not in run_scenes and (out / name).is_file():
             figures.append((name, "drawn by an earlier run (this run did not include the scene)"))
-    if request.energy_horizon > 0:
-        from reelbench.benchmark.core import study
-        from reelbench.benchmark.studies import horizon_report
-
-        if energy is not None:  # in this run's lock: a stop is the sweep's
-            study.run(energy, out, command=request.command, fresh=request.fresh, log=log, held=True, failed=failed)
-        figures += horizon_report.listed(out, dict.fromkeys(j.tabled_as for j in energy.jobs) if energy else ())
     return figures
 
 
