@@ -216,11 +216,6 @@ class StoredRuns:
         return (row.get("status") not in RETRY_STATUSES and bool(row.get("run_key"))
                 and not any(row is r for r in self.legacy))
 
-    @property
-    def resumable(self) -> list[dict]:
-        """The trusted rows a run may keep instead of computing (`reusable`)."""
-        return [r for r in self.rows if self.reusable(r)]
-
     def accept_legacy(self) -> None:
         """Keep the rows that predate full digests (checked by range) and give them digests, so
         that the next read verifies them: the one-time, explicit ``--accept-legacy``."""
