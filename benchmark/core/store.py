@@ -113,6 +113,13 @@ def row_digest(row: dict, leave_out: Iterable[str] = ()) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
+def digest_holds(row: dict, leave_out: Iterable[str] = ()) -> bool:
+    """Whether a row read back carries the digest of its values (`row_digest`, leaving out
+    ``leave_out``): the one check of every table whose rows have one."""
+    written = row.get(DIGEST_COLUMN)
+    return isinstance(written, str) and written == row_digest(row, leave_out)
+
+
 def identity_of(row: dict, identity: tuple = ROW_IDENTITY) -> tuple:
     """A row's place in its table (by default `benchmark.core.policy.ROW_IDENTITY`)."""
     return tuple(row.get(c) for c in identity)

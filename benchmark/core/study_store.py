@@ -63,15 +63,10 @@ def read_rows(path: Path, identity: tuple, text_columns: tuple = (), read: Calla
     rows = [{k: v for k, v in r.items()} for r in df.to_dict("records")]
     if digest is None:
         return rows
-    good = [r for r in rows if _digest_holds(r, digest)]
+    good = [r for r in rows if store.digest_holds(r, digest)]
     if len(good) < len(rows) and log is not None:
         log(f"warning: {path}: {len(rows) - len(good)} row(s) fail their digest; they are recomputed")
     return good
-
-
-def _digest_holds(row: dict, leave_out: tuple) -> bool:
-    written = row.get(store.DIGEST_COLUMN)
-    return isinstance(written, str) and written == store.row_digest(row, leave_out)
 
 
 class MergedTable(store.TableWriter):

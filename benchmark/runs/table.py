@@ -175,7 +175,7 @@ def check_row(row: dict, known_statuses=None) -> str | None:
         if (lo == lo and lo > mid * (1 + 1e-12)) or (hi == hi and hi < mid * (1 - 1e-12)):
             return f"run_time_low <= run_time <= run_time_high does not hold ({lo:g}, {mid:g}, {hi:g})"
     digest = row.get("row_digest")
-    if not is_missing(digest) and str(digest) not in (row_digest(row), legacy_digest(row)):
+    if not is_missing(digest) and not (store.digest_holds(row, DIGEST_EXCLUDED) or str(digest) == legacy_digest(row)):
         return "its values do not match the digest written with it (edited or damaged after it was written)"
     return None
 
@@ -184,7 +184,7 @@ def is_legacy(row: dict) -> bool:
     """Whether a row predates digests over every column (none, or `legacy_digest`'s): what its
     digest does not cover is checked by range only."""
     digest = row.get("row_digest")
-    return is_missing(digest) or (str(digest) != row_digest(row) and str(digest) == legacy_digest(row))
+    return is_missing(digest) or (not store.digest_holds(row, DIGEST_EXCLUDED) and str(digest) == legacy_digest(row))
 
 
 # ------------------------------------------------------------------------------------------
