@@ -170,6 +170,11 @@ def frame(rows: Iterable[dict], columns: list[str], *, extra: bool = True):
     return df[columns + ([c for c in df.columns if c not in columns] if extra else [])]
 
 
+#: A results table is a few MB; anything far larger is not one, and is not read back (the readers
+#: of a study's earlier table: `benchmark.core.study_store.read_rows`, `benchmark.runs.table.read_runs`).
+MAX_TABLE_BYTES = 512 * 2**20
+
+
 def write_table(path: str | os.PathLike, df, drop: Iterable[str] = ()) -> Path:
     """``df`` as CSV, atomically, without the columns ``drop`` (those it has)."""
     df = df.drop(columns=[c for c in drop if c in df])

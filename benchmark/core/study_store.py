@@ -37,16 +37,17 @@ def read_rows(path: Path, identity: tuple, text_columns: tuple = (), read: Calla
     ``read(df)``: the study's reading of the table as read (`Study.read_earlier`), applied first.
     ``digest``: the rows carry a digest leaving out these columns (`store.row_digest`); a row
     whose digest fails is left out, and ``log`` names how many."""
+    import io
+
     import pandas as pd
 
-    from reelbench.models.io import FileRefused, require_regular
+    from reelbench.models.io import FileRefused, read_regular_file
 
     path = Path(path)
     if not path.exists():
         return []
-    try:
-        require_regular(path)
-        df = pd.read_csv(path)
+    try:  # a regular file of a table's size, read once (as the runs table's is: `benchmark.runs.table.read_runs`)
+        df = pd.read_csv(io.BytesIO(read_regular_file(path, store.MAX_TABLE_BYTES)))
     except (FileRefused, OSError, ValueError, pd.errors.ParserError) as exc:
         raise ValueError(f"{path} holds earlier rows but cannot be read ({type(exc).__name__}: "
                          f"{str(exc).splitlines()[0][:120] if str(exc) else ''}); this run would overwrite it: move "

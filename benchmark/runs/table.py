@@ -229,8 +229,6 @@ class StoredRuns:
 TEXT_COLUMNS = ("scene", "integrator", "setting", "status", "reason", "rhs", "implementation", "run_key",
                 "row_digest", "scene_key", "traceback", "flops_note", "rejected_because", "package",
                 "package_version", "code_digest")
-#: A runs table is a few MB; anything far larger is not one (and is not read whole).
-MAX_RUNS_BYTES = 512 * 2**20
 
 
 def _records(records: Iterable[dict]) -> list[dict]:
@@ -354,7 +352,7 @@ def read_runs(path: str | os.PathLike, log: Callable[[str], None] | None = None)
     if not path.exists():  # (a dangling link too: the table is written fresh in its place)
         return StoredRuns([], [])
     try:
-        data = read_regular_file(path, MAX_RUNS_BYTES)
+        data = read_regular_file(path, store.MAX_TABLE_BYTES)
     except FileRefused as exc:  # kept as it is: the run is refused, before any work
         raise ValueError(f"{path} {exc}: move it away, or give another --out") from None
     why, aside, lost = None, None, 0
