@@ -154,7 +154,7 @@ def test_killed_sweep_leaves_no_worker_and_a_rerun_resumes(tmp_path, plugin_env)
 
 def test_fresh_ignores_the_rows_already_there(tmp_path, monkeypatch):
     from reelbench.benchmark.cli import main as cli
-    from reelbench.benchmark.runs import runner
+    from reelbench.benchmark.core import study
     from reelbench.benchmark.runs import table
 
     class Stop(Exception):
@@ -162,13 +162,13 @@ def test_fresh_ignores_the_rows_already_there(tmp_path, monkeypatch):
 
     seen = {}
 
-    def execute(tasks, **kw):
-        seen["previous"] = kw["previous"]
+    def kept(the_study, earlier):  # the earlier rows the runner may keep instead of computing
+        seen["previous"] = [r for r in earlier if the_study.reusable(r)]
         raise Stop
 
     earlier = {"run_key": "x", "status": "ok", "scene": "elsewhere", "integrator": "lgvi", "setting": "dt=0.01"}
     monkeypatch.setattr(table, "read_runs", lambda *a, **k: table.StoredRuns([earlier], []))
-    monkeypatch.setattr(runner, "execute", execute)
+    monkeypatch.setattr(study, "_kept", kept)
     args = ["run", "--scenes", "fixed_length", "--integrators", "lgvi", "--dts", "0.01", "--t-end", "0.02",
             "--no-figures", "--out", str(tmp_path)]
     for extra, previous in (([], [earlier]), (["--fresh"], [])):

@@ -267,14 +267,12 @@ def _narrow_rerun(tmp_path, monkeypatch, capsys):
     out = tmp_path / "grid"
     committed = table.read_runs(out / "runs.csv").rows
 
-    def execute(tasks, *, on_row=None, **_):  # the committed rows of these tasks, as a resumed run keeps them
-        mine = {(t.scene, t.integrator, t.setting) for t in tasks}
-        rows = [r for r in committed if store.identity_of(r) in mine]
-        assert len(rows) == len(tasks) > 0
-        on_row(rows)
-        return store.frame(rows, [])
+    def run_task(task, *_, **__):  # the committed row of the task, as a resumed run keeps it
+        rows = [r for r in committed if store.identity_of(r) == (task.scene, task.integrator, task.setting)]
+        assert len(rows) == 1
+        return dict(rows[0])
 
-    monkeypatch.setattr(runner, "execute", execute)
+    monkeypatch.setattr(runner, "run_task", run_task)  # where a run is not kept (other code): its committed row
     before = (out / "README.md").read_text()
     # the committed table's own steps (the sweep's grid may have grown since it was made)
     dts = sorted({r["dt"] for r in committed if r["scene"] == "fixed_length" and r["integrator"] == "lgvi"})
@@ -329,11 +327,11 @@ def test_a_comparison_whose_table_is_gone_is_kept_as_it_was_and_says_so(tmp_path
 
 
 def test_a_quick_sweep_into_the_committed_table_is_refused_as_the_readme_says(tmp_path, monkeypatch, capsys):
-    from reelbench.benchmark.runs import runner
+    from reelbench.benchmark.core import engine
 
     shutil.copytree(ROOT / "results" / "grid", tmp_path / "grid", ignore=shutil.ignore_patterns("cache", "*.png"))
     before = (tmp_path / "grid" / "runs.csv").read_bytes()
-    monkeypatch.setattr(runner, "execute", lambda *a, **k: pytest.fail("started work"))
+    monkeypatch.setattr(engine, "run_jobs", lambda *a, **k: pytest.fail("started work"))
     rc = main(["run", "--quick", "--scenes", "fixed_length", "--integrators", "lgvi,tsit5", "--no-figures",
                "--out", str(tmp_path / "grid")])
     err = _outcome(capsys)

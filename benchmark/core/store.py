@@ -113,6 +113,13 @@ def row_digest(row: dict, leave_out: Iterable[str] = ()) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
+def digest_holds(row: dict, leave_out: Iterable[str] = ()) -> bool:
+    """Whether a row read back carries the digest of its values (`row_digest`, leaving out
+    ``leave_out``): the one check of every table whose rows have one."""
+    written = row.get(DIGEST_COLUMN)
+    return isinstance(written, str) and written == row_digest(row, leave_out)
+
+
 def identity_of(row: dict, identity: tuple = ROW_IDENTITY) -> tuple:
     """A row's place in its table (by default `benchmark.core.policy.ROW_IDENTITY`)."""
     return tuple(row.get(c) for c in identity)
@@ -161,6 +168,11 @@ def frame(rows: Iterable[dict], columns: list[str], *, extra: bool = True):
         if c not in df:
             df[c] = np.nan
     return df[columns + ([c for c in df.columns if c not in columns] if extra else [])]
+
+
+#: A results table is a few MB; anything far larger is not one, and is not read back (the readers
+#: of a study's earlier table: `benchmark.core.study_store.read_rows`, `benchmark.runs.table.read_runs`).
+MAX_TABLE_BYTES = 512 * 2**20
 
 
 def write_table(path: str | os.PathLike, df, drop: Iterable[str] = ()) -> Path:

@@ -7,16 +7,20 @@ job makes, its table's columns and its report. `run` owns the rest, the same for
 - one writer per output directory (`exclusive`: the lock, with Ctrl-C and SIGTERM stopping the
   study as KeyboardInterrupt);
 - the earlier table there is read once, under the lock, and refused before any work when it
-  cannot be read (`study_store.MergedTable`); this run's rows replace those with the same
-  identity and every other row is kept;
+  cannot be read (`study_store.MergedTable`; a study with a reading policy of its own, the runs
+  table's, plugs it in: `Study.read`); this run's rows replace those with the same identity and
+  every other row is kept;
 - the jobs run on the engine (workers, this process or Dask), and the merged table is written
   atomically after every finished row, so a stop keeps every finished row;
 - a rerun resumes: a job whose finished row is in the table, made from the same key
   (`Study.key`: the code and settings that determine it), is not run again, unless ``fresh``;
-- a study whose rows carry a digest (`Study.digest`) has every row written with it, and an
-  earlier row whose digest fails is named and dropped (recomputed when this run has its job);
-- the report is written from the whole merged table, also when the study is stopped;
-- a stop is one line saying what was saved (exit 130 / 143); a failing disk one line and exit 1;
+- a study whose rows carry a digest (`Study.digest`, `benchmark.core.store.row_digest`) has
+  each row it makes written with it, and an earlier row whose digest fails is named and dropped
+  (recomputed when this run has its job); the earlier rows it keeps keep their digests;
+- the report is written from the whole merged table, also when the study is stopped (unless
+  the report is itself work a stop must not start: `Study.report_on_stop`);
+- a stop is one line saying what was saved and how to resume (exit 130 / 143), in the study's
+  words (`Wording`); a failing disk one line and exit 1;
   a job that failed (`Study.failure`) one error line at the end, and exit 1.
 
 A study may run inside another that holds the same directory (``held``: `run --horizon` makes the
@@ -38,6 +42,18 @@ from reelbench.models.io import printable
 
 #: The column where a row keeps the key it was made from (`Study.key`), for resume.
 KEY_COLUMN = "job_key"
+
+
+@dataclass(frozen=True)
+class Wording:
+    """How the runner's lines name a study's rows: ``row`` what a finished job makes ("no row had
+    finished"), ``saved`` what became of them ("3 finished row(s) are merged into PATH") and
+    ``kept`` the line of a resumed run (a format of ``name``, ``kept``, ``total``, ``left`` and
+    ``unit``). The lines are the same for every study; only these words are a study's."""
+
+    row: str = "row"
+    saved: str = "are merged into"
+    kept: str = "{name}: kept {kept} of {total} {unit} (same code and settings; --fresh recomputes them)"
 
 
 @contextlib.contextmanager
@@ -77,12 +93,19 @@ class Study:
       earlier rows as a whole; none: the job's earlier rows go;
     - ``read_earlier(df)``: the study's reading of its earlier table as read (a DataFrame): the
       rows it keeps, in its columns (e.g. a table of older code given the columns it lacks);
+    - ``read(path, log)``: a reading policy of the study's own, in place of the runner's
+      (`study_store.read_rows`): the rows of the earlier table to merge with ([] when there is
+      none), each already checked (its digest too); it may refuse the run (ValueError), before
+      any work, and may move rows it does not keep aside;
     - ``reusable(row)``: whether an earlier row made from the same key is kept on resume
       (default: a finished run's, `is_finished`);
     - ``failure(row)``: for a row that is no result (a job whose worker died and that makes no
       table row), what failed, in a few words; None for a result;
     - ``after_jobs(out, log)``: a step of the study's own once its jobs are done, before its
       report (skipped when stopped): e.g. a measurement its report reads beside the table;
+    - ``report_on_stop``: whether a stopped study writes its report (False where the report is
+      work of its own, such as a solve for a figure, which a stop must not start);
+    - ``wording``: how the runner's lines name its rows (`Wording`);
     - ``unit``: what the log lines call its jobs;
     - ``workers``: 0 in this process, else that many worker processes; ``scheduler``: a Dask
       address."""
@@ -113,6 +136,9 @@ class Study:
     scheduler: str | None = None
     setup: tuple | Callable[[list], list[tuple[str, Callable]]] = field(default=())
     header: str = "README.md"
+    read: Callable[[Path, Callable[[str], None]], list[dict]] | None = None
+    report_on_stop: bool = True
+    wording: Wording = Wording()
 
 
 def job_key(settings: dict, *files: str) -> str:
@@ -160,17 +186,21 @@ def run(study: Study, out: Path, *, command: str, fresh: bool = False,
         table = session.table
         if table is None:
             return engine.stopped(exc, "nothing was written", log)
-        note = table.stop_note()
-        if table.saved:
+        note = table.stop_note(study.wording)
+        if table.saved and study.report_on_stop:
             try:  # the report of the whole merged table, so that it agrees with the table
                 wrote = session.report()
                 note += "; the report is written from it" + (f" ({wrote})" if wrote else "")
             except Exception as err:  # noqa: BLE001 - the stop line must come out whatever the report does
                 note += f"; its report was not written ({type(err).__name__})"
-        return engine.stopped(exc, f"{note}; run the same command again to compute the rest", log)
+        return engine.stopped(exc, f"{note}; {_again(study)}", log)
     except OSError as exc:  # a full or failing disk: what was written is intact
         table = session.table
-        log(f"error: {printable(exc)}; {table.stop_note() if table is not None else 'nothing was written'}")
+        if table is None:
+            log(f"error: {printable(exc)}; nothing was written")
+        else:
+            log(f"error: {printable(exc)}; {table.stop_note(study.wording)}; free space (or fix the file system) "
+                f"and {_again(study)}")
         return 1
 
 
@@ -180,6 +210,14 @@ def _setup(study: Study, todo: list) -> tuple[list, list | None]:
         return list(study.setup), None
     pairs = list(study.setup(todo))
     return [call for _, call in pairs], [label for label, _ in pairs]
+
+
+def _again(study: Study) -> str:
+    """What a stopped study's line says to do next."""
+    if study.key is None:
+        return "run the same command again to compute the rest"
+    return (f"run the same command again to resume (finished {study.unit} are kept), or add --fresh to recompute "
+            "this run's rows")
 
 
 class _Session:
@@ -195,17 +233,17 @@ class _Session:
 
         study, out, log = self.study, self.out, self.log
         self.table = MergedTable(out / study.table, study.identity, study.frame, text_columns=study.text_columns,
-                                 expand=self._expand if study.expand else None, read=study.read_earlier,
-                                 digest=study.digest, log=log)
+                                 expand=self._expand if study.expand else None, read_earlier=study.read_earlier,
+                                 read=study.read, digest=study.digest, log=log)
         if self.tables is not None:
             self.tables.append(self.table)
-        self.kept = kept = {} if fresh else _kept(study, self.table.base)
+        self.kept = kept = _kept(study, [] if fresh else self.table.base)
         n = len(study.jobs)
         log(f"{study.name}: {n} {study.unit} on {study.workers or 'this process'}"
             f"{' worker(s)' if study.workers else ''} -> {out}/"
             + (f" (merged with its {self.table.earlier} earlier row(s))" if self.table.earlier else ""))
         if kept:
-            log(f"{study.name}: kept {len(kept)} of {n} {study.unit} (same code and settings; --fresh recomputes them)")
+            log(study.wording.kept.format(name=study.name, kept=len(kept), total=n, left=n - len(kept), unit=study.unit))
         setup, labels = _setup(study, [job for i, job in enumerate(study.jobs) if i not in kept])
         done = engine.run_jobs(
             study.run_job, study.jobs, workers=study.workers, scheduler=study.scheduler, done=kept, finish=self._keyed,

@@ -1,8 +1,11 @@
 """What a study keeps of the output it writes into: its earlier rows, merged with this run's.
 
-`run` merges its rows into the runs table of its --out (`benchmark.core.store.merge_rows`); the
-other studies do the same with their own tables and row identities:
+Each study merges its rows into its table with the one merge (`benchmark.core.store.merge_rows`;
+on the runner, `benchmark.core.study.run`: `MergedTable`), each table with its own row identity:
 
+* `run`: ``runs.csv``, one row per (scene, integrator, setting), read by the runs table's own
+  policy (`benchmark.runs.table.read_runs`: untrusted rows named and recomputed, a table that
+  cannot be read whole salvaged rather than refused; `Study.read`);
 * `stability`: ``stability.csv``, one row per (scene, integrator, kind);
 * `speed`: the rows table beside its Markdown file (``lgvi_speed.csv`` beside
   ``lgvi_speed.md``), one row per (kind, method, right-hand side, scene, N);
@@ -13,7 +16,8 @@ other studies do the same with their own tables and row identities:
 A study's table, figure and README are then written from the whole merged table, and an
 interrupted study has already merged each finished row: it never drops a row it did not
 recompute. An earlier table that cannot be read is refused before any work (overwriting it
-would lose it), naming the file and what to do.
+would lose it), naming the file and what to do (the runs table's is copied aside and its
+readable rows kept: its rows are hours of measurement).
 """
 
 from __future__ import annotations
@@ -33,16 +37,17 @@ def read_rows(path: Path, identity: tuple, text_columns: tuple = (), read: Calla
     ``read(df)``: the study's reading of the table as read (`Study.read_earlier`), applied first.
     ``digest``: the rows carry a digest leaving out these columns (`store.row_digest`); a row
     whose digest fails is left out, and ``log`` names how many."""
+    import io
+
     import pandas as pd
 
-    from reelbench.models.io import FileRefused, require_regular
+    from reelbench.models.io import FileRefused, read_regular_file
 
     path = Path(path)
     if not path.exists():
         return []
-    try:
-        require_regular(path)
-        df = pd.read_csv(path)
+    try:  # a regular file of a table's size, read once (as the runs table's is: `benchmark.runs.table.read_runs`)
+        df = pd.read_csv(io.BytesIO(read_regular_file(path, store.MAX_TABLE_BYTES)))
     except (FileRefused, OSError, ValueError, pd.errors.ParserError) as exc:
         raise ValueError(f"{path} holds earlier rows but cannot be read ({type(exc).__name__}: "
                          f"{str(exc).splitlines()[0][:120] if str(exc) else ''}); this run would overwrite it: move "
@@ -59,29 +64,30 @@ def read_rows(path: Path, identity: tuple, text_columns: tuple = (), read: Calla
     rows = [{k: v for k, v in r.items()} for r in df.to_dict("records")]
     if digest is None:
         return rows
-    good = [r for r in rows if _digest_holds(r, digest)]
+    good = [r for r in rows if store.digest_holds(r, digest)]
     if len(good) < len(rows) and log is not None:
         log(f"warning: {path}: {len(rows) - len(good)} row(s) fail their digest; they are recomputed")
     return good
-
-
-def _digest_holds(row: dict, leave_out: tuple) -> bool:
-    written = row.get(store.DIGEST_COLUMN)
-    return isinstance(written, str) and written == store.row_digest(row, leave_out)
 
 
 class MergedTable(store.TableWriter):
     """A study's `store.TableWriter` whose table is the earlier rows of ``path`` with this run's
     in their place (``identity``): every write, the first finished row's included, keeps the rows
     this run does not recompute. ``earlier``: how many rows the file held; ``kept(rows)``: how
-    many of them the merged table keeps as they were. ``digest``: every row is written with its
-    digest, leaving out these columns (`read_rows`)."""
+    many of them the merged table keeps as they were. The earlier rows are read by `read_rows`
+    (``read_earlier``: `Study.read_earlier`), or by the study's own reading policy ``read(path,
+    log)`` (`Study.read`: the runs table's). ``digest``: this run's rows are written with their
+    digest, leaving out these columns (the earlier rows keep theirs, checked when they were read)."""
 
     def __init__(self, path, identity: tuple, to_frame: Callable, text_columns: tuple = (),
-                 expand: Callable[[dict], list[dict]] | None = None, read: Callable | None = None,
-                 digest: tuple | None = None, log: Callable[[str], None] | None = None):
+                 expand: Callable[[dict], list[dict]] | None = None, read_earlier: Callable | None = None,
+                 read: Callable | None = None, digest: tuple | None = None,
+                 log: Callable[[str], None] | None = None):
         self.identity, self.expand, self.digest = tuple(identity), expand, digest
-        self.base = read_rows(path, self.identity, text_columns, read, digest, log)
+        if read is not None:
+            self.base = read(Path(path), log)
+        else:
+            self.base = read_rows(path, self.identity, text_columns, read_earlier, digest, log)
         super().__init__(path, lambda rows: to_frame(self.merged(rows)))
         self.earlier = len(self.base)
 
@@ -89,7 +95,8 @@ class MergedTable(store.TableWriter):
         out = store.merge_rows(self.base, rows, identity=self.identity, expand=self.expand)
         if self.digest is None:
             return out
-        return [{**r, store.DIGEST_COLUMN: store.row_digest(r, self.digest)} for r in out]
+        earlier = {id(r) for r in self.base}
+        return [r if id(r) in earlier else {**r, store.DIGEST_COLUMN: store.row_digest(r, self.digest)} for r in out]
 
     def kept(self, rows: list[dict]) -> int:
         mine = {store.identity_of(r, self.identity) for r in rows}
@@ -100,10 +107,10 @@ class MergedTable(store.TableWriter):
         merged table keeps rows of theirs."""
         return provenance.merged_into(earlier_runs(header_of)) if self.kept(rows) else provenance
 
-    def stop_note(self) -> str:
-        """What an interrupted study saved, for its one line."""
+    def stop_note(self, wording) -> str:
+        """What an interrupted study saved, for its one line, in its words (`study.Wording`)."""
         if not self.saved:
-            return (f"no row had finished; {self.path} is as it was ({self.earlier} row(s))" if self.earlier
-                    else "no row had finished, nothing saved")
-        return (f"{self.saved} finished row(s) are merged into {self.path}"
-                + (f" (its earlier rows that this run did not recompute are kept)" if self.earlier else ""))
+            return (f"no {wording.row} had finished; {self.path} is as it was ({self.earlier} row(s))" if self.earlier
+                    else f"no {wording.row} had finished, nothing saved")
+        return (f"{self.saved} finished {wording.row}(s) {wording.saved} {self.path}"
+                + (" (its earlier rows that this run did not recompute are kept)" if self.earlier else ""))

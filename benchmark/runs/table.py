@@ -3,9 +3,11 @@ may keep. Its columns are written by `benchmark.runs.runner`; the generic store 
 atomic tables, the merge by row identity) is `benchmark.core.store`.
 
 * Identity: every row carries a `run_key` (scene physics, integrator, setting, horizon, save
-  interval, code version); `kept_rows` keeps the rows of an earlier table (`read_runs`) with
-  the same key, so only the rest is computed. Rows whose status may have been transient
-  (`integrators.base.RETRY_STATUSES`) are never kept.
+  interval, code version); a run keeps the rows of an earlier table (`read_runs`) with the same
+  key, so only the rest is computed (the grid sweep through the study runner,
+  `benchmark.core.study`; `kept_rows` for the runs made by `benchmark.runs.runner.execute`).
+  Rows whose status may have been transient (`integrators.base.RETRY_STATUSES`) are never kept
+  (`StoredRuns.reusable`).
 * Trust: a row read back is used only when it passes `check_row` -- its types, ranges and
   status vocabulary (`statuses`, the one list of them), finite non-negative costs, and the
   digest of every column recorded when it was written (`row_digest`; a row without one in a
@@ -173,7 +175,7 @@ def check_row(row: dict, known_statuses=None) -> str | None:
         if (lo == lo and lo > mid * (1 + 1e-12)) or (hi == hi and hi < mid * (1 - 1e-12)):
             return f"run_time_low <= run_time <= run_time_high does not hold ({lo:g}, {mid:g}, {hi:g})"
     digest = row.get("row_digest")
-    if not is_missing(digest) and str(digest) not in (row_digest(row), legacy_digest(row)):
+    if not is_missing(digest) and not (store.digest_holds(row, DIGEST_EXCLUDED) or str(digest) == legacy_digest(row)):
         return "its values do not match the digest written with it (edited or damaged after it was written)"
     return None
 
@@ -182,7 +184,7 @@ def is_legacy(row: dict) -> bool:
     """Whether a row predates digests over every column (none, or `legacy_digest`'s): what its
     digest does not cover is checked by range only."""
     digest = row.get("row_digest")
-    return is_missing(digest) or (str(digest) != row_digest(row) and str(digest) == legacy_digest(row))
+    return is_missing(digest) or (not store.digest_holds(row, DIGEST_EXCLUDED) and str(digest) == legacy_digest(row))
 
 
 # ------------------------------------------------------------------------------------------
@@ -204,15 +206,15 @@ class StoredRuns:
     def unverified(self) -> int:
         return len(self.legacy)
 
-    @property
-    def resumable(self) -> list[dict]:
-        """The trusted rows a run may keep instead of computing (transient failures retried, rows
-        that predate full digests recomputed unless accepted)."""
+    def reusable(self, row: dict) -> bool:
+        """Whether a run may keep ``row``, one of `rows`, instead of computing it again (given the
+        same `run_key`): not a status that may have been transient (`RETRY_STATUSES`: retried),
+        and not a row that predates full digests (recomputed unless accepted). The grid sweep's
+        `benchmark.core.study.Study.reusable`."""
         from reelbench.integrators.base import RETRY_STATUSES
 
-        legacy = {id(r) for r in self.legacy}
-        return [r for r in self.rows if r.get("status") not in RETRY_STATUSES and r.get("run_key")
-                and id(r) not in legacy]
+        return (row.get("status") not in RETRY_STATUSES and bool(row.get("run_key"))
+                and not any(row is r for r in self.legacy))
 
     def accept_legacy(self) -> None:
         """Keep the rows that predate full digests (checked by range) and give them digests, so
@@ -227,8 +229,6 @@ class StoredRuns:
 TEXT_COLUMNS = ("scene", "integrator", "setting", "status", "reason", "rhs", "implementation", "run_key",
                 "row_digest", "scene_key", "traceback", "flops_note", "rejected_because", "package",
                 "package_version", "code_digest")
-#: A runs table is a few MB; anything far larger is not one (and is not read whole).
-MAX_RUNS_BYTES = 512 * 2**20
 
 
 def _records(records: Iterable[dict]) -> list[dict]:
@@ -352,7 +352,7 @@ def read_runs(path: str | os.PathLike, log: Callable[[str], None] | None = None)
     if not path.exists():  # (a dangling link too: the table is written fresh in its place)
         return StoredRuns([], [])
     try:
-        data = read_regular_file(path, MAX_RUNS_BYTES)
+        data = read_regular_file(path, store.MAX_TABLE_BYTES)
     except FileRefused as exc:  # kept as it is: the run is refused, before any work
         raise ValueError(f"{path} {exc}: move it away, or give another --out") from None
     why, aside, lost = None, None, 0

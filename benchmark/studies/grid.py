@@ -4,28 +4,34 @@
 energy study when --horizon asks for one (`benchmark.studies.horizon`) and README.md
 (`runs_report`). It ranks nothing: the answer is `benchmark.answer.answer`'s.
 
-The run's rows join the table already in ``--out`` (`benchmark.core.store.merge_rows`; what
-may join is `benchmark.runs.table`'s): rows of other scenes, methods or settings are kept and
-every file is written from the merged table. The output lock is held for the whole sweep;
-Ctrl-C / SIGTERM keeps every finished row and ends in one line saying what was saved, with
-the exit status 130 / 143.
+The sweep is a study of the one runner (`benchmark.core.study.run`; `GridSweep`): one job per
+task, its row keyed by `benchmark.runs.table.run_key` and carrying the runs table's digest. The
+runner holds the output lock, merges the run's rows into the table already in ``--out``
+(`benchmark.core.store.merge_rows`) and saves it after every run, resumes, and ends a stop in one
+line (exit 130 / 143) with every finished row kept. What the runs table adds is its own: how its
+earlier table is read (`benchmark.runs.table.read_runs`: untrusted rows named and recomputed, a
+table that cannot be read whole salvaged) and what may join it (`_merge_plan`: refused before
+any work, rows set aside, --accept-legacy). Rows of other scenes, methods or settings are kept
+and every file is written from the merged table.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
 from reelbench.benchmark.core import engine
 from reelbench.benchmark.core import store
 from reelbench.benchmark.runs import sweep
 from reelbench.benchmark.runs import table as runs_table
-from reelbench.benchmark.core.policy import GRID_DIR, SAVE_EVERY
+from reelbench.benchmark.core.policy import GRID_DIR, ROW_IDENTITY, SAVE_EVERY
 from reelbench.benchmark.core.engine import log_stderr
-from reelbench.benchmark.core.study import exclusive
+from reelbench.benchmark.core.study import Study, Wording
 from reelbench.benchmark.core.report import Provenance
-from reelbench.models.io import inside, printable
+from reelbench.models.io import inside
 
 
 @dataclass(frozen=True)
@@ -69,29 +75,146 @@ class SweepRequest:
 
 
 def run_sweep(request: SweepRequest, log: Callable[[str], None] = log_stderr) -> int:
-    """The grid sweep into ``request.out``: runs.csv (written after every run), runs.md, the
-    figures, the energy study when ``request.horizon`` asks for one, and README.md (with the
-    orders of the `orders` study and the stability map's evidence, `study_file`). It ranks nothing: the
-    answer is `benchmark.answer.answer`'s. The run's rows join the table already
-    in ``out`` (`benchmark.core.store.merge_rows`): rows of other scenes, methods or settings are kept,
-    and every file is written from the merged table. A stopped sweep keeps its finished rows."""
+    """The grid sweep into ``request.out``, a study of the one runner (`benchmark.core.study.run`,
+    `GridSweep`): runs.csv (written after every run), runs.md, the figures, the energy study when
+    ``request.horizon`` asks for one, and README.md (with the orders of the `orders` study and the
+    stability map's evidence, `study_file`). It ranks nothing: the answer is
+    `benchmark.answer.answer`'s. The run's rows join the table already in ``out``: rows of other
+    scenes, methods or settings are kept, and every file is written from the merged table. A
+    stopped sweep keeps its finished rows."""
+    from reelbench.benchmark.core import study
+
+    sweep_ = GridSweep(request, log)
+    rc = study.run(sweep_.study(), request.out, command=request.command, fresh=request.fresh, log=log)
+    if rc == 0 and sweep_.failed:  # what of the energy study did not end with a result (a crashed worker)
+        log(f"error: the energy study did not finish for {'; '.join(sweep_.failed)}: its history is not in "
+            f"{request.out}/energy_horizon.csv (the runs table is complete)")
+        return 1
+    return rc
+
+
+class Job(NamedTuple):
+    """One run of the sweep: its task, the key of its row (`benchmark.runs.table.run_key`), whose
+    method it is (`benchmark.runs.runner.provenance`) and its predicted seconds."""
+
+    task: Any
+    key: str
+    origin: dict
+    cost: float
+
+
+def run_job(job: Job, cache_dir: str, repeats: int, budget) -> dict:
+    """A job's row of the runs table (`benchmark.runs.runner.run_task`, then `finish_row`)."""
     from reelbench.benchmark.runs import runner
 
-    runs_csv = store.TableWriter(request.out / "runs.csv", runner.runs_frame, drop=("traceback",))
-    try:
-        with exclusive(request.out, log):
-            return _sweep(request, runs_csv, log)
-    except (KeyboardInterrupt, OSError) as exc:
-        what = (f"{runs_csv.saved} finished run(s) are saved in {runs_csv.path}" if runs_csv.saved
-                else "no run had finished, nothing saved")
-        earlier = getattr(runs_csv, "earlier", 0)
-        if earlier:
-            what += f" (its {earlier} earlier row(s) are kept)"
-        resume = "run the same command again to resume (finished runs are kept), or add --fresh to recompute this run's rows"
-        if isinstance(exc, OSError):  # a full or failing disk: stop, say what is safe, exit 1
-            log(f"error: {printable(exc)}; {what}; free space (or fix the file system) and {resume}")
-            return 1
-        return engine.stopped(exc, f"{what}; {resume}", log)
+    return runner.finish_row(runner.run_task(job.task, cache_dir, repeats, budget=budget), job.key, job.origin)
+
+
+def crash_row(job: Job, exc: BaseException) -> dict:
+    """The row of a job whose worker died: status "crashed"."""
+    from reelbench.benchmark.runs import runner
+    from reelbench.integrators.base import CRASHED
+
+    row = {**runner._empty_row(job.task), "status": CRASHED, "reason": engine.crash_reason(exc)}
+    return runner.finish_row(row, job.key, job.origin)
+
+
+def runs_frame(rows):
+    """The runs table as runs.csv holds it (`benchmark.runs.runner.runs_frame`, without tracebacks)."""
+    from reelbench.benchmark.runs import runner
+
+    return runner.runs_frame(rows).drop(columns=["traceback"], errors="ignore")
+
+
+#: The runner's lines in the sweep's words ("1 finished run(s) are saved in ...").
+WORDING = Wording(row="run", saved="are saved in",
+                  kept="resuming: {kept} of {total} {unit} already done (kept); computing the other {left}")
+
+
+class GridSweep:
+    """The grid sweep as a study of the one runner (`study`): its tasks are the jobs, a row's
+    identity is `ROW_IDENTITY` and its key `run_key` (in its own column, so that a committed table
+    resumes); the runs table's digest (`benchmark.runs.table.DIGEST_EXCLUDED`), reading policy
+    (`read`) and rule of which rows a resume trusts (`StoredRuns.reusable`); the reference
+    solutions of the runs to compute first (`prepare`, its `Study.setup`); its report (`report`). It holds what
+    the runner's calls share: the earlier table as read, the energy study, what of it failed."""
+
+    def __init__(self, request: SweepRequest, log: Callable[[str], None]):
+        from reelbench.benchmark.runs import runner
+
+        self.request, self.log = request, log
+        tasks = sweep.build_tasks(request.scenes, request.integrators, quick=request.quick,
+                                dts=request.dts, rtols=request.rtols, t_end=request.t_end,
+                                overrides=dict(request.overrides))
+        code = store.code_version()
+        origins = {name: runner.provenance(name, code) for name in dict.fromkeys(t.integrator for t in tasks)}
+        self.jobs = [Job(t, runs_table.run_key(t, origins[t.integrator]["code_digest"]), origins[t.integrator], c)
+                     for t, c in zip(tasks, runner.task_costs(tasks))]
+        self.names, self.scenes = _this_run(request, tasks)
+        self.stored, self.energy, self.failed = None, None, []
+
+    def study(self) -> Study:
+        from reelbench.benchmark.core.reference import CACHE_DIR  # the references every study shares
+        from reelbench.benchmark.runs import runner
+
+        request = self.request
+        budget = request.budget or runner.SolveBudget()
+        serial = request.executor == "serial"
+        return Study(
+            name="grid sweep", table="runs.csv", identity=ROW_IDENTITY, jobs=self.jobs,
+            run_job=functools.partial(run_job, cache_dir=str(CACHE_DIR), repeats=request.repeats, budget=budget),
+            identity_of=self.identity_of, frame=runs_frame, report=self.report, describe=runner.describe_run,
+            key=lambda job: job.key, key_column="run_key",
+            digest=runs_table.DIGEST_EXCLUDED, crash_row=crash_row, cost=lambda job: job.cost,
+            group=lambda job: (job.task.scene, job.task.integrator),  # one worker per (scene, method): one compile
+            read=self.read, reusable=lambda row: self.stored.reusable(row), setup=self.prepare,
+            report_on_stop=False, unit="runs", wording=WORDING,
+            workers=0 if serial else (request.jobs or engine.default_workers(len(self.jobs))),
+            scheduler=request.scheduler if request.executor == "dask" else None)
+
+    def identity_of(self, job: Job) -> tuple:
+        return self.names[job.task.scene], job.task.integrator, job.task.setting
+
+    def read(self, path: Path, log) -> list[dict]:
+        """The runs table's reading policy (`benchmark.runs.table.read_runs`: untrusted rows named,
+        a table that cannot be read whole salvaged), then `_merge_plan` (refusals, rows set aside,
+        --accept-legacy) and the energy study's earlier table checked: all before any work."""
+        self.stored = runs_table.read_runs(path, log=log)
+        _merge_plan(self.request, set(map(self.identity_of, self.jobs)), self.scenes, self.stored, path, log)
+        if self.request.figures and self.request.energy_horizon > 0:
+            self.energy = _energy_study(self.request, log)
+        return self.stored.rows
+
+    def prepare(self, todo: list[Job]) -> list[tuple[str, Callable]]:
+        """The reference solutions of the runs to compute, each a setup call with its label."""
+        from reelbench.benchmark.core.reference import CACHE_DIR, ReferenceProblem, prepare_reference
+
+        problems = sorted({ReferenceProblem(t.scene, t.overrides, t.t_end, t.save_every) for t in (j.task for j in todo)},
+                          key=str)
+        if todo:
+            self.log(f"references for {len(problems)} scene(s) ...")
+        return [(f"reference {Path(p.scene).stem}" + (f" to t = {p.t_end:g} s" if p.t_end else ""),
+                 functools.partial(prepare_reference, p, str(CACHE_DIR))) for p in problems]
+
+    def report(self, out: Path, rows: list[dict], provenance: Provenance) -> str:
+        """runs.md, the figures (and the energy study) and README.md of the whole merged table."""
+        from reelbench.benchmark.core.report import markdown_table
+        from reelbench.benchmark.studies import runs_report
+        from reelbench.models.io import atomic_write_text
+
+        request, merged = self.request, runs_frame(rows)
+        atomic_write_text(out / "runs.md", markdown_table(merged.drop(columns=[c for c in ("reason", "run_key",
+                                                                                          "row_digest", "scene_key")
+                                                                               if c in merged])))
+        orders = _orders_table(out)  # the short-horizon orders study's (`python -m benchmark orders`), never the sweep's
+        failures = runs_report.failure_sentence(merged, study_file(out, "stability/stability.csv"))
+        figures = _sweep_figures(request, merged, self.log, self.failed, self.energy) if request.figures else []
+        # the README states the runs it merges itself (`_sweep_readme`), and no worker count
+        provenance = dataclasses.replace(provenance, workers=None, history=())
+        _sweep_readme(request, merged, orders, figures, provenance, failures,
+                      merged_note=_merged_note(len(self.jobs), merged))
+        return (f"{len(self.jobs)} runs in this run, {len(merged)} in {out}/runs.csv; {failures} "
+                f"See {out}/README.md")
 
 
 #: The committed grid sweep's directory (`python -m benchmark run`'s default --out).
@@ -127,11 +250,11 @@ def _this_run(request: SweepRequest, tasks) -> tuple[dict, dict]:
     return names, scenes
 
 
-def _merge_plan(request: SweepRequest, tasks, stored: runs_table.StoredRuns, path: Path, log) -> None:
-    """Refuse a run whose rows cannot join the table in its --out (before any work), set aside
-    the untrusted rows no recomputation will replace, and say in one line what the run replaces."""
-    names, scenes = _this_run(request, tasks)
-    mine = {(names[t.scene], t.integrator, t.setting) for t in tasks}
+def _merge_plan(request: SweepRequest, mine: set, scenes: dict, stored: runs_table.StoredRuns, path: Path,
+                log) -> None:
+    """Refuse a run whose rows (identities ``mine``, of ``scenes``: `_this_run`) cannot join the
+    table in its --out (before any work), set aside the untrusted rows no recomputation will
+    replace, and say in one line what the run replaces."""
     conflicts = runs_table.merge_conflicts(stored.rows, scenes)
     if conflicts:
         raise ValueError(f"{path} cannot take this run's rows: {'; '.join(conflicts)}. A table holds one horizon and "
@@ -166,49 +289,6 @@ def _merge_plan(request: SweepRequest, tasks, stored: runs_table.StoredRuns, pat
         stored.accept_legacy()
 
 
-def _sweep(request: SweepRequest, runs_csv: store.TableWriter, log) -> int:
-    from reelbench.benchmark.runs import runner
-    from reelbench.benchmark.studies import runs_report
-    from reelbench.benchmark.core.reference import CACHE_DIR
-    from reelbench.benchmark.core.report import markdown_table
-    from reelbench.models.io import atomic_write_text
-
-    out = request.out
-    cache = CACHE_DIR  # the references every study shares (`benchmark.core.reference.user_cache_dir`)
-    provenance = Provenance(request.command)
-    tasks = sweep.build_tasks(request.scenes, request.integrators, quick=request.quick, dts=request.dts,
-                              rtols=request.rtols, t_end=request.t_end, overrides=dict(request.overrides))
-    stored = runs_table.read_runs(runs_csv.path, log=log)
-    _merge_plan(request, tasks, stored, runs_csv.path, log)  # refuses a run that cannot join, before any work
-    energy = _energy_study(request, log) if request.figures and request.energy_horizon > 0 else None
-    base = stored.rows
-    runs_csv.to_table = lambda rows: runner.runs_frame(store.merge_rows(base, rows))
-    runs_csv.earlier = len(base)
-    log(f"{len(tasks)} runs: {len(request.scenes)} scene(s) × {len({t.integrator for t in tasks})} integrator(s); "
-        f"results -> {out}/")
-    runs = runner.execute(tasks, jobs=request.jobs, executor=request.executor, scheduler=request.scheduler,
-                          repeats=request.repeats, cache_dir=str(cache), on_row=runs_csv,
-                          **({"budget": request.budget} if request.budget else {}),
-                          previous=[] if request.fresh else stored.resumable, log=log,
-                          group=lambda t: (t.scene, t.integrator))  # one worker per (scene, method): one compile
-    runs_csv(runs.to_dict("records"))
-    merged = runs_csv.to_table(runs.to_dict("records")).drop(columns=["traceback"], errors="ignore")
-    atomic_write_text(out / "runs.md", markdown_table(merged.drop(columns=[c for c in ("reason", "run_key", "row_digest",
-                                                                                      "scene_key") if c in merged])))
-    orders = _orders_table(out)  # the short-horizon orders study's (`python -m benchmark orders`), never the sweep's
-    failures = runs_report.failure_sentence(merged, study_file(out, "stability/stability.csv"))
-    failed: list[str] = []  # what of the energy study did not end with a result (a crashed worker)
-    figures = _sweep_figures(request, merged, log, failed, energy) if request.figures else []
-    _sweep_readme(request, merged, orders, figures, provenance, failures, merged_note=_merged_note(runs, merged))
-    log(f"done in {provenance.wall_time():.0f} s: {len(runs)} runs in this run, {len(merged)} in {out}/runs.csv; "
-        f"{failures} See {out}/README.md")
-    if failed:
-        log(f"error: the energy study did not finish for {'; '.join(failed)}: its history is not in "
-            f"{out}/energy_horizon.csv (the runs table is complete)")
-        return 1
-    return 0
-
-
 def _orders_table(out: Path):
     """``out``/orders.csv of the orders study, or None when there is none (or it is unreadable or from
     before the study: the sweep's slopes over chaotic horizons, which are not orders)."""
@@ -222,11 +302,11 @@ def _orders_table(out: Path):
     return table if table is not None and {"declared_order", "within_theory"} <= set(table.columns) else None
 
 
-def _merged_note(runs, merged) -> str:
-    other = len(merged) - len(runs)
+def _merged_note(runs: int, merged) -> str:
+    other = len(merged) - runs
     if other <= 0:
         return ""
-    return (f"This run computed or kept {len(runs)} of the {len(merged)} rows; the other {other} come from earlier runs "
+    return (f"This run computed or kept {runs} of the {len(merged)} rows; the other {other} come from earlier runs "
             "into the same directory (other scenes, methods or settings), as they were.")
 
 
@@ -247,15 +327,12 @@ def _paper_key(request: SweepRequest, scene, paper) -> str:
 def _sweep_figures(request: SweepRequest, merged, log, failed: list | None = None,
                    energy=None) -> list[tuple[str, str]]:
     """Work–precision per scene of the merged table, the paper's panels of this run's scenes
-    (from the method that declares the paper's settings, the LGVI at its step size), and the
-    ``energy`` study (`_energy_study`: its runs that failed go to ``failed``): (file name, note)
-    each. A figure whose inputs did not change since it was drawn
+    (`_paper_figures`), and the ``energy`` study (`_energy_study`: its runs that failed go to
+    ``failed``): (file name, note) each. A figure whose inputs did not change since it was drawn
     (`benchmark.core.store.OutputKeys`) is kept, not redrawn."""
     import time
 
     from reelbench.benchmark.figures import plots
-    from reelbench.integrators import get_integrator
-    from reelbench.models.diagnostics import evaluate
 
     out = request.out
     keys = store.OutputKeys(out / "figures.json")
@@ -269,7 +346,27 @@ def _sweep_figures(request: SweepRequest, merged, log, failed: list | None = Non
             keys.record(name, key)
             log(f"figure: {name} ({time.perf_counter() - t0:.0f} s)")
         figures.append((name, ""))
-    paper = sweep.paper_method()
+    figures += _paper_figures(request, merged, keys, log)
+    if request.energy_horizon > 0:
+        from reelbench.benchmark.core import study
+        from reelbench.benchmark.studies import horizon_report
+
+        if energy is not None:  # in this run's lock: a stop is the sweep's
+            study.run(energy, out, command=request.command, fresh=request.fresh, log=log, held=True, failed=failed)
+        figures += horizon_report.listed(out, dict.fromkeys(j.tabled_as for j in energy.jobs) if energy else ())
+    return figures
+
+
+def _paper_figures(request: SweepRequest, merged, keys, log) -> list[tuple[str, str]]:
+    """The paper's panels of this run's scenes, from the method that declares the paper's settings
+    (the LGVI at its step size), and those an earlier run drew of the table's other scenes."""
+    import time
+
+    from reelbench.benchmark.figures import plots
+    from reelbench.integrators import get_integrator
+    from reelbench.models.diagnostics import evaluate
+
+    out, paper, figures = request.out, sweep.paper_method(), []
     for s in request.scenes:
         scene = request.scene(s)
         name, key, t0 = f"paper_{scene.name}.png", _paper_key(request, scene, paper), time.perf_counter()
@@ -288,13 +385,6 @@ def _sweep_figures(request: SweepRequest, merged, log, failed: list | None = Non
         name = f"paper_{scene}.png"
         if scene not in run_scenes and (out / name).is_file():
             figures.append((name, "drawn by an earlier run (this run did not include the scene)"))
-    if request.energy_horizon > 0:
-        from reelbench.benchmark.core import study
-        from reelbench.benchmark.studies import horizon_report
-
-        if energy is not None:  # in this run's lock: a stop is the sweep's
-            study.run(energy, out, command=request.command, fresh=request.fresh, log=log, held=True, failed=failed)
-        figures += horizon_report.listed(out, dict.fromkeys(j.tabled_as for j in energy.jobs) if energy else ())
     return figures
 
 
