@@ -19,14 +19,15 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from reelbench.benchmark.answer import search
 from reelbench.benchmark.core.policy import BEST_VERDICTS, CHEAPEST_FILE, RANKED_VERDICTS, SLOWER, TIE
 
 #: The markers of the project README's generated answer block.
 ANSWER_START, ANSWER_END = "<!-- answer:start -->", "<!-- answer:end -->"
 
 #: What limits a setting, in words (`benchmark.answer.search` bounds).
-LIMITED_BY = {"target": "accuracy", "stability": "stability", "largest setting": "the largest setting allowed",
-              "budget": "the search's budget"}
+LIMITED_BY = {search.TARGET: "accuracy", search.STABILITY: "stability",
+              search.LARGEST_SETTING: "the largest setting allowed", search.BUDGET: "the search's budget"}
 
 
 def family(integrator: str) -> str:
@@ -176,7 +177,7 @@ def sentences(h: pd.DataFrame, labels: dict) -> list[str]:
 def answer_block(table: pd.DataFrame, labels: dict | None = None, command: str = "python -m benchmark answer",
                  table_file: str = str(CHEAPEST_FILE)) -> str:
     """The project README's answer block: one table per N, one sentence per scene, how it was made."""
-    from reelbench.benchmark.answer import paired, search
+    from reelbench.benchmark.answer import paired
     from reelbench.benchmark.answer.table import LOWER_BOUND_NOTE
 
     bounded = sorted(table.loc[table["note"].fillna("").eq(LOWER_BOUND_NOTE), "integrator"].unique())

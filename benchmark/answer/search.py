@@ -40,6 +40,9 @@ from typing import Callable
 
 from reelbench.benchmark.core.policy import NOT_REACHED, RESOLUTION  # two settings this close in cost are close enough (the 10 %)
 
+#: What limits a search's answer (its ``bound``; see the module's docstring), besides `NOT_REACHED`.
+TARGET, STABILITY, LARGEST_SETTING, BUDGET = "target", "stability", "largest setting", "budget"
+
 #: The most runs of one search (bracket, bisection and confirmation together).
 MAX_RUNS = 24
 #: The lattice ratio of each axis: a step on the 2^(1/8) grid, a tolerance on the 1/8-decade grid.
@@ -244,7 +247,7 @@ def _found(points: dict[int, Point], target: float, lat: _Lattice, resolution: f
     if not meeting:  # the finest setting allowed missed it too, or the runs (or a run's own budget) ran out
         finest = points[ks[0]]
         return Found(target, NOT_REACHED if ks[0] <= lat.k_min and not _stopped_by_budget(finest.status)
-                     else "budget", setting_high=finest.setting, high_status=finest.status, points=plist)
+                     else BUDGET, setting_high=finest.setting, high_status=finest.status, points=plist)
     standing = [k for k in meeting if _stands(points, k, lat, confirm, target)]
 
     def cheapest(ks_):  # the cheapest by cost, the coarsest on ties
@@ -264,13 +267,13 @@ def _found(points: dict[int, Point], target: float, lat: _Lattice, resolution: f
                 confirmed=bool(standing), erratic_above=points[max(unstable)].setting if unstable else math.nan,
                 points=plist)
     if not standing:
-        out.bound = "budget"
+        out.bound = BUDGET
     elif coarser is None:
-        out.bound = "largest setting" if best >= lat.k_max else "budget"
+        out.bound = LARGEST_SETTING if best >= lat.k_max else BUDGET
     elif coarser.meets(target):  # a coarser setting met it without standing, or at a higher cost
-        out.bound = "target"
+        out.bound = TARGET
     elif not close(p, coarser, resolution) and ks[i + 1] - best > 1:
-        out.bound = "budget"
+        out.bound = BUDGET
     else:
-        out.bound = "target" if coarser.finished else "stability"
+        out.bound = TARGET if coarser.finished else STABILITY
     return out
