@@ -176,6 +176,20 @@ def test_a_dead_worker_s_job_is_a_row_with_its_status_and_is_run_again(tmp_path)
     assert CALLS == ["b"] and set(table(tmp_path)["status"]) == {"ok"}
 
 
+def test_what_a_study_keeps_beside_its_table_is_written_before_each_save(tmp_path):
+    seen = []
+
+    def beside(out, rows):  # the table on disk is still the one before this save
+        before = table(out)["name"].tolist() if (out / "toy.csv").exists() else []
+        seen.append(([r["name"] for r in rows], before))
+
+    assert go(toy([("z", 0)]), tmp_path) == 0
+    STOP_AT[0] = 2
+    CALLS.clear()
+    assert go(toy([("a", 1), ("b", 2)], beside=beside), tmp_path) == 130
+    assert seen == [(["z", "a"], ["z"])]  # the merged rows, the earlier one included, before a's save
+
+
 @pytest.mark.parametrize("content, fragment", [("name,value\na,1\nb,2,3,4\n", "cannot be read"),
                                                ("other,columns\n1,2\n", "no column name")])
 def test_an_earlier_table_it_cannot_read_is_refused_before_any_job(tmp_path, content, fragment):
@@ -269,3 +283,4 @@ def test_reel_reversal_stopped_keeps_its_finished_rows_and_a_rerun_runs_the_rest
     assert printed.startswith("scene reel_reversal, N = 2, t_end = 0.16 s; s_p-dot changes sign at t = 0.050 s")
     assert len([line for line in printed.splitlines() if line.startswith(("| lgvi |", "| lgvi_sym |"))]) == 8
     assert printed.strip() in (out / "reel_reversal.md").read_text()  # the file holds what is printed
+
