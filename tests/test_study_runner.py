@@ -284,3 +284,44 @@ def test_reel_reversal_stopped_keeps_its_finished_rows_and_a_rerun_runs_the_rest
     assert len([line for line in printed.splitlines() if line.startswith(("| lgvi |", "| lgvi_sym |"))]) == 8
     assert printed.strip() in (out / "reel_reversal.md").read_text()  # the file holds what is printed
 
+
+def _fake_xval(job) -> dict:
+    """Known tips for every code of the job's case (the merging is under test, not the physics)."""
+    import numpy as np
+
+    from reelbench.benchmark.studies import xval
+
+    tip = np.stack([np.sin(job.times), np.cos(job.times), job.times], axis=1) + 1.0 / job.N ** 2
+    runs = {code: xval.CodeRun(code, job.N, 1e-4, tip, 1000, 0.01 * job.N, {"min_strain": 1e-3})
+            for code in ("ours_consistent", "ours_lumped") + xval.CASES[job.case]}
+    return {"case": job.case, "N": job.N, "dt": 1e-4, "runs": runs}
+
+
+def test_xval_stopped_after_its_first_job_keeps_its_rows_and_a_rerun_resumes_it(tmp_path, monkeypatch, capsys):
+    import numpy as np
+
+    from reelbench.benchmark.cli.main import main
+    from reelbench.benchmark.studies import xval
+
+    out, ran = tmp_path / "x", []
+    args = ["xval", "--cases", "point_mass", "--elements", "5,10,20", "--t-end", "1", "--out", str(out)]
+    monkeypatch.setattr(xval, "run_job", _stopping(_fake_xval, 2, ran))
+    assert main(args) == 130
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "1 finished row(s) are merged" in last and "the report is written from it" in last, last
+    cost = pd.read_csv(out / "cost.csv")
+    assert set(zip(cost["case"], cost["N"])) == {("point_mass", 5)} and cost[KEY_COLUMN].notna().all()
+    assert list(cost["code"]) == ["ours_consistent", "ours_lumped", "moordyn", "mujoco"]
+    np.testing.assert_array_equal(np.load(out / "tips.npz")["point_mass_N5_moordyn"],
+                                  _fake_xval(ran[0])["runs"]["moordyn"].tip)
+    assert "# Cross-validation" in (out / "README.md").read_text()  # the report of the saved job
+
+    ran.clear()
+    monkeypatch.setattr(xval, "run_job", _stopping(_fake_xval, None, ran))
+    assert main(args) == 0
+    assert [j.N for j in ran] == [10, 20]  # N = 5 is kept: same code and settings
+    cost = pd.read_csv(out / "cost.csv")
+    assert list(dict.fromkeys(cost["N"])) == [5, 10, 20] and len(cost) == 12
+    assert pd.read_csv(out / "self_convergence.csv")["N_next"].tolist()[:2] == [10, 20]
+    ran.clear()
+    assert main(args + ["--fresh"]) == 0 and [j.N for j in ran] == [5, 10, 20]

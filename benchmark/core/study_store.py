@@ -6,7 +6,8 @@ other studies do the same with their own tables and row identities:
 * `stability`: ``stability.csv``, one row per (scene, integrator, kind);
 * `speed`: the rows table beside its Markdown file (``lgvi_speed.csv`` beside
   ``lgvi_speed.md``), one row per (kind, method, right-hand side, scene, N);
-* `xval`: its study, rebuilt from ``tips.npz`` and ``cost.csv`` (`benchmark.studies.xval.earlier_xval`);
+* `xval`: ``cost.csv``, one row per (case, N, code), a job's rows replaced as a whole, with the
+  tips beside it in ``tips.npz`` (`benchmark.studies.xval_output`);
 * `answer`: ``search.csv`` and ``timing.csv``, each row checked by its digest
   (`benchmark.answer.answer.read_rows`).
 
