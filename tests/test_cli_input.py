@@ -204,11 +204,10 @@ def no_pipeline(monkeypatch):
     """Every pipeline replaced by a failure: a bad input that got through would start work."""
     from reelbench.benchmark.cli import simulate
     from reelbench.benchmark.core import study
-    from reelbench.benchmark.studies import check, grid, xval
+    from reelbench.benchmark.studies import check, grid
 
     monkeypatch.setattr(study, "run", lambda s, *a, **k: pytest.fail(f"reached the study {s.name}"))
-    for module, name in ((grid, "run_sweep"), (simulate, "simulate"), (simulate, "draw_figures"), (check, "run_check"),
-                         (xval, "run_xval")):
+    for module, name in ((grid, "run_sweep"), (simulate, "simulate"), (simulate, "draw_figures"), (check, "run_check")):
         monkeypatch.setattr(module, name, lambda *a, _n=name, **k: pytest.fail(f"reached the pipeline {_n}"))
 
 

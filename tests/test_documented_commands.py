@@ -46,7 +46,7 @@ NEEDS_EFFECT_EXAMPLE = re.compile(r"\btip_spring|\bverify\b")
 #: The pipeline each documented command reaches, and the output the docs name for it (checked
 #: in the default run; "" where the command has no output directory of its own).
 REACHES = {"run": ("run_sweep", "out"), "check": ("run_check", ""), "speed": ("study:speed", "out"),
-           "stability": ("study:stability map", "out"), "xval": ("run_xval", "out"),
+           "stability": ("study:stability map", "out"), "xval": ("study:xval", "out"),
            "reel-reversal": ("study:reel-reversal", "out"), "orders": ("study:orders", "out"),
            "energy": ("study:horizon", "out"), "answer": ("run_answer", "out"), "list": (None, "")}
 #: The documented outputs, by command: where the docs say its results go.
@@ -122,23 +122,20 @@ import json, sys
 from pathlib import Path
 from reelbench.benchmark.cli import simulate
 from reelbench.benchmark.cli.main import main
-from reelbench.benchmark.studies import check, grid, xval
+from reelbench.benchmark.studies import check, grid
 calls = []
 def recorder(name):
     def record(*args, **kw):
         out = kw.get("out")
         if name == "run_sweep":
             out = args[0].out
-        elif name == "run_xval":
-            out = args[3]
         calls.append({"pipeline": name, "out": None if out is None else str(out)})
         return 0
     return record
 from reelbench.benchmark.core import study
 study.run = lambda s, out, **kw: calls.append({"pipeline": "study:" + s.name, "out": str(out),
                                               "table": str(Path(out) / s.table)}) or 0
-for module, name in ((grid, "run_sweep"), (simulate, "simulate"), (simulate, "draw_figures"), (check, "run_check"),
-                     (xval, "run_xval")):
+for module, name in ((grid, "run_sweep"), (simulate, "simulate"), (simulate, "draw_figures"), (check, "run_check")):
     setattr(module, name, recorder(name))
 from reelbench.benchmark.answer import answer
 answer.run_answer = lambda request, *a, **kw: recorder("run_answer")(out=request.out)

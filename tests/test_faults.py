@@ -217,9 +217,10 @@ LONG = {  # each runs for minutes if not stopped
     "speed": ["speed", "--elements", "10", "--scenes", "fixed_length", "--integrators", "lgvi", "--steps", "2000000",
               "--repeats", "50", "--rhs", "", "--out", "{d}/speed.md"],
 }
-#: simulate ends its run where it is and saves it; the studies keep (merge) what finished
+#: simulate ends its run where it is and saves it; the studies keep (merge) what finished (xval is
+#: stopped after its first job: that job's rows are kept)
 EXPECTED = {"simulate": "is saved in", "check": "the baseline was not changed",
-            "stability": "no row had finished", "xval": "is as it was", "speed": "no row had finished"}
+            "stability": "no row had finished", "xval": "finished row(s) are merged", "speed": "no row had finished"}
 #: The line each command writes once it is past its checks and imports, at work: the signal is
 #: sent after it (a fixed sleep raced the imports on a loaded machine). A stop in the imports
 #: themselves is tested on its own (`test_a_stop_during_an_import_lands_when_the_import_ends`).

@@ -229,11 +229,11 @@ def stubbed(monkeypatch):
     """The pipelines replaced by a recorder: an accepted command line does no work."""
     from reelbench.benchmark.cli import simulate
     from reelbench.benchmark.core import study
-    from reelbench.benchmark.studies import check, grid, xval
+    from reelbench.benchmark.studies import check, grid
 
     calls = []
     monkeypatch.setattr(study, "run", lambda s, *a, **k: calls.append((f"study:{s.name}", a, k)) or 0)
-    for module, name in ((grid, "run_sweep"), (simulate, "simulate"), (check, "run_check"), (xval, "run_xval")):
+    for module, name in ((grid, "run_sweep"), (simulate, "simulate"), (check, "run_check")):
         monkeypatch.setattr(module, name, lambda *a, _n=name, **k: calls.append((_n, a, k)) or 0)
     return calls
 

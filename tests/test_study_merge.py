@@ -176,32 +176,31 @@ def test_speed_will_not_overwrite_a_file_whose_rows_it_cannot_keep(tmp_path, mon
 # ------------------------------------------------------------------------------------------
 # xval
 # ------------------------------------------------------------------------------------------
-def _synthetic_study(scene, elements, t_end, cases=None):
-    """Known tips x_N(t) = X(t) + c_code/N² for every code of every case (tests/test_xval.py)."""
+def _synthetic_job(job):
+    """Known tips x_N(t) = X(t) + c_code/N² for every code of the job's case (tests/test_xval.py)."""
     from reelbench.benchmark.studies import xval
 
-    times = np.linspace(0.0, t_end, round(t_end / xval.OUTPUT_INTERVAL) + 1)
+    times = job.times
     X = np.stack([np.sin(times), np.cos(times), times], axis=1)
     coef = {"ours_consistent": 1.0, "ours_lumped": -2.0, "moordyn": -2.0, "mujoco": -2.0}
-    runs = {}
-    for case in cases or xval.cases_of(scene):
-        for N in elements:
-            runs[(case, N)] = {code: xval.CodeRun(code, N, 1e-4, X + np.array([1.0, 0.5, 0.25]) * coef[code] / N ** 2,
-                                                  1000, 0.01 * N, {"min_strain": 1e-3, "rhs_evals": 5000})
-                               for code in ("ours_consistent", "ours_lumped") + xval.CASES[case]}
-    return xval.Study(times, runs)
+    N = job.N
+    runs = {code: xval.CodeRun(code, N, 1e-4, X + np.array([1.0, 0.5, 0.25]) * coef[code] / N ** 2,
+                               1000, 0.01 * N, {"min_strain": 1e-3, "rhs_evals": 5000})
+            for code in ("ours_consistent", "ours_lumped") + xval.CASES[job.case]}
+    return {"case": job.case, "N": N, "dt": 1e-4, "runs": runs}
 
 
 def _xval(monkeypatch, out, elements, stop=False):
     from reelbench.benchmark.studies import xval
 
-    def study(scene, elements, t_end, cases=None, log=None):
+    def run_job(job):
         if stop:
             raise KeyboardInterrupt("signal SIGTERM")
-        return _synthetic_study(scene, [int(n) for n in elements], t_end, cases)
+        return _synthetic_job(job)
 
-    monkeypatch.setattr(xval, "study", study)
-    return main(["xval", "--elements", elements, "--t-end", "1", "--out", str(out)])
+    monkeypatch.setattr(xval, "run_job", run_job)
+    # a stopped run recomputes its jobs (--fresh): else it would keep them, all finished, and not stop
+    return main(["xval", "--elements", elements, "--t-end", "1", "--out", str(out)] + (["--fresh"] if stop else []))
 
 
 def test_a_narrow_xval_keeps_the_runs_it_does_not_recompute(tmp_path, monkeypatch, capsys):
@@ -247,7 +246,7 @@ def test_an_xval_that_cannot_keep_the_earlier_runs_is_refused_before_any_work(tm
             run["scene_key_lumped"] = "0123456789abcdef"
     (out / "settings.json").write_text(json.dumps(settings))
     files = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
-    monkeypatch.setattr(xval, "study", lambda *a, **k: pytest.fail("started work"))
+    monkeypatch.setattr(xval, "run_job", lambda *a, **k: pytest.fail("started work"))
     assert main(["xval", "--elements", "5,10", "--out", str(out)]) == 2
     err = _outcome(capsys)
     assert "cannot merge with and would overwrite" in err and "point_mass N=20" in err, err

@@ -176,6 +176,20 @@ def test_a_dead_worker_s_job_is_a_row_with_its_status_and_is_run_again(tmp_path)
     assert CALLS == ["b"] and set(table(tmp_path)["status"]) == {"ok"}
 
 
+def test_what_a_study_keeps_beside_its_table_is_written_before_each_save(tmp_path):
+    seen = []
+
+    def beside(out, rows):  # the table on disk is still the one before this save
+        before = table(out)["name"].tolist() if (out / "toy.csv").exists() else []
+        seen.append(([r["name"] for r in rows], before))
+
+    assert go(toy([("z", 0)]), tmp_path) == 0
+    STOP_AT[0] = 2
+    CALLS.clear()
+    assert go(toy([("a", 1), ("b", 2)], beside=beside), tmp_path) == 130
+    assert seen == [(["z", "a"], ["z"])]  # the merged rows, the earlier one included, before a's save
+
+
 @pytest.mark.parametrize("content, fragment", [("name,value\na,1\nb,2,3,4\n", "cannot be read"),
                                                ("other,columns\n1,2\n", "no column name")])
 def test_an_earlier_table_it_cannot_read_is_refused_before_any_job(tmp_path, content, fragment):
@@ -314,3 +328,45 @@ def test_a_setup_of_the_jobs_runs_for_those_not_kept_and_a_held_caller_reads_wha
     [merged] = tables
     assert [r["name"] for r in merged.base] == ["a"] and merged.saved == 1
     assert list(table(tmp_path)["name"]) == ["a", "b"]
+
+
+def _fake_xval(job) -> dict:
+    """Known tips for every code of the job's case (the merging is under test, not the physics)."""
+    import numpy as np
+
+    from reelbench.benchmark.studies import xval
+
+    tip = np.stack([np.sin(job.times), np.cos(job.times), job.times], axis=1) + 1.0 / job.N ** 2
+    runs = {code: xval.CodeRun(code, job.N, 1e-4, tip, 1000, 0.01 * job.N, {"min_strain": 1e-3})
+            for code in ("ours_consistent", "ours_lumped") + xval.CASES[job.case]}
+    return {"case": job.case, "N": job.N, "dt": 1e-4, "runs": runs}
+
+
+def test_xval_stopped_after_its_first_job_keeps_its_rows_and_a_rerun_resumes_it(tmp_path, monkeypatch, capsys):
+    import numpy as np
+
+    from reelbench.benchmark.cli.main import main
+    from reelbench.benchmark.studies import xval
+
+    out, ran = tmp_path / "x", []
+    args = ["xval", "--cases", "point_mass", "--elements", "5,10,20", "--t-end", "1", "--out", str(out)]
+    monkeypatch.setattr(xval, "run_job", _stopping(_fake_xval, 2, ran))
+    assert main(args) == 130
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "1 finished row(s) are merged" in last and "the report is written from it" in last, last
+    cost = pd.read_csv(out / "cost.csv")
+    assert set(zip(cost["case"], cost["N"])) == {("point_mass", 5)} and cost[KEY_COLUMN].notna().all()
+    assert list(cost["code"]) == ["ours_consistent", "ours_lumped", "moordyn", "mujoco"]
+    np.testing.assert_array_equal(np.load(out / "tips.npz")["point_mass_N5_moordyn"],
+                                  _fake_xval(ran[0])["runs"]["moordyn"].tip)
+    assert "# Cross-validation" in (out / "README.md").read_text()  # the report of the saved job
+
+    ran.clear()
+    monkeypatch.setattr(xval, "run_job", _stopping(_fake_xval, None, ran))
+    assert main(args) == 0
+    assert [j.N for j in ran] == [10, 20]  # N = 5 is kept: same code and settings
+    cost = pd.read_csv(out / "cost.csv")
+    assert list(dict.fromkeys(cost["N"])) == [5, 10, 20] and len(cost) == 12
+    assert pd.read_csv(out / "self_convergence.csv")["N_next"].tolist()[:2] == [10, 20]
+    ran.clear()
+    assert main(args + ["--fresh"]) == 0 and [j.N for j in ran] == [5, 10, 20]

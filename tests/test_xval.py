@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from reelbench.benchmark.studies import xval
-from reelbench.benchmark.studies import xval_report
+from reelbench.benchmark.studies import xval_moordyn, xval_mujoco, xval_report
 from reelbench.benchmark.core.report import Provenance
 from reelbench.benchmark.cli.main import main as cli_main
 from reelbench.models import build_model, load_scene
@@ -64,10 +64,10 @@ def test_lumped_in_water_equals_moordyn(point_scene, tmp_path, cache):
 
 
 def test_study_in_water_same_model_to_1e9_at_equal_n(point_scene):
-    """The study's own equal-N comparison (`xval.study`, its tables): our lumped model's DOP853
+    """The study's own equal-N comparison (`xval.compute`, its tables): our lumped model's DOP853
     solution vs MoorDyn at the study's dt, in water, at N = 5 over 0.5 s, is at most 1e-9 m, and so
     is MoorDyn's time error (its dt vs dt/2); the LGVI rows are the LGVI's time error, not the model's."""
-    study = xval.study(point_scene, elements=(5,), t_end=0.5, cases=["in_water"], log=lambda msg: None)
+    study = xval.compute(point_scene, elements=(5,), t_end=0.5, cases=["in_water"], log=lambda msg: None)
     runs = study.runs[("in_water", 5)]
     assert set(runs) == {"ours_consistent", "ours_lumped", xval.REFERENCE_CODE, "moordyn", "moordyn_half_dt"}
     assert runs["moordyn_half_dt"].dt == pytest.approx(runs["moordyn"].dt / 2)
@@ -162,7 +162,7 @@ def test_mujoco_xml_masses_springs_and_body(body_scene, point_scene):
     # the free body: inertia about its frame origin (the attachment point) = J_o (the node's
     # lumped mass sits at that origin and adds nothing there)
     model = build_model(body_scene)
-    M, com, J = xval._combined_inertia(model.m_b, model.J_c, model.rho_c, 0.0625)
+    M, com, J = xval_mujoco._combined_inertia(model.m_b, model.J_c, model.rho_c, 0.0625)
     J_origin = J + M * (com @ com * np.eye(3) - np.outer(com, com))
     np.testing.assert_allclose(J_origin, model.J_o, rtol=1e-13, atol=1e-15)
     np.testing.assert_allclose(M * com, model.m_b * model.rho_c, rtol=1e-14)
@@ -171,12 +171,12 @@ def test_mujoco_xml_masses_springs_and_body(body_scene, point_scene):
 def test_moordyn_state_file_roundtrip(tmp_path):
     head = b"MoorDyn\x02\x07" + (0).to_bytes(8, "little") + (2).to_bytes(8, "little")
     blocks = [np.arange(6.0).reshape(1, 6), np.arange(24.0).reshape(4, 6) / 7]
-    xval._write_state(tmp_path / "s.bin", head, blocks)
-    h2, b2 = xval._read_state(tmp_path / "s.bin")
+    xval_moordyn._write_state(tmp_path / "s.bin", head, blocks)
+    h2, b2 = xval_moordyn._read_state(tmp_path / "s.bin")
     assert h2 == head and all(np.array_equal(a, b) for a, b in zip(blocks, b2))
     (tmp_path / "bad.bin").write_bytes(b"NotMoorDyn")
     with pytest.raises(RuntimeError, match="not a MoorDyn state file"):
-        xval._read_state(tmp_path / "bad.bin")
+        xval_moordyn._read_state(tmp_path / "bad.bin")
 
 
 # ------------------------------------------------------------------------------------------
@@ -236,7 +236,7 @@ def test_tables_and_readme_from_synthetic_runs(tmp_path, body_scene):
                                        {"min_strain": 1e-3, **({"rhs_evals": 12000} if ref else {})}
                                        if code.startswith("ours") else {})
             runs[(case, N)] = r
-    study = xval.Study(times, runs)
+    study = xval.Runs(times, runs)
     readme = xval_report.write_outputs(study, body_scene, tmp_path, Provenance("python -m benchmark xval --test"))
     import pandas as pd
 

@@ -1,5 +1,6 @@
 """`python -m benchmark xval`: the cross-validation against MoorDyn and MuJoCo
-(`benchmark.studies.xval`), its scene checked as translatable, then `benchmark.studies.xval.run_xval`.
+(`benchmark.studies.xval`), its scene checked as translatable, on the one study runner
+(`benchmark.core.study.run`).
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ def cmd_xval(args) -> int:
     """Cross-validation against MoorDyn and MuJoCo; exit 2 on a scene it cannot translate."""
     import importlib.util
 
-    ints = args.elements or None  # two or more N >= 2 (parsed)
+    from reelbench.benchmark.core import study
     from reelbench.benchmark.studies import xval
     from reelbench.models import load_scene
 
@@ -25,14 +26,17 @@ def cmd_xval(args) -> int:
     if unknown:
         raise UsageError(f"--cases {common.csv_of(unknown)}: allowed {common.csv_of(xval.CASES)}")
     xval.check_scene(scene)  # names what cannot be translated, before any work
-    opt.check_size(scene, args.t_end or xval.DEFAULT_T_END, xval.OUTPUT_INTERVAL, what=f"xval of {scene.name}",
-                   save_option=None)
+    t_end = args.t_end or xval.DEFAULT_T_END
+    opt.check_size(scene, t_end, xval.OUTPUT_INTERVAL, what=f"xval of {scene.name}", save_option=None)
     out = opt.writable_dir(args.out)
     missing = [m for m in ("moordyn", "mujoco") if importlib.util.find_spec(m) is None]
     if missing:
         raise UsageError(f"xval needs {', '.join(missing)}: pip install 'reelbench[xval]'")
-    return xval.run_xval(args.scene, ints or list(xval.DEFAULT_ELEMENTS), args.t_end or xval.DEFAULT_T_END, out,
-                         command=common.command(args), log=_log, cases=args.cases)
+    opt.no_directory_at(out, (xval.TABLE, "tips.npz", "settings.json", "README.md"))
+    # two or more N >= 2 (parsed)
+    the_study = xval.study(args.scene, args.elements or list(xval.DEFAULT_ELEMENTS), t_end, out, cases=args.cases,
+                           log=_log)
+    return study.run(the_study, out, command=common.command(args), fresh=args.fresh, log=_log)
 
 
 def add_xval(sub) -> None:
@@ -43,5 +47,6 @@ def add_xval(sub) -> None:
     common.add_t_end(xv, "(default: 5)")
     xv.add_argument("--cases", type=opt.names, help="comma-separated cases of point_mass, rigid_body, in_water "
                                                     "(default: every case the scene has)")
+    common.add_fresh(xv, "OUT/cost.csv")
     common.add_out(xv, "output directory (created if missing)", default=str(policy.XVAL_DIR))
     xv.set_defaults(func=cmd_xval)

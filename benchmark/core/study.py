@@ -11,7 +11,8 @@ job makes, its table's columns and its report. `run` owns the rest, the same for
   table's, plugs it in: `Study.read`); this run's rows replace those with the same identity and
   every other row is kept;
 - the jobs run on the engine (workers, this process or Dask), and the merged table is written
-  atomically after every finished row, so a stop keeps every finished row;
+  atomically after every finished row (what the study keeps beside it first, `Study.beside`), so
+  a stop keeps every finished row;
 - a rerun resumes: a job whose finished row is in the table, made from the same key
   (`Study.key`: the code and settings that determine it), is not run again, unless ``fresh``;
 - a study whose rows carry a digest (`Study.digest`, `benchmark.core.store.row_digest`) has
@@ -106,6 +107,9 @@ class Study:
     - ``report_on_stop``: whether a stopped study writes its report (False where the report is
       work of its own, such as a solve for a figure, which a stop must not start);
     - ``wording``: how the runner's lines name its rows (`Wording`);
+    - ``beside(out, rows)``: writes what the study keeps beside its table from the merged table
+      rows (e.g. arrays a CSV cannot hold), before each save of the table, so that every saved
+      row has it;
     - ``unit``: what the log lines call its jobs;
     - ``workers``: 0 in this process, else that many worker processes; ``scheduler``: a Dask
       address."""
@@ -128,6 +132,7 @@ class Study:
     reusable: Callable[[dict], bool] | None = None
     failure: Callable[[dict], str | None] | None = None
     after_jobs: Callable[[Path, Callable[[str], None]], None] | None = None
+    beside: Callable[[Path, list[dict]], None] | None = None
     unit: str = "jobs"
     key_column: str = KEY_COLUMN
     digest: tuple[str, ...] | None = None
@@ -275,6 +280,8 @@ class _Session:
 
     def _on_rows(self, done: list[dict]) -> None:
         self.rows[:] = [r for r in done if not any(r is k for k in self.kept.values())]  # kept rows are in the table
+        if self.study.beside is not None:  # first: a saved row always has what the study keeps beside it
+            self.study.beside(self.out, self.table.merged(self.rows))
         self.table(self.rows)
 
     def report(self) -> str:

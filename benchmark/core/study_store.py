@@ -9,9 +9,10 @@ on the runner, `benchmark.core.study.run`: `MergedTable`), each table with its o
 * `stability`: ``stability.csv``, one row per (scene, integrator, kind);
 * `speed`: the rows table beside its Markdown file (``lgvi_speed.csv`` beside
   ``lgvi_speed.md``), one row per (kind, method, right-hand side, scene, N);
-* `xval`: its study, rebuilt from ``tips.npz`` and ``cost.csv`` (`benchmark.studies.xval.earlier_xval`);
-* `answer`: ``search.csv`` and ``timing.csv``, one row per search and per paired timing, each
-  row checked by its digest (`benchmark.answer.answer`).
+* `xval`: ``cost.csv``, one row per (case, N, code), a job's rows replaced as a whole, with the
+  tips beside it in ``tips.npz`` (`benchmark.studies.xval_output`);
+* `answer`: ``search.csv`` and ``timing.csv``, each row checked by its digest
+  (`benchmark.answer.answer`).
 
 A study's table, figure and README are then written from the whole merged table, and an
 interrupted study has already merged each finished row: it never drops a row it did not

@@ -1,5 +1,5 @@
-"""results/xval/: the cross-validation's tables, plots, exact inputs, raw tips and README, from the
-runs of `benchmark.studies.xval.study` (never edited by hand).
+"""results/xval/: the cross-validation's tables, plots, exact inputs and README, derived from the
+study's table (``cost.csv``) and its tips (`benchmark.studies.xval.Runs`; never edited by hand).
 
 Every distance is the maximum over the compared times of the tip distance |Δ(r_p + q_{N+1})|.
 Richardson limits assume order 2 in N: x_∞ = x_2N + (x_2N − x_N)/3 for N → 2N.
@@ -24,8 +24,9 @@ from reelbench.benchmark.figures.plots import log_ticks, plt, save_figure, style
 from reelbench.benchmark.core.reference import REFERENCE_METHOD
 from reelbench.benchmark.core.report import Provenance, fmt
 from reelbench.benchmark.core.store import write_npz, write_table
-from reelbench.benchmark.studies.xval import (CFL, DT_MAX, HALF_DT, MODEL_TOLERANCE, OURS_REFINE, OUTPUT_INTERVAL, REFERENCE_CODE, WATER,
-                            Study, case_scene, moordyn_input, mujoco_xml)
+from reelbench.benchmark.studies.xval import (CFL, DT_MAX, HALF_DT, MODEL_TOLERANCE, OURS_REFINE, OUTPUT_INTERVAL,
+                                              REFERENCE_CODE, WATER, Runs, case_scene, cost_row, moordyn_input,
+                                              mujoco_xml)
 from reelbench.models.io import atomic_write_text
 from reelbench.models.scene import Scene
 
@@ -79,15 +80,11 @@ def _at_equal_n(case: str, N: int, r: dict) -> tuple[list[dict], list[dict]]:
                  final_tip_distance_m=float(np.linalg.norm(r[a].tip[-1] - r[b].tip[-1])),
                  compared=f"{solution(a, r[a])} vs {solution(b, r[b])}")
             for a, b in PAIRS if a in r and b in r]
-    cost = [dict(case=case, N=N, code=code, dt_s=run.dt, steps=run.steps, wall_s=run.wall_s,
-                 us_per_step=run.us_per_step if run.dt is not None else float("nan"),
-                 us_per_rhs=(1e6 * run.wall_s / run.extra["rhs_evals"]) if "rhs_evals" in run.extra else float("nan"),
-                 min_strain=run.extra.get("min_strain", float("nan")))
-            for code, run in r.items()]
+    cost = [cost_row(case, N, code, run) for code, run in r.items()]
     return diff, cost
 
 
-def _self_convergence(study: Study, case: str) -> list[dict]:
+def _self_convergence(study: Runs, case: str) -> list[dict]:
     rows = []
     Ns = study.elements(case)
     for code in TRAJ_CODES:
@@ -101,7 +98,7 @@ def _self_convergence(study: Study, case: str) -> list[dict]:
     return rows
 
 
-def _limits(study: Study, case: str) -> list[dict]:
+def _limits(study: Runs, case: str) -> list[dict]:
     Ns = study.elements(case)
     if len(Ns) < 2:
         return []
@@ -113,7 +110,7 @@ def _limits(study: Study, case: str) -> list[dict]:
             for i, a in enumerate(names) for b in names[i + 1:]]
 
 
-def tables(study: Study) -> Tables:
+def tables(study: Runs) -> Tables:
     diff, conv, lim, cost = [], [], [], []
     for case in study.cases():
         for N in study.elements(case):
@@ -125,7 +122,7 @@ def tables(study: Study) -> Tables:
     return Tables(pd.DataFrame(diff), pd.DataFrame(conv), pd.DataFrame(lim), pd.DataFrame(cost))
 
 
-def error_vs_limit(study: Study, case: str) -> pd.DataFrame:
+def error_vs_limit(study: Runs, case: str) -> pd.DataFrame:
     """Max-over-t distance of ours_consistent and ours_lumped at each N (but the two finest, which
     define it) from the Richardson limit of ours_consistent."""
     runs, Ns = study.runs, study.elements(case)
@@ -158,7 +155,7 @@ def _looks(keys, table) -> list[dict]:
             for (c, m, ls), ms in zip((table[k] for k in keys), [10, 9, 8, 7, 6, 5, 4, 3, 3])]
 
 
-def plot(study: Study, case: str, path: Path) -> Path:
+def plot(study: Runs, case: str, path: Path) -> Path:
     runs, Ns = study.runs, study.elements(case)
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11, 4.2))
     handles, labels = [], []
@@ -180,7 +177,7 @@ def plot(study: Study, case: str, path: Path) -> Path:
         if vals:
             handles += ax2.loglog(*zip(*vals), **look)
             labels.append(f"right: {code}")
-    if Ns:
+    if len(Ns) > 1:
         ref = np.array(Ns[1:], float)
         handles += ax2.loglog(ref, 0.5 * (ref / ref[0]) ** -2, color="0.4", linestyle=(0, (1, 2)))
         labels.append("right: slope −2")
@@ -202,7 +199,7 @@ def plot(study: Study, case: str, path: Path) -> Path:
 # ------------------------------------------------------------------------------------------
 # Files
 # ------------------------------------------------------------------------------------------
-def _write_inputs(study: Study, scene: Scene, out: Path, kept: dict | None = None) -> dict:
+def _write_inputs(study: Runs, scene: Scene, out: Path, kept: dict | None = None) -> dict:
     """The exact inputs given to MoorDyn and MuJoCo (``inputs/``) and ``settings.json``; returns
     the settings. ``kept``: {(case, N): settings entry} of earlier runs merged into the study,
     whose inputs and entries are kept as they were."""
@@ -234,23 +231,33 @@ def _write_inputs(study: Study, scene: Scene, out: Path, kept: dict | None = Non
     return settings
 
 
-def write_outputs(study: Study, scene: Scene, out: Path, provenance: Provenance, kept: dict | None = None) -> Path:
-    """Tables (CSV + README), plots, the exact inputs given to MoorDyn and MuJoCo and the raw tip
-    trajectories (so that the tables can be recomputed without rerunning). ``kept``: the settings
-    entries of the earlier runs merged into ``study`` (`benchmark.studies.xval.earlier_xval`)."""
+def write_report(study: Runs, scene: Scene, out: Path, provenance: Provenance, kept: dict | None = None) -> Path:
+    """Every file but the study's own table and tips (cost.csv and tips.npz, which the runner
+    saves): the derived tables (CSV), plots, the exact inputs given to MoorDyn and MuJoCo, and the
+    README. ``kept``: the settings entries of the earlier runs merged into ``study``
+    (`benchmark.studies.xval_output.Output`)."""
     out.mkdir(parents=True, exist_ok=True)
     tabs = tables(study)
     err = pd.concat([error_vs_limit(study, c) for c in study.cases()], ignore_index=True)
     for name, df in (*tabs._asdict().items(), ("error_vs_limit", err)):
-        write_table(out / f"{name}.csv", df)
+        if name != "cost":
+            write_table(out / f"{name}.csv", df)
     settings = _write_inputs(study, scene, out, kept)
-    write_npz(out / "tips.npz", {"times": study.times, **{f"{case}_N{N}_{code}": run.tip
-                                                          for (case, N), r in study.runs.items() for code, run in r.items()}},
-              compressed=True)
     for case in study.cases():
         plot(study, case, out / f"convergence_{case}.png")
     atomic_write_text(out / "README.md", readme(study, scene, tabs, settings, provenance))
     return out / "README.md"
+
+
+def write_outputs(study: Runs, scene: Scene, out: Path, provenance: Provenance, kept: dict | None = None) -> Path:
+    """Every file of the study from its runs, without the runner: the table (cost.csv), the raw
+    tip trajectories (so that the tables can be recomputed without rerunning) and `write_report`'s."""
+    out.mkdir(parents=True, exist_ok=True)
+    write_table(out / "cost.csv", tables(study).cost)
+    write_npz(out / "tips.npz", {"times": study.times, **{f"{case}_N{N}_{code}": run.tip
+                                                          for (case, N), r in study.runs.items() for code, run in r.items()}},
+              compressed=True)
+    return write_report(study, scene, out, provenance, kept)
 
 
 # ------------------------------------------------------------------------------------------
@@ -269,7 +276,7 @@ def _pair_max(diff: pd.DataFrame, case: str, N: int | None, a: str, b: str) -> f
     return float(d.max_tip_distance_m.max()) if len(d) else float("nan")
 
 
-def _agreement(study: Study, case: str, tabs: Tables, outside: list[str]) -> list[str]:
+def _agreement(study: Runs, case: str, tabs: Tables, outside: list[str]) -> list[str]:
     """The same discrete model in several codes at equal N (our lumped model's DOP853 solution
     against each outside code, and each outside code's own time error), and our consistent model."""
     Ns, diff = study.elements(case), tabs.differences
@@ -321,16 +328,20 @@ def _agreement(study: Study, case: str, tabs: Tables, outside: list[str]) -> lis
     return lines
 
 
-def _convergence(study: Study, case: str, tabs: Tables, outside: list[str]) -> list[str]:
+def _convergence(study: Runs, case: str, tabs: Tables, outside: list[str]) -> list[str]:
     """Each code's self-convergence, the agreement of the Richardson limits, the error against
     the consistent model's limit."""
     lines = []
     for code in ("ours_consistent", "ours_lumped") + tuple(outside):
-        cv = _rows(tabs.self_convergence, case=case, code=code)
+        cv = _rows(tabs.self_convergence, case=case, code=code) if len(tabs.self_convergence) else []
+        if not len(cv):  # one N so far (a stopped study)
+            continue
         orders = cv.observed_order.dropna()
         lines.append(f"- Self-convergence of {code}: max |tip(N) − tip(N/2)| from {_e(float(cv.max_change_m.iloc[0]))} "
                      f"(N = {int(cv.N_next.iloc[0])}) to {_e(float(cv.max_change_m.iloc[-1]))} m (N = {int(cv.N_next.iloc[-1])}); "
                      f"observed orders {', '.join(f'{o:.2f}' for o in orders)}.")
+    if tabs.limits.empty:
+        return lines
     lc = _rows(tabs.limits, case=case)
     for c in outside:
         for ours in ("ours_consistent", "ours_lumped"):
@@ -349,7 +360,7 @@ def _convergence(study: Study, case: str, tabs: Tables, outside: list[str]) -> l
     return lines
 
 
-def _cost_table(study: Study, case: str, tabs: Tables, outside: list[str]) -> list[str]:
+def _cost_table(study: Runs, case: str, tabs: Tables, outside: list[str]) -> list[str]:
     cost = _rows(tabs.cost, case=case)
     codes = [c for c in (*OUTSIDE, "ours_consistent", "ours_lumped") if c in set(cost.code)]
     lines = ["Wall time per step at equal N (µs; MoorDyn and MuJoCo: one RK4 step = 4 force evaluations, at dt, "
@@ -364,7 +375,7 @@ def _cost_table(study: Study, case: str, tabs: Tables, outside: list[str]) -> li
     return lines
 
 
-def readme(study: Study, scene: Scene, tabs: Tables, settings: dict, provenance: Provenance) -> str:
+def readme(study: Runs, scene: Scene, tabs: Tables, settings: dict, provenance: Provenance) -> str:
     lines = [
         "# Cross-validation against MoorDyn and MuJoCo", "",
         provenance.header(extra_packages=OUTSIDE), "",
