@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import functools
 import math
-import os
 import time
 import traceback
 from dataclasses import dataclass
@@ -45,7 +44,7 @@ from reelbench.benchmark.runs.metrics import ACCURACY, COLUMNS, INACCURATE, inac
 from reelbench.benchmark.core.reference import CACHE_DIR, ReferenceProblem, get_reference, prepare_reference
 from reelbench.benchmark.core.report import one_minute_load, shorten
 from reelbench.benchmark.core.store import code_version, frame, key_of
-from reelbench.benchmark.runs.table import kept_rows, row_digest, run_key
+from reelbench.benchmark.runs.table import row_digest, run_key
 from reelbench.benchmark.runs.sweep import DEFAULT_EXECUTOR, EXECUTORS, MAX_REPEATS, MIN_REPEATS, TIMING_BUDGET, Task
 from reelbench.integrators.base import CRASHED, ERROR, FINISHED_STATUSES, is_finished
 
@@ -80,7 +79,7 @@ def _scene(task: Task):
     return load_scene(task.scene, **dict(task.overrides))
 
 
-def _empty_row(task: Task, scene=None) -> dict:
+def empty_row(task: Task, scene=None) -> dict:
     row = {c: np.nan for c in COLUMNS}
     row.update(scene=scene.name if scene is not None else task.scene, integrator=task.integrator,
                setting=task.setting, dt=task.dt, rtol=task.rtol, atol=task.atol,
@@ -171,7 +170,7 @@ def run_task(task: Task, cache_dir: str = str(CACHE_DIR), repeats: int = MIN_REP
     try:
         row = _solved_row(task, cache_dir, repeats, reference, finished, loaded, budget)
     except Exception as exc:  # a bug in one task must not lose the other rows
-        row = _empty_row(task, loaded[0] if loaded else None)
+        row = empty_row(task, loaded[0] if loaded else None)
         row.update(status=ERROR, reason=shorten(f"{type(exc).__name__}: {exc}".splitlines()[0], 300))
         row["traceback"] = traceback.format_exc()[-2000:]
     row.update(load_avg=one_minute_load(), task_time=time.perf_counter() - started)
@@ -185,7 +184,7 @@ def _solved_row(task: Task, cache_dir: str, repeats: int, reference: bool, finis
 
     scene = _scene(task)
     loaded.append(scene)
-    row = _empty_row(task, scene)
+    row = empty_row(task, scene)
     t_end = task.t_end if task.t_end is not None else scene.t_end
     ref = get_reference(scene, t_end, task.save_every, Path(cache_dir)) if reference else None
     integ = get_integrator(task.integrator)
@@ -309,15 +308,13 @@ def execute(
     on_row: Callable[[list[dict]], None] | None = None,
     log: Callable[[str], None] = engine.log_stderr,
     group: Callable[[Task], Hashable] | None = None,
-    previous: Iterable[dict] | None = None,
     cost: Callable[[Task], float] | None = None,
     budget: SolveBudget = SolveBudget(),
 ) -> pd.DataFrame:
     """Run ``tasks`` on the engine and return the runs table (task order). ``on_row`` gets the
-    rows so far after each completion (used to write partial results atomically).
-
-    ``previous``: rows of an earlier run (`benchmark.runs.table.read_runs`, checked); a task whose
-    `run_key` is among them keeps that row and is not run again.
+    rows so far after each completion (used to write partial results atomically). It keeps
+    nothing of an earlier run: a study that resumes runs its tasks on the study runner
+    (`benchmark.studies.grid`).
 
     ``executor``: "process" (``jobs`` worker processes), "serial" (this process) or "dask" (the
     cluster at ``scheduler``). ``group``: tasks with the same ``group(task)`` run in one worker,
@@ -335,26 +332,21 @@ def execute(
     code = code_version()
     origins = {name: provenance(name, code) for name in dict.fromkeys(t.integrator for t in tasks)}
     keys = [run_key(t, origins[t.integrator]["code_digest"]) for t in tasks]
-    kept = kept_rows(keys, previous)
-    if kept:
-        log(f"resuming: {len(kept)} of {len(tasks)} runs already done (kept); "
-            f"computing the other {len(tasks) - len(kept)}")
-    todo = [t for i, t in enumerate(tasks) if i not in kept]
-    problems = sorted({ReferenceProblem(t.scene, t.overrides, t.t_end, t.save_every) for t in todo}, key=str)
-    if todo:
+    problems = sorted({ReferenceProblem(t.scene, t.overrides, t.t_end, t.save_every) for t in tasks}, key=str)
+    if tasks:
         log(f"references for {len(problems)} scene(s) ...")
     costs = [cost(t) for t in tasks] if cost else task_costs(tasks)
 
     def crashed(i: int, exc: BaseException) -> dict:
-        return {**_empty_row(tasks[i]), "status": CRASHED, "reason": engine.crash_reason(exc)}
+        return {**empty_row(tasks[i]), "status": CRASHED, "reason": engine.crash_reason(exc)}
 
     rows = engine.run_jobs(
         functools.partial(run_task, cache_dir=cache_dir, repeats=repeats, budget=budget), tasks,
-        workers=0 if executor == "serial" else (jobs or min(len(todo), os.cpu_count() or 1) or 1),
+        workers=0 if executor == "serial" else (jobs or engine.default_workers(len(tasks))),
         scheduler=scheduler if executor == "dask" else None, crash_row=crashed,
         group=(lambda i: group(tasks[i])) if group else None, cost=lambda i: costs[i],
         setup=[functools.partial(prepare_reference, p, cache_dir) for p in problems],
         setup_labels=[f"reference {Path(p.scene).stem}" + (f" to t = {p.t_end:g} s" if p.t_end else "")
                       for p in problems],
-        done=kept, finish=lambda i, row: finish_row(row, keys[i], origins[tasks[i].integrator]), describe=describe_run, on_row=on_row, log=log)
+        finish=lambda i, row: finish_row(row, keys[i], origins[tasks[i].integrator]), describe=describe_run, on_row=on_row, log=log)
     return runs_frame(rows)

@@ -5,7 +5,7 @@ atomic tables, the merge by row identity) is `benchmark.core.store`.
 * Identity: every row carries a `run_key` (scene physics, integrator, setting, horizon, save
   interval, code version); a run keeps the rows of an earlier table (`read_runs`) with the same
   key, so only the rest is computed (the grid sweep through the study runner,
-  `benchmark.core.study`; `kept_rows` for the runs made by `benchmark.runs.runner.execute`).
+  `benchmark.core.study`).
   Rows whose status may have been transient (`integrators.base.RETRY_STATUSES`) are never kept
   (`StoredRuns.reusable`).
 * Trust: a row read back is used only when it passes `check_row` -- its types, ranges and
@@ -389,12 +389,6 @@ def read_runs(path: str | os.PathLike, log: Callable[[str], None] | None = None)
 def describe_row(row: dict) -> str:
     """scene/integrator/setting of a row, for messages."""
     return "/".join(str(row.get(c, "?")) for c in ROW_IDENTITY)
-
-
-def kept_rows(keys: list[str], previous: Iterable[dict] | None) -> dict[int, dict]:
-    """{index: earlier row} for every key of ``keys`` that a row of ``previous`` carries."""
-    kept = {r["run_key"]: r for r in (previous or []) if isinstance(r.get("run_key"), str) and r["run_key"]}
-    return {i: kept[k] for i, k in enumerate(keys) if k in kept}
 
 
 # ------------------------------------------------------------------------------------------

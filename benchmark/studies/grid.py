@@ -115,7 +115,7 @@ def crash_row(job: Job, exc: BaseException) -> dict:
     from reelbench.benchmark.runs import runner
     from reelbench.integrators.base import CRASHED
 
-    row = {**runner._empty_row(job.task), "status": CRASHED, "reason": engine.crash_reason(exc)}
+    row = {**runner.empty_row(job.task), "status": CRASHED, "reason": engine.crash_reason(exc)}
     return runner.finish_row(row, job.key, job.origin)
 
 
