@@ -1,4 +1,4 @@
-"""The energy study's modified-energy analysis (benchmark/studies/properties.py): the derived offset of a
+"""The energy study's modified-energy analysis (benchmark/studies/energy_drift.py): the derived offset of a
 symplectic method's energy error, checked where the modified energy is known in closed form, and
 the drift verdict on what is left, which tells numerical drift from a growing offset."""
 

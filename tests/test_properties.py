@@ -1,4 +1,4 @@
-"""The generated "which property pays off where" section (benchmark/studies/properties.py): the raw slope
+"""The generated "which property pays off where" section (benchmark/studies/properties.py; the verdicts, benchmark/studies/energy_drift.py): the raw slope
 classifier tells a bounded error from a drifting one (and says when it cannot; it decides for a
 table without the signed error, see tests/test_modified_energy.py for the verdict after the
 modified-energy offset), and the words follow the numbers."""
