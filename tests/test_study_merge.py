@@ -97,6 +97,29 @@ def test_a_stability_map_stopped_at_any_job_keeps_every_committed_row(tmp_path, 
     assert not (out / ".reelbench.lock").exists()
 
 
+def test_a_stability_map_rerun_keeps_its_finished_rows_and_fresh_recomputes_them(tmp_path, monkeypatch, capsys):
+    """A rerun with the same code and settings keeps every row it made (its help says so); a row
+    whose run crashed is made again; --fresh makes every one again."""
+    from reelbench.benchmark.studies import stability
+
+    out, ran = tmp_path / "stability", []
+
+    def fake(job):
+        ran.append((job.integrator, job.kind))
+        return _fake_stability_row(job)
+
+    monkeypatch.setattr(stability, "run_job", fake)
+    args = ["stability", "--scenes", "fast_spin", "--integrators", "tsit5", "--jobs", "0", "--out", str(out)]
+    assert main(args) == 0 and len(ran) == 2
+    assert main(args) == 0 and len(ran) == 2, ran  # both kept
+    assert "kept 2 of 2" in capsys.readouterr().err
+    table = pd.read_csv(out / "stability.csv")
+    table.loc[table["kind"] == "adaptive", "status"] = "crashed"
+    table.to_csv(out / "stability.csv", index=False)
+    assert main(args) == 0 and ran[2:] == [("tsit5", "adaptive")], ran
+    assert main([*args, "--fresh"]) == 0 and len(ran) == 5
+
+
 def test_an_unreadable_stability_table_is_refused_before_any_work(tmp_path, monkeypatch, capsys):
     from reelbench.benchmark.studies import stability
 

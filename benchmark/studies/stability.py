@@ -35,9 +35,10 @@ import pandas as pd
 from reelbench.benchmark.core import engine
 from reelbench.benchmark.runs.metrics import CONSERVATION
 from reelbench.benchmark.core.store import frame
+from reelbench.benchmark.core.study import KEY_COLUMN
 from reelbench.benchmark.runs.sweep import Task
 from reelbench.benchmark.studies import budget as _budget
-from reelbench.integrators.base import CRASHED, ERROR, FINISHED_STATUSES, Status
+from reelbench.integrators.base import CRASHED, ERROR, FINISHED_STATUSES, RETRY_STATUSES, Status
 
 #: Largest step of the fixed-step ladder (s) and the number of halvings tried below it.
 DT_MAX = 0.04
@@ -276,7 +277,7 @@ def run_job(job: Job) -> dict:
 COLUMNS = ["scene", "integrator", "kind", "horizon", "bounded", "largest_stable_dt", "first_unstable_dt",
            "unstable_status", "setting", "status", "steps", "rejected_steps", "min_step", "median_step", "mean_step",
            "newton_iterations", *CONSERVATION, "run_time", "compile_time", "job_time",
-           "rungs_tried", "t_reached", "overrides", "horizon_note", "reason", "unstable_reason"]
+           "rungs_tried", "t_reached", "overrides", "horizon_note", "reason", "unstable_reason", KEY_COLUMN]
 
 
 def to_frame(rows: list[dict]) -> pd.DataFrame:
@@ -334,9 +335,29 @@ def execute(jobs: list[Job], *, workers: int | None = None, on_rows: Callable | 
 IDENTITY = ("scene", "integrator", "kind")
 
 
+def key(job: Job) -> str:
+    """What determines a row of the map: the case's scene physics (its overrides applied) and
+    horizon, the method, its kind and run, the budget (`budget.key_settings`), the code."""
+    from reelbench.benchmark.core.study import job_key
+    from reelbench.models import load_scene
+
+    case = job.case
+    return job_key({"scene": load_scene(case.scene, **dict(case.overrides)).key(), "case": case.scene,
+                    "horizon": case.horizon, "integrator": job.integrator, "kind": job.kind,
+                    "default_run": job.default_run, **_budget.key_settings(job.budget)},
+                   "benchmark/studies/stability.py")
+
+
+def _reusable(row: dict) -> bool:
+    """A row of the map is a result whatever its run's status, unless the cause may have been
+    transient (`RETRY_STATUSES`: a crash, an error, a wall-clock budget on a loaded machine)."""
+    return str(row.get("status", "")) not in RETRY_STATUSES
+
+
 def study(scenes=None, integrators=None, *, workers: int | None = None, budget=None):
     """The stability map as a study of `benchmark.core.study.run`: stability.csv (merged with the
-    map already in the output, written after every job), stability.md, stability.png and README.md
+    map already in the output, written after every job; a rerun keeps a row of the same `key`),
+    stability.md, stability.png and README.md
     from the whole map. Unknown names are refused here, before any work. ``workers``: None, one
     per scene and method (`engine.default_workers`); ``budget``: of each solve (None: the defaults)."""
     from reelbench.benchmark.core.study import Study
@@ -346,7 +367,8 @@ def study(scenes=None, integrators=None, *, workers: int | None = None, budget=N
         workers = engine.default_workers(len({_group(j) for j in jobs}))
     return Study(name="stability map", table="stability.csv", identity=IDENTITY, jobs=jobs, run_job=run_job,
                  identity_of=lambda j: (j.case.scene, j.integrator, j.kind), frame=to_frame, report=write_outputs,
-                 describe=describe, crash_row=crash_row, group=_group, cost=_cost_hint, workers=workers)
+                 describe=describe, crash_row=crash_row, group=_group, cost=_cost_hint, workers=workers,
+                 key=key, reusable=_reusable)
 
 
 def write_outputs(out, rows: list[dict], provenance) -> str:
@@ -359,7 +381,7 @@ def write_outputs(out, rows: list[dict], provenance) -> str:
 
     out = Path(out)
     merged = to_frame(rows)
-    atomic_write_text(out / "stability.md", markdown_table(merged))
+    atomic_write_text(out / "stability.md", markdown_table(merged.drop(columns=[KEY_COLUMN])))
     stability_report.plot(merged, out)
     stability_report.write_readme(out, merged, provenance=provenance)
     return f"see {out}/README.md"
